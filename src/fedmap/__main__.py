@@ -1,0 +1,5 @@
+import sys
+
+from fedmap.cli import main
+
+sys.exit(main())

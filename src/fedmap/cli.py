@@ -1,0 +1,191 @@
+"""``fedmap`` command line: wires the library's boxes together, nothing more.
+
+User mistakes (bad files, bad options) print one line ``error: ...`` and exit 2.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import click
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from fedmap.errors import FedmapError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="Federated multi-agent mapping for planetary exploration.",
+)
+console = Console()
+
+
+def _progress() -> Progress:
+    return Progress(
+        TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(), TextColumn("loss {task.fields[loss]}"),
+        TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False,
+    )
+
+
+def _fmt(x, nd=2) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, float) and x == float("inf"):
+        return "inf"
+    return f"{x:.{nd}f}"
+
+
+def _scores_table(metrics: dict) -> Table:
+    t = Table(title="global map vs ground truth", header_style="bold")
+    for col in ("map", "PSNR dB", "SSIM", "cell acc.", "path P", "path R", "path F1", "tolerant F1"):
+        t.add_column(col, justify="right" if col != "map" else "left")
+    rows = [("federated (raw)", metrics["global"]), ("federated + refined", metrics["refined"])]
+    rows += [(f"agent {a['agent'] + 1} local only", a) for a in metrics["agents"]]
+    for name, m in rows:
+        p = m["path"]
+        t.add_row(name, _fmt(m["psnr"]), _fmt(m["ssim"], 3), _fmt(m["accuracy"], 3), _fmt(p["precision"]),
+                  _fmt(p["recall"]), _fmt(p["f1"]), _fmt(p["tolerant"]["f1"]))
+    return t
+
+
+@app.command()
+def demo(
+    terrain: str = typer.Option("mars", help="Built-in terrain: mars, moon or ice."),
+    size: int = typer.Option(128, help="Map side in cells (64..2048)."),
+    agents: int = typer.Option(4, help="Number of rovers."),
+    explore: str = typer.Option("quadrants", help="Exploration: quadrants, strips, grid or traverse."),
+    rounds: int = typer.Option(1, help="Communication rounds R."),
+    local_epochs: int = typer.Option(100, "--local-epochs", help="Local epochs per round E."),
+    lr: float = typer.Option(1e-3, help="Local Adam learning rate."),
+    aggregator: str = typer.Option("fedavg", help="fedavg, fedadam or fedyogi."),
+    eta: float = typer.Option(1e-2, help="Server learning rate for fedadam/fedyogi."),
+    init: str = typer.Option("random", help="Initial weights: random or empty (empty-map prior)."),
+    masked: bool = typer.Option(False, help="Loss on known cells only (paper: off, unknown is trained as grey)."),
+    min_size: int = typer.Option(200, "--min-size", help="Refinement: remove impassable blobs smaller than this (cells)."),
+    pairs: int = typer.Option(75, help="Random start/goal pairs for the path F1."),
+    seed: int = typer.Option(0, help="Seed for terrain, exploration, initialisation, training and evaluation."),
+    out: Path = typer.Option(Path("fedmap-out/demo"), "--out", "-o", help="Output folder (replaced atomically)."),
+) -> None:
+    """Built-in terrain -> 4 rovers explore -> fit -> federate -> refine -> evaluate."""
+    from fedmap.federation.runner import FederationConfig
+    from fedmap.maps.terrain import TERRAIN_KINDS
+    from fedmap.pipeline import PipelineConfig, run_pipeline, write_outputs
+    from fedmap.refine import RefineConfig
+    from fedmap.training import TrainConfig
+
+    if terrain not in TERRAIN_KINDS:
+        raise FedmapError(f"unknown terrain {terrain!r}; choose one of {', '.join(TERRAIN_KINDS)}")
+    if size <= 0:
+        raise FedmapError(f"size must be a positive number of cells, got {size}")
+    t0 = time.perf_counter()
+    config = PipelineConfig(
+        terrain=terrain, size=size, agents=agents, explore=explore, init=init, seed=seed, eval_pairs=pairs,
+        federation=FederationConfig(rounds=rounds, aggregator=aggregator, eta=eta, seed=seed,
+                                    local=TrainConfig(epochs=local_epochs, lr=lr, masked=masked)),
+        refine=RefineConfig(min_size=min_size),
+    )
+    with _progress() as progress:
+        current = {"task": None}
+
+        def on_stage(name: str, total: int) -> None:
+            if current["task"] is not None:
+                progress.update(current["task"], completed=progress.tasks[current["task"]].total or 1,
+                                total=progress.tasks[current["task"]].total or 1)
+            current["task"] = progress.add_task(name, total=total or None, loss="")
+
+        def on_step(step: int, loss: float) -> None:
+            progress.update(current["task"], advance=1, loss=f"{loss:.4f}")
+
+        result = run_pipeline(config, on_stage=on_stage, on_step=on_step)
+        on_stage("write outputs", 0)
+        write_outputs(result, out)
+        progress.update(current["task"], total=1, completed=1)
+    m = result.metrics
+    console.print(_scores_table(m))
+    b = m["bytes"]
+    console.print(f"link: {b['uplink']:,} B uplink, {b['downlink']:,} B downlink in total "
+                  f"({b['uplink'] // max(agents * rounds, 1):,} B per rover per round, fp32)")
+    console.print(f"outputs: {out}/  (metrics.json, figure.png, global_model.safetensors, maps)")
+    console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
+
+
+@app.command()
+def terrain(
+    kind: str = typer.Argument(..., help="mars, moon or ice."),
+    out: Path = typer.Argument(..., help="Output map (.png or .npy)."),
+    size: int = typer.Option(256, help="Map side in cells (64..2048)."),
+    seed: int = typer.Option(0),
+    dem_out: Optional[Path] = typer.Option(None, "--dem", help="Also save the DEM as .npy."),
+) -> None:
+    """Generate a built-in terrain's traversability map."""
+    import numpy as np
+
+    from fedmap.maps.io import atomic_write_bytes, save_map
+    from fedmap.maps.terrain import generate_dem
+    from fedmap.maps.traversability import dem_to_traversability
+
+    dem = generate_dem(kind, size, seed=seed)
+    grid = dem_to_traversability(dem)
+    save_map(grid, out)
+    if dem_out is not None:
+        import io
+
+        buf = io.BytesIO()
+        np.save(buf, dem.elevation)
+        atomic_write_bytes(dem_out, buf.getvalue())
+    f = grid.fractions()
+    console.print(f"{out}: {size}x{size} {kind}, {f['free']:.1%} free, {f['impassable']:.1%} impassable, {f['unknown']:.1%} unknown")
+
+
+@app.command()
+def evaluate(
+    learned: Path = typer.Argument(..., help="Learned map (.png or .npy)."),
+    truth: Path = typer.Argument(..., help="Ground-truth map (.png or .npy)."),
+    pairs: int = typer.Option(75, help="Random start/goal pairs."),
+    seed: int = typer.Option(0),
+    unknown_passable: bool = typer.Option(False, help="Let the planner cross UNKNOWN cells."),
+) -> None:
+    """PSNR, SSIM and A* path F1 of a map against ground truth."""
+    import json
+
+    from fedmap.evaluation.metrics import image_scores
+    from fedmap.evaluation.planning import path_f1
+    from fedmap.maps.io import load_map
+    from fedmap.report import _clean
+
+    a, b = load_map(learned), load_map(truth)
+    if a.shape != b.shape:
+        raise FedmapError(f"{learned} is {a.shape[0]}x{a.shape[1]} but {truth} is {b.shape[0]}x{b.shape[1]}")
+    scores = image_scores(b.classes, a.classes)
+    scores["path"] = path_f1(b.classes, a.classes, n_pairs=pairs, seed=seed, unknown_passable=unknown_passable)
+    console.print_json(json.dumps(_clean(scores)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: one-line errors, no tracebacks for user mistakes."""
+    try:
+        app(args=argv, standalone_mode=False)
+    except FedmapError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except click.UsageError as e:
+        print(f"error: {e.format_message()}", file=sys.stderr)
+        return 2
+    except click.exceptions.Abort:
+        print("error: aborted", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        print("error: interrupted; no partial output was written", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Map quality (PSNR, SSIM) and path-planning evaluation (A* path F1)."""

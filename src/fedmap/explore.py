@@ -1,0 +1,124 @@
+"""Agents' exploration: which part of the global frame each agent observes.
+
+Every local map lives in the **global frame** (same grid as the ground truth): observed
+cells keep their true class, everything else is UNKNOWN.
+
+Modes
+-----
+``quadrants``  4 agents, one image quadrant each (the paper's setup).
+``strips``     N vertical strips of (nearly) equal width.
+``grid``       N agents on a near-square tiling (rows x cols blocks, row-major).
+``traverse``   each agent drives a path through free space inside its own block of the
+               ``grid`` tiling, through seeded random waypoints planned with A*, and
+               observes every cell within ``sensor_radius`` cells of its path.
+
+``overlap`` (cells) widens each block of the partition modes on every side, so
+neighbouring agents see a shared margin.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage
+
+from fedmap.errors import FedmapError
+from fedmap.evaluation.planning import astar, passable_mask
+from fedmap.maps.grid import UNKNOWN, GridMap
+
+EXPLORE_MODES = ("quadrants", "strips", "grid", "traverse")
+
+
+def _grid_shape(n: int) -> tuple[int, int]:
+    rows = int(math.floor(math.sqrt(n)))
+    while n % rows:
+        rows -= 1
+    return rows, n // rows
+
+
+def region_masks(shape: tuple[int, int], n_agents: int, mode: str = "quadrants", *, overlap: int = 0) -> list[np.ndarray]:
+    """Boolean (H, W) mask of each agent's block for the partition modes."""
+    h, w = shape
+    if n_agents < 1:
+        raise FedmapError(f"number of agents must be >= 1, got {n_agents}")
+    if mode == "quadrants":
+        if n_agents != 4:
+            raise FedmapError(f"'quadrants' exploration needs exactly 4 agents, got {n_agents}; use 'strips' or 'grid'")
+        rows, cols = 2, 2
+    elif mode == "strips":
+        rows, cols = 1, n_agents
+    elif mode in ("grid", "traverse"):
+        rows, cols = _grid_shape(n_agents)
+    else:
+        raise FedmapError(f"unknown exploration mode {mode!r}; choose one of {', '.join(EXPLORE_MODES)}")
+    if rows > h or cols > w:
+        raise FedmapError(f"cannot split a {h}x{w} map among {n_agents} agents")
+    rb = np.linspace(0, h, rows + 1).round().astype(int)
+    cb = np.linspace(0, w, cols + 1).round().astype(int)
+    masks = []
+    for i in range(rows):
+        for j in range(cols):
+            m = np.zeros(shape, dtype=bool)
+            m[max(rb[i] - overlap, 0) : rb[i + 1] + overlap, max(cb[j] - overlap, 0) : cb[j + 1] + overlap] = True
+            masks.append(m)
+    return masks
+
+
+def traverse_mask(
+    truth: GridMap, region: np.ndarray, *, sensor_radius: float, waypoints: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Cells seen by a rover driving through ``waypoints`` random free cells of ``region``."""
+    passable = passable_mask(truth.classes)
+    labels, _ = ndimage.label(passable)
+    cand = np.argwhere(passable & region)
+    if len(cand) == 0:
+        raise FedmapError("an agent's region holds no free cell to drive on")
+    # Drive inside the largest free component touching the region so waypoints connect.
+    comp_sizes = np.bincount(labels[passable & region])
+    comp_sizes[0] = 0
+    comp = int(np.argmax(comp_sizes))
+    cand = np.argwhere((labels == comp) & region)
+    route = np.zeros(truth.shape, dtype=bool)
+    pos = tuple(int(v) for v in cand[rng.integers(len(cand))])
+    route[pos] = True
+    for _ in range(waypoints):
+        nxt = tuple(int(v) for v in cand[rng.integers(len(cand))])
+        path = astar(passable, pos, nxt)
+        if path:
+            rr, cc = zip(*path)
+            route[list(rr), list(cc)] = True
+            pos = nxt
+    dist = ndimage.distance_transform_edt(~route)
+    return dist <= sensor_radius
+
+
+def explore(
+    truth: GridMap,
+    n_agents: int = 4,
+    mode: str = "quadrants",
+    *,
+    seed: int = 0,
+    overlap: int = 0,
+    sensor_radius: float = 12.0,
+    waypoints: int = 6,
+) -> list[GridMap]:
+    """One local map per agent, in the global frame."""
+    if mode not in EXPLORE_MODES:
+        raise FedmapError(f"unknown exploration mode {mode!r}; choose one of {', '.join(EXPLORE_MODES)}")
+    regions = region_masks(truth.shape, n_agents, mode, overlap=overlap)
+    if mode == "traverse":
+        if sensor_radius <= 0:
+            raise FedmapError(f"sensor radius must be positive, got {sensor_radius}")
+        rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(n_agents)]
+        seen = [traverse_mask(truth, r, sensor_radius=sensor_radius, waypoints=waypoints, rng=g) for r, g in zip(regions, rngs)]
+    else:
+        seen = regions
+    local = []
+    for k, mask in enumerate(seen):
+        classes = np.where(mask, truth.classes, UNKNOWN).astype(np.uint8)
+        m = GridMap(classes, truth.pixel_size, f"agent{k}:{mode}", {"agent": k, "mode": mode})
+        if m.n_known == 0:
+            raise FedmapError(f"agent {k} observed nothing (its region is all nodata)")
+        local.append(m)
+    return local

@@ -1,0 +1,1 @@
+"""Federated aggregation (one module of math) and the in-process runner."""

@@ -1,0 +1,141 @@
+"""Aggregation math: the one implementation used by the in-process runner and Flower.
+
+Everything works on ``Weights`` (``{name: float32 array}``) so it does not care who
+trained the models or how they travelled.
+
+* **FedAvg** (McMahan et al. 2017): ``theta = sum_k (n_k / n) theta_k`` with ``n_k`` the
+  agent's number of known cells.
+* **FedAdam / FedYogi** (Reddi et al. 2021, Algorithm 2): the server treats the averaged
+  update ``delta = avg_k(theta_k) - theta`` as a pseudo-gradient::
+
+      m <- beta1 * m + (1 - beta1) * delta
+      v <- beta2 * v + (1 - beta2) * delta^2                          (Adam)
+      v <- v - (1 - beta2) * delta^2 * sign(v - delta^2)              (Yogi)
+      theta <- theta + eta * m / (sqrt(v) + tau)
+
+  with ``m`` and ``v`` starting at 0 (Reddi et al. start ``v`` at ``tau^2``; the
+  ``v0`` option sets it) and no bias correction, as in the paper. Note that in round 1
+  the step is ``eta * 0.1 * delta / (sqrt(0.01 delta^2 + ...) + tau)`` ~ ``eta * sign(delta)``
+  when ``|delta| >> tau``: every weight moves by about ``eta`` whatever the agents did,
+  so ``eta`` must be small for one-shot federation.
+
+The averaging is done in float64 and the result cast back to float32.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from fedmap.errors import FedmapError
+from fedmap.model import Weights
+
+
+def _check_updates(updates: list[Weights], counts: list[float]) -> None:
+    if not updates:
+        raise FedmapError("no agent updates to aggregate")
+    if len(updates) != len(counts):
+        raise FedmapError(f"{len(updates)} updates but {len(counts)} weights")
+    names = list(updates[0])
+    for i, u in enumerate(updates):
+        if set(u) != set(names):
+            raise FedmapError(f"update {i} has different tensors from update 0")
+        for k in names:
+            if np.shape(u[k]) != np.shape(updates[0][k]):
+                raise FedmapError(f"update {i}: tensor {k!r} has shape {np.shape(u[k])}, expected {np.shape(updates[0][k])}")
+    c = np.asarray(counts, dtype=np.float64)
+    if (c < 0).any() or not np.isfinite(c).all() or c.sum() <= 0:
+        raise FedmapError(f"aggregation weights must be non-negative with a positive sum, got {counts}")
+
+
+def weighted_average(updates: list[Weights], counts: list[float]) -> Weights:
+    """``sum_k (n_k / n) w_k`` per tensor, computed in float64, returned as float32."""
+    _check_updates(updates, counts)
+    c = np.asarray(counts, dtype=np.float64)
+    c = c / c.sum()
+    return {
+        k: sum(ck * np.asarray(u[k], dtype=np.float64) for ck, u in zip(c, updates)).astype(np.float32)
+        for k in updates[0]
+    }
+
+
+@dataclass
+class FedAvg:
+    """Weighted average of the agents' weights; stateless."""
+
+    name: str = field(default="fedavg", init=False)
+
+    def aggregate(self, global_w: Weights, updates: list[Weights], counts: list[float]) -> Weights:
+        return weighted_average(updates, counts)
+
+    def hyperparameters(self) -> dict:
+        return {}
+
+
+@dataclass
+class _FedOpt:
+    """Shared server-optimiser state for FedAdam and FedYogi."""
+
+    eta: float = 1e-2
+    beta1: float = 0.9
+    beta2: float = 0.99
+    tau: float = 1e-3
+    v0: float = 0.0
+    m: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    v: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        if not self.eta > 0 or not self.tau > 0 or self.v0 < 0:
+            raise FedmapError(f"{self.name}: eta and tau must be positive and v0 >= 0 (got eta={self.eta}, tau={self.tau}, v0={self.v0})")
+        if not (0 <= self.beta1 < 1 and 0 <= self.beta2 < 1):
+            raise FedmapError(f"{self.name}: betas must be in [0, 1), got {self.beta1}, {self.beta2}")
+
+    def _second_moment(self, v: np.ndarray, d2: np.ndarray) -> np.ndarray:  # pragma: no cover
+        raise NotImplementedError
+
+    def aggregate(self, global_w: Weights, updates: list[Weights], counts: list[float]) -> Weights:
+        avg = weighted_average(updates, counts)
+        out: Weights = {}
+        for k, g in global_w.items():
+            g64 = np.asarray(g, dtype=np.float64)
+            delta = avg[k].astype(np.float64) - g64
+            m = self.m.get(k, np.zeros_like(g64))
+            v = self.v.get(k, np.full_like(g64, self.v0))
+            m = self.beta1 * m + (1 - self.beta1) * delta
+            v = self._second_moment(v, delta * delta)
+            self.m[k], self.v[k] = m, v
+            out[k] = (g64 + self.eta * m / (np.sqrt(v) + self.tau)).astype(np.float32)
+        return out
+
+    def hyperparameters(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if k in ("eta", "beta1", "beta2", "tau", "v0")}
+
+
+@dataclass
+class FedAdam(_FedOpt):
+    name: str = field(default="fedadam", init=False)
+
+    def _second_moment(self, v: np.ndarray, d2: np.ndarray) -> np.ndarray:
+        return self.beta2 * v + (1 - self.beta2) * d2
+
+
+@dataclass
+class FedYogi(_FedOpt):
+    name: str = field(default="fedyogi", init=False)
+
+    def _second_moment(self, v: np.ndarray, d2: np.ndarray) -> np.ndarray:
+        return v - (1 - self.beta2) * d2 * np.sign(v - d2)
+
+
+AGGREGATORS = {"fedavg": FedAvg, "fedadam": FedAdam, "fedyogi": FedYogi}
+
+
+def make_aggregator(name: str, **hparams: float):
+    """Build an aggregator by name; FedAdam/FedYogi take eta, beta1, beta2, tau, v0."""
+    key = name.lower()
+    if key not in AGGREGATORS:
+        raise FedmapError(f"unknown aggregator {name!r}; choose one of {', '.join(AGGREGATORS)}")
+    if key == "fedavg":
+        return FedAvg()
+    return AGGREGATORS[key](**{k: v for k, v in hparams.items() if v is not None})

@@ -1,0 +1,116 @@
+"""Traversability grid maps in a shared global frame.
+
+A :class:`GridMap` is an ``H x W`` array of classes (:data:`FREE`, :data:`IMPASSABLE`,
+:data:`UNKNOWN`) plus metadata. Cells that are not UNKNOWN are *known*. For people and
+as the network's target a map is rendered in the paper's colours (free = green,
+impassable = red, unknown = grey 0.5); a network's RGB output goes back to classes by
+nearest colour.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fedmap.errors import FedmapError
+
+FREE: int = 0
+IMPASSABLE: int = 1
+UNKNOWN: int = 2
+CLASS_NAMES: tuple[str, ...] = ("free", "impassable", "unknown")
+
+#: RGB colour of each class, indexed by class value, in [0, 1].
+PALETTE = np.array(
+    [
+        [0.0, 1.0, 0.0],  # FREE: green
+        [1.0, 0.0, 0.0],  # IMPASSABLE: red
+        [0.5, 0.5, 0.5],  # UNKNOWN: grey
+    ],
+    dtype=np.float32,
+)
+
+
+@dataclass
+class GridMap:
+    """A traversability map on a grid in the global frame.
+
+    Parameters
+    ----------
+    classes : ndarray (H, W) uint8
+        One of FREE, IMPASSABLE, UNKNOWN per cell.
+    pixel_size : float
+        Ground size of one cell in metres.
+    source : str
+        Where the map came from (file path, generator settings, agent id...).
+    """
+
+    classes: np.ndarray
+    pixel_size: float = 1.0
+    source: str = ""
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        c = np.asarray(self.classes)
+        if c.ndim != 2:
+            raise FedmapError(f"a map must be 2-D, got shape {c.shape}")
+        if c.shape[0] <= 0 or c.shape[1] <= 0:
+            raise FedmapError(f"a map must not be empty, got shape {c.shape}")
+        if c.size and (c.min() < 0 or c.max() > UNKNOWN):
+            raise FedmapError(f"map classes must be 0..{UNKNOWN}, got values {c.min()}..{c.max()}")
+        self.classes = c.astype(np.uint8, copy=False)
+        if not np.isfinite(self.pixel_size) or self.pixel_size <= 0:
+            raise FedmapError(f"pixel size must be a positive number of metres, got {self.pixel_size}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.classes.shape  # type: ignore[return-value]
+
+    @property
+    def known(self) -> np.ndarray:
+        """Boolean mask of observed cells, (H, W)."""
+        return self.classes != UNKNOWN
+
+    @property
+    def n_known(self) -> int:
+        return int(self.known.sum())
+
+    def to_rgb(self) -> np.ndarray:
+        """Render in the paper's colours: (H, W, 3) float32 in [0, 1]."""
+        return render_classes(self.classes)
+
+    def fractions(self) -> dict[str, float]:
+        counts = np.bincount(self.classes.ravel(), minlength=3) / self.classes.size
+        return {name: float(counts[i]) for i, name in enumerate(CLASS_NAMES)}
+
+    def with_classes(self, classes: np.ndarray, source: str | None = None) -> "GridMap":
+        """A copy with new classes and the same metadata."""
+        return GridMap(classes, self.pixel_size, self.source if source is None else source, dict(self.meta))
+
+
+def render_classes(classes: np.ndarray) -> np.ndarray:
+    """Class array (H, W) -> RGB (H, W, 3) float32 in the paper's colours."""
+    return PALETTE[np.asarray(classes, dtype=np.intp)]
+
+
+def classes_from_rgb(rgb: np.ndarray) -> np.ndarray:
+    """Nearest palette colour for each pixel: (H, W, 3) in [0, 1] -> (H, W) uint8 classes.
+
+    Ties (exactly equidistant colours) go to the lower class value.
+    """
+    rgb = np.asarray(rgb, dtype=np.float32)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise FedmapError(f"an RGB map must have shape (H, W, 3), got {rgb.shape}")
+    d2 = ((rgb[:, :, None, :] - PALETTE[None, None, :, :]) ** 2).sum(axis=-1)  # (H, W, 3)
+    return np.argmin(d2, axis=-1).astype(np.uint8)
+
+
+def check_same_frame(maps: list[GridMap]) -> tuple[int, int]:
+    """All maps must share one global grid; returns its shape."""
+    if not maps:
+        raise FedmapError("no maps given")
+    shape = maps[0].shape
+    for i, m in enumerate(maps[1:], start=1):
+        if m.shape != shape:
+            raise FedmapError(f"map {i} has grid {m.shape[0]}x{m.shape[1]}, but map 0 has {shape[0]}x{shape[1]}: all agents must share one global grid")
+    return shape

@@ -1,0 +1,115 @@
+"""Local training: fit a coordinate network to one map (Adam + MSE on the RGB rendering).
+
+This is the one implementation of local fitting; the in-process federation runner and
+the Flower apps both call :func:`fit`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from fedmap.errors import FedmapError
+from fedmap.maps.grid import GridMap
+from fedmap.model import CoordNet, grid_coords
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Local optimisation settings.
+
+    ``epochs`` passes over the map. With ``batch_pixels=None`` (the paper's setup) one
+    epoch is one Adam step on the full grid; otherwise one epoch is a seeded random
+    permutation of all pixels cut into batches of ``batch_pixels``.
+    ``masked=False`` trains on every cell, UNKNOWN ones towards grey (the paper);
+    ``masked=True`` puts the loss on known cells only.
+    """
+
+    epochs: int = 100
+    lr: float = 1e-3
+    batch_pixels: int | None = None
+    masked: bool = False
+
+    def __post_init__(self) -> None:
+        if self.epochs < 0:
+            raise FedmapError(f"local epochs must be >= 0, got {self.epochs}")
+        if not self.lr > 0:
+            raise FedmapError(f"learning rate must be positive, got {self.lr}")
+        if self.batch_pixels is not None and self.batch_pixels <= 1:
+            raise FedmapError(f"batch_pixels must be > 1 (BatchNorm needs a batch), got {self.batch_pixels}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def map_targets(grid: GridMap, *, masked: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Coordinates, RGB targets and loss weights of a map, flattened row-major.
+
+    Returns ``coords (N, 2)``, ``target (N, 3)``, ``weight (N,)``. Without masking every
+    weight is 1; with masking UNKNOWN cells get 0.
+    """
+    h, w = grid.shape
+    coords = grid_coords(h, w)
+    target = torch.from_numpy(grid.to_rgb().reshape(-1, 3))
+    if masked:
+        weight = torch.from_numpy(grid.known.reshape(-1).astype(np.float32))
+    else:
+        weight = torch.ones(h * w)
+    return coords, target, weight
+
+
+def _loss(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    per_pixel = ((pred - target) ** 2).mean(dim=1)  # (B,)
+    return (per_pixel * weight).sum() / weight.sum().clamp_min(1.0)
+
+
+def fit(
+    model: CoordNet,
+    grid: GridMap,
+    config: TrainConfig,
+    *,
+    seed: int = 0,
+    on_step: Callable[[int, float], None] | None = None,
+) -> list[float]:
+    """Train ``model`` in place on ``grid``; returns the loss of every step.
+
+    ``on_step(step, loss)`` is called after each optimiser step (progress bars hook here).
+    """
+    coords, target, weight = map_targets(grid, masked=config.masked)
+    if config.masked and not weight.any():
+        raise FedmapError(f"map {grid.source!r} has no known cell to train on")
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    gen = torch.Generator().manual_seed(seed)
+    n = coords.shape[0]
+    model.train()
+    losses: list[float] = []
+    for _ in range(config.epochs):
+        if config.batch_pixels is None or config.batch_pixels >= n:
+            batches = [None]
+        else:
+            perm = torch.randperm(n, generator=gen)
+            batches = [perm[a : a + config.batch_pixels] for a in range(0, n, config.batch_pixels)]
+            if len(batches) > 1 and len(batches[-1]) < 2:  # BatchNorm cannot take one sample
+                batches = batches[:-1]
+        for idx in batches:
+            x, y, wt = (coords, target, weight) if idx is None else (coords[idx], target[idx], weight[idx])
+            opt.zero_grad(set_to_none=True)
+            loss = _loss(model(x), y, wt)
+            loss.backward()
+            opt.step()
+            losses.append(loss.item())
+            if on_step is not None:
+                on_step(len(losses), losses[-1])
+    if losses and not np.isfinite(losses[-1]):
+        raise FedmapError(f"training diverged on {grid.source!r} (loss is {losses[-1]}); lower the learning rate")
+    return losses
+
+
+def steps_per_epoch(n_pixels: int, config: TrainConfig) -> int:
+    if config.batch_pixels is None or config.batch_pixels >= n_pixels:
+        return 1
+    full, rest = divmod(n_pixels, config.batch_pixels)
+    return full + (1 if rest >= 2 else 0)

@@ -1,0 +1,25 @@
+import numpy as np
+import pytest
+import torch
+
+from fedmap.maps.grid import FREE, IMPASSABLE, GridMap
+from fedmap.model import NetConfig
+
+torch.set_num_threads(2)
+
+#: A small network so tests of training and federation run in milliseconds.
+TINY_NET = NetConfig(mapping_size=16, hidden=32)
+
+
+@pytest.fixture
+def tiny_net() -> NetConfig:
+    return TINY_NET
+
+
+@pytest.fixture
+def blob_map() -> GridMap:
+    """24x24 map: free ground with two impassable rectangles."""
+    c = np.full((24, 24), FREE, dtype=np.uint8)
+    c[3:9, 4:12] = IMPASSABLE
+    c[14:20, 13:21] = IMPASSABLE
+    return GridMap(c, 1.0, "blobs")

@@ -1,0 +1,134 @@
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from fedmap.errors import FedmapError
+from fedmap.model import (
+    CoordNet, NetConfig, build_model, count_parameters, deserialise_weights, get_weights, load_model, preset, render,
+    save_model, serialise_weights, set_weights,
+)
+
+
+def test_paper_preset_parameter_count():
+    # Paper, Sec. IV-E: 65,792 per layer for layers 1-3, 512 per BatchNorm, 771 for the last layer.
+    expected = 3 * (256 * 256 + 256) + 3 * (2 * 256) + (256 * 3 + 3)
+    assert expected == 199_683
+    assert count_parameters(CoordNet(preset("paper"))) == expected
+
+
+def test_fourier_matrix_is_shared_and_never_sent():
+    a, b = build_model(seed=1), build_model(seed=2)
+    torch.testing.assert_close(a.features.B, b.features.B)  # same b_seed -> same B
+    assert "features.B" not in a.state_dict()
+    assert not any(p is a.features.B for p in a.parameters())
+    other = CoordNet(NetConfig(b_seed=5))
+    assert not torch.equal(a.features.B, other.features.B)
+    # B ~ N(0, scale^2): the sample std of 256 draws is near 10
+    assert 8.0 < float(a.features.B.std()) < 12.0
+
+
+def test_encoding_formula():
+    m = build_model()
+    v = torch.tensor([[0.25, 0.75]])
+    proj = 2 * np.pi * (v.numpy() @ m.features.B.numpy().T)
+    expected = np.concatenate([np.cos(proj), np.sin(proj)], axis=1)
+    np.testing.assert_allclose(m.features(v).numpy(), expected, atol=1e-4)
+
+
+def _conv_twin(model: CoordNet) -> nn.Sequential:
+    """The paper's layout: 1x1 Conv2d on (1, C, H, W), weights copied from the Linear net."""
+    mods = []
+    for layer in model.mlp:
+        if isinstance(layer, nn.Linear):
+            conv = nn.Conv2d(layer.in_features, layer.out_features, kernel_size=1)
+            conv.weight.data = layer.weight.data[:, :, None, None].clone()
+            conv.bias.data = layer.bias.data.clone()
+            mods.append(conv)
+        elif isinstance(layer, nn.BatchNorm1d):
+            bn = nn.BatchNorm2d(layer.num_features, track_running_stats=False)
+            bn.weight.data, bn.bias.data = layer.weight.data.clone(), layer.bias.data.clone()
+            mods.append(bn)
+        else:
+            mods.append(layer)
+    return nn.Sequential(*mods)
+
+
+def test_linear_layout_equals_conv1x1_layout():
+    torch.manual_seed(0)
+    model = build_model(seed=3)
+    h, w = 12, 10
+    from fedmap.model import grid_coords
+
+    feats = model.features(grid_coords(h, w))  # (H*W, C)
+    with torch.no_grad():
+        for p in model.parameters():  # non-trivial BatchNorm affine parameters too
+            p.add_(0.05 * torch.randn_like(p))
+        lin = torch.sigmoid(model.mlp(feats)).reshape(h, w, 3)
+        img = feats.reshape(h, w, -1).permute(2, 0, 1)[None]  # (1, C, H, W)
+        conv = torch.sigmoid(_conv_twin(model)(img))[0].permute(1, 2, 0)
+    torch.testing.assert_close(lin, conv, atol=1e-5, rtol=1e-4)
+
+
+def test_chunked_render_equals_full_batch():
+    model = build_model(NetConfig(mapping_size=16, hidden=32), seed=0)
+    full = render(model, 20, 30, chunk=10_000)
+    chunked = render(model, 20, 30, chunk=64)
+    np.testing.assert_allclose(full, chunked, atol=2e-5)
+    assert full.shape == (20, 30, 3) and full.min() >= 0 and full.max() <= 1
+
+
+def test_seeded_init_is_reproducible():
+    a, b, c = get_weights(build_model(seed=7)), get_weights(build_model(seed=7)), get_weights(build_model(seed=8))
+    assert all(np.array_equal(a[k], b[k]) for k in a)
+    assert not all(np.array_equal(a[k], c[k]) for k in a)
+
+
+def test_checkpoint_rebuilds_from_config_alone(tmp_path):
+    cfg = NetConfig(mapping_size=8, hidden=16, layers=3, b_seed=4)
+    m = build_model(cfg, seed=1)
+    save_model(m, tmp_path / "m.safetensors")
+    back = load_model(tmp_path / "m.safetensors")
+    assert back.config == cfg
+    np.testing.assert_array_equal(render(back, 8, 8), render(m, 8, 8))
+
+
+def test_corrupt_checkpoint(tmp_path):
+    p = tmp_path / "bad.safetensors"
+    p.write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00not json at all")
+    with pytest.raises(FedmapError, match="not a fedmap model"):
+        load_model(p)
+    with pytest.raises(FedmapError, match="no such model"):
+        load_model(tmp_path / "missing.safetensors")
+
+
+def test_payload_round_trip_and_size():
+    w = get_weights(build_model(seed=0))
+    data = serialise_weights(w)
+    back = deserialise_weights(data)
+    assert all(np.array_equal(w[k], back[k]) for k in w)
+    # fp32 payload: 4 bytes per parameter plus a small safetensors header
+    n = sum(v.size for v in w.values())
+    assert 4 * n < len(data) < 4 * n + 2048
+    with pytest.raises(FedmapError, match="malformed"):
+        deserialise_weights(data[: len(data) // 2])
+
+
+def test_set_weights_rejects_bad_updates():
+    m = build_model()
+    w = get_weights(m)
+    k = next(iter(w))
+    bad = dict(w)
+    bad[k] = np.full_like(w[k], np.nan)
+    with pytest.raises(FedmapError, match="NaN"):
+        set_weights(m, bad)
+    bad[k] = np.zeros((2, 2), np.float32)
+    with pytest.raises(FedmapError, match="shape"):
+        set_weights(m, bad)
+    with pytest.raises(FedmapError, match="missing"):
+        set_weights(m, {kk: v for kk, v in w.items() if kk != k})
+
+
+def test_unknown_preset():
+    with pytest.raises(FedmapError, match="unknown network preset"):
+        preset("huge")

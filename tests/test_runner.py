@@ -1,0 +1,87 @@
+import numpy as np
+import pytest
+
+import fedmap.federation.runner as runner_mod
+from fedmap.errors import FedmapError
+from fedmap.explore import explore
+from fedmap.federation.aggregate import weighted_average
+from fedmap.federation.runner import FederationConfig, agent_seed, run_federation
+from fedmap.maps.grid import GridMap
+from fedmap.model import build_model, get_weights, serialise_weights, set_weights
+from fedmap.training import TrainConfig, fit
+
+
+def _manual_round(net, init, maps, local, seed, r):
+    """Reference: train each agent independently from ``init`` and FedAvg by known cells."""
+    ws, counts = [], []
+    for k, m in enumerate(maps):
+        model = build_model(net)
+        set_weights(model, init)
+        fit(model, m, local, seed=agent_seed(seed, r, k))
+        ws.append(get_weights(model))
+        counts.append(m.n_known)
+    return weighted_average(ws, counts)
+
+
+def test_two_rounds_match_manual_fedavg(tiny_net, blob_map):
+    maps = explore(blob_map, 4, "quadrants")
+    local = TrainConfig(epochs=3, lr=1e-2)
+    init = get_weights(build_model(tiny_net, seed=0))
+    res = run_federation(init, tiny_net, maps, FederationConfig(rounds=2, local=local, seed=5))
+    ref = _manual_round(tiny_net, init, maps, local, 5, 0)
+    ref = _manual_round(tiny_net, ref, maps, local, 5, 1)
+    for k in ref:
+        np.testing.assert_allclose(res.weights[k], ref[k], atol=1e-6)
+    assert [r["round"] for r in res.history] == [1, 2]
+
+
+def test_byte_counts_are_serialised_sizes(tiny_net, blob_map):
+    maps = explore(blob_map, 4, "quadrants")
+    init = get_weights(build_model(tiny_net, seed=0))
+    res = run_federation(init, tiny_net, maps, FederationConfig(local=TrainConfig(epochs=1)))
+    n = len(serialise_weights(init))  # fp32 payload: same size both ways
+    rec = res.history[0]
+    assert rec["uplink_bytes"] == {k: n for k in range(4)}
+    assert rec["downlink_bytes"] == {k: n for k in range(4)}
+    assert res.total_bytes() == {"uplink": 4 * n, "downlink": 4 * n}
+
+
+def test_nan_update_is_dropped(tiny_net, blob_map, monkeypatch):
+    maps = explore(blob_map, 4, "quadrants")
+    init = get_weights(build_model(tiny_net, seed=0))
+    real_fit = runner_mod.fit
+
+    def poisoned(model, grid, config, *, seed, on_step=None):
+        out = real_fit(model, grid, config, seed=seed, on_step=on_step)
+        if grid.meta.get("agent") == 2:
+            for p in model.parameters():
+                p.data.fill_(float("nan"))
+        return out
+
+    monkeypatch.setattr(runner_mod, "fit", poisoned)
+    local = TrainConfig(epochs=2)
+    res = run_federation(init, tiny_net, maps, FederationConfig(local=local, seed=1))
+    rec = res.history[0]
+    assert list(rec["dropped"]) == [2] and "NaN" in rec["dropped"][2]
+    assert 2 not in rec["uplink_bytes"]
+    survivors = [m for m in maps if m.meta["agent"] != 2]
+    ws = []
+    for m in survivors:
+        model = build_model(tiny_net)
+        set_weights(model, init)
+        real_fit(model, m, local, seed=agent_seed(1, 0, m.meta["agent"]))
+        ws.append(get_weights(model))
+    ref = weighted_average(ws, [m.n_known for m in survivors])
+    for k in ref:
+        np.testing.assert_allclose(res.weights[k], ref[k], atol=1e-6)
+
+
+def test_mismatched_grids_and_bad_config(tiny_net, blob_map):
+    other = GridMap(np.zeros((10, 10), np.uint8), 1.0, "small")
+    init = get_weights(build_model(tiny_net))
+    with pytest.raises(FedmapError, match="one global grid"):
+        run_federation(init, tiny_net, [blob_map, other], FederationConfig(local=TrainConfig(epochs=1)))
+    with pytest.raises(FedmapError, match="unknown aggregator"):
+        FederationConfig(aggregator="fedprox")
+    with pytest.raises(FedmapError, match="rounds"):
+        FederationConfig(rounds=0)

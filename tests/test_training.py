@@ -1,0 +1,78 @@
+import numpy as np
+import pytest
+import torch
+
+from fedmap.errors import FedmapError
+from fedmap.maps.grid import UNKNOWN, GridMap
+from fedmap.model import build_model, get_weights, render
+from fedmap.training import TrainConfig, fit, map_targets, steps_per_epoch
+
+
+def test_fit_lowers_loss_and_learns_the_map(tiny_net, blob_map):
+    model = build_model(tiny_net, seed=0)
+    losses = fit(model, blob_map, TrainConfig(epochs=150, lr=1e-2), seed=0)
+    assert len(losses) == 150
+    assert losses[-1] < 0.2 * losses[0]
+    from fedmap.maps.grid import classes_from_rgb
+
+    learned = classes_from_rgb(render(model, 24, 24))
+    assert (learned == blob_map.classes).mean() > 0.95
+
+
+def test_fit_is_seeded(tiny_net, blob_map):
+    cfg = TrainConfig(epochs=5, lr=1e-2, batch_pixels=100)
+    ws = []
+    for seed in (1, 1, 2):
+        m = build_model(tiny_net, seed=0)
+        fit(m, blob_map, cfg, seed=seed)
+        ws.append(get_weights(m))
+    assert all(np.array_equal(ws[0][k], ws[1][k]) for k in ws[0])
+    assert not all(np.array_equal(ws[0][k], ws[2][k]) for k in ws[0])
+
+
+def test_sampled_epochs_cover_all_pixels(blob_map):
+    cfg = TrainConfig(epochs=2, batch_pixels=100)
+    assert steps_per_epoch(576, cfg) == 6  # 5 full batches + one of 76
+    assert steps_per_epoch(501, cfg) == 5  # a last batch of 1 is dropped (BatchNorm)
+    assert steps_per_epoch(576, TrainConfig()) == 1
+
+
+def test_masked_targets_ignore_unknown(tiny_net, blob_map):
+    c = blob_map.classes.copy()
+    c[:, 12:] = UNKNOWN
+    half = GridMap(c, 1.0, "half")
+    coords, target, weight = map_targets(half, masked=True)
+    assert weight.sum() == (c != UNKNOWN).sum()
+    np.testing.assert_allclose(target.numpy().reshape(24, 24, 3)[0, 20], [0.5, 0.5, 0.5])
+    # Masking changes training (unknown cells no longer pull towards grey).
+    a, b = build_model(tiny_net, seed=0), build_model(tiny_net, seed=0)
+    fit(a, half, TrainConfig(epochs=3, masked=True), seed=0)
+    fit(b, half, TrainConfig(epochs=3, masked=False), seed=0)
+    wa, wb = get_weights(a), get_weights(b)
+    assert not all(np.allclose(wa[k], wb[k]) for k in wa)
+
+
+def test_masked_loss_gradient_zero_from_unknown_cells(tiny_net):
+    # Gradient of the masked loss w.r.t. the network output is exactly 0 on UNKNOWN cells.
+    from fedmap.training import _loss
+
+    pred = torch.rand(6, 3, requires_grad=True)
+    target = torch.rand(6, 3)
+    weight = torch.tensor([1.0, 0, 1, 0, 0, 1])
+    _loss(pred, target, weight).backward()
+    assert torch.all(pred.grad[weight == 0] == 0) and torch.all(pred.grad[weight == 1] != 0)
+
+
+def test_all_unknown_masked_is_an_error(tiny_net):
+    blank = GridMap(np.full((8, 8), UNKNOWN, np.uint8), 1.0, "blank")
+    with pytest.raises(FedmapError, match="no known cell"):
+        fit(build_model(tiny_net), blank, TrainConfig(epochs=1, masked=True))
+
+
+def test_config_validation():
+    with pytest.raises(FedmapError):
+        TrainConfig(lr=0)
+    with pytest.raises(FedmapError):
+        TrainConfig(epochs=-1)
+    with pytest.raises(FedmapError):
+        TrainConfig(batch_pixels=1)
