@@ -42,6 +42,8 @@ def region_masks(shape: tuple[int, int], n_agents: int, mode: str = "quadrants",
     h, w = shape
     if n_agents < 1:
         raise FedmapError(f"number of agents must be >= 1, got {n_agents}")
+    if overlap < 0:
+        raise FedmapError(f"overlap must be >= 0 cells, got {overlap}")
     if mode == "quadrants":
         if n_agents != 4:
             raise FedmapError(f"'quadrants' exploration needs exactly 4 agents, got {n_agents}; use 'strips' or 'grid'")

@@ -1,9 +1,10 @@
 """Map refinement: majority-vote gap filling and small-component removal (paper, Sec. III-D).
 
 1. **Gap filling.** An UNKNOWN cell (a gap) takes the majority class of the known cells
-   in its ``window x window`` neighbourhood when that class holds at least
-   ``min_votes`` of them; repeated ``iterations`` times so gaps close from their rims.
-   Large unexplored areas keep too few known voters and stay UNKNOWN.
+   among its ``window x window`` neighbours (ties go to FREE) when that class holds at
+   least ``min_votes`` of them; repeated ``iterations`` times. With the defaults (3x3,
+   5 votes) only narrow gaps (one or two cells wide, or their corners) fill: the edge
+   of a large unexplored area has too few known voters and stays UNKNOWN, as it should.
 2. **Noise removal.** Connected IMPASSABLE components (8-connectivity) smaller than
    ``min_size`` cells become FREE, and enclosed UNKNOWN islands smaller than
    ``min_size`` take the majority class of their rim. The paper used 200 px.

@@ -21,6 +21,8 @@ def _check(truth_rgb: np.ndarray, pred_rgb: np.ndarray) -> None:
         raise FedmapError(f"learned map {pred_rgb.shape[:2]} and ground truth {truth_rgb.shape[:2]} differ in size")
     if not np.isfinite(pred_rgb).all():
         raise FedmapError("learned map contains NaN or infinite values")
+    if not np.isfinite(truth_rgb).all():
+        raise FedmapError("ground truth contains NaN or infinite values")
 
 
 def psnr(truth_rgb: np.ndarray, pred_rgb: np.ndarray) -> float:
@@ -38,12 +40,16 @@ def ssim(truth_rgb: np.ndarray, pred_rgb: np.ndarray) -> float:
     truth_rgb = np.asarray(truth_rgb, dtype=np.float64)
     pred_rgb = np.asarray(pred_rgb, dtype=np.float64)
     _check(truth_rgb, pred_rgb)
+    if min(truth_rgb.shape[:2]) < 7:
+        raise FedmapError(f"SSIM needs maps of at least 7x7 cells (its window), got {truth_rgb.shape[0]}x{truth_rgb.shape[1]}")
     return float(structural_similarity(truth_rgb, pred_rgb, data_range=1.0, channel_axis=-1))
 
 
 def class_scores(truth: np.ndarray, pred: np.ndarray) -> dict:
     """Cell accuracy and per-class IoU of two class maps."""
     truth, pred = np.asarray(truth), np.asarray(pred)
+    if truth.shape != pred.shape:
+        raise FedmapError(f"learned map {pred.shape} and ground truth {truth.shape} differ in size")
     out = {"accuracy": float((truth == pred).mean())}
     for value, name in ((0, "free"), (1, "impassable")):
         inter = np.logical_and(truth == value, pred == value).sum()

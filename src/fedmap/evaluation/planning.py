@@ -163,6 +163,10 @@ def path_f1(
       different one). So a different path counts once as FP and once as FN;
     * TN: neither map has a path.
 
+    Conventions for empty denominators: with no learned path at all precision is 1
+    (nothing was claimed wrongly); with no true path at all recall is 1; so when every
+    pair has no path on either map, precision, recall and F1 are all 1.
+
     The tolerant variant counts a learned path as correct when it is collision-free on
     the true map and at most ``(1 + length_tolerance)`` times the true path's length.
     """

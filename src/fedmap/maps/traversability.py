@@ -5,11 +5,14 @@ All three are computed in metres using the DEM's pixel size:
 * **slope** (degrees): from central differences, ``atan(|grad z|)`` with the gradient in
   metres per metre. Valid at any resolution.
 * **step height** (m): the largest absolute elevation difference between a cell and its
-  8 neighbours. A step is a rover-scale obstacle, so it is only tested when the pixel is
-  no larger than ``rover_scale_max_px`` metres (on a 100 m DEM every neighbour
-  difference is a hillside, which the slope test already covers).
+  8 neighbours. A cell is a step when that rise exceeds ``max_step_m`` *and* is steeper
+  than the slope limit over the neighbour distance (a smooth slope under the limit is
+  never a step, however coarse the pixels). A step is a rover-scale obstacle, so it is
+  only tested when the pixel is no larger than ``rover_scale_max_px`` metres (on a 100 m
+  DEM every neighbour difference is a hillside, which the slope test already covers).
 * **roughness** (m): the standard deviation of the elevation residual after removing the
-  3x3 local mean, also only at rover scale.
+  least-squares plane of the 3x3 window (so a smooth slope has zero roughness), also
+  only at rover scale.
 
 A cell is IMPASSABLE if any test fails, FREE otherwise, and UNKNOWN where the DEM has
 nodata or any cell of its 3x3 neighbourhood does (the slope there is undefined).
@@ -61,12 +64,34 @@ def step_height(elevation: np.ndarray) -> np.ndarray:
     return np.maximum(zmax - z, z - zmin)
 
 
+def steepest_rise(elevation: np.ndarray, pixel_size: float) -> np.ndarray:
+    """Largest |z - z_neighbour| / distance over the 8 neighbours (m per m, border replicated)."""
+    z = np.pad(elevation.astype(np.float64), 1, mode="edge")
+    h, w = elevation.shape
+    out = np.zeros((h, w))
+    centre = z[1:-1, 1:-1]
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                nb = z[1 + dr : 1 + dr + h, 1 + dc : 1 + dc + w]
+                out = np.maximum(out, np.abs(nb - centre) / (pixel_size * np.hypot(dr, dc)))
+    return out
+
+
 def roughness(elevation: np.ndarray) -> np.ndarray:
-    """Std of the residual from the 3x3 local mean, in metres."""
+    """Std of the residual from the least-squares plane of each 3x3 window, in metres.
+
+    With window offsets x, y in {-1, 0, 1} the plane's slopes are ``sum(x z) / 6`` and
+    ``sum(y z) / 6`` and it explains ``6 (b^2 + c^2) / 9`` of the window's variance.
+    """
     z = elevation.astype(np.float64)
     mean = ndimage.uniform_filter(z, size=3, mode="nearest")
     mean_sq = ndimage.uniform_filter(z * z, size=3, mode="nearest")
-    return np.sqrt(np.maximum(mean_sq - mean * mean, 0.0))
+    kx = np.array([[-1, 0, 1]] * 3, dtype=np.float64)  # x offset of each window cell
+    b = ndimage.correlate(z, kx, mode="nearest") / 6.0
+    c = ndimage.correlate(z, kx.T, mode="nearest") / 6.0
+    var = mean_sq - mean * mean - 6.0 * (b * b + c * c) / 9.0
+    return np.sqrt(np.maximum(var, 0.0))
 
 
 def dem_to_traversability(dem: Dem, thresholds: TraversabilityThresholds | None = None) -> GridMap:
@@ -81,7 +106,8 @@ def dem_to_traversability(dem: Dem, thresholds: TraversabilityThresholds | None 
         z = z[tuple(idx)]
     bad = slope_degrees(z, dem.pixel_size) > t.max_slope_deg
     if dem.pixel_size <= t.rover_scale_max_px:
-        bad |= step_height(z) > t.max_step_m
+        steep = steepest_rise(z, dem.pixel_size) > np.tan(np.radians(t.max_slope_deg))
+        bad |= (step_height(z) > t.max_step_m) & steep
         bad |= roughness(z) > t.max_roughness_m
     classes = np.where(bad, IMPASSABLE, FREE).astype(np.uint8)
     near_nodata = ~ndimage.minimum_filter(valid, size=3, mode="nearest")
