@@ -68,7 +68,7 @@ def demo(
     eta: float = typer.Option(1e-2, help="Server learning rate for fedadam/fedyogi."),
     init: str = typer.Option("random", help="Initial weights: random or empty (empty-map prior)."),
     masked: bool = typer.Option(False, help="Loss on known cells only (paper: off, unknown is trained as grey)."),
-    min_size: int = typer.Option(200, "--min-size", help="Refinement: remove impassable blobs smaller than this (cells)."),
+    min_size: int = typer.Option(0, "--min-size", help="Refinement: remove impassable blobs smaller than this many cells (paper: 200; 0 = off)."),
     pairs: int = typer.Option(75, help="Random start/goal pairs for the path F1."),
     seed: int = typer.Option(0, help="Seed for terrain, exploration, initialisation, training and evaluation."),
     out: Path = typer.Option(Path("fedmap-out/demo"), "--out", "-o", help="Output folder (replaced atomically)."),

@@ -20,7 +20,7 @@ smaller than a pixel. Every random draw comes from one ``numpy.random.default_rn
 in a fixed order, so the same arguments always give a bit-identical DEM.
 
 A last step (:func:`_calibrate_relief`) keeps the impassable fraction inside
-``TARGET_IMPASSABLE`` by a vertical exaggeration factor, needed mainly for small maps
+``_TARGET_IMPASSABLE`` by a vertical exaggeration factor, needed mainly for small maps
 where a few large features dominate and for non-default pixel sizes. The factor is
 recorded as ``meta["relief_scale"]`` (1.0 for most maps at the default pixel size).
 """
@@ -41,14 +41,14 @@ from fedmap.maps.traversability import dem_to_traversability
 TERRAIN_KINDS: tuple[str, ...] = ("mars", "moon", "ice")
 
 #: Allowed map sizes in cells per side.
-MIN_SIZE: int = 64
-MAX_SIZE: int = 2048
+_MIN_SIZE: int = 64
+_MAX_SIZE: int = 2048
 
 #: Default ground size of one cell, metres: rover scale, so boulders and steps count.
-DEFAULT_PIXEL_SIZE: dict[str, float] = {"mars": 1.0, "moon": 1.0, "ice": 1.0}
+_DEFAULT_PIXEL_SIZE: dict[str, float] = {"mars": 1.0, "moon": 1.0, "ice": 1.0}
 
 #: Impassable fraction (default thresholds) the relief calibration keeps the map inside.
-TARGET_IMPASSABLE: tuple[float, float] = (0.10, 0.27)
+_TARGET_IMPASSABLE: tuple[float, float] = (0.10, 0.27)
 
 # Most elements handed to one np.bincount when stamping features; bounds peak memory.
 _STAMP_CHUNK = 6_000_000
@@ -62,12 +62,12 @@ def generate_dem(kind: str, size: int, *, seed: int = 0, pixel_size: float | Non
     kind : str
         One of :data:`TERRAIN_KINDS`.
     size : int
-        Cells per side, in ``[MIN_SIZE, MAX_SIZE]``; the DEM is ``size x size``.
+        Cells per side, in ``[64, 2048]``; the DEM is ``size x size``.
     seed : int
         Non-negative seed; the output is a pure function of ``(kind, size, seed,
         pixel_size)``.
     pixel_size : float, optional
-        Metres per cell; defaults to :data:`DEFAULT_PIXEL_SIZE` for the kind.
+        Metres per cell; defaults to 1 m for every kind (rover scale).
 
     Returns
     -------
@@ -104,12 +104,12 @@ def _check_args(kind: object, size: object, seed: object, pixel_size: object) ->
     """Validate the public arguments; return the pixel size in metres."""
     if kind not in TERRAIN_KINDS:
         raise FedmapError(f"unknown terrain kind {kind!r}: choose one of {', '.join(TERRAIN_KINDS)}")
-    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or not MIN_SIZE <= size <= MAX_SIZE:
-        raise FedmapError(f"terrain size must be an integer in [{MIN_SIZE}, {MAX_SIZE}], got {size!r}")
+    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or not _MIN_SIZE <= size <= _MAX_SIZE:
+        raise FedmapError(f"terrain size must be an integer in [{_MIN_SIZE}, {_MAX_SIZE}], got {size!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise FedmapError(f"terrain seed must be a non-negative integer, got {seed!r}")
     if pixel_size is None:
-        return DEFAULT_PIXEL_SIZE[str(kind)]
+        return _DEFAULT_PIXEL_SIZE[str(kind)]
     try:
         px = float(pixel_size)  # type: ignore[arg-type]
     except (TypeError, ValueError):
@@ -894,7 +894,7 @@ def _scatter_boulders(rng: np.random.Generator, n: int, px: float, per_m2: np.nd
 
 
 def _calibrate_relief(z: np.ndarray, px: float) -> tuple[np.ndarray, float]:
-    """Scale relief so the impassable fraction lies inside :data:`TARGET_IMPASSABLE`.
+    """Scale relief so the impassable fraction lies inside ``_TARGET_IMPASSABLE``.
 
     The fraction is measured with :func:`dem_to_traversability` itself (default
     thresholds), treated as a black box, so the calibration stays right if the
@@ -907,7 +907,7 @@ def _calibrate_relief(z: np.ndarray, px: float) -> tuple[np.ndarray, float]:
     Returns the float32 DEM and the factor used (1.0 when already inside the band).
     """
     z = z - float(z.mean())
-    lo, hi = TARGET_IMPASSABLE
+    lo, hi = _TARGET_IMPASSABLE
     z32 = z.astype(np.float32)
     frac = _impassable_fraction(z32, px)
     if lo <= frac <= hi:
