@@ -29,8 +29,8 @@ console = Console()
 
 def _progress() -> Progress:
     return Progress(
-        TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(), TextColumn("loss {task.fields[loss]}"),
-        TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False,
+        TextColumn("{task.description:<26}"), BarColumn(bar_width=24), MofNCompleteColumn(), TextColumn("{task.fields[loss]}"),
+        TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=True,
     )
 
 
@@ -43,11 +43,11 @@ def _fmt(x, nd=2) -> str:
 
 
 def _scores_table(metrics: dict) -> Table:
-    t = Table(title="global map vs ground truth", header_style="bold")
-    for col in ("map", "PSNR dB", "SSIM", "cell acc.", "path P", "path R", "path F1", "tolerant F1"):
-        t.add_column(col, justify="right" if col != "map" else "left")
-    rows = [("federated (raw)", metrics["global"]), ("federated + refined", metrics["refined"])]
-    rows += [(f"agent {a['agent'] + 1} local only", a) for a in metrics["agents"]]
+    t = Table(title="maps vs ground truth", header_style="bold")
+    for col in ("map", "PSNR", "SSIM", "acc.", "P", "R", "F1", "tol.F1"):
+        t.add_column(col, justify="right" if col != "map" else "left", no_wrap=True)
+    rows = [("federated", metrics["global"]), ("fed.+refined", metrics["refined"])]
+    rows += [(f"rover {a['agent'] + 1} alone", a) for a in metrics["agents"]]
     for name, m in rows:
         p = m["path"]
         t.add_row(name, _fmt(m["psnr"]), _fmt(m["ssim"], 3), _fmt(m["accuracy"], 3), _fmt(p["precision"]),
@@ -75,15 +75,10 @@ def demo(
 ) -> None:
     """Built-in terrain -> 4 rovers explore -> fit -> federate -> refine -> evaluate."""
     from fedmap.federation.runner import FederationConfig
-    from fedmap.maps.terrain import TERRAIN_KINDS
     from fedmap.pipeline import PipelineConfig, run_pipeline, write_outputs
     from fedmap.refine import RefineConfig
     from fedmap.training import TrainConfig
 
-    if terrain not in TERRAIN_KINDS:
-        raise FedmapError(f"unknown terrain {terrain!r}; choose one of {', '.join(TERRAIN_KINDS)}")
-    if size <= 0:
-        raise FedmapError(f"size must be a positive number of cells, got {size}")
     t0 = time.perf_counter()
     config = PipelineConfig(
         terrain=terrain, size=size, agents=agents, explore=explore, init=init, seed=seed, eval_pairs=pairs,
@@ -101,7 +96,7 @@ def demo(
             current["task"] = progress.add_task(name, total=total or None, loss="")
 
         def on_step(step: int, loss: float) -> None:
-            progress.update(current["task"], advance=1, loss=f"{loss:.4f}")
+            progress.update(current["task"], advance=1, loss=f"loss {loss:.4f}")
 
         result = run_pipeline(config, on_stage=on_stage, on_step=on_step)
         on_stage("write outputs", 0)
@@ -109,6 +104,8 @@ def demo(
         progress.update(current["task"], total=1, completed=1)
     m = result.metrics
     console.print(_scores_table(m))
+    console.print("PSNR in dB on RGB renderings; P/R/F1: A* path planning over "
+                  f"{pairs} start/goal pairs (identical path = TP); tol.F1: paths within 5% of the true length")
     b = m["bytes"]
     console.print(f"link: {b['uplink']:,} B uplink, {b['downlink']:,} B downlink in total "
                   f"({b['uplink'] // max(agents * rounds, 1):,} B per rover per round, fp32)")
@@ -176,6 +173,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except click.UsageError as e:
+        if isinstance(e, getattr(click.exceptions, "NoArgsIsHelpError", ())):
+            return 0  # help was printed
         print(f"error: {e.format_message()}", file=sys.stderr)
         return 2
     except click.exceptions.Abort:

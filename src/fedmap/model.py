@@ -107,7 +107,15 @@ class CoordNet(nn.Module):
         self.mlp = nn.Sequential(*mods)
 
     def forward(self, v: torch.Tensor) -> torch.Tensor:
-        return torch.sigmoid(self.mlp(self.features(v)))
+        return self.head(self.features(v))
+
+    def head(self, feats: torch.Tensor) -> torch.Tensor:
+        """The trainable part on precomputed features: (N, 2*mapping) -> (N, 3).
+
+        Training caches ``features(coords)`` once per map (B is fixed), which saves the
+        cos/sin of every pixel at every step.
+        """
+        return torch.sigmoid(self.mlp(feats))
 
 
 def build_model(config: NetConfig | None = None, *, seed: int = 0) -> CoordNet:

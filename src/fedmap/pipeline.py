@@ -48,6 +48,12 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if self.init not in INITS:
             raise FedmapError(f"unknown init {self.init!r}; choose one of {', '.join(INITS)}")
+        from fedmap.maps.terrain import TERRAIN_KINDS
+
+        if self.terrain not in TERRAIN_KINDS:
+            raise FedmapError(f"unknown terrain {self.terrain!r}; choose one of {', '.join(TERRAIN_KINDS)}")
+        if isinstance(self.size, bool) or not isinstance(self.size, int) or not 64 <= self.size <= 2048:
+            raise FedmapError(f"size must be an integer number of cells in [64, 2048], got {self.size}")
         if self.eval_pairs <= 0:
             raise FedmapError(f"eval pairs must be positive, got {self.eval_pairs}")
         preset(self.net)

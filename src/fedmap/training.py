@@ -81,9 +81,11 @@ def fit(
     coords, target, weight = map_targets(grid, masked=config.masked)
     if config.masked and not weight.any():
         raise FedmapError(f"map {grid.source!r} has no known cell to train on")
+    with torch.no_grad():
+        feats = model.features(coords)  # (N, 2*mapping): fixed, so computed once
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     gen = torch.Generator().manual_seed(seed)
-    n = coords.shape[0]
+    n = feats.shape[0]
     model.train()
     losses: list[float] = []
     for _ in range(config.epochs):
@@ -95,9 +97,9 @@ def fit(
             if len(batches) > 1 and len(batches[-1]) < 2:  # BatchNorm cannot take one sample
                 batches = batches[:-1]
         for idx in batches:
-            x, y, wt = (coords, target, weight) if idx is None else (coords[idx], target[idx], weight[idx])
+            x, y, wt = (feats, target, weight) if idx is None else (feats[idx], target[idx], weight[idx])
             opt.zero_grad(set_to_none=True)
-            loss = _loss(model(x), y, wt)
+            loss = _loss(model.head(x), y, wt)
             loss.backward()
             opt.step()
             losses.append(loss.item())
