@@ -13,7 +13,7 @@ import pytest
 
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
-from fedmap.refine import RefineConfig, fill_gaps, refine, remove_small_components
+from fedmap.refine import PAPER_REFINE, RefineConfig, fill_gaps, refine, remove_small_components
 
 
 def full(shape, value=FREE):
@@ -181,7 +181,8 @@ def test_refine_fills_gap_and_removes_noise():
     c[30, 30] = IMPASSABLE  # noise, removed
     c[32, 10] = UNKNOWN  # gap, filled FREE
     c[0:2, 30:40] = UNKNOWN  # unexplored strip on the border: 20 cells
-    out = refine(c)
+    out = refine(c, PAPER_REFINE)
+    assert np.array_equal(refine(c)[30, 30], IMPASSABLE)  # fedmap's default keeps small blobs
     expected = full((40, 40))
     expected[5:25, 5:25] = IMPASSABLE
     # hand: gap filling turns the strip's inner corner (1,30) FREE (5 FREE voters) and,
@@ -193,7 +194,8 @@ def test_refine_fills_gap_and_removes_noise():
 
 def test_refine_config_defaults_and_dict():
     cfg = RefineConfig()
-    assert cfg.to_dict() == {"window": 3, "min_votes": 5, "iterations": 2, "min_size": 200}
+    assert cfg.to_dict() == {"window": 3, "min_votes": 5, "iterations": 2, "min_size": 0}
+    assert PAPER_REFINE.min_size == 200  # the paper's threshold
     RefineConfig(window=5, min_votes=24)  # the largest legal vote count for a 5x5 window
 
 
