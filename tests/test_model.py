@@ -132,3 +132,24 @@ def test_set_weights_rejects_bad_updates():
 def test_unknown_preset():
     with pytest.raises(FedmapError, match="unknown network preset"):
         preset("huge")
+
+
+def test_batchnorm_keeps_no_running_statistics():
+    # Federation contract: the state is exactly the trainable parameters (no running
+    # mean/var/num_batches to average or to send), and BatchNorm always normalises with
+    # the statistics of the batch it sees, in train and eval mode alike.
+    m = build_model(seed=0)
+    sd = m.state_dict()
+    assert not [k for k in sd if "running" in k or "num_batches" in k]
+    assert sum(v.numel() for v in sd.values()) == count_parameters(m) == 199_683
+    x = torch.rand(64, 2)
+    with torch.no_grad():
+        m.train()
+        a = m(x)
+        m.eval()
+        b = m(x)
+    torch.testing.assert_close(a, b)
+    # ... so a pixel's colour depends on the batch: rendering uses the full grid
+    with torch.no_grad():
+        part = m(x[:8])
+    assert not torch.allclose(part, a[:8])
