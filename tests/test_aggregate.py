@@ -82,3 +82,18 @@ def test_make_aggregator():
         make_aggregator("fedsgd")
     with pytest.raises(FedmapError, match="betas"):
         FedAdam(beta1=1.0)
+
+
+def test_coverage_average_by_hand():
+    from fedmap.federation.aggregate import CoverageAvg, coverage_average
+
+    g = W(1.0, 1.0, 1.0, 1.0)
+    a = W(3.0, 1.0, 5.0, 1.0)  # touches entries 0 and 2
+    b = W(1.0, 7.0, 9.0, 1.0)  # touches entries 1 and 2
+    out = coverage_average(g, [a, b], [1, 3])
+    # hand: entry 0 only a -> 3; entry 1 only b -> 7; entry 2 both -> (1*5 + 3*9)/4 = 8;
+    # entry 3 nobody -> keeps the global 1 (plain FedAvg would give the same here, but
+    # would give (3 + 3*1)/4 = 1.5 for entry 0 and (1 + 21)/4 = 5.5 for entry 1)
+    np.testing.assert_allclose(out["w"], [3.0, 7.0, 8.0, 1.0])
+    np.testing.assert_allclose(weighted_average([a, b], [1, 3])["w"], [1.5, 5.5, 8.0, 1.0])
+    assert isinstance(make_aggregator("coverage"), CoverageAvg)

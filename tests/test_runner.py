@@ -7,7 +7,8 @@ from fedmap.explore import explore
 from fedmap.federation.aggregate import weighted_average
 from fedmap.federation.runner import FederationConfig, agent_seed, run_federation
 from fedmap.maps.grid import GridMap
-from fedmap.model import build_model, get_weights, serialise_weights, set_weights
+from fedmap.comm import Encoder, decode
+from fedmap.model import build_model, get_weights, set_weights
 from fedmap.training import TrainConfig, fit
 
 
@@ -39,11 +40,55 @@ def test_byte_counts_are_serialised_sizes(tiny_net, blob_map):
     maps = explore(blob_map, 4, "quadrants")
     init = get_weights(build_model(tiny_net, seed=0))
     res = run_federation(init, tiny_net, maps, FederationConfig(local=TrainConfig(epochs=1)))
-    n = len(serialise_weights(init))  # fp32 payload: same size both ways
+    n = len(Encoder("fp32").encode(init))  # fp32 payload: same size both ways
     rec = res.history[0]
     assert rec["uplink_bytes"] == {k: n for k in range(4)}
     assert rec["downlink_bytes"] == {k: n for k in range(4)}
-    assert res.total_bytes() == {"uplink": 4 * n, "downlink": 4 * n}
+    assert res.total_bytes() == {"uplink": 4 * n, "downlink": 4 * n, "uplink_per_agent_round": n}
+    ledger = res.ledger()
+    assert len(ledger) == 8 and {r["direction"] for r in ledger} == {"uplink", "downlink"}
+    assert all(r["bytes"] == n and r["codec"] == "fp32" for r in ledger)
+
+
+def test_codecs_go_through_real_bytes(tiny_net, blob_map):
+    """The runner's global model equals a manual round with the same encode/decode steps."""
+    maps = explore(blob_map, 4, "quadrants")
+    local = TrainConfig(epochs=2, lr=1e-2)
+    init = get_weights(build_model(tiny_net, seed=0))
+    cfg = FederationConfig(local=local, seed=2, uplink="topk:0.05", downlink="fp16")
+    res = run_federation(init, tiny_net, maps, cfg)
+    held = decode(Encoder("fp16").encode(init))  # the fp16 broadcast every rover decodes
+    ws = []
+    for k, m in enumerate(maps):
+        model = build_model(tiny_net)
+        set_weights(model, held)
+        fit(model, m, local, seed=agent_seed(2, 0, k))
+        payload = Encoder("topk:0.05").encode(get_weights(model), reference=held)
+        assert res.history[0]["uplink_bytes"][k] == len(payload)
+        ws.append(decode(payload, reference=held))
+    ref = weighted_average(ws, [m.n_known for m in maps])
+    for k in ref:
+        np.testing.assert_allclose(res.weights[k], ref[k], atol=1e-6)
+    # the sparse uplink is far smaller than the dense downlink
+    assert res.history[0]["uplink_bytes"][0] < res.history[0]["downlink_bytes"][0] / 5
+
+
+def test_malformed_payload_drops_that_agent(tiny_net, blob_map, monkeypatch):
+    maps = explore(blob_map, 4, "quadrants")
+    init = get_weights(build_model(tiny_net, seed=0))
+    real_encode = Encoder.encode
+    calls = {"n": 0}
+
+    def truncating(self, weights, reference=None):
+        data = real_encode(self, weights, reference)
+        calls["n"] += 1
+        return data[:-3] if calls["n"] == 3 else data  # call 1 = downlink, 2.. = agents 0..
+
+    monkeypatch.setattr(Encoder, "encode", truncating)
+    res = run_federation(init, tiny_net, maps, FederationConfig(local=TrainConfig(epochs=1)))
+    dropped = res.history[0]["dropped"]
+    assert list(dropped) == [1] and "malformed payload" in dropped[1]
+    assert sorted(res.history[0]["weights"]) == [0, 2, 3]
 
 
 def test_nan_update_is_dropped(tiny_net, blob_map, monkeypatch):

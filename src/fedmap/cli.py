@@ -47,6 +47,8 @@ def _scores_table(metrics: dict) -> Table:
     for col in ("map", "PSNR", "SSIM", "acc.", "P", "R", "F1", "tol.F1"):
         t.add_column(col, justify="right" if col != "map" else "left", no_wrap=True)
     rows = [("federated", metrics["global"]), ("fed.+refined", metrics["refined"])]
+    if "central" in metrics:
+        rows.append(("central (bound)", metrics["central"]))
     rows += [(f"rover {a['agent'] + 1} alone", a) for a in metrics["agents"]]
     for name, m in rows:
         p = m["path"]
@@ -64,7 +66,11 @@ def demo(
     rounds: int = typer.Option(1, help="Communication rounds R."),
     local_epochs: int = typer.Option(100, "--local-epochs", help="Local epochs per round E."),
     lr: float = typer.Option(1e-3, help="Local Adam learning rate."),
-    aggregator: str = typer.Option("fedavg", help="fedavg, fedadam or fedyogi."),
+    aggregator: str = typer.Option("fedavg", help="fedavg, fedadam, fedyogi or coverage (coverage-aware FedAvg)."),
+    net: str = typer.Option("paper", help="Network: paper (Fourier MLP, 199,683 params), small, or grid (feature grids)."),
+    central: bool = typer.Option(True, help="Also fit one network to the union of the local maps (the upper bound)."),
+    uplink: str = typer.Option("fp32", help="Rover -> base codec: fp32, fp16, bf16, int8, int4, topk:0.01, update-int8, ... (+zstd)."),
+    downlink: str = typer.Option("fp32", help="Base -> rover codec (same grammar)."),
     eta: float = typer.Option(1e-2, help="Server learning rate for fedadam/fedyogi."),
     init: str = typer.Option("random", help="Initial weights: random or empty (empty-map prior)."),
     masked: bool = typer.Option(False, help="Loss on known cells only (paper: off, unknown is trained as grey)."),
@@ -82,7 +88,9 @@ def demo(
     t0 = time.perf_counter()
     config = PipelineConfig(
         terrain=terrain, size=size, agents=agents, explore=explore, init=init, seed=seed, eval_pairs=pairs,
-        federation=FederationConfig(rounds=rounds, aggregator=aggregator, eta=eta, seed=seed,
+        net=net, central=central,
+        federation=FederationConfig(rounds=rounds, aggregator=aggregator, eta=eta, seed=seed, uplink=uplink,
+                                    downlink=downlink,
                                     local=TrainConfig(epochs=local_epochs, lr=lr, masked=masked)),
         refine=RefineConfig(min_size=min_size),
     )
@@ -107,8 +115,8 @@ def demo(
     console.print("PSNR in dB on RGB renderings; P/R/F1: A* path planning over "
                   f"{pairs} start/goal pairs (identical path = TP); tol.F1: paths within 5% of the true length")
     b = m["bytes"]
-    console.print(f"link: {b['uplink']:,} B uplink, {b['downlink']:,} B downlink in total "
-                  f"({b['uplink'] // max(agents * rounds, 1):,} B per rover per round, fp32)")
+    console.print(f"link: {b['uplink']:,} B uplink ({uplink}), {b['downlink']:,} B downlink ({downlink}) in total; "
+                  f"{b['uplink_per_agent_round']:,.0f} B per rover per round uplink")
     console.print(f"outputs: {out}/  (metrics.json, figure.png, global_model.safetensors, maps)")
     console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
 

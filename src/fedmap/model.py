@@ -32,21 +32,39 @@ Weights = dict[str, np.ndarray]
 
 @dataclass(frozen=True)
 class NetConfig:
-    """Everything needed to rebuild a network (stored with every checkpoint)."""
+    """Everything needed to rebuild a network (stored with every checkpoint).
+
+    ``encoding="fourier"`` is the paper's network (Fourier features -> MLP).
+    ``encoding="grid"`` is a :class:`GridNet`: trainable multi-resolution feature grids
+    (``grid_res``, ``grid_features`` channels each) read by bilinear interpolation and a
+    small *frozen* decoder rebuilt from ``b_seed`` (never trained, never sent).
+    """
 
     mapping_size: int = 128  # Fourier features: 2 * mapping_size input channels
     scale: float = 10.0  # std of the Gaussian frequencies B
     hidden: int = 256
     layers: int = 4  # linear layers, the last one maps to RGB
     batchnorm: bool = True
-    b_seed: int = 0  # B is drawn from this seed, shared by all agents, never sent
+    b_seed: int = 0  # B (or the grid decoder) is drawn from this seed, shared, never sent
+    encoding: str = "fourier"
+    grid_res: tuple[int, ...] = ()
+    grid_features: int = 2
+    decoder_hidden: int = 32
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "grid_res", tuple(int(r) for r in self.grid_res))
+        if self.encoding not in ("fourier", "grid"):
+            raise FedmapError(f"unknown encoding {self.encoding!r}; choose fourier or grid")
         if self.mapping_size <= 0 or self.hidden <= 0 or self.layers < 1 or self.scale <= 0:
             raise FedmapError(f"invalid network config: {self}")
+        if self.encoding == "grid" and (not self.grid_res or min(self.grid_res) < 2
+                                        or self.grid_features < 1 or self.decoder_hidden < 1):
+            raise FedmapError(f"a grid network needs grid resolutions >= 2 and positive sizes, got {self}")
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d["grid_res"] = list(self.grid_res)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "NetConfig":
@@ -56,17 +74,30 @@ class NetConfig:
         return cls(**d)
 
 
+def grid_config(size: int, *, levels: int = 4, features: int = 2, seed: int = 0) -> NetConfig:
+    """A :class:`GridNet` config for ``size x size`` maps: finest level at one cell per map
+    pixel, each coarser level half the previous (at least 2)."""
+    res = tuple(max(2, size >> i) for i in reversed(range(levels)))
+    return NetConfig(encoding="grid", grid_res=res, grid_features=features, b_seed=seed)
+
+
 PRESETS: dict[str, NetConfig] = {
     "paper": NetConfig(),
     "small": NetConfig(mapping_size=64, hidden=128),
 }
 
 
-def preset(name: str) -> NetConfig:
+NET_CHOICES = (*PRESETS, "grid")
+
+
+def preset(name: str, size: int | None = None) -> NetConfig:
+    """A named network: ``paper``, ``small``, or ``grid`` (sized to a ``size x size`` map)."""
+    if name == "grid":
+        return grid_config(size or 128)
     try:
         return PRESETS[name]
     except KeyError:
-        raise FedmapError(f"unknown network preset {name!r}; choose one of {sorted(PRESETS)}") from None
+        raise FedmapError(f"unknown network {name!r}; choose one of {', '.join(NET_CHOICES)}") from None
 
 
 class FourierFeatures(nn.Module):
@@ -89,6 +120,8 @@ class FourierFeatures(nn.Module):
 
 class CoordNet(nn.Module):
     """(N, 2) coordinates in (0, 1)^2 -> (N, 3) RGB in (0, 1)."""
+
+    cacheable_features = True  # features do not depend on trained weights
 
     def __init__(self, config: NetConfig | None = None) -> None:
         super().__init__()
@@ -118,8 +151,50 @@ class CoordNet(nn.Module):
         return torch.sigmoid(self.mlp(feats))
 
 
-def build_model(config: NetConfig | None = None, *, seed: int = 0) -> CoordNet:
+class GridNet(nn.Module):
+    """(N, 2) coordinates -> (N, 3) RGB from multi-resolution feature grids.
+
+    Every trainable parameter is a grid cell, so an agent's data only moves the cells
+    whose bilinear footprint covers its observed pixels (parameters are *local in
+    space*); with coverage-aware aggregation the federated model is then (nearly) the
+    union of the local fits. The decoder (``L*F -> hidden -> 3``) is frozen and drawn
+    from ``b_seed``; its last bias is set so that an all-zero grid renders grey 0.5
+    (UNKNOWN): a fresh GridNet already *is* the empty-map prior.
+    """
+
+    cacheable_features = False
+
+    def __init__(self, config: NetConfig) -> None:
+        super().__init__()
+        self.config = c = config
+        self.grids = nn.ParameterList([nn.Parameter(torch.zeros(1, c.grid_features, r, r)) for r in c.grid_res])
+        g = torch.Generator().manual_seed(c.b_seed)
+        fan_in = c.grid_features * len(c.grid_res)
+        w1 = torch.randn(c.decoder_hidden, fan_in, generator=g) * (2.0 / fan_in) ** 0.5 * 2.0
+        b1 = torch.randn(c.decoder_hidden, generator=g) * 0.5
+        w2 = torch.randn(3, c.decoder_hidden, generator=g) * (2.0 / c.decoder_hidden) ** 0.5 * 2.0
+        b2 = -(w2 @ torch.relu(b1))  # zero features -> logits 0 -> grey
+        for name, t in (("w1", w1), ("b1", b1), ("w2", w2), ("b2", b2)):
+            self.register_buffer(name, t, persistent=False)
+
+    def features(self, v: torch.Tensor) -> torch.Tensor:  # (N, 2) in (0,1)^2 -> (N, L*F)
+        gr = (v * 2 - 1).view(1, -1, 1, 2)  # grid_sample wants (x, y) in [-1, 1]
+        out = [nn.functional.grid_sample(G, gr, mode="bilinear", padding_mode="border", align_corners=False)
+               .view(G.shape[1], -1).T for G in self.grids]
+        return torch.cat(out, dim=1)
+
+    def head(self, feats: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(torch.relu(feats @ self.w1.T + self.b1) @ self.w2.T + self.b2)
+
+    def forward(self, v: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(v))
+
+
+def build_model(config: NetConfig | None = None, *, seed: int = 0) -> nn.Module:
     """A freshly initialised network; ``seed`` fixes the initial weights."""
+    config = config or NetConfig()
+    if config.encoding == "grid":
+        return GridNet(config)  # deterministic: zero grids, decoder from b_seed
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         return CoordNet(config)
@@ -171,8 +246,9 @@ def render(model: CoordNet, height: int, width: int, *, chunk: int = 1 << 16) ->
     """
     coords = grid_coords(height, width)
     n = coords.shape[0]
-    if n <= chunk:
-        return model(coords).reshape(height, width, 3).numpy()
+    if n <= chunk or not any(isinstance(m, nn.BatchNorm1d) for m in model.modules()):
+        # per-pixel function (no batch statistics): plain chunks are exact
+        return torch.cat([model(coords[a : a + chunk]) for a in range(0, n, chunk)]).reshape(height, width, 3).numpy()
     layers = list(model.mlp)
     stats: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
 
@@ -233,30 +309,13 @@ def load_model(path: str | os.PathLike) -> CoordNet:
         config = NetConfig.from_dict(json.loads(header["__metadata__"]["fedmap_config"]))
     except (SafetensorError, KeyError, ValueError, TypeError) as e:
         raise FedmapError(f"{p} is not a fedmap model file ({type(e).__name__}: {e})".splitlines()[0]) from e
-    model = CoordNet(config)
+    model = build_model(config)
     set_weights(model, {k: v.numpy() for k, v in tensors.items()})
     return model
-
-
-def serialise_weights(weights: Weights) -> bytes:
-    """The plain fp32 payload: safetensors bytes of the weights (what goes on the link)."""
-    from safetensors.numpy import save
-
-    return save({k: np.ascontiguousarray(v, dtype=np.float32) for k, v in weights.items()})
-
-
-def deserialise_weights(data: bytes) -> Weights:
-    from safetensors import SafetensorError
-    from safetensors.numpy import load
-
-    try:
-        return dict(load(data))
-    except (SafetensorError, ValueError) as e:
-        raise FedmapError(f"malformed weights payload ({len(data)} bytes): {e}".splitlines()[0]) from e
 
 
 __all__ = [
     "NetConfig", "PRESETS", "preset", "FourierFeatures", "CoordNet", "build_model", "count_parameters",
     "get_weights", "set_weights", "weights_nbytes", "grid_coords", "render", "save_model", "load_model",
-    "serialise_weights", "deserialise_weights", "Weights",
+    "Weights",
 ]

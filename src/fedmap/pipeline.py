@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,11 +18,11 @@ from fedmap.evaluation.metrics import image_scores
 from fedmap.evaluation.planning import path_f1
 from fedmap.explore import explore
 from fedmap.federation.runner import FederationConfig, FederationResult, run_federation, total_local_steps
-from fedmap.maps.grid import GridMap, classes_from_rgb
+from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
 from fedmap.model import CoordNet, NetConfig, build_model, get_weights, preset, render, set_weights
 from fedmap.refine import RefineConfig, refine
-from fedmap.training import TrainConfig, fit
+from fedmap.training import TrainConfig, fit, steps_per_epoch
 
 INITS = ("random", "empty")
 
@@ -38,6 +38,7 @@ class PipelineConfig:
     net: str = "paper"
     init: str = "random"
     prior_steps: int = 150
+    central: bool = True  # also fit one network to the union of the local maps (upper bound)
     federation: FederationConfig = field(default_factory=FederationConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
     thresholds: TraversabilityThresholds = field(default_factory=TraversabilityThresholds)
@@ -82,12 +83,18 @@ def empty_prior(net_config: NetConfig, *, steps: int, seed: int, size: int = 64)
     Fitted on a ``size x size`` grid; the network is a function of continuous
     coordinates, so it renders grey at any resolution.
     """
-    from fedmap.maps.grid import UNKNOWN
-
     model = build_model(net_config, seed=seed)
     blank = GridMap(np.full((size, size), UNKNOWN, dtype=np.uint8), source="empty-map")
     fit(model, blank, TrainConfig(epochs=steps, lr=1e-3), seed=seed)
     return model
+
+
+def union_map(local_maps: list[GridMap]) -> GridMap:
+    """All agents' observations in one map: what the base would hold with raw maps."""
+    out = np.full(local_maps[0].shape, UNKNOWN, dtype=np.uint8)
+    for m in local_maps:
+        out = np.where(m.known, m.classes, out)
+    return local_maps[0].with_classes(out, "union of local maps")
 
 
 def load_truth(config: PipelineConfig) -> GridMap:
@@ -122,7 +129,7 @@ def run_pipeline(
                          sensor_radius=config.sensor_radius)
     timings["terrain_and_explore_s"] = time.perf_counter() - t
 
-    net_config = preset(config.net)
+    net_config = preset(config.net, truth.shape[0])
     t = time.perf_counter()
     if config.init == "empty":
         stage("empty-map prior", config.prior_steps)
@@ -152,9 +159,21 @@ def run_pipeline(
         "truth": {"shape": [h, w], "pixel_size_m": truth.pixel_size, "source": truth.source, **truth.fractions()},
         "aggregator": fed.aggregator,
         "bytes": fed.total_bytes(),
+        "ledger": fed.ledger(),
         "rounds": fed.history,
     }
     timings["evaluate_s"] = time.perf_counter() - t
+    if config.central:
+        t = time.perf_counter()
+        steps = config.federation.rounds * config.federation.local.epochs
+        stage("centralised upper bound", steps * steps_per_epoch(truth.classes.size, config.federation.local))
+        central = build_model(net_config)
+        set_weights(central, get_weights(init_model))
+        fit(central, union_map(local_maps), replace(config.federation.local, epochs=steps), seed=config.seed,
+            on_step=on_step)
+        central_classes = classes_from_rgb(render(central, h, w))
+        metrics["central"] = {"steps": steps, **evaluate(truth, central_classes, config)}
+        timings["central_s"] = time.perf_counter() - t
     return PipelineResult(config, truth, local_maps, model, global_rgb, global_classes, refined, fed, metrics, timings)
 
 

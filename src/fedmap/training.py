@@ -81,8 +81,12 @@ def fit(
     coords, target, weight = map_targets(grid, masked=config.masked)
     if config.masked and not weight.any():
         raise FedmapError(f"map {grid.source!r} has no known cell to train on")
-    with torch.no_grad():
-        feats = model.features(coords)  # (N, 2*mapping): fixed, so computed once
+    if getattr(model, "cacheable_features", False):
+        with torch.no_grad():
+            feats = model.features(coords)  # (N, 2*mapping): fixed, so computed once
+        head = model.head
+    else:
+        feats, head = coords, model  # features are trained (grid encodings)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     gen = torch.Generator().manual_seed(seed)
     n = feats.shape[0]
@@ -99,7 +103,7 @@ def fit(
         for idx in batches:
             x, y, wt = (feats, target, weight) if idx is None else (feats[idx], target[idx], weight[idx])
             opt.zero_grad(set_to_none=True)
-            loss = _loss(model.head(x), y, wt)
+            loss = _loss(head(x), y, wt)
             loss.backward()
             opt.step()
             losses.append(loss.item())

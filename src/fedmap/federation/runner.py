@@ -1,9 +1,20 @@
 """In-process federation: distribute -> local fit -> encode/send -> aggregate, R rounds.
 
-Every payload really goes through bytes (``serialise_weights``) in both directions and
-the model is rebuilt from the decoded bytes, so the byte counts are what a link carries.
-An agent whose training diverges or whose update is not finite is dropped for that round
-(recorded in the history); the round aggregates the survivors.
+Every payload really goes through bytes (:mod:`fedmap.comm`) in both directions and the
+models are rebuilt from the decoded bytes, so metrics are computed on what a link
+delivers and byte counts are ``len()`` of what it carries.
+
+* **Downlink.** The base encodes the global model with the downlink codec relative to
+  the model the rovers already hold (for update/top-k codecs) and every rover decodes the
+  same broadcast; the base then continues from that decoded model too, so base and
+  rovers never disagree. In round 1 the rovers hold the initial model (seeded or shipped
+  with the package), so an update codec sends only what differs from it.
+* **Uplink.** Each rover has its own encoder (error-feedback residual and momentum stay
+  on the rover) and sends its trained weights relative to the model it started from.
+* **Dropouts.** An agent whose training diverges, whose update is not finite, or whose
+  payload does not decode is dropped for that round (recorded with the reason); the
+  round aggregates the survivors.
+* **Ledger.** One row per (round, agent, direction) with the codec and the bytes.
 """
 
 from __future__ import annotations
@@ -17,7 +28,8 @@ import numpy as np
 from fedmap.errors import FedmapError
 from fedmap.federation.aggregate import make_aggregator
 from fedmap.maps.grid import GridMap, check_same_frame
-from fedmap.model import NetConfig, Weights, build_model, deserialise_weights, get_weights, serialise_weights, set_weights
+from fedmap.comm import CodecSpec, Encoder, decode
+from fedmap.model import NetConfig, Weights, build_model, get_weights, set_weights
 from fedmap.training import TrainConfig, fit, steps_per_epoch
 
 
@@ -31,10 +43,14 @@ class FederationConfig:
     tau: float = 1e-3
     local: TrainConfig = field(default_factory=TrainConfig)
     seed: int = 0
+    uplink: str = "fp32"  # payload codec, see fedmap.comm.CodecSpec.parse
+    downlink: str = "fp32"
 
     def __post_init__(self) -> None:
         if self.rounds < 1:
             raise FedmapError(f"rounds must be >= 1, got {self.rounds}")
+        CodecSpec.parse(self.uplink)
+        CodecSpec.parse(self.downlink)
         make_aggregator(self.aggregator, eta=self.eta, beta1=self.beta1, beta2=self.beta2, tau=self.tau)
 
     def to_dict(self) -> dict:
@@ -47,10 +63,21 @@ class FederationResult:
     history: list[dict]
     aggregator: dict
 
+    def ledger(self) -> list[dict]:
+        """One row per (round, agent, direction): codec and bytes."""
+        rows = []
+        for r in self.history:
+            for direction in ("downlink", "uplink"):
+                for agent, n in r[f"{direction}_bytes"].items():
+                    rows.append({"round": r["round"], "agent": agent, "direction": direction,
+                                 "codec": r["codecs"][direction], "bytes": n})
+        return rows
+
     def total_bytes(self) -> dict:
         up = sum(sum(r["uplink_bytes"].values()) for r in self.history)
         down = sum(sum(r["downlink_bytes"].values()) for r in self.history)
-        return {"uplink": up, "downlink": down}
+        n_up = sum(len(r["uplink_bytes"]) for r in self.history)
+        return {"uplink": up, "downlink": down, "uplink_per_agent_round": up / max(n_up, 1)}
 
 
 def agent_seed(seed: int, round_idx: int, agent: int) -> int:
@@ -74,35 +101,41 @@ def run_federation(
     """Run ``config.rounds`` rounds of federated fitting of ``local_maps``."""
     check_same_frame(local_maps)
     aggregator = make_aggregator(config.aggregator, eta=config.eta, beta1=config.beta1, beta2=config.beta2, tau=config.tau)
+    up_spec, down_spec = CodecSpec.parse(config.uplink), CodecSpec.parse(config.downlink)
     global_w = {k: np.asarray(v, dtype=np.float32) for k, v in init_weights.items()}
+    held = global_w  # what every rover holds: the initial model is known to all
+    down_enc = Encoder(down_spec)
+    up_encs = [Encoder(up_spec) for _ in local_maps]  # residuals live on the rovers
     model = build_model(net_config)
     history: list[dict] = []
     for r in range(config.rounds):
         t0 = time.perf_counter()
-        down_payload = serialise_weights(global_w)
+        down_payload = down_enc.encode(global_w, reference=held)
+        held = decode(down_payload, reference=held)  # rovers and base continue from this
         updates, counts, losses, dropped = [], [], {}, {}
         up_bytes, down_bytes = {}, {}
         for k, local in enumerate(local_maps):
             down_bytes[k] = len(down_payload)
-            set_weights(model, deserialise_weights(down_payload))
+            set_weights(model, held)
             try:
                 steps = fit(model, local, config.local, seed=agent_seed(config.seed, r, k), on_step=on_step)
                 w = get_weights(model)
                 if not all(np.isfinite(v).all() for v in w.values()):
                     raise FedmapError("update holds NaN or infinite weights")
+                up_payload = up_encs[k].encode(w, reference=held)
+                up_bytes[k] = len(up_payload)
+                updates.append(decode(up_payload, reference=held))
             except FedmapError as e:
                 dropped[k] = str(e)
                 continue
-            up_payload = serialise_weights(w)
-            up_bytes[k] = len(up_payload)
-            updates.append(deserialise_weights(up_payload))
             counts.append(local.n_known)
             losses[k] = steps[-1] if steps else None
         if not updates:
             raise FedmapError(f"round {r + 1}: every agent's update was dropped ({'; '.join(dropped.values())})")
-        global_w = aggregator.aggregate(global_w, updates, counts)
+        global_w = aggregator.aggregate(held, updates, counts)
         rec = {
             "round": r + 1, "final_loss": losses, "weights": dict(zip(losses, counts)), "dropped": dropped,
+            "codecs": {"uplink": up_spec.label(), "downlink": down_spec.label()},
             "uplink_bytes": up_bytes, "downlink_bytes": down_bytes, "seconds": time.perf_counter() - t0,
         }
         history.append(rec)
