@@ -254,3 +254,16 @@ def test_traverse_rejects_non_positive_sensor_radius():
     for r in (0.0, -1.0):
         with pytest.raises(FedmapError, match="sensor radius"):
             explore(truth, 4, "traverse", sensor_radius=r)
+
+
+def test_traverse_heterogeneous_sensor_radii():
+    from fedmap.maps.grid import GridMap as _G
+
+    truth = _G(np.zeros((48, 48), np.uint8), 1.0, "flat")
+    maps = explore(truth, 4, "traverse", seed=1, sensor_radius=[2.0, 4.0, 6.0, 8.0])
+    # with the same route generator per agent, a larger radius sees more (monotone here on flat ground)
+    seen = [m.n_known for m in maps]
+    single = [explore(truth, 4, "traverse", seed=1, sensor_radius=r)[k].n_known for k, r in enumerate([2.0, 4.0, 6.0, 8.0])]
+    assert seen == single  # per-agent values act exactly like running each agent with its own value
+    with pytest.raises(FedmapError, match="one per agent"):
+        explore(truth, 4, "traverse", sensor_radius=[2.0, 4.0])

@@ -19,6 +19,7 @@ neighbouring agents see a shared margin.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from scipy import ndimage
@@ -95,6 +96,15 @@ def traverse_mask(
     return dist <= sensor_radius
 
 
+def _per_agent(value, n: int, name: str) -> list:
+    if np.ndim(value) == 0:
+        return [value] * n
+    values = list(value)
+    if len(values) != n:
+        raise FedmapError(f"{name} needs one value or one per agent ({n}), got {len(values)}")
+    return values
+
+
 def explore(
     truth: GridMap,
     n_agents: int = 4,
@@ -102,18 +112,26 @@ def explore(
     *,
     seed: int = 0,
     overlap: int = 0,
-    sensor_radius: float = 12.0,
-    waypoints: int = 6,
+    sensor_radius: float | Sequence[float] = 12.0,
+    waypoints: int | Sequence[int] = 6,
 ) -> list[GridMap]:
-    """One local map per agent, in the global frame."""
+    """One local map per agent, in the global frame.
+
+    ``sensor_radius`` and ``waypoints`` (traverse mode) may be one value for all agents
+    or one per agent, for heterogeneous teams (different sensors, different amounts of
+    driving).
+    """
     if mode not in EXPLORE_MODES:
         raise FedmapError(f"unknown exploration mode {mode!r}; choose one of {', '.join(EXPLORE_MODES)}")
     regions = region_masks(truth.shape, n_agents, mode, overlap=overlap)
     if mode == "traverse":
-        if sensor_radius <= 0:
-            raise FedmapError(f"sensor radius must be positive, got {sensor_radius}")
+        radii = _per_agent(sensor_radius, n_agents, "sensor_radius")
+        wps = _per_agent(waypoints, n_agents, "waypoints")
+        if min(radii) <= 0 or min(wps) < 0:
+            raise FedmapError(f"sensor radius must be positive and waypoints >= 0, got {radii} and {wps}")
         rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(n_agents)]
-        seen = [traverse_mask(truth, r, sensor_radius=sensor_radius, waypoints=waypoints, rng=g) for r, g in zip(regions, rngs)]
+        seen = [traverse_mask(truth, reg, sensor_radius=r, waypoints=int(w), rng=g)
+                for reg, r, w, g in zip(regions, radii, wps, rngs)]
     else:
         seen = regions
     local = []

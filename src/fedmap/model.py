@@ -74,7 +74,7 @@ class NetConfig:
         return cls(**d)
 
 
-def grid_config(size: int, *, levels: int = 4, features: int = 2, seed: int = 0) -> NetConfig:
+def grid_config(size: int, *, levels: int = 2, features: int = 4, seed: int = 0) -> NetConfig:
     """A :class:`GridNet` config for ``size x size`` maps: finest level at one cell per map
     pixel, each coarser level half the previous (at least 2)."""
     res = tuple(max(2, size >> i) for i in reversed(range(levels)))
