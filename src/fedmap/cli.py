@@ -122,6 +122,48 @@ def demo(
 
 
 @app.command()
+def bandwidth(
+    terrain: str = typer.Option("mars", help="Built-in terrain: mars, moon or ice."),
+    size: int = typer.Option(128, help="Map side for the rate-distortion comparison (64..2048)."),
+    pairs: int = typer.Option(75, help="Random start/goal pairs for the path F1."),
+    seed: int = typer.Option(0),
+    federated: bool = typer.Option(True, help="Also run fedmap's federated configurations on the same map."),
+    out: Path = typer.Option(Path("fedmap-out/bandwidth"), "--out", "-o", help="Output folder (replaced atomically)."),
+) -> None:
+    """Table III with real bytes: model codecs vs raw, JPEG, WebP, PNG and zstd of the map."""
+    from fedmap.bandwidth_report import bandwidth_report
+    from fedmap.pipeline import PipelineConfig
+
+    PipelineConfig(terrain=terrain, size=size, eval_pairs=pairs)  # validates before any work
+    t0 = time.perf_counter()
+    with _progress() as progress:
+        current = {"task": None}
+
+        def on_stage(name: str, total: int) -> None:
+            if current["task"] is not None:
+                progress.update(current["task"], total=1, completed=1)
+            current["task"] = progress.add_task(name, total=total or None, loss="")
+
+        def on_step(step: int, loss: float) -> None:
+            progress.update(current["task"], advance=1, loss=f"loss {loss:.4f}")
+
+        res = bandwidth_report(out, terrain=terrain, size=size, pairs=pairs, seed=seed, federated=federated,
+                               on_stage=on_stage, on_step=on_step)
+    t = Table(title=f"bytes vs quality, {terrain} {size}x{size}", header_style="bold")
+    for col in ("payload", "bytes", "PSNR", "F1"):
+        t.add_column(col, justify="left" if col == "payload" else "right", no_wrap=True)
+    for r in res["image_codecs"]:
+        t.add_row(r["codec"], f"{r['bytes']:,}", _fmt(r["psnr"]), _fmt(r["f1"]))
+    for p in res["federated"]:
+        t.add_row(f"fedmap: {p['label']}", f"{p['bytes']:,}", _fmt(p["psnr"]), _fmt(p["f1"]))
+    console.print(t)
+    fp16 = next(r for r in res["model_payloads"] if r["codec"] == "fp16")
+    console.print(f"paper network in fp16: {fp16['bytes']:,} B (199,683 x 2 = 399,366 B of values + "
+                  f"{fp16['bytes'] - 399_366} B header)")
+    console.print(f"outputs: {out}/  (report.md, bandwidth.json, rd.png); wall time {time.perf_counter() - t0:.1f} s")
+
+
+@app.command()
 def terrain(
     kind: str = typer.Argument(..., help="mars, moon or ice."),
     out: Path = typer.Argument(..., help="Output map (.png or .npy)."),
