@@ -107,3 +107,27 @@ def test_failed_run_keeps_previous_results(tmp_path, capsys, monkeypatch):
     assert rc == 2 and "simulated failure" in err
     assert json.loads((out / "metrics.json").read_text()) == {"previous": True}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+
+
+def test_bandwidth_report_tiny(tmp_path, capsys, monkeypatch):
+    import fedmap.bandwidth_report as br
+
+    # shrink the federated runs to 1-2 local epochs so the test stays fast
+    tiny = {k: {**v, "federation": {**v["federation"], "local": {**v["federation"]["local"], "epochs": 2}}}
+            for k, v in list(br.FEDERATED_RUNS.items())[::2]}
+    monkeypatch.setattr(br, "FEDERATED_RUNS", tiny)
+    out = tmp_path / "bw"
+    rc, stdout, err = _run(["bandwidth", "--size", "64", "--pairs", "5", "-o", str(out)], capsys)
+    assert rc == 0, err
+    res = json.loads((out / "bandwidth.json").read_text())
+    fp16 = next(r for r in res["model_payloads"] if r["codec"] == "fp16")
+    assert 399_366 < fp16["bytes"] < 399_366 + 512  # the paper's arithmetic plus a small header
+    assert {r["codec"] for r in res["image_codecs"]} >= {"png-palette", "zstd-2bit", "jpeg q26"}
+    lossless = [r for r in res["image_codecs"] if r["lossless"]]
+    assert lossless and all(r["psnr"] is None and r["f1"] == 1.0 for r in lossless)  # inf -> null in JSON
+    fed = res["federated"]
+    assert len(fed) == 2
+    # a run's uplink total is rounds x rovers x per-rover-per-round bytes
+    for p in fed:
+        assert p["bytes"] == pytest.approx(p["rounds"] * 4 * p["uplink_per_agent_round"])
+    assert (out / "rd.png").stat().st_size > 10_000 and "Table III" in (out / "report.md").read_text()
