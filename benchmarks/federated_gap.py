@@ -63,16 +63,19 @@ def terrains(data: Path, n: int) -> dict:
 
 
 METHODS = {
+    # fedmap: feature grids + frozen decoder, masked loss, coverage-aware FedAvg, sparse fp16 uplink
+    "grid+coverage R=1 (update int4+zstd)": dict(net="grid", federation=dict(
+        rounds=1, aggregator="coverage", local=dict(epochs=100, lr=0.05, masked=True),
+        uplink="update-int4+zstd", downlink="update-int8+zstd")),
+    "grid+coverage R=3 (update int4+zstd)": dict(net="grid", federation=dict(
+        rounds=3, aggregator="coverage", local=dict(epochs=34, lr=0.05, masked=True),
+        uplink="update-int4+zstd", downlink="update-int8+zstd")),
+    "grid+coverage R=3 (top-k 4% int8: too sparse)": dict(net="grid", federation=dict(
+        rounds=3, aggregator="coverage", local=dict(epochs=34, lr=0.05, masked=True),
+        uplink="topk:0.04,values=int8+zstd", downlink="update-int8+zstd")),
     # the paper: Fourier MLP, random init, FedAvg, UNKNOWN trained as grey, 100 local epochs, R = 1
     "paper (fourier, fedavg, R=1)": dict(net="paper", federation=dict(
         rounds=1, aggregator="fedavg", local=dict(epochs=100, lr=1e-3), uplink="fp16", downlink="fp16")),
-    # fedmap: feature grids + frozen decoder, masked loss, coverage-aware FedAvg, sparse fp16 uplink
-    "grid+coverage R=1 (top-k 27% fp16)": dict(net="grid", federation=dict(
-        rounds=1, aggregator="coverage", local=dict(epochs=100, lr=0.05, masked=True),
-        uplink="topk:0.27,values=fp16+zstd", downlink="fp16+zstd")),
-    "grid+coverage R=3 (top-k 4% int8)": dict(net="grid", federation=dict(
-        rounds=3, aggregator="coverage", local=dict(epochs=34, lr=0.05, masked=True),
-        uplink="topk:0.04,values=int8+zstd", downlink="update-int8+zstd")),
 }
 
 
@@ -110,13 +113,18 @@ def main() -> None:
                 "rounds": res.config.federation.rounds, "wall_s": wall - res.timings.get("central_s", 0.0),
             }
             rows.append(row)
+            write(rows, args.out)
             print(f"  {mname:38} PSNR {row['psnr']:6.2f} SSIM {row['ssim']:.3f} F1 {row['f1']:.2f} | central "
                   f"{row['central_psnr']:6.2f} / {row['central_f1']:.2f} | uplink "
                   f"{row['uplink_B_per_agent_round'] / 1000:7.1f} kB/agent/round | {row['wall_s']:.0f} s", flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
+    print("\n" + write(rows, args.out))
+
+
+def write(rows: list[dict], out: Path) -> str:
     from fedmap.report import to_json
 
-    (args.out / "results.json").write_text(to_json(rows))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(to_json(rows))
     md = ["| terrain | method | PSNR dB | SSIM | path F1 | central PSNR / F1 | uplink kB/agent/round | wall s |",
           "|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -124,8 +132,8 @@ def main() -> None:
         md.append(f"| {r['terrain']} | {r['method']} | {fmt(r['psnr'])} | {r['ssim']:.3f} | {r['f1']:.2f} | "
                   f"{fmt(r['central_psnr'])} / {r['central_f1']:.2f} | {r['uplink_B_per_agent_round'] / 1000:.1f} | "
                   f"{r['wall_s']:.0f} |")
-    (args.out / "results.md").write_text("\n".join(md) + "\n")
-    print("\n" + "\n".join(md))
+    (out / "results.md").write_text("\n".join(md) + "\n")
+    return "\n".join(md)
 
 
 if __name__ == "__main__":

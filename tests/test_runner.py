@@ -57,16 +57,17 @@ def test_codecs_go_through_real_bytes(tiny_net, blob_map):
     init = get_weights(build_model(tiny_net, seed=0))
     cfg = FederationConfig(local=local, seed=2, uplink="topk:0.05", downlink="fp16")
     res = run_federation(init, tiny_net, maps, cfg)
-    held = decode(Encoder("fp16").encode(init))  # the fp16 broadcast every rover decodes
     ws = []
-    for k, m in enumerate(maps):
+    for k, m in enumerate(maps):  # round 1 starts from the initial model every rover holds
         model = build_model(tiny_net)
-        set_weights(model, held)
+        set_weights(model, init)
         fit(model, m, local, seed=agent_seed(2, 0, k))
-        payload = Encoder("topk:0.05").encode(get_weights(model), reference=held)
+        payload = Encoder("topk:0.05").encode(get_weights(model), reference=init)
         assert res.history[0]["uplink_bytes"][k] == len(payload)
-        ws.append(decode(payload, reference=held))
-    ref = weighted_average(ws, [m.n_known for m in maps])
+        ws.append(decode(payload, reference=init))
+    broadcast = Encoder("fp16").encode(weighted_average(ws, [m.n_known for m in maps]))
+    assert res.history[0]["downlink_bytes"] == {k: len(broadcast) for k in range(4)}
+    ref = decode(broadcast)  # what the rovers render: the decoded fp16 broadcast
     for k in ref:
         np.testing.assert_allclose(res.weights[k], ref[k], atol=1e-6)
     # the sparse uplink is far smaller than the dense downlink
@@ -82,7 +83,7 @@ def test_malformed_payload_drops_that_agent(tiny_net, blob_map, monkeypatch):
     def truncating(self, weights, reference=None):
         data = real_encode(self, weights, reference)
         calls["n"] += 1
-        return data[:-3] if calls["n"] == 3 else data  # call 1 = downlink, 2.. = agents 0..
+        return data[:-3] if calls["n"] == 2 else data  # calls 1.. = agents 0.., then the broadcast
 
     monkeypatch.setattr(Encoder, "encode", truncating)
     res = run_federation(init, tiny_net, maps, FederationConfig(local=TrainConfig(epochs=1)))

@@ -34,12 +34,12 @@ FEDERATED_RUNS: dict[str, dict] = {
         rounds=1, local=dict(epochs=100), uplink="fp16", downlink="fp16")),
     "paper net, FedAvg R=3, top-k 1% int8": dict(net="paper", federation=dict(
         rounds=3, local=dict(epochs=34), uplink="topk:0.01,values=int8+zstd", downlink="update-int8+zstd")),
-    "grid+coverage R=1, top-k 27% fp16": dict(net="grid", federation=dict(
+    "grid+coverage R=1, update int4+zstd": dict(net="grid", federation=dict(
         rounds=1, aggregator="coverage", local=dict(epochs=100, lr=0.05, masked=True),
-        uplink="topk:0.27,values=fp16+zstd", downlink="fp16+zstd")),
-    "grid+coverage R=3, top-k 4% int8": dict(net="grid", federation=dict(
+        uplink="update-int4+zstd", downlink="update-int8+zstd")),
+    "grid+coverage R=3, update int8+zstd": dict(net="grid", federation=dict(
         rounds=3, aggregator="coverage", local=dict(epochs=34, lr=0.05, masked=True),
-        uplink="topk:0.04,values=int8+zstd", downlink="update-int8+zstd")),
+        uplink="update-int8+zstd", downlink="update-int8+zstd")),
 }
 
 

@@ -57,23 +57,33 @@ def _scores_table(metrics: dict) -> Table:
     return t
 
 
+#: ``fedmap demo --method``: the paper's settings, and fedmap's (see README, "Results").
+DEMO_METHODS = {
+    "paper": {"net": "paper", "aggregator": "fedavg", "lr": 1e-3, "masked": False, "uplink": "fp32", "downlink": "fp32"},
+    "fedmap": {"net": "grid", "aggregator": "coverage", "lr": 0.05, "masked": True, "uplink": "update-int4+zstd",
+               "downlink": "update-int8+zstd"},
+}
+
+
 @app.command()
 def demo(
     terrain: str = typer.Option("mars", help="Built-in terrain: mars, moon or ice."),
     size: int = typer.Option(128, help="Map side in cells (64..2048)."),
     agents: int = typer.Option(4, help="Number of rovers."),
     explore: str = typer.Option("quadrants", help="Exploration: quadrants, strips, grid or traverse."),
+    method: str = typer.Option("paper", help="Preset: paper (Fourier MLP, FedAvg, fp32) or fedmap (feature grids, "
+                               "coverage-aware FedAvg, masked loss, int4/int8 update payloads). Options below override it."),
     rounds: int = typer.Option(1, help="Communication rounds R."),
     local_epochs: int = typer.Option(100, "--local-epochs", help="Local epochs per round E."),
-    lr: float = typer.Option(1e-3, help="Local Adam learning rate."),
-    aggregator: str = typer.Option("fedavg", help="fedavg, fedadam, fedyogi or coverage (coverage-aware FedAvg)."),
-    net: str = typer.Option("paper", help="Network: paper (Fourier MLP, 199,683 params), small, or grid (feature grids)."),
+    lr: Optional[float] = typer.Option(None, help="Local Adam learning rate [paper 1e-3, fedmap 0.05]."),
+    aggregator: Optional[str] = typer.Option(None, help="fedavg, fedadam, fedyogi or coverage (coverage-aware FedAvg)."),
+    net: Optional[str] = typer.Option(None, help="Network: paper (Fourier MLP, 199,683 params), small, or grid (feature grids)."),
     central: bool = typer.Option(True, help="Also fit one network to the union of the local maps (the upper bound)."),
-    uplink: str = typer.Option("fp32", help="Rover -> base codec: fp32, fp16, bf16, int8, int4, topk:0.01, update-int8, ... (+zstd)."),
-    downlink: str = typer.Option("fp32", help="Base -> rover codec (same grammar)."),
+    uplink: Optional[str] = typer.Option(None, help="Rover -> base codec: fp32, fp16, bf16, int8, int4, topk:0.01, update-int4, ... (+zstd)."),
+    downlink: Optional[str] = typer.Option(None, help="Base -> rover codec (same grammar)."),
     eta: float = typer.Option(1e-2, help="Server learning rate for fedadam/fedyogi."),
     init: str = typer.Option("random", help="Initial weights: random or empty (empty-map prior)."),
-    masked: bool = typer.Option(False, help="Loss on known cells only (paper: off, unknown is trained as grey)."),
+    masked: Optional[bool] = typer.Option(None, help="Loss on known cells only [paper: off, unknown is trained as grey; fedmap: on]."),
     min_size: int = typer.Option(0, "--min-size", help="Refinement: remove impassable blobs smaller than this many cells (paper: 200; 0 = off)."),
     pairs: int = typer.Option(75, help="Random start/goal pairs for the path F1."),
     seed: int = typer.Option(0, help="Seed for terrain, exploration, initialisation, training and evaluation."),
@@ -85,6 +95,11 @@ def demo(
     from fedmap.refine import RefineConfig
     from fedmap.training import TrainConfig
 
+    if method not in DEMO_METHODS:
+        raise FedmapError(f"unknown method {method!r}; choose one of {', '.join(DEMO_METHODS)}")
+    given = {"lr": lr, "aggregator": aggregator, "net": net, "uplink": uplink, "downlink": downlink, "masked": masked}
+    chosen = {**DEMO_METHODS[method], **{k: v for k, v in given.items() if v is not None}}
+    lr, aggregator, net, uplink, downlink, masked = (chosen[k] for k in ("lr", "aggregator", "net", "uplink", "downlink", "masked"))
     t0 = time.perf_counter()
     config = PipelineConfig(
         terrain=terrain, size=size, agents=agents, explore=explore, init=init, seed=seed, eval_pairs=pairs,

@@ -4,11 +4,13 @@ Every payload really goes through bytes (:mod:`fedmap.comm`) in both directions 
 models are rebuilt from the decoded bytes, so metrics are computed on what a link
 delivers and byte counts are ``len()`` of what it carries.
 
-* **Downlink.** The base encodes the global model with the downlink codec relative to
-  the model the rovers already hold (for update/top-k codecs) and every rover decodes the
-  same broadcast; the base then continues from that decoded model too, so base and
-  rovers never disagree. In round 1 the rovers hold the initial model (seeded or shipped
-  with the package), so an update codec sends only what differs from it.
+* **Downlink.** Every rover starts round 1 from the initial model, which all of them
+  already hold (it is seeded or shipped with the package), so nothing is sent for it.
+  After each aggregation the base broadcasts the new global model with the downlink
+  codec, relative to the model the rovers hold (for update/top-k codecs); every rover
+  decodes the same bytes, and the base continues from that decoded model too, so base
+  and rovers never disagree. The returned weights are that decoded broadcast: what the
+  rovers render.
 * **Uplink.** Each rover has its own encoder (error-feedback residual and momentum stay
   on the rover) and sends its trained weights relative to the model it started from.
 * **Dropouts.** An agent whose training diverges, whose update is not finite, or whose
@@ -110,12 +112,9 @@ def run_federation(
     history: list[dict] = []
     for r in range(config.rounds):
         t0 = time.perf_counter()
-        down_payload = down_enc.encode(global_w, reference=held)
-        held = decode(down_payload, reference=held)  # rovers and base continue from this
         updates, counts, losses, dropped = [], [], {}, {}
         up_bytes, down_bytes = {}, {}
         for k, local in enumerate(local_maps):
-            down_bytes[k] = len(down_payload)
             set_weights(model, held)
             try:
                 steps = fit(model, local, config.local, seed=agent_seed(config.seed, r, k), on_step=on_step)
@@ -133,6 +132,9 @@ def run_federation(
         if not updates:
             raise FedmapError(f"round {r + 1}: every agent's update was dropped ({'; '.join(dropped.values())})")
         global_w = aggregator.aggregate(held, updates, counts)
+        down_payload = down_enc.encode(global_w, reference=held)
+        held = decode(down_payload, reference=held)  # rovers and base continue from this
+        down_bytes = {k: len(down_payload) for k in range(len(local_maps))}
         rec = {
             "round": r + 1, "final_loss": losses, "weights": dict(zip(losses, counts)), "dropped": dropped,
             "codecs": {"uplink": up_spec.label(), "downlink": down_spec.label()},
@@ -141,4 +143,4 @@ def run_federation(
         history.append(rec)
         if on_round is not None:
             on_round(rec)
-    return FederationResult(global_w, history, {"name": config.aggregator, **aggregator.hyperparameters()})
+    return FederationResult(held, history, {"name": config.aggregator, **aggregator.hyperparameters()})
