@@ -18,7 +18,7 @@ from fedmap.evaluation.metrics import image_scores
 from fedmap.evaluation.planning import path_f1
 from fedmap.explore import explore
 from fedmap.federation.runner import FederationConfig, FederationResult, run_federation, total_local_steps
-from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb
+from fedmap.maps.grid import UNKNOWN, GridMap, check_same_frame, classes_from_rgb
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
 from fedmap.model import CoordNet, NetConfig, build_model, get_weights, preset, render, set_weights
 from fedmap.refine import RefineConfig, refine
@@ -115,18 +115,26 @@ def run_pipeline(
     config: PipelineConfig,
     *,
     truth: GridMap | None = None,
+    local_maps: list[GridMap] | None = None,
     on_stage: Callable[[str, int], None] | None = None,
     on_step: Callable[[int, float], None] | None = None,
 ) -> PipelineResult:
-    """Run the whole job. ``on_stage(name, total_steps)`` announces each stage."""
+    """Run the whole job. ``on_stage(name, total_steps)`` announces each stage.
+
+    ``truth`` replaces the built-in terrain and ``local_maps`` the exploration (e.g. a
+    heterogeneous team made with :func:`fedmap.explore.explore`).
+    """
     stage = on_stage or (lambda name, total: None)
     timings: dict[str, float] = {}
     t = time.perf_counter()
     stage("terrain", 0)
     if truth is None:
         truth = load_truth(config)
-    local_maps = explore(truth, config.agents, config.explore, seed=config.seed, overlap=config.overlap,
-                         sensor_radius=config.sensor_radius)
+    if local_maps is None:
+        local_maps = explore(truth, config.agents, config.explore, seed=config.seed, overlap=config.overlap,
+                             sensor_radius=config.sensor_radius)
+    elif check_same_frame(local_maps) != truth.shape:
+        raise FedmapError(f"local maps are {local_maps[0].shape}, the ground truth is {truth.shape}")
     timings["terrain_and_explore_s"] = time.perf_counter() - t
 
     net_config = preset(config.net, truth.shape[0])
