@@ -22,12 +22,11 @@ import numpy as np
 import torch
 from PIL import Image
 
-from fedmap.federation.runner import FederationConfig
 from fedmap.maps.dem import Dem
 from fedmap.maps.io import load_dem
 from fedmap.maps.traversability import dem_to_traversability
-from fedmap.pipeline import PipelineConfig, run_pipeline
-from fedmap.training import TrainConfig
+from fedmap.pipeline import run_pipeline
+from fedmap.presets import method_config
 
 MOON_PX = 1737.4e3 * np.pi / 180 / 256  # 1 degree of the 1737.4 km sphere over 256 px
 
@@ -62,27 +61,14 @@ def terrains(data: Path, n: int) -> dict:
     }
 
 
+#: label -> (method, rounds, local epochs, overrides); see fedmap.presets
 METHODS = {
-    # fedmap: feature grids + frozen decoder, masked loss, coverage-aware FedAvg, sparse fp16 uplink
-    "grid+coverage R=1 (update int4+zstd)": dict(net="grid", federation=dict(
-        rounds=1, aggregator="coverage", local=dict(epochs=100, lr=0.05, masked=True),
-        uplink="update-int4+zstd", downlink="update-int8+zstd")),
-    "grid+coverage R=3 (update int4+zstd)": dict(net="grid", federation=dict(
-        rounds=3, aggregator="coverage", local=dict(epochs=34, lr=0.05, masked=True),
-        uplink="update-int4+zstd", downlink="update-int8+zstd")),
-    "grid+coverage R=3 (top-k 4% int8: too sparse)": dict(net="grid", federation=dict(
-        rounds=3, aggregator="coverage", local=dict(epochs=34, lr=0.05, masked=True),
-        uplink="topk:0.04,values=int8+zstd", downlink="update-int8+zstd")),
+    "grid+coverage R=1 (update int4+zstd)": ("fedmap", 1, 100, {}),
+    "grid+coverage R=3 (update int4+zstd)": ("fedmap", 3, 34, {}),
+    "grid+coverage R=3 (top-k 4% int8: too sparse)": ("fedmap", 3, 34, {"uplink": "topk:0.04,values=int8+zstd"}),
     # the paper: Fourier MLP, random init, FedAvg, UNKNOWN trained as grey, 100 local epochs, R = 1
-    "paper (fourier, fedavg, R=1)": dict(net="paper", federation=dict(
-        rounds=1, aggregator="fedavg", local=dict(epochs=100, lr=1e-3), uplink="fp16", downlink="fp16")),
+    "paper (fourier, fedavg, R=1)": ("paper", 1, 100, {"uplink": "fp16", "downlink": "fp16"}),
 }
-
-
-def make_config(spec: dict, seed: int) -> PipelineConfig:
-    fed = dict(spec["federation"])
-    fed["local"] = TrainConfig(**fed["local"])
-    return PipelineConfig(net=spec["net"], seed=seed, federation=FederationConfig(seed=seed, **fed))
 
 
 def main() -> None:
@@ -100,7 +86,9 @@ def main() -> None:
               f"{truth.fractions()['impassable']:.1%} impassable", flush=True)
         for mname, spec in METHODS.items():
             t = time.perf_counter()
-            res = run_pipeline(make_config(spec, args.seed), truth=truth)
+            method, rounds, epochs, overrides = spec
+            res = run_pipeline(method_config(method, rounds=rounds, epochs=epochs, seed=args.seed, **overrides),
+                               truth=truth)
             wall = time.perf_counter() - t
             m = res.metrics
             row = {

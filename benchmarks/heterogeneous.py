@@ -17,9 +17,8 @@ import time
 import torch
 
 from fedmap.explore import explore
-from fedmap.federation.runner import FederationConfig
 from fedmap.pipeline import PipelineConfig, load_truth, run_pipeline
-from fedmap.training import TrainConfig
+from fedmap.presets import method_config
 
 TEAMS = {
     "quadrants, no overlap": dict(mode="quadrants"),
@@ -27,13 +26,6 @@ TEAMS = {
     "traverse, radii 6/10/14/18": dict(mode="traverse", sensor_radius=[6.0, 10.0, 14.0, 18.0]),
     "traverse, radius 12, 2/4/8/12 waypoints": dict(mode="traverse", waypoints=[2, 4, 8, 12]),
 }
-METHODS = {
-    "fedmap": dict(net="grid", federation=FederationConfig(
-        aggregator="coverage", local=TrainConfig(epochs=100, lr=0.05, masked=True),
-        uplink="update-int4+zstd", downlink="update-int8+zstd")),
-    "paper": dict(net="paper", federation=FederationConfig(local=TrainConfig(epochs=100), uplink="fp16", downlink="fp16")),
-}
-
 
 def main() -> None:
     ap = argparse.ArgumentParser()
@@ -47,12 +39,12 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|")
     for tname, team in TEAMS.items():
         for mname in args.methods:
-            spec = METHODS[mname]
             kw = dict(team)
             mode = kw.pop("mode")
             local = explore(truth, 4, mode, seed=0, **kw)
             seen = sum(m.known for m in local).clip(0, 1).mean()
-            cfg = PipelineConfig(terrain=args.terrain, size=args.size, explore=mode, **spec)
+            overrides = {"uplink": "fp16", "downlink": "fp16"} if mname == "paper" else {}
+            cfg = method_config(mname, **overrides)
             t = time.perf_counter()
             r = run_pipeline(cfg, truth=truth, local_maps=local)
             g, c = r.metrics["global"], r.metrics["central"]

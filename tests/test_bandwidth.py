@@ -189,6 +189,25 @@ def test_lossy_scores_below_lossless(mars):
     assert set(np.unique(decoded)) <= {FREE, IMPASSABLE, UNKNOWN}
 
 
+def test_two_level_snapping(mars, mixed):
+    c = mars.classes
+    assert not (c == UNKNOWN).any()
+    three, two = ImageCodec("jpeg", 26), ImageCodec("jpeg", 26, two_level=True)
+    assert two.label == "jpeg q26 2-level" and two.family == "jpeg 2-level"
+    p = three.encode(c)
+    assert two.encode(c) == p  # same bytes, only the receiver's snapping differs
+    gray = three.decode_gray(p, c.shape)
+    np.testing.assert_array_equal(two.decode(p, c.shape), np.where(gray >= 128, FREE, IMPASSABLE))
+    assert set(np.unique(two.decode(p, c.shape))) <= {FREE, IMPASSABLE}
+    assert (two.decode(p, c.shape) != c).sum() <= (three.decode(p, c.shape) != c).sum()
+    with pytest.raises(FedmapError, match="unknown cells"):
+        two.encode(mixed)
+    with pytest.raises(FedmapError):
+        ImageCodec("png-gray", two_level=True)
+    labels = [k.label for k in image_codecs((10,), webp=False, two_level=True)]
+    assert labels[-2:] == ["jpeg q10", "jpeg q10 2-level"]
+
+
 def test_path_scores_optional(mixed):
     rows = compare_image_codecs(mixed, codecs=[ImageCodec("zstd-2bit")], path_scores=False)
     assert rows[0]["f1"] is None and rows[0]["psnr"] == math.inf

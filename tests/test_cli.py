@@ -113,8 +113,8 @@ def test_bandwidth_report_tiny(tmp_path, capsys, monkeypatch):
     import fedmap.bandwidth_report as br
 
     # shrink the federated runs to 1-2 local epochs so the test stays fast
-    tiny = {k: {**v, "federation": {**v["federation"], "local": {**v["federation"]["local"], "epochs": 2}}}
-            for k, v in list(br.FEDERATED_RUNS.items())[::2]}
+    tiny = {label: (method, rounds, 2, overrides)
+            for label, (method, rounds, _, overrides) in list(br.FEDERATED_RUNS.items())[::2]}
     monkeypatch.setattr(br, "FEDERATED_RUNS", tiny)
     out = tmp_path / "bw"
     rc, stdout, err = _run(["bandwidth", "--size", "64", "--pairs", "5", "-o", str(out)], capsys)

@@ -19,27 +19,21 @@ from pathlib import Path
 
 from fedmap.bandwidth import compare_image_codecs, markdown_table, paper_table3, rd_figure
 from fedmap.comm import Encoder
-from fedmap.federation.runner import FederationConfig
 from fedmap.model import build_model, count_parameters, get_weights
 from fedmap.pipeline import PipelineConfig, load_truth, run_pipeline
+from fedmap.presets import method_config
 from fedmap.report import AtomicDir, to_json
-from fedmap.training import TrainConfig
 
 MODEL_CODECS = ("fp32", "fp16", "bf16", "int8", "int8-tensor", "int4", "int4+zstd",
                 "topk:0.01,values=fp16", "topk:0.01,values=int8+zstd", "topk:0.005,values=int8+zstd")
 
-#: fedmap configurations drawn beside the image codecs (label -> pipeline overrides)
-FEDERATED_RUNS: dict[str, dict] = {
-    "paper net, FedAvg R=1, fp16": dict(net="paper", federation=dict(
-        rounds=1, local=dict(epochs=100), uplink="fp16", downlink="fp16")),
-    "paper net, FedAvg R=3, top-k 1% int8": dict(net="paper", federation=dict(
-        rounds=3, local=dict(epochs=34), uplink="topk:0.01,values=int8+zstd", downlink="update-int8+zstd")),
-    "grid+coverage R=1, update int4+zstd": dict(net="grid", federation=dict(
-        rounds=1, aggregator="coverage", local=dict(epochs=100, lr=0.05, masked=True),
-        uplink="update-int4+zstd", downlink="update-int8+zstd")),
-    "grid+coverage R=3, update int8+zstd": dict(net="grid", federation=dict(
-        rounds=3, aggregator="coverage", local=dict(epochs=34, lr=0.05, masked=True),
-        uplink="update-int8+zstd", downlink="update-int8+zstd")),
+#: fedmap configurations drawn beside the image codecs: label -> (method, rounds, epochs, overrides)
+FEDERATED_RUNS: dict[str, tuple[str, int, int, dict]] = {
+    "paper net, FedAvg R=1, fp16": ("paper", 1, 100, {"uplink": "fp16", "downlink": "fp16"}),
+    "paper net, FedAvg R=3, top-k 1% int8": ("paper", 3, 34, {"uplink": "topk:0.01,values=int8+zstd",
+                                                              "downlink": "update-int8+zstd"}),
+    "grid+coverage R=1, update int4+zstd": ("fedmap", 1, 100, {}),
+    "grid+coverage R=3, update int8+zstd": ("fedmap", 3, 34, {"uplink": "update-int8+zstd"}),
 }
 
 
@@ -58,11 +52,9 @@ def model_payloads(seed: int = 0) -> list[dict]:
 def federated_points(truth, *, seed: int, pairs: int, on_stage: Callable[[str, int], None] | None = None,
                      on_step: Callable[[int, float], None] | None = None) -> list[dict]:
     points = []
-    for label, spec in FEDERATED_RUNS.items():
-        fed = dict(spec["federation"])
-        fed["local"] = TrainConfig(**fed["local"])
-        cfg = PipelineConfig(net=spec["net"], seed=seed, eval_pairs=pairs, central=False,
-                             federation=FederationConfig(seed=seed, **fed))
+    for label, (method, rounds, epochs, overrides) in FEDERATED_RUNS.items():
+        cfg = method_config(method, rounds=rounds, epochs=epochs, seed=seed, eval_pairs=pairs, central=False,
+                            **overrides)
         if on_stage:
             on_stage(label, 0)
         res = run_pipeline(cfg, truth=truth, on_step=on_step)

@@ -57,14 +57,6 @@ def _scores_table(metrics: dict) -> Table:
     return t
 
 
-#: ``fedmap demo --method``: the paper's settings, and fedmap's (see README, "Results").
-DEMO_METHODS = {
-    "paper": {"net": "paper", "aggregator": "fedavg", "lr": 1e-3, "masked": False, "uplink": "fp32", "downlink": "fp32"},
-    "fedmap": {"net": "grid", "aggregator": "coverage", "lr": 0.05, "masked": True, "uplink": "update-int4+zstd",
-               "downlink": "update-int8+zstd"},
-}
-
-
 @app.command()
 def demo(
     terrain: str = typer.Option("mars", help="Built-in terrain: mars, moon or ice."),
@@ -95,10 +87,10 @@ def demo(
     from fedmap.refine import RefineConfig
     from fedmap.training import TrainConfig
 
-    if method not in DEMO_METHODS:
-        raise FedmapError(f"unknown method {method!r}; choose one of {', '.join(DEMO_METHODS)}")
-    given = {"lr": lr, "aggregator": aggregator, "net": net, "uplink": uplink, "downlink": downlink, "masked": masked}
-    chosen = {**DEMO_METHODS[method], **{k: v for k, v in given.items() if v is not None}}
+    from fedmap.presets import method_settings
+
+    chosen = method_settings(method, lr=lr, aggregator=aggregator, net=net, uplink=uplink, downlink=downlink,
+                             masked=masked)
     lr, aggregator, net, uplink, downlink, masked = (chosen[k] for k in ("lr", "aggregator", "net", "uplink", "downlink", "masked"))
     t0 = time.perf_counter()
     config = PipelineConfig(

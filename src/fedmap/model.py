@@ -284,9 +284,9 @@ def save_model(model: CoordNet, path: str | os.PathLike, *, extra: dict | None =
     """Write weights + the config that built them as safetensors, atomically."""
     from safetensors.torch import save
 
-    meta = {"fedmap_config": json.dumps(model.config.to_dict())}
-    if extra:
-        meta["fedmap_extra"] = json.dumps(extra, sort_keys=True)
+    # One metadata key: safetensors keeps metadata in a hash map whose order varies
+    # between calls, so several keys would make identical models differ in bytes.
+    meta = {"fedmap": json.dumps({"config": model.config.to_dict(), "extra": extra or {}}, sort_keys=True)}
     data = save({k: v.contiguous() for k, v in model.state_dict().items()}, metadata=meta)
     from fedmap.maps.io import atomic_write_bytes
 
@@ -306,7 +306,7 @@ def load_model(path: str | os.PathLike) -> CoordNet:
         tensors = load(raw)
         header_len = int.from_bytes(raw[:8], "little")
         header = json.loads(raw[8 : 8 + header_len])
-        config = NetConfig.from_dict(json.loads(header["__metadata__"]["fedmap_config"]))
+        config = NetConfig.from_dict(json.loads(header["__metadata__"]["fedmap"])["config"])
     except (SafetensorError, KeyError, ValueError, TypeError) as e:
         raise FedmapError(f"{p} is not a fedmap model file ({type(e).__name__}: {e})".splitlines()[0]) from e
     model = build_model(config)
