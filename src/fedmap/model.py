@@ -225,10 +225,6 @@ def set_weights(model: nn.Module, weights: Weights) -> None:
     model.load_state_dict({k: torch.as_tensor(np.asarray(v, dtype=np.float32)) for k, v in weights.items()})
 
 
-def weights_nbytes(weights: Weights) -> int:
-    return int(sum(np.asarray(v).nbytes for v in weights.values()))
-
-
 # -- rendering -------------------------------------------------------------------------
 
 def grid_coords(height: int, width: int) -> torch.Tensor:
@@ -237,7 +233,7 @@ def grid_coords(height: int, width: int) -> torch.Tensor:
 
 
 @torch.no_grad()
-def render(model: CoordNet, height: int, width: int, *, chunk: int = 1 << 16) -> np.ndarray:
+def render(model: nn.Module, height: int, width: int, *, chunk: int = 1 << 16) -> np.ndarray:
     """The model's map of the whole frame: (H, W, 3) float32 RGB in [0, 1].
 
     BatchNorm uses the exact statistics of the full grid (as in training on the full
@@ -280,7 +276,7 @@ def render(model: CoordNet, height: int, width: int, *, chunk: int = 1 << 16) ->
 
 # -- checkpoints -------------------------------------------------------------------------
 
-def save_model(model: CoordNet, path: str | os.PathLike, *, extra: dict | None = None) -> None:
+def save_model(model: nn.Module, path: str | os.PathLike, *, extra: dict | None = None) -> None:
     """Write weights + the config that built them as safetensors, atomically."""
     from safetensors.torch import save
 
@@ -316,6 +312,6 @@ def load_model(path: str | os.PathLike) -> CoordNet:
 
 __all__ = [
     "NetConfig", "PRESETS", "preset", "FourierFeatures", "CoordNet", "build_model", "count_parameters",
-    "get_weights", "set_weights", "weights_nbytes", "grid_coords", "render", "save_model", "load_model",
+    "get_weights", "set_weights", "grid_coords", "render", "save_model", "load_model",
     "Weights",
 ]

@@ -12,6 +12,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from fedmap.errors import FedmapError
 from fedmap.evaluation.metrics import image_scores
@@ -68,7 +69,7 @@ class PipelineResult:
     config: PipelineConfig
     truth: GridMap
     local_maps: list[GridMap]
-    model: CoordNet
+    model: torch.nn.Module  # CoordNet or GridNet
     global_rgb: np.ndarray
     global_classes: np.ndarray
     refined: np.ndarray
