@@ -206,7 +206,8 @@ def write_outputs(result: PipelineResult, out_dir: str | Path) -> Path:
         scores = {"federated global map": {"psnr": m["global"]["psnr"], "f1": m["global"]["path"]["f1"]},
                   "refined global map": {"psnr": m["refined"]["psnr"], "f1": m["refined"]["path"]["f1"]}}
         c = result.config
-        title = (f"{c.terrain} {c.size}x{c.size}, {c.agents} agents ({c.explore}), init {c.init}, "
+        init = "zero grids (empty-map prior)" if c.net == "grid" else f"init {c.init}"
+        title = (f"{c.terrain} {c.size}x{c.size}, {c.agents} agents ({c.explore}), {c.net} net, {init}, "
                  f"{c.federation.aggregator} x {c.federation.rounds} round(s), {c.federation.local.epochs} local epochs")
         fig4_panel(result.local_maps, result.truth, result.global_classes, result.refined, tmp / "figure.png",
                    title=title, scores=scores)
