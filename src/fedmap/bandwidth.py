@@ -582,6 +582,7 @@ def rd_figure(rows: Sequence[dict], path: str | Path, *, model_points: list[dict
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     if not rows and not model_points:
         raise FedmapError("nothing to plot: no rows and no model points")
@@ -619,10 +620,9 @@ def rd_figure(rows: Sequence[dict], path: str | Path, *, model_points: list[dict
             if r["lossless"]:
                 color, ls = _LOSSLESS_STYLE.get(r["family"], ("0.5", "--"))
                 ax.axvline(r["bytes"], color=color, ls=ls, lw=1.2, label=f"{r['codec']} (lossless, {_human(r['bytes'])})")
-        if key == "psnr" and any(r["psnr"] is not None and math.isinf(r["psnr"]) for r in rows if not r["lossless"]):
+        exact_row = key == "psnr" and any(r["psnr"] is not None and math.isinf(r["psnr"]) for r in rows if not r["lossless"])
+        if exact_row:
             ax.axhline(top, color="0.6", lw=0.8, ls=":")
-            ax.annotate("decodes exactly (PSNR inf)", (0.01, top), xycoords=("axes fraction", "data"),
-                        xytext=(0, -11), textcoords="offset points", fontsize=7, color="0.4")
         for i, p in enumerate(model_points):
             style = dict(color=_MODEL_COLORS[i % len(_MODEL_COLORS)], label=f"{p['label']} ({_human(p['bytes'])})")
             v = p.get(key)
@@ -632,7 +632,13 @@ def rd_figure(rows: Sequence[dict], path: str | Path, *, model_points: list[dict
                 y = v if math.isfinite(v) else top
                 ax.plot([p["bytes"]], [y], marker="*", ms=15, ls="none", markeredgecolor="k", **style)
         ax.set_xscale("log")
+        ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: _human(x, short=True)))
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_ylim(ymin, ymax)
+        if exact_row:  # label the top line "exact" (PSNR inf) instead of a number
+            ticks = [t for t in ax.get_yticks() if ymin <= t < top - 0.06 * (ymax - ymin)]
+            ax.set_yticks(ticks + [top], [f"{t:g}" for t in ticks] + ["exact"])
         ax.set_xlabel("bytes on the link (log)")
         ax.set_ylabel(ylabel)
         ax.grid(True, which="both", alpha=0.3)
@@ -647,12 +653,15 @@ def rd_figure(rows: Sequence[dict], path: str | Path, *, model_points: list[dict
     plt.close(fig)
 
 
-def _human(n: float) -> str:
-    if n >= 1e6:
-        return f"{n / 1e6:.2f} MB"
-    if n >= 1e3:
-        return f"{n / 1e3:.1f} KB"
-    return f"{n:.0f} B"
+def _human(n: float, short: bool = False) -> str:
+    """Decimal units; ``short`` drops trailing zeros (axis ticks)."""
+    for scale, unit in ((1e6, "MB"), (1e3, "KB"), (1.0, "B")):
+        if n >= scale or unit == "B":
+            v = n / scale
+            if short:
+                return f"{v:.3g} {unit}"
+            return f"{v:.2f} {unit}" if unit == "MB" else (f"{v:.1f} {unit}" if unit == "KB" else f"{v:.0f} {unit}")
+    raise AssertionError  # pragma: no cover
 
 
 def _fmt(v, digits: int = 2) -> str:
