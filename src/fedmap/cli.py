@@ -34,6 +34,22 @@ def _progress() -> Progress:
     )
 
 
+def _stage_callbacks(progress: Progress):
+    """``on_stage(name, total)`` closes the running bar and opens the next (``name=None``
+    only closes); ``on_step(step, loss)`` advances the current bar."""
+    current: dict = {"task": None}
+
+    def on_stage(name: str | None, total: int) -> None:
+        if current["task"] is not None:
+            progress.update(current["task"], total=1, completed=1)
+        current["task"] = progress.add_task(name, total=total or None, loss="") if name is not None else None
+
+    def on_step(step: int, loss: float) -> None:
+        progress.update(current["task"], advance=1, loss=f"loss {loss:.4f}")
+
+    return on_stage, on_step
+
+
 def _fmt(x, nd=2) -> str:
     if x is None:
         return "-"
@@ -102,21 +118,11 @@ def demo(
         refine=RefineConfig(min_size=min_size),
     )
     with _progress() as progress:
-        current = {"task": None}
-
-        def on_stage(name: str, total: int) -> None:
-            if current["task"] is not None:
-                progress.update(current["task"], completed=progress.tasks[current["task"]].total or 1,
-                                total=progress.tasks[current["task"]].total or 1)
-            current["task"] = progress.add_task(name, total=total or None, loss="")
-
-        def on_step(step: int, loss: float) -> None:
-            progress.update(current["task"], advance=1, loss=f"loss {loss:.4f}")
-
+        on_stage, on_step = _stage_callbacks(progress)
         result = run_pipeline(config, on_stage=on_stage, on_step=on_step)
         on_stage("write outputs", 0)
         write_outputs(result, out)
-        progress.update(current["task"], total=1, completed=1)
+        on_stage(None, 0)
     m = result.metrics
     console.print(_scores_table(m))
     console.print("PSNR in dB on RGB renderings; P/R/F1: A* path planning over "
@@ -144,16 +150,7 @@ def bandwidth(
     PipelineConfig(terrain=terrain, size=size, eval_pairs=pairs)  # validates before any work
     t0 = time.perf_counter()
     with _progress() as progress:
-        current = {"task": None}
-
-        def on_stage(name: str, total: int) -> None:
-            if current["task"] is not None:
-                progress.update(current["task"], total=1, completed=1)
-            current["task"] = progress.add_task(name, total=total or None, loss="")
-
-        def on_step(step: int, loss: float) -> None:
-            progress.update(current["task"], advance=1, loss=f"loss {loss:.4f}")
-
+        on_stage, on_step = _stage_callbacks(progress)
         res = bandwidth_report(out, terrain=terrain, size=size, pairs=pairs, seed=seed, federated=federated,
                                on_stage=on_stage, on_step=on_step)
     t = Table(title=f"bytes vs quality, {terrain} {size}x{size}", header_style="bold")

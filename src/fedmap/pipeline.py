@@ -21,7 +21,7 @@ from fedmap.explore import explore
 from fedmap.federation.runner import FederationConfig, FederationResult, run_federation, total_local_steps
 from fedmap.maps.grid import UNKNOWN, GridMap, check_same_frame, classes_from_rgb
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
-from fedmap.model import CoordNet, NetConfig, build_model, get_weights, preset, render, set_weights
+from fedmap.model import NetConfig, build_model, get_weights, preset, render, set_weights
 from fedmap.refine import RefineConfig, refine
 from fedmap.training import TrainConfig, fit, steps_per_epoch
 
@@ -78,7 +78,7 @@ class PipelineResult:
     timings: dict
 
 
-def empty_prior(net_config: NetConfig, *, steps: int, seed: int, size: int = 64) -> CoordNet:
+def empty_prior(net_config: NetConfig, *, steps: int, seed: int, size: int = 64) -> torch.nn.Module:
     """The empty-map prior theta_0: the network fitted to an all-UNKNOWN map.
 
     Fitted on a ``size x size`` grid; the network is a function of continuous
