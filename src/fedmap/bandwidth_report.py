@@ -67,8 +67,12 @@ def federated_points(truth, *, seed: int, pairs: int, on_stage: Callable[[str, i
 
 
 def bandwidth_report(out: str | Path, *, terrain: str = "mars", size: int = 256, pairs: int = 75, seed: int = 0,
-                     federated: bool = True, on_stage=None, on_step=None) -> dict:
-    truth = load_truth(replace(PipelineConfig(), terrain=terrain, size=size, seed=seed))
+                     federated: bool = True, truth=None, on_stage=None, on_step=None) -> dict:
+    """Write the bandwidth report for a built-in terrain, or for ``truth`` (a GridMap) if given."""
+    if truth is None:
+        truth = load_truth(replace(PipelineConfig(), terrain=terrain, size=size, seed=seed))
+    else:
+        terrain, size = truth.source, truth.shape[0]
     if on_stage:
         on_stage("image codecs", 0)
     image_rows = compare_image_codecs(truth, n_pairs=pairs, seed=seed)

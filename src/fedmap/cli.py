@@ -168,6 +168,39 @@ def bandwidth(
 
 
 @app.command()
+def reproduce(
+    data: Optional[Path] = typer.Option(None, help="Real terrain folder (e.g. ../shared/data); default: built-in terrains."),
+    quick: bool = typer.Option(False, help="Smoke run: 64x64 maps, 40 local epochs, 30 routes, curve to R=3, no central bound or Table III."),
+    size: Optional[int] = typer.Option(None, help="Map side in cells [128; quick: 64]."),
+    pairs: Optional[int] = typer.Option(None, help="A* start/goal pairs per map [75; quick: 30]."),
+    eta: float = typer.Option(1e-2, help="Server learning rate for FedAdam/FedYogi."),
+    seed: int = typer.Option(0),
+    out: Path = typer.Option(Path("fedmap-out/reproduce"), "--out", "-o", help="Report folder (replaced atomically)."),
+) -> None:
+    """The paper's experiments: Table II (+ fedmap), Fig. 4 panels, rounds curve, Table III."""
+    from fedmap.reproduce import ReproduceConfig, reproduce as run_reproduce
+
+    kw = {k: v for k, v in {"data": data, "size": size, "pairs": pairs, "eta": eta, "seed": seed}.items()
+          if v is not None}
+    config = ReproduceConfig.quick(**kw) if quick else ReproduceConfig(**kw)
+    t0 = time.perf_counter()
+    with _progress() as progress:
+        on_stage, on_step = _stage_callbacks(progress)
+        res = run_reproduce(out, config, on_stage=on_stage, on_step=on_step)
+        on_stage(None, 0)
+    for name, t in res["terrains"].items():
+        table = Table(title=f"Table II — {name}", header_style="bold")
+        for col in ("configuration", "PSNR", "SSIM", "P", "R", "F1", "B/rover/round"):
+            table.add_column(col, justify="left" if col == "configuration" else "right", no_wrap=True)
+        for r in t["table2"]:
+            b = r["uplink_bytes_per_rover_round"]
+            table.add_row(r["label"], _fmt(r["psnr"]), _fmt(r["ssim"], 3), _fmt(r["precision"]), _fmt(r["recall"]),
+                          _fmt(r["f1"]), "-" if b is None else f"{b:,.0f}")
+        console.print(table)
+    console.print(f"outputs: {out}/  (report.md, reproduce.json, figures); wall time {time.perf_counter() - t0:.1f} s")
+
+
+@app.command()
 def terrain(
     kind: str = typer.Argument(..., help="mars, moon or ice."),
     out: Path = typer.Argument(..., help="Output map (.png or .npy)."),

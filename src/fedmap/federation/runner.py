@@ -98,9 +98,13 @@ def run_federation(
     config: FederationConfig,
     *,
     on_step: Callable[[int, float], None] | None = None,
-    on_round: Callable[[dict], None] | None = None,
+    on_round: Callable[[dict, Weights], None] | None = None,
 ) -> FederationResult:
-    """Run ``config.rounds`` rounds of federated fitting of ``local_maps``."""
+    """Run ``config.rounds`` rounds of federated fitting of ``local_maps``.
+
+    ``on_round(record, weights)`` is called after each round with its history record and
+    the global weights the rovers now hold (e.g. to score the map after every round).
+    """
     check_same_frame(local_maps)
     aggregator = make_aggregator(config.aggregator, eta=config.eta, beta1=config.beta1, beta2=config.beta2, tau=config.tau)
     up_spec, down_spec = CodecSpec.parse(config.uplink), CodecSpec.parse(config.downlink)
@@ -142,5 +146,5 @@ def run_federation(
         }
         history.append(rec)
         if on_round is not None:
-            on_round(rec)
+            on_round(rec, held)
     return FederationResult(held, history, {"name": config.aggregator, **aggregator.hyperparameters()})

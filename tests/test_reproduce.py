@@ -1,0 +1,94 @@
+"""``fedmap reproduce``: report structure, and the rounds curve against independent runs."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fedmap.cli import main
+from fedmap.errors import FedmapError
+from fedmap.pipeline import PipelineConfig, load_truth, run_pipeline
+from fedmap.reproduce import ReproduceConfig, _row_config, Row, reproduce, rounds_curve, terrains
+
+TINY = dict(size=64, epochs=2, pairs=5, curve_rounds=2, curve_epochs=1, central=False, bandwidth=False)
+
+
+def test_rounds_curve_matches_independent_runs():
+    """The curve's point at R=k must be the global map of a separate k-round run."""
+    config = ReproduceConfig(**TINY, seed=4)
+    truth = load_truth(PipelineConfig(terrain="moon", size=64, seed=4))
+    for method in ("paper", "fedmap"):
+        curve = rounds_curve(truth, method, config)
+        assert [p["round"] for p in curve] == [1, 2]
+        for k in (1, 2):
+            cfg = _row_config(Row("x", method, rounds=k, epochs=1), config, central=False)
+            g = run_pipeline(cfg, truth=truth).metrics["global"]
+            assert curve[k - 1]["psnr"] == pytest.approx(g["psnr"])
+            assert curve[k - 1]["f1"] == pytest.approx(g["path"]["f1"])
+
+
+def test_reproduce_report(tmp_path):
+    out = tmp_path / "rep"
+    res = reproduce(out, ReproduceConfig(**TINY, terrain_names=("mars",)))
+    data = json.loads((out / "reproduce.json").read_text())
+    rows = data["terrains"]["mars"]["table2"]
+    labels = [r["label"] for r in rows]
+    assert labels[0] == "paper preset, FedAvg" and "fedmap, R=3" in labels and len(rows) == 5
+    aggs = {r["label"]: r["aggregator"] for r in rows}
+    assert aggs["paper preset, FedAvg"] == "fedavg" and "fedadam" in aggs.values() and "fedyogi" in aggs.values()
+    # the stated eta is the one used, and only for the adaptive server optimisers
+    assert [r["eta"] for r in rows if r["aggregator"] in ("fedadam", "fedyogi")] == [1e-2, 1e-2]
+    assert all(r["eta"] is None for r in rows if r["aggregator"] not in ("fedadam", "fedyogi"))
+    # the paper preset sends fp32 weights of the 199,683-parameter network
+    assert 4 * 199_683 < rows[0]["uplink_bytes_per_rover_round"] < 4 * 199_683 + 4096
+    for r in rows:
+        assert 0 <= r["f1"] <= 1 and 0 <= r["precision"] <= 1 and r["ssim"] <= 1
+    md = (out / "report.md").read_text()
+    assert "Table II" in md and "paper preset, FedYogi (eta=0.01)" in md
+    for fig in ["rounds_curve.png", *data["terrains"]["mars"]["figures"].values()]:
+        with Image.open(out / fig) as im:
+            assert im.size[0] > 300
+    assert res["rounds_curve"]["mars"]["paper"][0]["round"] == 1
+
+
+def test_one_shot_fedadam_step_is_bounded_by_eta():
+    """FedAdam after one round from theta0 moves every weight by at most ~eta (Reddi et al.)."""
+    config = ReproduceConfig(**TINY)
+    truth = load_truth(PipelineConfig(terrain="mars", size=64))
+    cfg = _row_config(Row("x", "paper", epochs=2, overrides={"aggregator": "fedadam"}), config, central=False)
+    res = run_pipeline(cfg, truth=truth)
+    from fedmap.model import build_model, get_weights, preset
+
+    w0 = get_weights(build_model(preset("paper", 64), seed=cfg.seed))
+    w1 = res.federation.weights
+    # one step of m/(sqrt(v)+tau) with m=(1-b1)d, v=(1-b2)d^2 is at most (1-b1)/sqrt(1-b2) in size
+    bound = cfg.federation.eta * (1 - cfg.federation.beta1) / np.sqrt(1 - cfg.federation.beta2)
+    step = max(float(np.abs(w1[k] - w0[k]).max()) for k in w0)
+    assert 0 < step <= bound * (1 + 1e-3)
+
+
+def test_unknown_terrain_and_bad_data(tmp_path, capsys):
+    with pytest.raises(FedmapError, match="unknown terrain 'venus'"):
+        terrains(ReproduceConfig(**TINY, terrain_names=("venus",)))
+    rc = main(["reproduce", "--data", str(tmp_path / "nope"), "-o", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("error:") and "does not exist" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_reproduce_quick_cli(tmp_path, capsys):
+    out = tmp_path / "q"
+    rc = main(["reproduce", "--quick", "-o", str(out)])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    data = json.loads((out / "reproduce.json").read_text())
+    assert set(data["terrains"]) == {"mars", "moon", "ice"}
+    for t in data["terrains"].values():
+        by = {r["label"]: r for r in t["table2"]}
+        # fedmap's method must beat the paper preset on the same rovers
+        assert by["fedmap, R=1"]["psnr"] is None or by["fedmap, R=1"]["psnr"] > by["paper preset, FedAvg"]["psnr"]
+        assert by["fedmap, R=1"]["f1"] >= by["paper preset, FedAvg"]["f1"]
+    assert "Table II" in captured.out
