@@ -11,15 +11,13 @@ from __future__ import annotations
 
 import math
 import re
-import struct
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from fedmap.errors import FedmapError
-from fedmap.maps.io import EARTH_RADIUS_M, _one_line
+from fedmap.maps.io import EARTH_RADIUS_M, _one_line, _pil_errors
 
 #: Elevation offset of RGB-packed heightmap tiles: ``metres = R + 256 G + 65536 B - offset``.
 HEIGHTMAP_OFFSET_M: float = 10000.0
@@ -300,10 +298,8 @@ def read_heightmap_png(path: Path, *, offset: float = HEIGHTMAP_OFFSET_M, zero_i
     refused: they are maps or pictures, not packed elevations. The values returned are
     already metres; the file holds no ground spacing.
     """
-    from PIL import Image, UnidentifiedImageError
+    from PIL import Image
 
-    errors = (UnidentifiedImageError, ValueError, OSError, EOFError, SyntaxError, struct.error, zlib.error,
-              Image.DecompressionBombError)
     try:
         with Image.open(path) as img:
             img.load()
@@ -312,7 +308,7 @@ def read_heightmap_png(path: Path, *, offset: float = HEIGHTMAP_OFFSET_M, zero_i
                 raise FedmapError(f"DEM {path} is a {mode} PNG: a heightmap PNG must be RGB-packed "
                                   f"(metres = R + 256 G + 65536 B - offset); load class maps with --map")
             rgb = np.asarray(img.convert("RGB"), dtype=np.int64)
-    except errors as exc:
+    except _pil_errors() as exc:
         raise FedmapError(f"cannot read DEM {path}: not a valid PNG image ({_one_line(exc)})") from exc
     packed = rgb[..., 0] + 256 * rgb[..., 1] + 65536 * rgb[..., 2]
     metres = packed.astype(np.float64) - float(offset)

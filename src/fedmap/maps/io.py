@@ -244,11 +244,18 @@ def _classes_from_gray(gray: np.ndarray, path: Path) -> np.ndarray:
     return gray.astype(np.uint8)
 
 
-def _read_png_map(path: Path) -> tuple[np.ndarray, dict, float | None]:
+def _pil_errors() -> tuple[type[BaseException], ...]:
+    """What Pillow raises for unreadable, truncated or corrupt images."""
     from PIL import Image, UnidentifiedImageError
 
-    errors = (UnidentifiedImageError, ValueError, OSError, EOFError, SyntaxError, struct.error, zlib.error,
-              Image.DecompressionBombError)
+    return (UnidentifiedImageError, ValueError, OSError, EOFError, SyntaxError, struct.error, zlib.error,
+            Image.DecompressionBombError)
+
+
+def _read_png_map(path: Path) -> tuple[np.ndarray, dict, float | None]:
+    from PIL import Image
+
+    errors = _pil_errors()
     try:
         with Image.open(path) as img:
             img.load()
