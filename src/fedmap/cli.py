@@ -252,6 +252,12 @@ def evaluate(
     console.print_json(json.dumps(_clean(scores)))
 
 
+# `fedmap run` lives in its own module (imported here, after the helpers it uses).
+from fedmap.run_cli import run_command  # noqa: E402
+
+app.command("run")(run_command)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: one-line errors, no tracebacks for user mistakes."""
     try:

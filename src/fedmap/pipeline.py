@@ -46,6 +46,7 @@ class PipelineConfig:
     eval_pairs: int = 75
     unknown_passable: bool = False
     seed: int = 0
+    label: str = ""  # the terrain's name in titles (a DEM file...); default: terrain
 
     def __post_init__(self) -> None:
         if self.init not in INITS:
@@ -189,8 +190,12 @@ def run_pipeline(
     return PipelineResult(config, truth, local_maps, model, global_rgb, global_classes, refined, fed, metrics, timings)
 
 
-def write_outputs(result: PipelineResult, out_dir: str | Path) -> Path:
-    """Write metrics.json, config.json, the global model, maps and the Fig. 4 panel, atomically."""
+def write_outputs(result: PipelineResult, out_dir: str | Path, *, extra: dict[str, str] | None = None) -> Path:
+    """Write metrics.json, config.json, the global model, maps and the Fig. 4 panel, atomically.
+
+    ``extra`` maps further file names to text written into the same folder (e.g. the
+    resolved run config).
+    """
     from fedmap.maps.io import save_map
     from fedmap.model import save_model
     from fedmap.report import AtomicDir, fig4_panel, to_json
@@ -199,6 +204,8 @@ def write_outputs(result: PipelineResult, out_dir: str | Path) -> Path:
     with AtomicDir(out) as tmp:
         (tmp / "metrics.json").write_text(to_json({**result.metrics, "timings": result.timings}))
         (tmp / "config.json").write_text(to_json(result.config.to_dict()))
+        for name, text in (extra or {}).items():
+            (tmp / name).write_text(text)
         save_model(result.model, tmp / "global_model.safetensors", extra={"pipeline": result.config.to_dict()})
         save_map(result.truth, tmp / "truth.png")
         save_map(result.truth.with_classes(result.global_classes, "federated global map"), tmp / "global_map.png")
@@ -210,7 +217,7 @@ def write_outputs(result: PipelineResult, out_dir: str | Path) -> Path:
                   "refined global map": {"psnr": m["refined"]["psnr"], "f1": m["refined"]["path"]["f1"]}}
         c = result.config
         init = "zero grids (empty-map prior)" if c.net == "grid" else f"init {c.init}"
-        title = (f"{c.terrain} {c.size}x{c.size}, {c.agents} agents ({c.explore}), {c.net} net, {init}, "
+        title = (f"{c.label or c.terrain} {c.size}x{c.size}, {c.agents} agents ({c.explore}), {c.net} net, {init}, "
                  f"{c.federation.aggregator} x {c.federation.rounds} round(s), {c.federation.local.epochs} local epochs")
         fig4_panel(result.local_maps, result.truth, result.global_classes, result.refined, tmp / "figure.png",
                    title=title, scores=scores)

@@ -44,9 +44,34 @@ DEMs (:func:`load_dem`)
     * without any georeferencing the pixel size is 1.0 m.
 ``.npy``
     A 2-D real array; ``pixel_size`` argument, default 1.0 m.
+``.asc``
+    ESRI ASCII grid (:func:`fedmap.maps.formats.read_ascii_grid`): header keys in any
+    case, ``xllcorner``/``xllcenter``, ``cellsize`` or ``dx``/``dy`` (non-square cells
+    are resampled as for GeoTIFF), ``NODATA_value``. The unit is not in the file:
+    ``cellsize`` is taken as metres unless a ``.prj`` sidecar says geographic or the
+    option ``geographic=True`` is given (degrees -> metres at the centre latitude on a
+    sphere of ``radius_m``, default Earth); a degree-sized ``cellsize`` without either is
+    refused. ``pixel_size`` overrides it all.
+``.img`` / ``.raw``
+    Raw PDS-style samples (:func:`fedmap.maps.formats.read_raw`), laid out by a PDS3
+    label (attached, or a ``.lbl`` sidecar) or by the options ``shape=(rows, cols)``,
+    ``dtype`` (default ``"int16"``), ``byteorder`` (``"big"``, default, or ``"little"``),
+    ``header_bytes`` (default 0). The file size must match exactly. Pixel size from the
+    label's ``MAP_SCALE``/``MAP_RESOLUTION``, else ``pixel_size``, default 1.0 m.
+``.png``
+    RGB-packed heightmap tile (:func:`fedmap.maps.formats.read_heightmap_png`):
+    ``metres = R + 256 G + 65536 B - offset`` (option ``offset``, default 10000); raw 0
+    is nodata unless ``zero_is_nodata=False``; the ``nodata`` argument compares metres.
+    Grey or paletted PNGs are refused (those are class maps: :func:`load_map`). The file
+    has no georeferencing: pass ``pixel_size`` (default 1.0 m).
+    :func:`mosaic_tiles` joins a grid of tiles, :func:`mosaic_heightmap_tiles` GLD100-named
+    ones (``256p+{lon}+{lat}.png``, 118.45 m pixels).
 
-``Dem.meta`` records ``nodata``, ``nodata_from`` ("argument", "geotiff" or None),
-``nodata_cells`` and ``pixel_size_from`` ("argument", "geotiff" or "default").
+``nodata`` compares the stored values (before a file's scale/offset). ``Dem.meta``
+records ``format``, ``nodata``, ``nodata_from`` ("argument", the format, or None),
+``nodata_cells`` and ``pixel_size_from`` ("argument", the format, or "default").
+:func:`resample_dem`, :func:`crop_dem` and :func:`centre_crop` (from
+:mod:`fedmap.maps.regrid`) fit a DEM to a run's grid.
 
 Every user-facing problem (missing file, unreadable or corrupt file, wrong shape,
 unsupported suffix, DEM entirely nodata) raises :class:`~fedmap.errors.FedmapError`
@@ -73,9 +98,10 @@ import numpy as np
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb, render_classes
+from fedmap.maps.regrid import centre_crop, crop_dem, resample_dem  # noqa: F401  (part of this API)
 
 MAP_SUFFIXES: tuple[str, ...] = (".png", ".npy")
-DEM_SUFFIXES: tuple[str, ...] = (".tif", ".tiff", ".npy")
+DEM_SUFFIXES: tuple[str, ...] = (".tif", ".tiff", ".npy", ".asc", ".img", ".raw", ".png")
 
 #: Sphere radius used for geographic rasters whose GeoKeys declare no ellipsoid (Earth).
 EARTH_RADIUS_M: float = 6_371_000.0
@@ -218,11 +244,18 @@ def _classes_from_gray(gray: np.ndarray, path: Path) -> np.ndarray:
     return gray.astype(np.uint8)
 
 
-def _read_png_map(path: Path) -> tuple[np.ndarray, dict, float | None]:
+def _pil_errors() -> tuple[type[BaseException], ...]:
+    """What Pillow raises for unreadable, truncated or corrupt images."""
     from PIL import Image, UnidentifiedImageError
 
-    errors = (UnidentifiedImageError, ValueError, OSError, EOFError, SyntaxError, struct.error, zlib.error,
-              Image.DecompressionBombError)
+    return (UnidentifiedImageError, ValueError, OSError, EOFError, SyntaxError, struct.error, zlib.error,
+            Image.DecompressionBombError)
+
+
+def _read_png_map(path: Path) -> tuple[np.ndarray, dict, float | None]:
+    from PIL import Image
+
+    errors = _pil_errors()
     try:
         with Image.open(path) as img:
             img.load()
@@ -513,60 +546,90 @@ def _resample_axis(z: np.ndarray, axis: int, old_step: float, new_step: float) -
     return out.astype(np.float32)
 
 
-def load_dem(path, *, pixel_size: float | None = None, nodata: float | None = None) -> Dem:
-    """Read a DEM from a GeoTIFF (``.tif``/``.tiff``) or ``.npy`` (see the module docstring).
+def _read_dem_values(path: Path, suffix: str, options: dict, pixel_size: float | None):
+    """Stored values, file nodata, scale/offset, (dx, dy) spacing or None, and meta, per format."""
+    if suffix in (".npy", ".tif", ".tiff"):
+        if options:
+            raise FedmapError(f"unknown option(s) {', '.join(sorted(options))} for {suffix} DEMs "
+                              f"(only pixel_size and nodata apply)")
+        if suffix == ".npy":
+            return _load_npy(path, "DEM"), None, (1.0, 0.0), None, {"format": "npy"}
+        arr, tags = _read_tiff(path)
+        file_nodata = None
+        if _TAG_GDAL_NODATA in tags:
+            raw = str(tags[_TAG_GDAL_NODATA]).strip().rstrip("\x00").replace(",", ".")
+            try:
+                file_nodata = float(raw)
+            except ValueError as exc:
+                raise FedmapError(f"DEM {path} has an unreadable GDAL_NODATA tag {raw!r}; pass nodata") from exc
+        meta: dict = {"format": "geotiff"}
+        # The georeferencing is only interpreted when it is needed, so that pixel_size can
+        # stand in for tags fedmap cannot use.
+        geo = _geotiff_pixel_size(tags, arr.shape, path) if tags and pixel_size is None else None
+        if geo is not None:
+            meta.update(geo)
+        spacing = (geo["pixel_size_x_m"], geo["pixel_size_y_m"]) if geo is not None else None
+        scale_offset = _gdal_scale_offset(tags) if tags else (1.0, 0.0)
+        return arr, file_nodata, scale_offset, spacing, meta
+
+    from fedmap.maps.formats import READERS
+
+    reader, accepted = READERS[suffix]
+    unknown = sorted(set(options) - set(accepted))
+    if unknown:
+        raise FedmapError(f"unknown option(s) {', '.join(unknown)} for {suffix} DEMs; "
+                          f"accepted: pixel_size, nodata, {', '.join(accepted)}")
+    if pixel_size is not None and suffix == ".asc":
+        options = {"geographic": False, **options}  # the grid's unit does not matter then
+    try:
+        raster = reader(path, **options)
+    except OSError as exc:
+        raise FedmapError(f"cannot read DEM {path}: {_one_line(exc)}") from exc
+    spacing = raster.spacing if pixel_size is None else None
+    return raster.values, raster.nodata, (raster.scale, raster.offset), spacing, raster.meta
+
+
+def load_dem(path, *, pixel_size: float | None = None, nodata: float | None = None, **options) -> Dem:
+    """Read a DEM; the format follows the suffix (see the module docstring).
 
     ``pixel_size`` (metres) overrides the file's georeferencing; ``nodata`` overrides
-    the file's ``GDAL_NODATA`` tag. Nodata and non-finite cells become NaN.
+    the file's own nodata value. Nodata and non-finite cells become NaN. ``options`` are
+    format-specific (``.asc``: ``geographic``, ``radius_m``; ``.img``/``.raw``:
+    ``shape``, ``dtype``, ``byteorder``, ``header_bytes``; ``.png``: ``offset``,
+    ``zero_is_nodata``); an option the format does not take is an error.
     """
     path = Path(path)
     suffix = _suffix(path, DEM_SUFFIXES, "DEM")
     _check_exists(path)
-    meta: dict = {"format": "npy" if suffix == ".npy" else "geotiff"}
-    tags: dict = {}
-    if suffix == ".npy":
-        arr = _load_npy(path, "DEM")
-    else:
-        arr, tags = _read_tiff(path)
+    arr, file_nodata, (scale, offset), spacing, meta = _read_dem_values(path, suffix, options, pixel_size)
     if arr.ndim != 2:
         raise FedmapError(f"DEM {path} must be a 2-D grid, got shape {arr.shape}")
     if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)) or arr.dtype == bool:
         raise FedmapError(f"DEM {path} must hold integer or float elevations, got dtype {arr.dtype}")
 
-    # nodata
-    nodata_from = None
+    # nodata (compared with the stored values, before scale/offset)
     if nodata is not None:
         nd, nodata_from = float(nodata), "argument"
-    elif _TAG_GDAL_NODATA in tags:
-        raw = str(tags[_TAG_GDAL_NODATA]).strip().rstrip("\x00").replace(",", ".")
-        try:
-            nd, nodata_from = float(raw), "geotiff"
-        except ValueError as exc:
-            raise FedmapError(f"DEM {path} has an unreadable GDAL_NODATA tag {raw!r}; pass nodata") from exc
+    elif file_nodata is not None:
+        nd, nodata_from = float(file_nodata), meta["format"]
     else:
-        nd = None
+        nd, nodata_from = None, None
     mask = _nodata_mask(arr, nd) if nd is not None else np.zeros(arr.shape, dtype=bool)
     elev = arr.astype(np.float64 if arr.dtype == np.float64 else np.float32)
     elev[mask] = np.nan
     elev[~np.isfinite(elev)] = np.nan
     meta.update(nodata=nd, nodata_from=nodata_from, nodata_cells=int(np.isnan(elev).sum()))
 
-    scale, offset = _gdal_scale_offset(tags) if tags else (1.0, 0.0)
     if (scale, offset) != (1.0, 0.0):
         elev = elev * scale + offset
         meta.update(scale=scale, offset=offset)
 
     # pixel size
-    # The georeferencing is only interpreted when it is needed, so that pixel_size can
-    # stand in for tags fedmap cannot use.
-    geo = _geotiff_pixel_size(tags, arr.shape, path) if tags and pixel_size is None else None
-    if geo is not None:
-        meta.update(geo)
     if pixel_size is not None:
         px, meta["pixel_size_from"] = float(pixel_size), "argument"
-    elif geo is not None:
-        dx, dy = geo["pixel_size_x_m"], geo["pixel_size_y_m"]
-        meta["pixel_size_from"] = "geotiff"
+    elif spacing is not None:
+        dx, dy = spacing
+        meta["pixel_size_from"] = meta["format"]
         if abs(dx - dy) <= SQUARE_TOLERANCE * min(dx, dy):
             px = math.sqrt(dx * dy)
         else:
@@ -584,3 +647,61 @@ def load_dem(path, *, pixel_size: float | None = None, nodata: float | None = No
         px, meta["pixel_size_from"] = 1.0, "default"
     meta["pixel_size"] = float(px)
     return Dem(elev.astype(np.float32), px, str(path), meta)
+
+
+# --------------------------------------------------------------------------- mosaics
+
+#: Ground size of a GLD100 256p tile pixel: 1 degree of a 1737.4 km sphere / 256.
+GLD100_PIXEL_SIZE_M: float = math.radians(1.0) * 1_737_400.0 / 256
+
+
+def mosaic_tiles(paths, *, pixel_size: float | None = None, **options) -> Dem:
+    """Join a grid of adjacent DEM tiles into one DEM.
+
+    ``paths`` is a list of rows, north row first, each row west to east. Every tile is
+    read with :func:`load_dem` (``pixel_size`` and ``options`` apply to all) and must
+    have the same shape and pixel size.
+    """
+    rows = [list(r) for r in paths]
+    if not rows or not rows[0] or any(len(r) != len(rows[0]) for r in rows):
+        raise FedmapError("mosaic tiles must be a non-empty rectangular grid of paths (rows north first)")
+    for r in rows:
+        for p in r:
+            if not Path(p).is_file():
+                raise FedmapError(f"mosaic tile missing: {p}")
+    dems = [[load_dem(p, pixel_size=pixel_size, **options) for p in r] for r in rows]
+    first = dems[0][0]
+    for r in dems:
+        for d in r:
+            if d.shape != first.shape:
+                raise FedmapError(f"mosaic tile {d.source} is {d.shape[0]}x{d.shape[1]}, "
+                                  f"{first.source} is {first.shape[0]}x{first.shape[1]}")
+            if abs(d.pixel_size - first.pixel_size) > 1e-6 * first.pixel_size:
+                raise FedmapError(f"mosaic tile {d.source} has pixel size {d.pixel_size} m, "
+                                  f"{first.source} has {first.pixel_size} m")
+    elev = np.block([[d.elevation for d in r] for r in dems])
+    meta = {"format": "mosaic", "tiles": [[d.source for d in r] for r in dems], "tile_shape": list(first.shape),
+            "pixel_size": first.pixel_size, "pixel_size_from": first.meta.get("pixel_size_from")}
+    return Dem(elev, first.pixel_size, f"mosaic of {len(rows)}x{len(rows[0])} tiles from {first.source}", meta)
+
+
+def gld100_tile_path(folder, lon: int, lat: int) -> Path:
+    """``folder/256p+{lon}+{lat}.png``: the GLD100 tile whose south-west corner is (lon E, lat N)."""
+    return Path(folder) / f"256p+{int(lon)}+{int(lat)}.png"
+
+
+def mosaic_heightmap_tiles(folder, *, lon: int, lat: int, n=1, pixel_size: float = GLD100_PIXEL_SIZE_M,
+                           offset: float = 10000.0, zero_is_nodata: bool = True) -> Dem:
+    """Mosaic GLD100-named RGB-packed tiles: ``n`` (or ``(rows, cols)``) 1-degree tiles
+    whose south-west tile is (``lon``, ``lat``).
+
+    Tile ``256p+{lon}+{lat}.png`` covers longitudes ``lon..lon+1`` east and latitudes
+    ``lat..lat+1`` north, north at the top, so tile (lon, lat + 1) lies above tile
+    (lon, lat) and (lon + 1, lat) to its right. ``pixel_size`` defaults to the GLD100
+    256p spacing (118.45 m).
+    """
+    nr, nc = (int(n), int(n)) if np.isscalar(n) else (int(v) for v in n)
+    if nr < 1 or nc < 1:
+        raise FedmapError(f"mosaic needs at least 1x1 tiles, got {nr}x{nc}")
+    grid = [[gld100_tile_path(folder, lon + j, lat + nr - 1 - i) for j in range(nc)] for i in range(nr)]
+    return mosaic_tiles(grid, pixel_size=pixel_size, offset=offset, zero_is_nodata=zero_is_nodata)

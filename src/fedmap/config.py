@@ -1,0 +1,263 @@
+"""Run configuration for ``fedmap run``: a TOML file, CLI overrides, one resolved dict.
+
+Layout (every key optional; defaults come from the ``method`` preset and the library's
+config classes)::
+
+    method = "paper"          # preset (fedmap.presets): paper or fedmap
+    seed = 0
+
+    [terrain]                 # fedmap.sources.TerrainSource
+    kind = "dem"              # builtin | dem | map | tiles
+    path = "gale.tif"         # relative paths are relative to the TOML file
+    crop = 320                # centred square side, or [row0, row1, col0, col1]
+    size = 128                # resample to size x size cells
+    [terrain.options]         # reader options, e.g. pixel_size, nodata, shape, byteorder
+    [thresholds]              # TraversabilityThresholds: max_slope_deg, max_step_m, ...
+    [explore]                 # agents, mode, overlap, sensor_radius
+    [model]                   # net, init, prior_steps
+    [train]                   # epochs, lr, masked, batch (cells per batch; 0 = full grid)
+    [federation]              # rounds, aggregator, eta, beta1, beta2, tau, uplink, downlink
+    [refine]                  # window, min_votes, iterations, min_size
+    [evaluate]                # pairs, unknown_passable, central
+
+Resolution: method preset < TOML file < CLI options. An unknown section or key, or a
+value of the wrong type, is a :class:`~fedmap.errors.FedmapError` naming the key and
+the file. :func:`to_pipeline_config` maps the result onto
+:class:`~fedmap.pipeline.PipelineConfig` (whose classes do the value checks) and
+:func:`terrain_source` onto :class:`~fedmap.sources.TerrainSource`.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import math
+import tomllib
+from pathlib import Path
+
+from fedmap.errors import FedmapError
+
+_NUM = (int, float)
+
+#: Section -> key -> accepted Python types (as tomllib returns them).
+SCHEMA: dict[str, dict[str, tuple[type, ...]]] = {
+    "terrain": {"kind": (str,), "path": (str,), "terrain": (str,), "lon": (int,), "lat": (int,), "tiles": (int,),
+                "crop": (int, list), "size": (int,), "resample": (str,), "options": (dict,)},
+    "thresholds": {"max_slope_deg": _NUM, "max_step_m": _NUM, "max_roughness_m": _NUM, "rover_scale_max_px": _NUM},
+    "explore": {"agents": (int,), "mode": (str,), "overlap": (int,), "sensor_radius": _NUM},
+    "model": {"net": (str,), "init": (str,), "prior_steps": (int,)},
+    "train": {"epochs": (int,), "lr": _NUM, "masked": (bool,), "batch": (int,)},
+    "federation": {"rounds": (int,), "aggregator": (str,), "eta": _NUM, "beta1": _NUM, "beta2": _NUM, "tau": _NUM,
+                   "uplink": (str,), "downlink": (str,)},
+    "refine": {"window": (int,), "min_votes": (int,), "iterations": (int,), "min_size": (int,)},
+    "evaluate": {"pairs": (int,), "unknown_passable": (bool,), "central": (bool,)},
+}
+TOP_LEVEL: dict[str, tuple[type, ...]] = {"method": (str,), "seed": (int,)}
+
+_TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", bool: "true or false", list: "a list",
+               dict: "a table"}
+
+
+def _suggest(key: str, allowed) -> str:
+    close = difflib.get_close_matches(key, list(allowed), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else f"; known: {', '.join(allowed)}"
+
+
+def check_keys(data: dict, allowed, where: str) -> None:
+    """Raise for the first key of ``data`` not in ``allowed``, suggesting the closest."""
+    for key in data:
+        if key not in allowed:
+            raise FedmapError(f"unknown key {key!r} in {where}{_suggest(key, allowed)}")
+
+
+def _check_type(value, types: tuple[type, ...], what: str) -> None:
+    # bool is an int in Python, but `epochs = true` is a mistake.
+    ok = isinstance(value, types) and not (isinstance(value, bool) and bool not in types)
+    if isinstance(value, float) and not math.isfinite(value):
+        ok = False
+    if not ok:
+        want = " or ".join(dict.fromkeys(_TYPE_NAMES[t] for t in types))
+        raise FedmapError(f"{what} must be {want}, got {value!r}")
+
+
+def validate(data: dict, where: str) -> None:
+    """Check sections, keys and value types of a (partial) run config."""
+    from fedmap.sources import READER_OPTIONS
+
+    for key, value in data.items():
+        if key in TOP_LEVEL:
+            _check_type(value, TOP_LEVEL[key], f"{key!r} in {where}")
+        elif key in SCHEMA:
+            if not isinstance(value, dict):
+                raise FedmapError(f"[{key}] in {where} must be a table, got {value!r}")
+            check_keys(value, SCHEMA[key], f"[{key}] of {where}")
+            for k, v in value.items():
+                _check_type(v, SCHEMA[key][k], f"[{key}] {k} in {where}")
+        else:
+            raise FedmapError(f"unknown key {key!r} in {where}{_suggest(key, [*TOP_LEVEL, *SCHEMA])}")
+    options = data.get("terrain", {}).get("options", {})
+    check_keys(options, READER_OPTIONS, f"[terrain.options] of {where}")
+    for k, v in options.items():
+        _check_type(v, READER_OPTIONS[k], f"[terrain.options] {k} in {where}")
+
+
+def load_toml(path) -> dict:
+    """Read and validate a run config; relative terrain paths become relative to its folder."""
+    path = Path(path)
+    if not path.is_file():
+        raise FedmapError(f"no such config file: {path}")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise FedmapError(f"cannot read config {path}: {' '.join(str(exc).split())}") from exc
+    validate(data, path.name)
+    terrain = data.get("terrain", {})
+    if "path" in terrain and not Path(terrain["path"]).is_absolute():
+        terrain["path"] = str((path.parent / terrain["path"]).resolve())
+    return data
+
+
+def defaults(method: str = "paper") -> dict:
+    """The full run config of a method preset before any file or option."""
+    from fedmap.federation.runner import FederationConfig
+    from fedmap.maps.traversability import TraversabilityThresholds
+    from fedmap.pipeline import PipelineConfig
+    from fedmap.presets import method_settings
+    from fedmap.refine import RefineConfig
+
+    s = method_settings(method)
+    p, f, r = PipelineConfig(), FederationConfig(), RefineConfig()
+    return {
+        "method": method, "seed": 0,
+        "terrain": {},  # TerrainSource's defaults: built-in mars, 128 cells
+        "thresholds": TraversabilityThresholds().to_dict(),
+        "explore": {"agents": p.agents, "mode": p.explore, "overlap": p.overlap, "sensor_radius": p.sensor_radius},
+        "model": {"net": s["net"], "init": p.init, "prior_steps": p.prior_steps},
+        "train": {"epochs": f.local.epochs, "lr": s["lr"], "masked": s["masked"], "batch": 0},
+        "federation": {"rounds": f.rounds, "aggregator": s["aggregator"], "eta": f.eta, "beta1": f.beta1,
+                       "beta2": f.beta2, "tau": f.tau, "uplink": s["uplink"], "downlink": s["downlink"]},
+        "refine": r.to_dict(),
+        "evaluate": {"pairs": p.eval_pairs, "unknown_passable": p.unknown_passable, "central": p.central},
+    }
+
+
+def merge(base: dict, update: dict) -> dict:
+    """``base`` with ``update`` laid over it, tables merged key by key (a new dict)."""
+    out = copy.deepcopy(base)
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def parse_set(assignment: str) -> dict:
+    """``"train.lr=0.01"`` -> ``{"train": {"lr": 0.01}}`` (the value is read as TOML;
+    a bare word is taken as a string)."""
+    if "=" not in assignment:
+        raise FedmapError(f"--set needs section.key=value, got {assignment!r}")
+    dotted, raw = (s.strip() for s in assignment.split("=", 1))
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw
+    keys = dotted.split(".")
+    out: dict = {}
+    node = out
+    for k in keys[:-1]:
+        node = node.setdefault(k, {})
+    node[keys[-1]] = value
+    return out
+
+
+#: [terrain] keys that describe the grid rather than the file; they survive a new source.
+GRID_KEYS = ("crop", "size", "resample")
+
+
+def resolve(config_path=None, overrides: list[dict] | None = None, *, terrain: dict | None = None) -> dict:
+    """Preset defaults < TOML file < ``overrides`` (each a partial config, applied in order).
+
+    ``terrain`` (e.g. ``{"kind": "dem", "path": ...}`` from ``--dem``) replaces the file's
+    terrain source: its keys except ``crop``, ``size`` and ``resample`` are dropped.
+    """
+    file_data = load_toml(config_path) if config_path is not None else {}
+    overrides = list(overrides or [])
+    if terrain is not None:
+        kept = {k: v for k, v in file_data.get("terrain", {}).items() if k in GRID_KEYS}
+        file_data["terrain"] = {**kept, **terrain}
+    for o in overrides:
+        validate(o, "the command-line options")
+    method = file_data.get("method", "paper")
+    for o in overrides:
+        method = o.get("method", method)
+    resolved = merge(defaults(method), file_data)
+    for o in overrides:
+        resolved = merge(resolved, o)
+    resolved["method"] = method
+    return resolved
+
+
+def terrain_source(resolved: dict):
+    """The :class:`~fedmap.sources.TerrainSource` of a resolved config."""
+    from fedmap.sources import TerrainSource
+
+    return TerrainSource.from_dict({**resolved["terrain"], "thresholds": resolved["thresholds"]},
+                                   where="[terrain]")
+
+
+def to_pipeline_config(resolved: dict, *, size: int, label: str = ""):
+    """The :class:`~fedmap.pipeline.PipelineConfig` of a resolved config for a ``size``-cell map."""
+    from fedmap.federation.runner import FederationConfig
+    from fedmap.maps.traversability import TraversabilityThresholds
+    from fedmap.pipeline import PipelineConfig
+    from fedmap.refine import RefineConfig
+    from fedmap.training import TrainConfig
+
+    e, m, t, f, ev = (resolved[k] for k in ("explore", "model", "train", "federation", "evaluate"))
+    seed = resolved["seed"]
+    local = TrainConfig(epochs=t["epochs"], lr=float(t["lr"]), masked=t["masked"], batch_pixels=t["batch"] or None)
+    fed = FederationConfig(rounds=f["rounds"], aggregator=f["aggregator"], eta=float(f["eta"]), beta1=float(f["beta1"]),
+                           beta2=float(f["beta2"]), tau=float(f["tau"]), local=local, seed=seed, uplink=f["uplink"],
+                           downlink=f["downlink"])
+    terrain = resolved["terrain"]
+    builtin = terrain.get("kind", "builtin") == "builtin"
+    return PipelineConfig(
+        terrain=terrain.get("terrain", "mars") if builtin else "mars", label=label, size=size, agents=e["agents"],
+        explore=e["mode"], overlap=e["overlap"], sensor_radius=float(e["sensor_radius"]), net=m["net"], init=m["init"],
+        prior_steps=m["prior_steps"], central=ev["central"], federation=fed, refine=RefineConfig(**resolved["refine"]),
+        thresholds=TraversabilityThresholds(**resolved["thresholds"]), eval_pairs=ev["pairs"],
+        unknown_passable=ev["unknown_passable"], seed=seed,
+    )
+
+
+# --------------------------------------------------------------------------- writing TOML
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} as TOML")
+
+
+def dumps_toml(data: dict) -> str:
+    """TOML text of a config dict: scalars, lists and nested tables (no None values)."""
+    lines: list[str] = []
+
+    def table(d: dict, name: str) -> None:
+        scalars = {k: v for k, v in d.items() if not isinstance(v, dict) and v is not None}
+        if name:
+            lines.append(f"\n[{name}]")
+        lines.extend(f"{k} = {_toml_value(v)}" for k, v in scalars.items())
+        for k, v in d.items():
+            if isinstance(v, dict):
+                table(v, f"{name}.{k}" if name else k)
+
+    table(data, "")
+    return "\n".join(lines).lstrip("\n") + "\n"

@@ -1,0 +1,218 @@
+"""Where a run's ground-truth map comes from: a built-in terrain, a DEM file, a class
+map, or a mosaic of heightmap tiles.
+
+A :class:`TerrainSource` says what to read and how to fit it to the run's grid;
+:func:`load_truth` turns it into the traversability :class:`~fedmap.maps.grid.GridMap`
+(and :func:`load_source_dem` gives the prepared DEM). ``fedmap run`` and
+``fedmap reproduce`` both use these.
+
+Preparing a DEM: read -> ``crop`` -> a centred square crop if it is not square (the
+networks and the exploration split a square map) -> resample to ``size`` cells ->
+traversability with ``thresholds`` at the resulting pixel size. A class map is cropped
+the same way and resampled by nearest neighbour.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from fedmap.errors import FedmapError
+from fedmap.maps.dem import Dem
+from fedmap.maps.grid import GridMap
+from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
+
+SOURCE_KINDS: tuple[str, ...] = ("builtin", "dem", "map", "tiles")
+
+#: Options that :func:`fedmap.maps.io.load_dem` (and ``load_map``: pixel_size) accepts.
+READER_OPTIONS: dict[str, tuple[type, ...]] = {
+    "pixel_size": (float, int), "nodata": (float, int), "geographic": (bool,), "radius_m": (float, int),
+    "shape": (list,), "dtype": (str,), "byteorder": (str,), "header_bytes": (int,), "offset": (float, int),
+    "zero_is_nodata": (bool,),
+}
+
+#: Built-in terrain side when a builtin source gives no ``size``.
+DEFAULT_BUILTIN_SIZE = 128
+
+
+@dataclass(frozen=True)
+class TerrainSource:
+    """What terrain a run maps and how it is fitted to the run's grid.
+
+    Parameters
+    ----------
+    kind : str
+        ``builtin`` (seeded synthetic terrain), ``dem`` (a DEM file: .tif, .asc, .img,
+        .raw, .png, .npy), ``map`` (a class map: .png or .npy) or ``tiles`` (RGB-packed
+        GLD100-named tiles ``256p+{lon}+{lat}.png`` in the folder ``path``).
+    path : str, optional
+        The file (dem, map) or the tile folder (tiles).
+    terrain : str
+        The built-in terrain kind (mars, moon, ice); also the label of built-in runs.
+    lon, lat, tiles : int
+        ``tiles``: south-west tile and the number of tiles per side.
+    crop : int or [row0, row1, col0, col1], optional
+        Centred square of this side, or a box in cells, cut before resampling.
+    size : int, optional
+        Resample the (square) map to ``size x size`` cells; built-in terrain is generated
+        at this size (default 128). Without it a file keeps its resolution.
+    resample : str
+        ``area`` or ``bilinear`` for DEMs (class maps always use nearest).
+    options : dict
+        Reader options (``pixel_size``, ``nodata``, ``shape``, ``dtype``, ``byteorder``,
+        ``header_bytes``, ``geographic``, ``radius_m``, ``offset``, ``zero_is_nodata``).
+    thresholds : TraversabilityThresholds
+        Rover limits for DEM -> traversability.
+    """
+
+    kind: str = "builtin"
+    path: str | None = None
+    terrain: str = "mars"
+    lon: int | None = None
+    lat: int | None = None
+    tiles: int = 8
+    crop: int | tuple[int, int, int, int] | None = None
+    size: int | None = None
+    resample: str = "area"
+    options: dict = field(default_factory=dict)
+    thresholds: TraversabilityThresholds = field(default_factory=TraversabilityThresholds)
+
+    def __post_init__(self) -> None:
+        if self.kind not in SOURCE_KINDS:
+            raise FedmapError(f"unknown terrain source kind {self.kind!r}; choose one of {', '.join(SOURCE_KINDS)}")
+        if self.kind != "builtin" and not self.path:
+            raise FedmapError(f"a {self.kind!r} terrain source needs a path")
+        if self.kind == "tiles" and (self.lon is None or self.lat is None):
+            raise FedmapError("a 'tiles' terrain source needs lon and lat (its south-west tile)")
+        if self.kind == "tiles" and self.tiles < 1:
+            raise FedmapError(f"tiles must be >= 1, got {self.tiles}")
+        if self.crop is not None:
+            crop = self.crop
+            ok = (isinstance(crop, int) and crop > 0) or (
+                isinstance(crop, (list, tuple)) and len(crop) == 4 and all(isinstance(v, int) for v in crop))
+            if not ok:
+                raise FedmapError(f"crop must be a side in cells or [row0, row1, col0, col1], got {crop!r}")
+            if isinstance(crop, list):
+                object.__setattr__(self, "crop", tuple(crop))
+        if self.size is not None and (isinstance(self.size, bool) or not isinstance(self.size, int) or self.size < 3):
+            raise FedmapError(f"terrain size must be an integer number of cells, got {self.size!r}")
+        from fedmap.maps.regrid import RESAMPLE_METHODS
+
+        if self.resample not in RESAMPLE_METHODS:
+            raise FedmapError(f"unknown resample method {self.resample!r}; choose one of {', '.join(RESAMPLE_METHODS)}")
+        unknown = sorted(set(self.options) - set(READER_OPTIONS))
+        if unknown:
+            raise FedmapError(f"unknown reader option {unknown[0]!r}; known: {', '.join(READER_OPTIONS)}")
+        if self.kind == "builtin" and self.size is None:
+            object.__setattr__(self, "size", DEFAULT_BUILTIN_SIZE)
+        if isinstance(self.thresholds, dict):
+            object.__setattr__(self, "thresholds", TraversabilityThresholds(**self.thresholds))
+
+    # ------------------------------------------------------------------ dict form
+
+    def to_dict(self) -> dict:
+        """Plain dict (TOML/JSON-ready): None entries, empty options and keys the kind
+        does not use are left out."""
+        d = asdict(self)
+        if isinstance(d["crop"], tuple):
+            d["crop"] = list(d["crop"])
+        unused = {"builtin": ("path", "lon", "lat", "tiles", "crop", "resample"), "dem": ("terrain", "lon", "lat", "tiles"),
+                  "map": ("terrain", "lon", "lat", "tiles", "resample"), "tiles": ("terrain",)}[self.kind]
+        return {k: v for k, v in d.items() if v is not None and k not in unused and v != {}}
+
+    @classmethod
+    def from_dict(cls, data: dict, *, where: str = "terrain source") -> "TerrainSource":
+        """Build from a dict (e.g. a TOML ``[terrain]`` table plus ``thresholds``);
+        unknown keys raise a :class:`FedmapError` naming the key and ``where``."""
+        from fedmap.config import check_keys
+
+        names = [f.name for f in fields(cls)]
+        check_keys(data, names, where)
+        return cls(**data)
+
+    @property
+    def label(self) -> str:
+        """A short name for titles: the built-in kind or the file/tile name."""
+        if self.kind == "builtin":
+            return self.terrain
+        name = Path(self.path or "").name
+        if self.kind == "tiles":
+            return f"{name} {self.tiles}x{self.tiles} tiles from ({self.lon}E, {self.lat}N)"
+        return name
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def _square_box(shape: tuple[int, int], crop) -> tuple[tuple[int, int], tuple[int, int]]:
+    """Rows and cols of the window: the ``crop`` box or centred square, then squared."""
+    h, w = shape
+    if isinstance(crop, tuple):
+        r0, r1, c0, c1 = crop
+    else:
+        side = min(h, w) if crop is None else crop
+        if side > min(h, w):
+            raise FedmapError(f"crop {side} is larger than the {h}x{w} terrain")
+        r0, c0 = (h - side) // 2, (w - side) // 2
+        r1, c1 = r0 + side, c0 + side
+    if not (0 <= r0 < r1 <= h and 0 <= c0 < c1 <= w):
+        raise FedmapError(f"crop box [{r0}, {r1}, {c0}, {c1}] is outside the {h}x{w} terrain")
+    side = min(r1 - r0, c1 - c0)  # centred square inside the box
+    r0 += (r1 - r0 - side) // 2
+    c0 += (c1 - c0 - side) // 2
+    return (r0, r0 + side), (c0, c0 + side)
+
+
+def load_source_dem(source: TerrainSource, *, seed: int = 0) -> Dem:
+    """The DEM of a builtin, dem or tiles source, cropped square and resampled to ``size``."""
+    from fedmap.maps.io import crop_dem, load_dem, mosaic_heightmap_tiles, resample_dem
+
+    if source.kind == "builtin":
+        from fedmap.maps.terrain import generate_dem
+
+        px = source.options.get("pixel_size")
+        return generate_dem(source.terrain, source.size, seed=seed,
+                            pixel_size=None if px is None else float(px))
+    if source.kind == "map":
+        raise FedmapError("a 'map' terrain source has no DEM")
+    opts = dict(source.options)
+    if isinstance(opts.get("shape"), list):
+        opts["shape"] = tuple(opts["shape"])
+    if source.kind == "tiles":
+        extra = {k: v for k, v in opts.items() if k not in ("pixel_size", "offset", "zero_is_nodata")}
+        if extra:
+            raise FedmapError(f"reader option(s) {', '.join(sorted(extra))} do not apply to heightmap tiles")
+        dem = mosaic_heightmap_tiles(source.path, lon=source.lon, lat=source.lat, n=source.tiles, **opts)
+    else:
+        dem = load_dem(source.path, **opts)
+    rows, cols = _square_box(dem.shape, source.crop)
+    if (rows, cols) != ((0, dem.shape[0]), (0, dem.shape[1])):
+        dem = crop_dem(dem, rows, cols)
+    if source.size is not None and source.size != dem.shape[0]:
+        dem = resample_dem(dem, source.size, method=source.resample)
+    return dem
+
+
+def _nearest_classes(classes: np.ndarray, size: int) -> np.ndarray:
+    """Nearest-neighbour resampling of a square class grid: target cell centre -> source cell."""
+    n = classes.shape[0]
+    idx = np.minimum(((np.arange(size) + 0.5) * n / size).astype(np.intp), n - 1)
+    return classes[np.ix_(idx, idx)]
+
+
+def load_truth(source: TerrainSource, *, seed: int = 0) -> GridMap:
+    """The ground-truth traversability map of a source (see the module docstring)."""
+    if source.kind == "map":
+        from fedmap.maps.io import load_map
+
+        grid = load_map(source.path, pixel_size=source.options.get("pixel_size"))
+        (r0, r1), (c0, c1) = _square_box(grid.shape, source.crop)
+        classes, px = grid.classes[r0:r1, c0:c1], grid.pixel_size
+        if source.size is not None and source.size != classes.shape[0]:
+            px = px * classes.shape[0] / source.size
+            classes = _nearest_classes(classes, source.size)
+        return GridMap(classes, px, grid.source, {**grid.meta, "crop": [r0, r1, c0, c1]})
+    dem = load_source_dem(source, seed=seed)
+    return dem_to_traversability(dem, source.thresholds)

@@ -1,0 +1,125 @@
+"""Run configs: TOML + overrides -> PipelineConfig, typos and types named, TOML written back."""
+
+from __future__ import annotations
+
+import tomllib
+
+import pytest
+
+from fedmap.config import dumps_toml, parse_set, resolve, terrain_source, to_pipeline_config
+from fedmap.errors import FedmapError
+from fedmap.presets import method_config
+
+
+def write(tmp_path, text, name="run.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("method", ["paper", "fedmap"])
+def test_defaults_match_the_method_presets(method):
+    cfg = to_pipeline_config(resolve(overrides=[{"method": method}]), size=128)
+    ref = method_config(method)  # presets build the same PipelineConfig independently
+    assert cfg.net == ref.net
+    assert cfg.federation == ref.federation
+    assert cfg.refine == ref.refine and cfg.thresholds == ref.thresholds
+    assert (cfg.agents, cfg.explore, cfg.eval_pairs, cfg.seed, cfg.central) == (4, "quadrants", 75, 0, True)
+
+
+def test_file_then_options_override(tmp_path):
+    path = write(tmp_path, """
+method = "fedmap"
+seed = 4
+[train]
+lr = 0.02
+epochs = 30
+[federation]
+aggregator = "fedyogi"
+eta = 0.003
+[explore]
+agents = 6
+mode = "grid"
+""")
+    r = resolve(path, [{"train": {"epochs": 7}}, {"explore": {"agents": 9}}])
+    cfg = to_pipeline_config(r, size=64)
+    assert cfg.net == "grid"                          # from the fedmap preset
+    assert cfg.federation.local.lr == 0.02            # file beats preset (0.05)
+    assert cfg.federation.local.masked is True        # preset kept where the file is silent
+    assert cfg.federation.local.epochs == 7           # option beats file
+    assert cfg.agents == 9 and cfg.explore == "grid"
+    assert cfg.federation.aggregator == "fedyogi" and cfg.federation.eta == 0.003
+    assert cfg.seed == 4 and cfg.federation.seed == 4
+    # an option's method changes the preset under the file's explicit values
+    r2 = resolve(path, [{"method": "paper"}])
+    assert r2["model"]["net"] == "paper" and r2["train"]["lr"] == 0.02
+
+
+@pytest.mark.parametrize("text,message", [
+    ("[explore]\nagnets = 3\n", "unknown key 'agnets' in [explore] of run.toml (did you mean 'agents'?)"),
+    ("[explor]\nagents = 3\n", "unknown key 'explor' in run.toml (did you mean 'explore'?)"),
+    ("sed = 1\n", "unknown key 'sed' in run.toml (did you mean 'seed'?)"),
+    ("[train]\nepochs = \"100\"\n", "[train] epochs in run.toml must be an integer, got '100'"),
+    ("[train]\nepochs = true\n", "[train] epochs in run.toml must be an integer, got True"),
+    ("[train]\nlr = \"fast\"\n", "[train] lr in run.toml must be an integer or a number, got 'fast'"),
+    ("[train]\nmasked = 1\n", "[train] masked in run.toml must be true or false, got 1"),
+    ("[terrain.options]\npixel_sise = 2.0\n", "unknown key 'pixel_sise' in [terrain.options] of run.toml "
+                                              "(did you mean 'pixel_size'?)"),
+    ("explore = 3\n", "[explore] in run.toml must be a table"),
+    ("[train\nepochs = 1\n", "cannot read config"),
+    ("[train]\nlr = nan\n", "[train] lr in run.toml must be"),
+])
+def test_config_mistakes_are_named(tmp_path, text, message):
+    path = write(tmp_path, text)
+    with pytest.raises(FedmapError) as exc:
+        resolve(path)
+    assert message in str(exc.value)
+    assert "\n" not in str(exc.value)
+
+
+def test_values_are_checked_by_the_library_classes(tmp_path):
+    with pytest.raises(FedmapError, match="rounds must be >= 1"):
+        to_pipeline_config(resolve(write(tmp_path, "[federation]\nrounds = 0\n")), size=64)
+    with pytest.raises(FedmapError, match="unknown aggregator|aggregator"):
+        to_pipeline_config(resolve(write(tmp_path, "[federation]\naggregator = \"fedmean\"\n")), size=64)
+    with pytest.raises(FedmapError, match="max_slope_deg"):
+        terrain_source(resolve(write(tmp_path, "[thresholds]\nmax_slope_deg = 95\n")))
+    with pytest.raises(FedmapError, match="unknown terrain source kind 'file'"):
+        terrain_source(resolve(write(tmp_path, "[terrain]\nkind = \"file\"\npath = \"x\"\n")))
+    with pytest.raises(FedmapError, match="no such config file"):
+        resolve(tmp_path / "missing.toml")
+
+
+def test_relative_terrain_path_is_relative_to_the_file(tmp_path):
+    (tmp_path / "cfg").mkdir()
+    path = write(tmp_path / "cfg", "[terrain]\nkind = \"dem\"\npath = \"../dems/a.tif\"\nsize = 64\n")
+    r = resolve(path)
+    assert r["terrain"]["path"] == str((tmp_path / "dems" / "a.tif").resolve())
+
+
+def test_terrain_replacement_keeps_grid_keys(tmp_path):
+    path = write(tmp_path, "[terrain]\nkind = \"tiles\"\npath = \"t\"\nlon = 1\nlat = 2\nsize = 96\ncrop = 500\n"
+                           "[terrain.options]\noffset = 0.0\n")
+    r = resolve(path, terrain={"kind": "dem", "path": "/x.tif"})
+    assert r["terrain"] == {"kind": "dem", "path": "/x.tif", "size": 96, "crop": 500}
+
+
+def test_written_toml_reads_back_identically(tmp_path):
+    path = write(tmp_path, "[terrain]\nkind = \"dem\"\npath = \"a \\\"b\\\".tif\"\ncrop = [1, 65, 2, 66]\n"
+                           "[terrain.options]\nshape = [10, 20]\nbyteorder = \"little\"\n")
+    r = resolve(path, [{"train": {"lr": 1e-7}}])
+    text = dumps_toml(r)
+    assert tomllib.loads(text) == r
+    back = write(tmp_path, text, "back.toml")
+    assert resolve(back) == r  # the resolved config is a valid config that resolves to itself
+
+
+def test_parse_set():
+    assert parse_set("train.lr=0.01") == {"train": {"lr": 0.01}}
+    assert parse_set("federation.uplink = fp16") == {"federation": {"uplink": "fp16"}}
+    assert parse_set("terrain.crop=[0, 64, 0, 64]") == {"terrain": {"crop": [0, 64, 0, 64]}}
+    assert parse_set("seed=3") == {"seed": 3}
+    with pytest.raises(FedmapError, match="section.key=value"):
+        parse_set("train.lr")
+    with pytest.raises(FedmapError, match="unknown key 'lrr' in \\[train\\] of the command-line options"):
+        resolve(overrides=[parse_set("train.lrr=1")])

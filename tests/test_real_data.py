@@ -1,0 +1,93 @@
+"""The readers on the real DEMs in ``../shared/data`` (skipped where the folder is absent)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fedmap.maps.io import load_dem, mosaic_heightmap_tiles
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"real terrain data not found at {DATA}")
+
+
+def data_file(rel: str) -> Path:
+    path = DATA / rel
+    if not path.exists():
+        pytest.skip(f"{path} not found")
+    return path
+
+
+@needs_data
+@pytest.mark.parametrize("name", ["DEM_10m", "zSW3", "hugo_site", "west_bijou_gully", "kootenai_1m",
+                                  "pre_runout_DEM", "bijou_gully_5m"])
+def test_projected_ascii_grids(name):
+    path = data_file(f"earth/{name}.asc")
+    header = dict(line.split()[:2] for line in path.read_text().splitlines()[:5])
+    cell = float({k.lower(): v for k, v in header.items()}["cellsize"])
+    dem = load_dem(path)
+    assert dem.pixel_size == pytest.approx(cell)
+    assert np.isfinite(dem.elevation).sum() > 0.2 * dem.elevation.size
+    assert -100 < np.nanmin(dem.elevation) < np.nanmax(dem.elevation) < 9000  # metres, nodata gone
+
+
+@needs_data
+def test_geographic_ascii_grid_boulder():
+    path = data_file("earth/srtmgl3_boulder_a.asc")
+    dem = load_dem(path, geographic=True)
+    # 3 arc-seconds: 92.6 m north-south, times cos(40.15 deg) east-west; rows resampled to x spacing
+    assert dem.pixel_size == pytest.approx(92.66 * np.cos(np.radians(40.15)), rel=2e-3)
+    assert dem.shape == (round(144 * 92.66 / dem.pixel_size), 240)
+    assert 1500 < np.nanmin(dem.elevation) < np.nanmax(dem.elevation) < 4400  # Boulder, Colorado foothills
+
+
+@needs_data
+def test_mola_megdr_raw_big_endian():
+    dem = load_dem(data_file("mars/mola_megt90n000cb.img"), shape=(720, 1440), dtype="int16", byteorder="big")
+    z = dem.elevation
+    r, c = np.unravel_index(np.nanargmax(z), z.shape)
+    lat, lon = 90 - (r + 0.5) / 4, (c + 0.5) / 4
+    # Olympus Mons: 18.65 N, 226.2 E, about 21.2 km above the areoid
+    assert abs(lat - 18.65) < 2 and abs(lon - 226.2) < 2
+    assert 20_500 < z[r, c] < 22_000
+    # Hellas floor is the lowest, around -8 km; the south polar plateau is ~5 km above the north
+    assert -8_500 < np.nanmin(z) < -7_500
+    assert z[-4:].mean() - z[:4].mean() > 4_000
+
+
+@needs_data
+def test_gld100_hadley_8x8_mosaic():
+    dem = mosaic_heightmap_tiles(data_file("moon/gld100_256p"), lon=0, lat=22, n=8)
+    z = dem.elevation
+    assert z.shape == (2048, 2048) and np.isfinite(z).all()
+    assert dem.pixel_size == pytest.approx(118.45, abs=0.01)
+    assert 3_000 < np.ptp(z) < 10_000  # mare, rille and Apennine massifs
+    # Orientation: across a tile seam neighbouring rows/columns differ as little as inside a
+    # tile; a flipped tile would put its far edge at the seam.
+    for k in range(1, 8):
+        s = 256 * k
+        inside = np.abs(z[s - 2] - z[s - 1]).mean()
+        assert np.abs(z[s - 1] - z[s]).mean() < 2 * inside
+        inside_c = np.abs(z[:, s - 2] - z[:, s - 1]).mean()
+        assert np.abs(z[:, s - 1] - z[:, s]).mean() < 2 * inside_c
+
+
+@needs_data
+def test_gld100_gap_tile_is_nodata():
+    from fedmap.errors import FedmapError
+
+    gaps = sorted(data_file("moon/gld100_256p").glob("256p+170+*.png"))
+    if not gaps:
+        pytest.skip("no lon >= 160 tiles")
+    with pytest.raises(FedmapError, match="every cell is nodata"):
+        load_dem(gaps[0], pixel_size=118.45)
+
+
+@needs_data
+def test_gale_geotiff():
+    dem = load_dem(data_file("mars/missionDEM_gale_1m.tif"))
+    assert dem.shape == (337, 348) and dem.pixel_size == pytest.approx(1.0, rel=0.01)
+    assert -4_600 < np.nanmin(dem.elevation) < np.nanmax(dem.elevation) < -4_300  # Gale floor, below datum
