@@ -219,6 +219,12 @@ def evaluate(
     console.print_json(json.dumps(_clean(scores)))
 
 
+# Real federation with Flower (optional extra): base-station, rover, certs.
+from fedmap.federation.flower_cli import register as _register_flower  # noqa: E402
+
+_register_flower(app, console, _progress)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: one-line errors, no tracebacks for user mistakes."""
     try:
