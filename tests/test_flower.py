@@ -13,7 +13,8 @@ import pytest
 
 pytest.importorskip("flwr")
 
-from flwr.app import ConfigRecord, Context, Error, Message, RecordDict  # noqa: E402
+from flwr.app import ConfigRecord, Context, RecordDict  # noqa: E402
+from flwr.server.superlink.linkstate.utils import create_message_error_unavailable_res_message  # noqa: E402
 from flwr.supercore.task_identity import TaskIdentity  # noqa: E402
 
 from fedmap.comm import Encoder  # noqa: E402
@@ -67,11 +68,12 @@ def _round(strategy, grid, contexts, arrays, server_round, *, skip=(), fail=()):
     msgs = strategy.configure_train(server_round, arrays, ConfigRecord(), grid)
     replies = []
     for m in msgs:
+        m.metadata.__dict__["_message_id"] = m.object_id  # what Flower's grid does when it pushes
         node = m.metadata.dst_node_id
         if node in skip:
             continue
-        if node in fail:
-            replies.append(Message(Error(code=0, reason="ClientApp crashed"), reply_to=m))
+        if node in fail:  # the SuperLink's own error reply for a node that stopped heartbeating
+            replies.append(create_message_error_unavailable_res_message(m.metadata, "node unavailable"))
             continue
         replies.append(client_app.train(m, contexts[node]))
     return strategy.aggregate_train(server_round, replies)
@@ -130,7 +132,7 @@ def test_missing_and_failed_rovers_are_recorded(tmp_path, blob_map):
     assert from_record(arrays) == Encoder("fp32").encode(strategy.held)
 
 
-def test_crashed_rover_in_a_later_round_is_dropped_by_name(tmp_path, blob_map):
+def test_rover_lost_in_a_later_round_is_dropped_by_name(tmp_path, blob_map):
     run = {**RUN, "rounds": 2}
     _, nodes = _team(tmp_path, blob_map)
     strategy = FedmapStrategy(RunSettings.from_run_config(run))
@@ -138,7 +140,7 @@ def test_crashed_rover_in_a_later_round_is_dropped_by_name(tmp_path, blob_map):
     arrays, _ = _round(strategy, grid, contexts, to_record(b""), 1)
     _round(strategy, grid, contexts, arrays, 2, fail={101})
     rec = strategy.history[1]
-    assert list(rec["dropped"]) == [1] and "ClientApp crashed" in rec["dropped"][1]
+    assert list(rec["dropped"]) == [1] and "Node Unavailable" in rec["dropped"][1]
     assert rec["missing"] == [] and sorted(rec["weights"]) == [0, 2, 3]
 
 
@@ -240,3 +242,14 @@ def test_fedmap_imports_and_runs_without_flwr(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().splitlines()[-1] == "error: Flower is not installed; run: pip install 'fedmap[flower]'"
+
+
+def test_app_pyproject_declares_every_run_config_key():
+    """`flwr run` only accepts overrides of keys the app declares; they must match fedmap's defaults."""
+    from fedmap.federation.flower.settings import RUN_DEFAULTS
+    from fedmap.federation.flower_cli import app_dir
+
+    app = tomllib.loads((app_dir() / "pyproject.toml").read_text())["tool"]["flwr"]["app"]
+    assert app["config"] == RUN_DEFAULTS
+    assert app["components"] == {"serverapp": "fedmap.federation.flower.server_app:app",
+                                 "clientapp": "fedmap.federation.flower.client_app:app"}

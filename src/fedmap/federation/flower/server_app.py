@@ -65,6 +65,7 @@ class FedmapStrategy(Strategy):
         self.node_partition: dict[int, int] = {}  # Flower node id -> rover index
         self._sleep = sleep
         self._t0 = 0.0
+        self._sent: dict[str, int] = {}  # message id -> node id of the last messages sent
 
     # -- helpers ---------------------------------------------------------------------------
 
@@ -89,7 +90,12 @@ class FedmapStrategy(Strategy):
                 rec["downlink_bytes"][who] = len(payload)
                 rec["flower_downlink_bytes"][who] = flower
         content = RecordDict({"downlink": arrays, "config": ConfigRecord({"server-round": server_round})})
-        return [Message(content, dst_node_id=n, message_type=kind) for n in nodes]
+        msgs = [Message(content, dst_node_id=n, message_type=kind) for n in nodes]
+        # Flower's message id is the object id (set when pushed); error replies made by the
+        # SuperLink (e.g. "node unavailable") come from the SuperLink's own node id, so the
+        # rover they concern is found through the message they reply to
+        self._sent = {m.object_id: n for m, n in zip(msgs, nodes)}
+        return msgs
 
     def initial_weights(self, height: int) -> Weights:
         """The initial model every rover rebuilds from the shared seed (never sent)."""
@@ -113,7 +119,7 @@ class FedmapStrategy(Strategy):
         s = self.settings
         payloads, counts, losses, dropped, flower_up, node_errors = {}, {}, {}, {}, {}, {}
         for msg in replies:
-            node = msg.metadata.src_node_id
+            node = self._sent.get(msg.metadata.reply_to_message_id, msg.metadata.src_node_id)
             if msg.has_error():  # the ClientApp crashed or the node went away
                 pid = self.node_partition.get(node)
                 reason = f"Flower error {msg.error.code}: {msg.error.reason}".splitlines()[0]
@@ -162,7 +168,11 @@ class FedmapStrategy(Strategy):
     def configure_evaluate(self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid) -> list[Message]:
         if server_round < self.settings.federation.rounds:
             return []  # broadcasts ride on the next round's train messages
-        return self._messages(sorted(grid.get_node_ids()), arrays, MessageType.EVALUATE, server_round)
+        # the final model goes to the rovers that took part in the last round: a rover that
+        # died may still be listed as connected, and waiting for it would cost a deadline
+        last = set(self.history[-1]["weights"]) if self.history else set()
+        nodes = sorted(n for n in grid.get_node_ids() if self.node_partition.get(n) in last)
+        return self._messages(nodes, arrays, MessageType.EVALUATE, server_round)
 
     def aggregate_evaluate(self, server_round: int, replies) -> MetricRecord | None:
         acked = sorted(int(m.content["metrics"]["partition-id"]) for m in replies if not m.has_error())
