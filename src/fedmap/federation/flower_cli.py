@@ -335,7 +335,7 @@ def run_base_station(run_config: dict, *, host: str = "0.0.0.0", port: int = 909
     flwr_home = work / "flwr-home"
     env = flower_env(flwr_home)
     run_status_path(settings.out).unlink(missing_ok=True)
-    with Processes() as procs:
+    with Processes() as procs, _sigterm_as_interrupt():
         procs.start("superlink", superlink_argv(host=host, port=port, tls=tls, auth=auth_keys is not None),
                     env=env, log=work / "superlink.log")
         alive = lambda: procs.check_alive("superlink")  # noqa: E731
@@ -350,6 +350,25 @@ def run_base_station(run_config: dict, *, host: str = "0.0.0.0", port: int = 909
             on_ready()
         budget = settings.connect_timeout + settings.federation.rounds * (settings.deadline + settings.connect_timeout) + 600
         return wait_for_result(settings.out, since=since, timeout=budget, alive=alive, on_status=on_status)
+
+
+class _sigterm_as_interrupt:
+    """SIGTERM raises KeyboardInterrupt (main thread only), so ``finally`` blocks stop our processes."""
+
+    def __enter__(self) -> None:
+        import threading
+
+        self.old = None
+        if threading.current_thread() is threading.main_thread():
+            self.old = signal.signal(signal.SIGTERM, self._raise)
+
+    @staticmethod
+    def _raise(signum, frame) -> None:
+        raise KeyboardInterrupt
+
+    def __exit__(self, *exc) -> None:
+        if self.old is not None:
+            signal.signal(signal.SIGTERM, self.old)
 
 
 def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str | None, size: int, agents: int,
