@@ -257,6 +257,11 @@ from fedmap.run_cli import run_command  # noqa: E402
 
 app.command("run")(run_command)
 
+# Real federation with Flower (optional extra): base-station, rover, certs.
+from fedmap.federation.flower_cli import register as _register_flower  # noqa: E402
+
+_register_flower(app, console, _progress)
+
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point: one-line errors, no tracebacks for user mistakes."""

@@ -91,6 +91,18 @@ def empty_prior(net_config: NetConfig, *, steps: int, seed: int, size: int = 64)
     return model
 
 
+def initial_model(net_config: NetConfig, *, init: str, seed: int, prior_steps: int) -> torch.nn.Module:
+    """The model every rover starts round 1 from: seeded random weights or the empty-map prior.
+
+    Deterministic, so rovers and the base station rebuild it alone and it never travels.
+    """
+    if init not in INITS:
+        raise FedmapError(f"unknown init {init!r}; choose one of {', '.join(INITS)}")
+    if init == "empty":
+        return empty_prior(net_config, steps=prior_steps, seed=seed)
+    return build_model(net_config, seed=seed)
+
+
 def union_map(local_maps: list[GridMap]) -> GridMap:
     """All agents' observations in one map: what the base would hold with raw maps."""
     out = np.full(local_maps[0].shape, UNKNOWN, dtype=np.uint8)
@@ -145,9 +157,7 @@ def run_pipeline(
     t = time.perf_counter()
     if config.init == "empty":
         stage("empty-map prior", config.prior_steps)
-        init_model = empty_prior(net_config, steps=config.prior_steps, seed=config.seed)
-    else:
-        init_model = build_model(net_config, seed=config.seed)
+    init_model = initial_model(net_config, init=config.init, seed=config.seed, prior_steps=config.prior_steps)
     timings["init_s"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -91,6 +91,78 @@ def total_local_steps(local_maps: list[GridMap], config: FederationConfig) -> in
     return sum(config.rounds * config.local.epochs * steps_per_epoch(m.classes.size, config.local) for m in local_maps)
 
 
+def rover_step(
+    model,
+    local: GridMap,
+    held: Weights,
+    encoder: Encoder,
+    config: FederationConfig,
+    *,
+    round_idx: int,
+    agent: int,
+    on_step: Callable[[int, float], None] | None = None,
+) -> tuple[bytes, float | None]:
+    """One rover's part of a round: start from ``held``, fit, check, encode.
+
+    This is the one implementation of the rover side: the in-process runner and the
+    Flower ClientApp both call it. ``round_idx`` is 0-based; the training seed is
+    :func:`agent_seed` ``(config.seed, round_idx, agent)``. Returns the uplink payload
+    (relative to ``held`` for update codecs) and the last training loss. Raises
+    :class:`FedmapError` when training diverges or the weights are not finite.
+    """
+    set_weights(model, held)
+    steps = fit(model, local, config.local, seed=agent_seed(config.seed, round_idx, agent), on_step=on_step)
+    w = get_weights(model)
+    if not all(np.isfinite(v).all() for v in w.values()):
+        raise FedmapError("update holds NaN or infinite weights")
+    return encoder.encode(w, reference=held), (steps[-1] if steps else None)
+
+
+@dataclass
+class BaseStep:
+    """What the base station made of one round's uplink payloads."""
+
+    held: Weights  # the decoded broadcast: what base and rovers continue from
+    downlink: bytes  # the broadcast payload
+    counts: dict[int, float]  # aggregation weight of every agent whose update was used
+    dropped: dict[int, str]  # agent -> why its payload was not used
+
+
+def base_step(
+    aggregator,
+    held: Weights,
+    payloads: dict[int, bytes],
+    counts: dict[int, float],
+    down_encoder: Encoder,
+    *,
+    dropped: dict[int, str] | None = None,
+    round_label: int | None = None,
+) -> BaseStep:
+    """The base station's part of a round: decode, aggregate, encode and decode the broadcast.
+
+    The one implementation of the base side (in-process runner and Flower ServerApp).
+    ``payloads`` and ``counts`` are keyed by agent id, aggregated in ascending agent
+    order; a payload that does not decode is dropped with its reason. ``dropped`` holds
+    agents already lost earlier in the round (they are kept in the result). Raises
+    :class:`FedmapError` when no update is left.
+    """
+    dropped = dict(dropped or {})
+    updates, used = [], {}
+    for k in sorted(payloads):
+        try:
+            updates.append(decode(payloads[k], reference=held))
+        except FedmapError as e:
+            dropped[k] = str(e)
+            continue
+        used[k] = counts[k]
+    if not updates:
+        where = f"round {round_label}: " if round_label is not None else ""
+        raise FedmapError(f"{where}every agent's update was dropped ({'; '.join(dropped.values()) or 'no agent replied'})")
+    global_w = aggregator.aggregate(held, updates, list(used.values()))
+    down_payload = down_encoder.encode(global_w, reference=held)
+    return BaseStep(decode(down_payload, reference=held), down_payload, used, dict(sorted(dropped.items())))
+
+
 def run_federation(
     init_weights: Weights,
     net_config: NetConfig,
@@ -108,43 +180,38 @@ def run_federation(
     check_same_frame(local_maps)
     aggregator = make_aggregator(config.aggregator, eta=config.eta, beta1=config.beta1, beta2=config.beta2, tau=config.tau)
     up_spec, down_spec = CodecSpec.parse(config.uplink), CodecSpec.parse(config.downlink)
-    global_w = {k: np.asarray(v, dtype=np.float32) for k, v in init_weights.items()}
-    held = global_w  # what every rover holds: the initial model is known to all
+    held = {k: np.asarray(v, dtype=np.float32) for k, v in init_weights.items()}  # the initial model is known to all
     down_enc = Encoder(down_spec)
     up_encs = [Encoder(up_spec) for _ in local_maps]  # residuals live on the rovers
     model = build_model(net_config)
     history: list[dict] = []
     for r in range(config.rounds):
         t0 = time.perf_counter()
-        updates, counts, losses, dropped = [], [], {}, {}
-        up_bytes, down_bytes = {}, {}
+        payloads, counts, losses, dropped = {}, {}, {}, {}
         for k, local in enumerate(local_maps):
-            set_weights(model, held)
             try:
-                steps = fit(model, local, config.local, seed=agent_seed(config.seed, r, k), on_step=on_step)
-                w = get_weights(model)
-                if not all(np.isfinite(v).all() for v in w.values()):
-                    raise FedmapError("update holds NaN or infinite weights")
-                up_payload = up_encs[k].encode(w, reference=held)
-                up_bytes[k] = len(up_payload)
-                updates.append(decode(up_payload, reference=held))
+                payloads[k], losses[k] = rover_step(model, local, held, up_encs[k], config, round_idx=r, agent=k,
+                                                    on_step=on_step)
             except FedmapError as e:
                 dropped[k] = str(e)
                 continue
-            counts.append(local.n_known)
-            losses[k] = steps[-1] if steps else None
-        if not updates:
-            raise FedmapError(f"round {r + 1}: every agent's update was dropped ({'; '.join(dropped.values())})")
-        global_w = aggregator.aggregate(held, updates, counts)
-        down_payload = down_enc.encode(global_w, reference=held)
-        held = decode(down_payload, reference=held)  # rovers and base continue from this
-        down_bytes = {k: len(down_payload) for k in range(len(local_maps))}
-        rec = {
-            "round": r + 1, "final_loss": losses, "weights": dict(zip(losses, counts)), "dropped": dropped,
-            "codecs": {"uplink": up_spec.label(), "downlink": down_spec.label()},
-            "uplink_bytes": up_bytes, "downlink_bytes": down_bytes, "seconds": time.perf_counter() - t0,
-        }
+            counts[k] = local.n_known
+        step = base_step(aggregator, held, payloads, counts, down_enc, dropped=dropped, round_label=r + 1)
+        held = step.held  # rovers and base continue from the decoded broadcast
+        rec = round_record(r + 1, step, losses, {k: len(p) for k, p in payloads.items()},
+                           {k: len(step.downlink) for k in range(len(local_maps))}, up_spec, down_spec,
+                           time.perf_counter() - t0)
         history.append(rec)
         if on_round is not None:
             on_round(rec, held)
     return FederationResult(held, history, {"name": config.aggregator, **aggregator.hyperparameters()})
+
+
+def round_record(round_no: int, step: BaseStep, losses: dict, up_bytes: dict, down_bytes: dict,
+                 up_spec: CodecSpec, down_spec: CodecSpec, seconds: float) -> dict:
+    """One round's entry of ``FederationResult.history`` (the same layout for every runner)."""
+    return {
+        "round": round_no, "final_loss": {k: losses.get(k) for k in step.counts}, "weights": dict(step.counts),
+        "dropped": step.dropped, "codecs": {"uplink": up_spec.label(), "downlink": down_spec.label()},
+        "uplink_bytes": up_bytes, "downlink_bytes": down_bytes, "seconds": seconds,
+    }

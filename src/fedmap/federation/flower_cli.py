@@ -1,0 +1,521 @@
+"""``fedmap base-station`` / ``fedmap rover`` / ``fedmap certs``: one line per machine.
+
+The commands start Flower's own processes (``flower-superlink``, ``flower-supernode``,
+``flwr run``) with the right flags and wait for them; every process is started in its
+own session and stopped by its PID (its process group), also on errors and Ctrl-C.
+Nothing here imports ``flwr``: the commands check that it is installed and then run its
+executables.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from fedmap.errors import FedmapError
+
+CONNECTION = "fedmap"  # the connection name written to $FLWR_HOME/config.toml
+
+
+def app_dir() -> Path:
+    """The Flower App (its ``pyproject.toml``) that ``flwr run`` submits."""
+    return Path(__file__).resolve().parent / "flower" / "app"
+
+
+def flower_executable(name: str) -> str:
+    """Path of a Flower command next to this Python, with a one-line install hint if absent."""
+    from fedmap.federation.flower import require_flwr
+
+    require_flwr()
+    here = Path(sys.executable).parent / name
+    found = str(here) if here.exists() else shutil.which(name)
+    if not found:
+        raise FedmapError(f"{name} not found; run: pip install 'fedmap[flower]'")
+    return found
+
+
+def flower_env(flwr_home: Path) -> dict[str, str]:
+    """The environment for Flower's processes: own ``FLWR_HOME``, no update check or telemetry."""
+    return {**os.environ, "FLWR_HOME": str(flwr_home), "FLWR_DISABLE_UPDATE_CHECK": "1",
+            "FLWR_TELEMETRY_ENABLED": "0"}
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that is free right now (the OS picks it)."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def toml_value(v) -> str:
+    """One TOML value: strings quoted (JSON escapes are valid TOML), bools lower case."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    return json.dumps(str(v))
+
+
+def key_values(d: dict) -> str:
+    """``k=v k2="s"`` as Flower's ``--node-config`` / ``--run-config`` parse it."""
+    return " ".join(f"{k}={toml_value(v)}" for k, v in d.items())
+
+
+class Processes:
+    """Processes started in their own sessions and stopped by PID (process group)."""
+
+    def __init__(self) -> None:
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.logs: dict[str, Path] = {}
+
+    def start(self, name: str, argv: list[str], *, env: dict, log: Path) -> subprocess.Popen:
+        log.parent.mkdir(parents=True, exist_ok=True)
+        with open(log, "ab") as fh:
+            p = subprocess.Popen(argv, env=env, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                 start_new_session=True)
+        self.procs[name], self.logs[name] = p, log
+        return p
+
+    def stop(self, name: str, *, grace: float = 10.0, sig: int = signal.SIGTERM) -> None:
+        """Signal the process group of ``name`` (pgid = its PID), then SIGKILL after ``grace`` s."""
+        p = self.procs.get(name)
+        if p is None:
+            return
+        for s in (sig, signal.SIGKILL):
+            try:
+                os.killpg(p.pid, s)  # the group we created: the process and its children
+            except ProcessLookupError:
+                pass
+            try:
+                p.wait(timeout=grace)
+                break
+            except subprocess.TimeoutExpired:
+                continue
+        try:
+            os.killpg(p.pid, signal.SIGKILL)  # children that outlived their parent
+        except ProcessLookupError:
+            pass
+
+    def stop_all(self) -> None:
+        for name in reversed(list(self.procs)):
+            self.stop(name)
+
+    def check_alive(self, name: str) -> None:
+        p = self.procs[name]
+        if p.poll() is not None:
+            tail = self.logs[name].read_text(errors="replace").strip().splitlines()[-1:] if self.logs[name].exists() else []
+            raise FedmapError(f"{name} exited with code {p.returncode}" + (f": {tail[0]}" if tail else ""))
+
+    def __enter__(self) -> "Processes":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop_all()
+
+
+@dataclass(frozen=True)
+class Tls:
+    """Certificate files made by ``fedmap certs`` (or your own PKI)."""
+
+    ca: Path
+    cert: Path
+    key: Path
+
+    @classmethod
+    def from_dir(cls, d: Path) -> "Tls":
+        d = Path(d).resolve()  # Flower wants absolute paths in its config
+        t = cls(d / "ca.crt", d / "server.pem", d / "server.key")
+        for f in (t.ca, t.cert, t.key):
+            if not f.is_file():
+                raise FedmapError(f"missing certificate file {f}; make them with: fedmap certs {d}")
+        return t
+
+
+def superlink_argv(*, host: str, port: int, tls: Tls | None, auth: bool, database: Path | None = None) -> list[str]:
+    argv = [flower_executable("flower-superlink"), "--host", host, "--port", str(port),
+            "--disable-runtime-dependency-installation"]
+    argv += ["--ssl-ca-certfile", str(tls.ca), "--ssl-certfile", str(tls.cert), "--ssl-keyfile", str(tls.key)] if tls else ["--insecure"]
+    if auth:
+        argv.append("--enable-supernode-auth")
+    if database is not None:
+        argv += ["--database", str(database)]
+    return argv
+
+
+def supernode_argv(*, superlink: str, port: int, node_config: dict, root_cert: Path | None,
+                   auth_key: Path | None, max_wait: float | None = None) -> list[str]:
+    argv = [flower_executable("flower-supernode"), "--superlink", superlink, "--port", str(port),
+            "--node-config", key_values(node_config)]
+    argv += ["--root-certificates", str(root_cert)] if root_cert else ["--insecure"]
+    if auth_key:
+        argv += ["--auth-supernode-private-key", str(auth_key)]
+    if max_wait is not None:
+        argv += ["--max-wait-time", str(max_wait)]
+    return argv
+
+
+def write_connection(flwr_home: Path, *, address: str, root_cert: Path | None) -> None:
+    """``$FLWR_HOME/config.toml`` with one connection, :data:`CONNECTION`, made the default."""
+    lines = ["[superlink]", f'default = "{CONNECTION}"', "", f"[superlink.{CONNECTION}]", f"address = {toml_value(address)}"]
+    lines.append(f"root-certificates = {toml_value(str(root_cert))}" if root_cert else "insecure = true")
+    flwr_home.mkdir(parents=True, exist_ok=True)
+    from fedmap.maps.io import atomic_write_bytes
+
+    atomic_write_bytes(flwr_home / "config.toml", ("\n".join(lines) + "\n").encode())
+
+
+def wait_for_port(host: str, port: int, *, timeout: float, alive: Callable[[], None]) -> None:
+    """Until something listens on ``host:port``; ``alive()`` raises if the server died."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        alive()
+        with socket.socket() as s:
+            s.settimeout(0.5)
+            if s.connect_ex((host, port)) == 0:
+                return
+        time.sleep(0.3)
+    raise FedmapError(f"nothing listens on {host}:{port} after {timeout:g} s")
+
+
+def flwr_cli(args: list[str], *, env: dict, timeout: float) -> str:
+    """Run ``flwr ARGS``; a failure becomes a one-line :class:`FedmapError`."""
+    try:
+        r = subprocess.run([flower_executable("flwr"), *args], env=env, capture_output=True, text=True, timeout=timeout,
+                           stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        raise FedmapError(f"flwr {args[0]} did not finish in {timeout:g} s") from None
+    if r.returncode != 0:
+        raise FedmapError(f"flwr {args[0]} failed (exit {r.returncode}): {_one_line(r.stdout + r.stderr)}")
+    return r.stdout
+
+
+def _one_line(text: str) -> str:
+    """Flower's boxed rich error as one line (the box drawing stripped)."""
+    words = [ln.strip(" \u2502\u256d\u256e\u2570\u256f\u2500") for ln in text.splitlines()]
+    words = [w for w in words if w and w != "Error"]
+    return " ".join(words[-6:]) or "(no output)"
+
+
+def submit_run(flwr_home: Path, run_config: dict, *, env: dict, timeout: float = 120.0) -> None:
+    """``flwr run <fedmap app> fedmap --run-config <toml>``: submit the base station's run."""
+    overrides = flwr_home / "fedmap-run-config.toml"
+    overrides.write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in run_config.items()))
+    flwr_cli(["run", str(app_dir()), CONNECTION, "--run-config", str(overrides)], env=env, timeout=timeout)
+
+
+def read_status(out: Path) -> dict | None:
+    from fedmap.federation.flower.settings import run_status_path
+
+    p = run_status_path(out)
+    try:
+        return json.loads(p.read_text())
+    except (FileNotFoundError, ValueError):
+        return None
+
+
+def wait_for_result(out: Path, *, since: float, timeout: float, alive: Callable[[], None],
+                    on_status: Callable[[dict], None] | None = None) -> dict:
+    """Poll ``<out>.run/status.json`` (newer than ``since``) until the run is done or failed."""
+    from fedmap.federation.flower.settings import run_status_path
+
+    t_end = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < t_end:
+        alive()
+        p = run_status_path(out)
+        st = read_status(out) if p.exists() and p.stat().st_mtime >= since else None
+        if st is not None and st != last:
+            last = st
+            if on_status is not None:
+                on_status(st)
+            if st["state"] == "done":
+                return st
+            if st["state"] == "failed":
+                raise FedmapError(st.get("message", "the base station's run failed"))
+        time.sleep(0.5)
+    raise FedmapError(f"the run did not finish in {timeout:g} s (see the SuperLink log)")
+
+
+def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365) -> list[Path]:
+    """A CA, a server certificate for ``hosts`` and one SuperNode auth key pair per rover.
+
+    Files: ``ca.crt``, ``ca.key``, ``server.pem``, ``server.key`` (TLS; the SuperLink
+    uses the last three plus ``ca.crt``, rovers need only ``ca.crt``), and
+    ``rover{k}`` / ``rover{k}.pub`` (ECDSA P-384 in OpenSSH format, Flower's SuperNode
+    authentication: the rover keeps the private key, the base registers the ``.pub``).
+    """
+    import datetime as dt
+    import ipaddress
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    from fedmap.maps.io import atomic_write_bytes
+
+    if rovers < 0:
+        raise FedmapError(f"rovers must be >= 0, got {rovers}")
+    now = dt.datetime.now(dt.timezone.utc)
+    pem = serialization.Encoding.PEM
+
+    def key_bytes(k) -> bytes:
+        return k.private_bytes(pem, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+
+    def name(cn: str) -> x509.Name:
+        return x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)])
+
+    ca_key = ec.generate_private_key(ec.SECP384R1())
+    ca = (x509.CertificateBuilder().subject_name(name("fedmap base-station CA")).issuer_name(name("fedmap base-station CA"))
+          .public_key(ca_key.public_key()).serial_number(x509.random_serial_number())
+          .not_valid_before(now - dt.timedelta(minutes=5)).not_valid_after(now + dt.timedelta(days=days))
+          .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+          .sign(ca_key, hashes.SHA256()))
+    sans = []
+    for h in hosts:
+        try:
+            sans.append(x509.IPAddress(ipaddress.ip_address(h)))
+        except ValueError:
+            sans.append(x509.DNSName(h))
+    srv_key = ec.generate_private_key(ec.SECP384R1())
+    srv = (x509.CertificateBuilder().subject_name(name(hosts[0])).issuer_name(ca.subject)
+           .public_key(srv_key.public_key()).serial_number(x509.random_serial_number())
+           .not_valid_before(now - dt.timedelta(minutes=5)).not_valid_after(now + dt.timedelta(days=days))
+           .add_extension(x509.SubjectAlternativeName(sans), critical=False)
+           .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+           .sign(ca_key, hashes.SHA256()))
+    files = {"ca.crt": ca.public_bytes(pem), "ca.key": key_bytes(ca_key), "server.pem": srv.public_bytes(pem),
+             "server.key": key_bytes(srv_key)}
+    for k in range(rovers):
+        rk = ec.generate_private_key(ec.SECP384R1())
+        files[f"rover{k}"] = rk.private_bytes(pem, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption())
+        files[f"rover{k}.pub"] = rk.public_key().public_bytes(serialization.Encoding.OpenSSH,
+                                                              serialization.PublicFormat.OpenSSH) + b"\n"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for fname, data in files.items():
+        atomic_write_bytes(out_dir / fname, data)
+        if fname.endswith(".key") or fname.startswith("rover") and not fname.endswith(".pub"):
+            os.chmod(out_dir / fname, 0o600)
+        written.append(out_dir / fname)
+    return written
+
+
+# -- the commands ------------------------------------------------------------------------------
+
+def run_base_station(run_config: dict, *, host: str = "0.0.0.0", port: int = 9092, certs: Path | None = None,
+                 auth_keys: Path | None = None, on_status: Callable[[dict], None] | None = None,
+                 on_ready: Callable[[], None] | None = None) -> dict:
+    """Start a SuperLink, submit fedmap's ServerApp, wait for it; returns the final status.
+
+    ``run_config`` holds run-config keys (see :data:`fedmap.federation.flower.settings.RUN_DEFAULTS`);
+    ``out`` is made absolute so the ServerApp writes where the user asked.
+    """
+    from fedmap.federation.flower.settings import RunSettings, run_dir, run_status_path
+
+    run_config = {**run_config, "out": str(Path(run_config.get("out", "fedmap-out/flower")).resolve())}
+    settings = RunSettings.from_run_config(run_config)  # bad options fail here, before any process starts
+    tls = Tls.from_dir(certs) if certs is not None else None
+    keys = sorted(Path(auth_keys).resolve().glob("*.pub")) if auth_keys is not None else []
+    if auth_keys is not None and not keys:
+        raise FedmapError(f"no rover public keys (*.pub) in {auth_keys}; make them with: fedmap certs DIR --rovers N")
+    work = run_dir(settings.out)
+    flwr_home = work / "flwr-home"
+    env = flower_env(flwr_home)
+    run_status_path(settings.out).unlink(missing_ok=True)
+    with Processes() as procs, _sigterm_as_interrupt():
+        procs.start("superlink", superlink_argv(host=host, port=port, tls=tls, auth=auth_keys is not None),
+                    env=env, log=work / "superlink.log")
+        alive = lambda: procs.check_alive("superlink")  # noqa: E731
+        local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
+        wait_for_port(local, port, timeout=60, alive=alive)
+        write_connection(flwr_home, address=f"{local}:{port}", root_cert=tls.ca if tls else None)
+        for pub in keys:
+            flwr_cli(["supernode", "register", str(pub), CONNECTION], env=env, timeout=60)
+        since = time.time() - 1
+        submit_run(flwr_home, run_config, env=env)
+        if on_ready is not None:
+            on_ready()
+        budget = settings.connect_timeout + settings.federation.rounds * (settings.deadline + settings.connect_timeout) + 600
+        return wait_for_result(settings.out, since=since, timeout=budget, alive=alive, on_status=on_status)
+
+
+class _sigterm_as_interrupt:
+    """SIGTERM raises KeyboardInterrupt (main thread only), so ``finally`` blocks stop our processes."""
+
+    def __enter__(self) -> None:
+        import threading
+
+        self.old = None
+        if threading.current_thread() is threading.main_thread():
+            self.old = signal.signal(signal.SIGTERM, self._raise)
+
+    @staticmethod
+    def _raise(signum, frame) -> None:
+        raise KeyboardInterrupt
+
+    def __exit__(self, *exc) -> None:
+        if self.old is not None:
+            signal.signal(signal.SIGTERM, self.old)
+
+
+def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str | None, size: int, agents: int,
+                      explore: str, seed: int, out: Path | None) -> dict:
+    """The SuperNode's node config for one rover (checked by loading the map once)."""
+    from fedmap.federation.flower.settings import load_local_map
+
+    cfg: dict = {"partition-id": partition_id}
+    if (map_path is None) == (terrain is None):
+        raise FedmapError("give exactly one of --map (the rover's local map) or --terrain (the built-in generator)")
+    if map_path is not None:
+        cfg["map"] = str(Path(map_path).resolve())
+    else:
+        cfg.update(terrain=terrain, size=size, agents=agents, explore=explore, seed=seed)
+    if out is not None:
+        cfg["out"] = str(Path(out).resolve())
+    load_local_map(cfg)
+    return cfg
+
+
+def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = None, auth_key: Path | None = None,
+          port: int = 0, flwr_home: Path | None = None, log: Path | None = None) -> int:
+    """Run one SuperNode for this rover: in the foreground (``log=None``) this process becomes
+    the SuperNode (``exec``); with ``log`` it runs as a child until it exits."""
+    import tempfile
+
+    if root_cert is not None and not Path(root_cert).is_file():
+        raise FedmapError(f"no such CA certificate: {root_cert}")
+    if auth_key is not None and not Path(auth_key).is_file():
+        raise FedmapError(f"no such SuperNode private key: {auth_key}")
+    root_cert = Path(root_cert).resolve() if root_cert is not None else None
+    auth_key = Path(auth_key).resolve() if auth_key is not None else None
+    home = Path(flwr_home) if flwr_home else Path(tempfile.mkdtemp(prefix="fedmap-rover-flwr-"))
+    argv = supernode_argv(superlink=superlink, port=port or free_port(), node_config=node_config,
+                          root_cert=root_cert, auth_key=auth_key)
+    env = flower_env(home)
+    if log is None:  # become the SuperNode: same PID, Flower's own signal handling and log
+        os.execve(argv[0], argv, env)
+    with Processes() as procs:
+        p = procs.start("supernode", argv, env=env, log=log)
+        return p.wait()
+
+
+# -- typer wiring (registered in fedmap.cli) ------------------------------------------------------
+
+def register(app, console, progress_factory) -> None:
+    """Add ``base-station``, ``rover`` and ``certs`` to the ``fedmap`` typer app."""
+    @app.command("base-station")
+    def base_station_cmd(
+        rovers: int = typer.Option(4, help="Rovers in the team (partition ids 0..rovers-1)."),
+        min_rovers: int = typer.Option(1, "--min-rovers", help="Fewest rovers a round may aggregate; fewer ends the run."),
+        deadline: float = typer.Option(600.0, help="Seconds a round waits for replies; late rovers are recorded as missing."),
+        connect_timeout: float = typer.Option(120.0, "--connect-timeout", help="Seconds to wait for rovers to connect."),
+        rounds: int = typer.Option(1, help="Communication rounds R."),
+        aggregator: str = typer.Option("fedavg", help="fedavg, fedadam, fedyogi or coverage."),
+        eta: float = typer.Option(1e-2, help="Server learning rate for fedadam/fedyogi."),
+        local_epochs: int = typer.Option(100, "--local-epochs", help="Local epochs per round E."),
+        lr: float = typer.Option(1e-3, help="Local Adam learning rate."),
+        masked: bool = typer.Option(False, help="Loss on known cells only."),
+        net: str = typer.Option("paper", help="Network: paper, small or grid."),
+        init: str = typer.Option("random", help="Initial weights: random or empty (empty-map prior)."),
+        uplink: str = typer.Option("fp32", help="Rover -> base codec (see fedmap demo --help)."),
+        downlink: str = typer.Option("fp32", help="Base -> rover codec."),
+        seed: int = typer.Option(0, help="Seed of the initial model and the rovers' training."),
+        terrain: Optional[str] = typer.Option(None, help="Ground truth from the built-in generator (mars, moon, ice)."),
+        size: int = typer.Option(128, help="Generated ground truth side in cells."),
+        truth: Optional[Path] = typer.Option(None, help="Ground-truth map file (.png or .npy) to evaluate against."),
+        pairs: int = typer.Option(75, help="Random start/goal pairs for the path F1."),
+        min_size: int = typer.Option(0, "--min-size", help="Refinement: remove impassable blobs smaller than this."),
+        host: str = typer.Option("0.0.0.0", help="Address the SuperLink listens on."),
+        port: int = typer.Option(9092, help="SuperLink port (rovers connect to HOST:PORT)."),
+        certs: Optional[Path] = typer.Option(None, help="TLS: folder from `fedmap certs` (ca.crt, server.pem, server.key)."),
+        auth_keys: Optional[Path] = typer.Option(None, "--auth-keys", help="SuperNode authentication: folder of rover *.pub keys."),
+        out: Path = typer.Option(Path("fedmap-out/flower"), "--out", "-o", help="Output folder (replaced atomically)."),
+    ) -> None:
+        """Base station: start a SuperLink and run fedmap's ServerApp for R rounds."""
+        import json as _json
+
+        cfg = {"rovers": rovers, "min-rovers": min_rovers, "deadline": deadline, "connect-timeout": connect_timeout,
+               "rounds": rounds, "aggregator": aggregator, "eta": eta, "epochs": local_epochs, "lr": lr,
+               "masked": masked, "net": net, "init": init, "uplink": uplink, "downlink": downlink, "seed": seed,
+               "terrain": terrain or "", "size": size, "truth": str(truth.resolve()) if truth else "", "pairs": pairs,
+               "min-size": min_size, "out": str(out)}
+        t0 = time.perf_counter()
+        with progress_factory() as progress:
+            task = progress.add_task("waiting for rovers", total=rounds, loss="")
+
+            def on_status(st: dict) -> None:
+                done = st.get("round", 0) - (0 if st.get("saved") or st["state"] == "done" else 1)
+                what = "finished" if st["state"] == "done" else f"round {st.get('round', 0)}/{rounds}"
+                progress.update(task, completed=min(rounds, done), description=what,
+                                loss=f"{st.get('nodes', '')} rovers" if "nodes" in st else "")
+
+            def on_ready() -> None:
+                console.print(f"ready: SuperLink on {host}:{port} ({'TLS' if certs else 'insecure'}"
+                              f"{', SuperNode auth' if auth_keys else ''}); start the rovers with: "
+                              f"fedmap rover --superlink <this host>:{port} --partition-id K ...")
+
+            run_base_station(cfg, host=host, port=port, certs=certs, auth_keys=auth_keys, on_status=on_status,
+                             on_ready=on_ready)
+        m = _json.loads((out / "metrics.json").read_text())
+        for r in m["rounds"]:
+            console.print(f"round {r['round']}: aggregated rovers {sorted(int(k) for k in r['weights'])}; "
+                          f"missing {r['missing'] or 'none'}; dropped {r['dropped'] or 'none'}; "
+                          f"uplink {sum(r['uplink_bytes'].values()):,} B")
+        if "global" in m:
+            console.print(f"global map: PSNR {m['global']['psnr']:.2f} dB, path F1 {m['global']['path']['f1']:.2f}")
+        b = m["bytes"]
+        console.print(f"link: {b['uplink']:,} B uplink, {b['downlink']:,} B downlink; "
+                      f"{b['uplink_per_agent_round']:,.0f} B per rover per round uplink")
+        console.print(f"outputs: {out}/  (metrics.json, global_model*.safetensors, maps); "
+                      f"wall time {time.perf_counter() - t0:.1f} s")
+
+    @app.command()
+    def rover(
+        superlink: str = typer.Option(..., help="The base station's SuperLink as HOST:PORT."),
+        partition_id: int = typer.Option(..., "--partition-id", help="This rover's index in the team (0-based)."),
+        map_path: Optional[Path] = typer.Option(None, "--map", help="This rover's local map (.png or .npy)."),
+        terrain: Optional[str] = typer.Option(None, help="Or: take the local map from the built-in generator (mars, moon, ice)."),
+        size: int = typer.Option(128, help="Generator: map side in cells."),
+        agents: int = typer.Option(4, help="Generator: rovers in the team."),
+        explore: str = typer.Option("quadrants", help="Generator: exploration pattern."),
+        seed: int = typer.Option(0, help="Generator: seed (the same as the base station's)."),
+        root_cert: Optional[Path] = typer.Option(None, "--root-cert", help="TLS: the base station's ca.crt (else insecure)."),
+        auth_key: Optional[Path] = typer.Option(None, "--auth-key", help="SuperNode authentication: this rover's private key."),
+        port: int = typer.Option(0, help="Local port of the SuperNode's own API (0: any free port)."),
+        out: Optional[Path] = typer.Option(None, "--out", "-o", help="Save the final global model and map here."),
+    ) -> None:
+        """Rover: run a Flower SuperNode that trains on this rover's local map."""
+        cfg = rover_node_config(partition_id=partition_id, map_path=map_path, terrain=terrain, size=size,
+                                agents=agents, explore=explore, seed=seed, out=out)
+        if root_cert is None:
+            console.print("warning: no --root-cert, connecting without TLS (fine on a trusted local network only)")
+        console.print(f"rover {partition_id}: connecting to {superlink}")
+        code = run_rover(cfg, superlink=superlink, root_cert=root_cert, auth_key=auth_key, port=port)
+        raise typer.Exit(code)
+
+    @app.command()
+    def certs(
+        out_dir: Path = typer.Argument(..., help="Folder for the certificates and keys."),
+        host: list[str] = typer.Option(["localhost", "127.0.0.1"], "--host",
+                                       help="Name or IP the rovers use to reach the base station (repeat)."),
+        rovers: int = typer.Option(4, help="SuperNode authentication key pairs to make (rover0..)."),
+        days: int = typer.Option(365, help="Certificate lifetime in days."),
+    ) -> None:
+        """TLS certificates for the SuperLink and SuperNode authentication keys for the rovers."""
+        files = make_certs(out_dir, hosts=host, rovers=rovers, days=days)
+        console.print(f"{out_dir}: " + ", ".join(f.name for f in files))
+        console.print("base station: fedmap base-station --certs DIR [--auth-keys DIR]; "
+                      "rover k: fedmap rover --root-cert DIR/ca.crt [--auth-key DIR/roverK] ...")

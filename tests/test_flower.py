@@ -1,0 +1,255 @@
+"""Flower apps without processes: the real ClientApp and Strategy code on in-memory messages.
+
+A fake grid stands in for the SuperLink (as Flower's own strategy tests do with mock
+replies); the global model must equal :func:`run_federation` for the same settings.
+"""
+
+import subprocess
+import sys
+import tomllib
+
+import numpy as np
+import pytest
+
+pytest.importorskip("flwr")
+
+from flwr.app import ConfigRecord, Context, RecordDict  # noqa: E402
+from flwr.server.superlink.linkstate.utils import create_message_error_unavailable_res_message  # noqa: E402
+from flwr.supercore.task_identity import TaskIdentity  # noqa: E402
+
+from fedmap.comm import Encoder  # noqa: E402
+from fedmap.errors import FedmapError  # noqa: E402
+from fedmap.explore import explore  # noqa: E402
+from fedmap.federation.aggregate import weighted_average  # noqa: E402
+from fedmap.federation.flower import client_app  # noqa: E402
+from fedmap.federation.flower.records import check_flower_count, flower_overhead, from_record, to_record  # noqa: E402
+from fedmap.federation.flower.server_app import FedmapStrategy  # noqa: E402
+from fedmap.federation.flower.settings import RunSettings, load_local_map  # noqa: E402
+from fedmap.federation.flower_cli import key_values, make_certs, rover_node_config  # noqa: E402
+from fedmap.federation.runner import agent_seed, run_federation  # noqa: E402
+from fedmap.maps.io import save_map  # noqa: E402
+from fedmap.model import build_model, get_weights, preset, set_weights  # noqa: E402
+from fedmap.training import fit  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def task_identity():
+    """Messages need a run id; in a real run the ServerApp/ClientApp process sets it."""
+    old = (TaskIdentity._run_id, TaskIdentity._node_id, TaskIdentity._task_id)
+    TaskIdentity.run_id, TaskIdentity.node_id, TaskIdentity.task_id = 1, 0, 1
+    yield
+    TaskIdentity._run_id, TaskIdentity._node_id, TaskIdentity._task_id = old
+
+
+class FakeGrid:
+    def __init__(self, node_ids):
+        self.node_ids = list(node_ids)
+
+    def get_node_ids(self):
+        return list(self.node_ids)
+
+
+def _team(tmp_path, blob_map, n=4):
+    """Local maps saved as files, one node config per rover (node id = 100 + k)."""
+    maps = explore(blob_map, n, "quadrants")
+    nodes = {}
+    for k, m in enumerate(maps):
+        path = tmp_path / f"local{k}.npy"
+        save_map(m, path)
+        nodes[100 + k] = {"partition-id": k, "map": str(path)}
+    return maps, nodes
+
+
+RUN = {"net": "small", "epochs": 3, "lr": 1e-2, "seed": 4, "rovers": 4, "min-rovers": 2}
+
+
+def _round(strategy, grid, contexts, arrays, server_round, *, skip=(), fail=()):
+    """One round through the real ClientApp ``train`` and the strategy."""
+    msgs = strategy.configure_train(server_round, arrays, ConfigRecord(), grid)
+    replies = []
+    for m in msgs:
+        m.metadata.__dict__["_message_id"] = m.object_id  # what Flower's grid does when it pushes
+        node = m.metadata.dst_node_id
+        if node in skip:
+            continue
+        if node in fail:  # the SuperLink's own error reply for a node that stopped heartbeating
+            replies.append(create_message_error_unavailable_res_message(m.metadata, "node unavailable"))
+            continue
+        replies.append(client_app.train(m, contexts[node]))
+    return strategy.aggregate_train(server_round, replies)
+
+
+def _contexts(nodes, run):
+    return {n: Context(run_id=1, node_id=n, node_config=cfg, state=RecordDict(), run_config=run)
+            for n, cfg in nodes.items()}
+
+
+def test_two_rounds_equal_run_federation(tmp_path, blob_map):
+    """Rover state (held model, error-feedback residual) survives between rounds in context.state."""
+    run = {**RUN, "rounds": 2, "uplink": "update-int8", "downlink": "fp16"}
+    maps, nodes = _team(tmp_path, blob_map)
+    settings = RunSettings.from_run_config(run)
+    strategy = FedmapStrategy(settings)
+    grid, contexts = FakeGrid(nodes), _contexts(nodes, run)
+    arrays = to_record(b"")
+    for r in (1, 2):
+        arrays, _ = _round(strategy, grid, contexts, arrays, r)
+    net = preset("small", blob_map.shape[0])
+    ref = run_federation(get_weights(build_model(net, seed=4)), net, maps, settings.federation)
+    for k in ref.weights:
+        np.testing.assert_allclose(strategy.held[k], ref.weights[k], atol=1e-6)
+    for got, want in zip(strategy.history, ref.history):
+        assert got["uplink_bytes"] == want["uplink_bytes"]
+        assert got["weights"] == {k: float(v) for k, v in want["weights"].items()}
+    # round 1's broadcast went out with round 2's messages, to every rover
+    assert strategy.history[0]["downlink_bytes"] == ref.history[0]["downlink_bytes"]
+    # the payload Flower carried is exactly what the runner counted, plus the .npy header and key
+    n = ref.history[0]["uplink_bytes"][0]
+    assert strategy.history[0]["flower_uplink_bytes"][0] == n + 128 + len("payload")
+
+
+def test_missing_and_failed_rovers_are_recorded(tmp_path, blob_map):
+    run = {**RUN, "rounds": 1}
+    maps, nodes = _team(tmp_path, blob_map)
+    strategy = FedmapStrategy(RunSettings.from_run_config(run))
+    arrays, metrics = _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1, skip={103})
+    rec = strategy.history[0]
+    assert rec["missing"] == [3] and sorted(rec["weights"]) == [0, 1, 2]
+    assert metrics["rovers-used"] == 3
+    # independent reference: train the three survivors by hand and FedAvg them
+    net = preset("small", blob_map.shape[0])
+    init = get_weights(build_model(net, seed=4))
+    ws = []
+    for k in range(3):
+        model = build_model(net)
+        set_weights(model, init)
+        fit(model, maps[k], strategy.settings.federation.local, seed=agent_seed(4, 0, k))
+        ws.append(get_weights(model))
+    ref = weighted_average(ws, [m.n_known for m in maps[:3]])
+    for k in ref:
+        np.testing.assert_allclose(strategy.held[k], ref[k], atol=1e-6)
+    # the broadcast is fedmap's fp32 payload of that model
+    assert from_record(arrays) == Encoder("fp32").encode(strategy.held)
+
+
+def test_rover_lost_in_a_later_round_is_dropped_by_name(tmp_path, blob_map):
+    run = {**RUN, "rounds": 2}
+    _, nodes = _team(tmp_path, blob_map)
+    strategy = FedmapStrategy(RunSettings.from_run_config(run))
+    grid, contexts = FakeGrid(nodes), _contexts(nodes, run)
+    arrays, _ = _round(strategy, grid, contexts, to_record(b""), 1)
+    _round(strategy, grid, contexts, arrays, 2, fail={101})
+    rec = strategy.history[1]
+    assert list(rec["dropped"]) == [1] and "Node Unavailable" in rec["dropped"][1]
+    assert rec["missing"] == [] and sorted(rec["weights"]) == [0, 2, 3]
+
+
+def test_too_few_rovers_end_the_run(tmp_path, blob_map):
+    run = {**RUN, "rounds": 1, "min-rovers": 3}
+    _, nodes = _team(tmp_path, blob_map)
+    strategy = FedmapStrategy(RunSettings.from_run_config(run))
+    with pytest.raises(FedmapError, match=r"2 rover\(s\) delivered an update, fewer than min-rovers=3"):
+        _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1, skip={101, 102})
+
+
+def test_waiting_for_rovers_has_a_deadline():
+    run = {**RUN, "connect-timeout": 0.05}
+    strategy = FedmapStrategy(RunSettings.from_run_config(run), sleep=lambda s: None)
+    with pytest.raises(FedmapError, match=r"only 1 rover\(s\) connected after 0.05 s, fewer than min-rovers=2"):
+        strategy.configure_train(1, to_record(b""), ConfigRecord(), FakeGrid([7]))
+    # enough rovers: go on with those connected once the wait is over
+    msgs = strategy.configure_train(1, to_record(b""), ConfigRecord(), FakeGrid([7, 8, 9]))
+    assert sorted(m.metadata.dst_node_id for m in msgs) == [7, 8, 9]
+
+
+def test_flower_byte_count_cross_check():
+    """Flower counts ``np.save`` bytes + the key: a .npy v1 header of a 1-D uint8 array is 128 B."""
+    for n in (0, 5, 202_940):
+        payload = bytes(range(256)) * (n // 256) + bytes(n % 256)
+        rec = to_record(payload)
+        assert from_record(rec) == payload
+        assert flower_overhead(n) == 128 + 7
+        assert check_flower_count(rec, n) == rec.count_bytes() == n + 135
+    with pytest.raises(FedmapError, match="byte accounting mismatch"):
+        check_flower_count(to_record(b"abc"), 4)
+
+
+def test_run_config_errors():
+    with pytest.raises(FedmapError, match="unknown run-config keys"):
+        RunSettings.from_run_config({"roundz": 2})
+    with pytest.raises(FedmapError, match="rounds=.*must be int"):
+        RunSettings.from_run_config({"rounds": "two"})
+    with pytest.raises(FedmapError, match="min-rovers"):
+        RunSettings.from_run_config({"rovers": 2, "min-rovers": 3})
+    with pytest.raises(FedmapError, match="unknown aggregator"):
+        RunSettings.from_run_config({"aggregator": "fedprox"})
+    s = RunSettings.from_run_config({"deadline": 30, "masked": "true"})  # TOML ints and CLI strings are fine
+    assert s.deadline == 30.0 and s.federation.local.masked is True
+
+
+def test_node_config_generator_matches_the_demo_exploration():
+    from fedmap.pipeline import PipelineConfig, load_truth
+
+    pid, m = load_local_map({"partition-id": 2, "terrain": "moon", "size": 64, "agents": 4, "seed": 3})
+    cfg = PipelineConfig(terrain="moon", size=64, seed=3)
+    ref = explore(load_truth(cfg), 4, "quadrants", seed=3, sensor_radius=cfg.sensor_radius)[2]
+    assert pid == 2 and np.array_equal(m.classes, ref.classes)
+    with pytest.raises(FedmapError, match="partition-id"):
+        load_local_map({"terrain": "moon"})
+    with pytest.raises(FedmapError, match="not below agents=4"):
+        load_local_map({"partition-id": 4, "terrain": "moon", "size": 64})
+    with pytest.raises(FedmapError, match="exactly one of --map"):
+        rover_node_config(partition_id=0, map_path=None, terrain=None, size=64, agents=4, explore="quadrants",
+                          seed=0, out=None)
+
+
+def test_key_values_parse_back_with_flowers_parser():
+    from flwr.common.config import parse_config_args
+
+    d = {"partition-id": 3, "map": "/data/my maps/rover 3.png", "seed": 0, "masked": False, "lr": 0.001}
+    assert parse_config_args([key_values(d)]) == d
+    assert tomllib.loads("\n".join(f"{k} = {v}" for k, v in (kv.split("=", 1) for kv in
+                                                                  key_values({"a": 1.5, "b": "x"}).split())))  == {"a": 1.5, "b": "x"}
+
+
+def test_certs_verify(tmp_path):
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+
+    make_certs(tmp_path, hosts=["base.local", "10.0.0.2"], rovers=2)
+    ca = x509.load_pem_x509_certificate((tmp_path / "ca.crt").read_bytes())
+    srv = x509.load_pem_x509_certificate((tmp_path / "server.pem").read_bytes())
+    srv.verify_directly_issued_by(ca)  # raises if the signature does not check out
+    san = srv.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert san.get_values_for_type(x509.DNSName) == ["base.local"]
+    assert [str(ip) for ip in san.get_values_for_type(x509.IPAddress)] == ["10.0.0.2"]
+    key = serialization.load_ssh_private_key((tmp_path / "rover1").read_bytes(), None)
+    pub = serialization.load_ssh_public_key((tmp_path / "rover1.pub").read_bytes())
+    assert isinstance(key, ec.EllipticCurvePrivateKey) and key.curve.name == "secp384r1"
+    assert key.public_key().public_numbers() == pub.public_numbers()
+    assert (tmp_path / "rover1").stat().st_mode & 0o077 == 0
+
+
+def test_fedmap_imports_and_runs_without_flwr(tmp_path):
+    """Block flwr: the CLI loads, the demo's modules import, and rover/base-station say how to install."""
+    code = (
+        "import sys; sys.modules['flwr'] = None\n"
+        "import fedmap.cli, fedmap.pipeline, fedmap.federation.runner\n"
+        "from fedmap.cli import main\n"
+        "sys.exit(main(['rover', '--superlink', '127.0.0.1:1', '--partition-id', '0', '--terrain', 'mars', '--size', '64']))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == "error: Flower is not installed; run: pip install 'fedmap[flower]'"
+
+
+def test_app_pyproject_declares_every_run_config_key():
+    """`flwr run` only accepts overrides of keys the app declares; they must match fedmap's defaults."""
+    from fedmap.federation.flower.settings import RUN_DEFAULTS
+    from fedmap.federation.flower_cli import app_dir
+
+    app = tomllib.loads((app_dir() / "pyproject.toml").read_text())["tool"]["flwr"]["app"]
+    assert app["config"] == RUN_DEFAULTS
+    assert app["components"] == {"serverapp": "fedmap.federation.flower.server_app:app",
+                                 "clientapp": "fedmap.federation.flower.client_app:app"}

@@ -1,0 +1,110 @@
+"""Real processes on loopback: a SuperLink, four SuperNodes (``fedmap rover``), ``flwr run``.
+
+Each test has its own ``FLWR_HOME`` in a temporary folder, update checks and telemetry
+off, free ports picked at run time, and stops every process it started by its PID
+(process group) in a ``finally`` (``Processes.__exit__``), also when it fails.
+"""
+
+import json
+import signal
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("flwr")
+
+from fedmap.comm import Encoder  # noqa: E402
+from fedmap.explore import explore  # noqa: E402
+from fedmap.federation.flower.settings import RunSettings  # noqa: E402
+from fedmap.federation.flower_cli import Processes, flower_env, free_port, run_base_station  # noqa: E402
+from fedmap.federation.runner import run_federation  # noqa: E402
+from fedmap.maps.io import save_map  # noqa: E402
+from fedmap.model import build_model, get_weights, load_model, preset  # noqa: E402
+from fedmap.pipeline import PipelineConfig, load_truth  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+SEED = 1
+RUN = {"net": "small", "epochs": 5, "lr": 1e-2, "seed": SEED, "rovers": 4,
+       "min-rovers": 3, "connect-timeout": 120.0, "pairs": 10}
+
+
+@pytest.fixture
+def flower_home(tmp_path, monkeypatch):
+    monkeypatch.setenv("FLWR_HOME", str(tmp_path / "flwr-home"))
+    monkeypatch.setenv("FLWR_DISABLE_UPDATE_CHECK", "1")
+    monkeypatch.setenv("FLWR_TELEMETRY_ENABLED", "0")
+    return tmp_path
+
+
+def _team(tmp_path):
+    """Ground truth and the four rovers' local maps (as the demo explores them), saved as files."""
+    truth = load_truth(PipelineConfig(terrain="mars", size=64, seed=SEED))
+    maps = explore(truth, 4, "quadrants", seed=SEED, sensor_radius=PipelineConfig().sensor_radius)
+    save_map(truth, tmp_path / "truth.npy")
+    for k, m in enumerate(maps):
+        save_map(m, tmp_path / f"local{k}.npy")
+    return maps
+
+
+def _start_rovers(procs: Processes, port: int, tmp_path) -> None:
+    for k in range(4):  # `fedmap rover` becomes the SuperNode (exec): its PID is the SuperNode's
+        argv = [sys.executable, "-m", "fedmap", "rover", "--superlink", f"127.0.0.1:{port}", "--partition-id", str(k),
+                "--map", str(tmp_path / f"local{k}.npy"), "--port", str(free_port())]
+        procs.start(f"rover{k}", argv, env=flower_env(tmp_path / f"rover{k}-home"), log=tmp_path / f"rover{k}.log")
+
+
+def _reference(maps):
+    """The in-process runner on the same maps, seed and settings."""
+    net = preset("small", 64)
+    init = get_weights(build_model(net, seed=SEED))
+    return init, run_federation(init, net, maps, RunSettings.from_run_config(RUN).federation)
+
+
+def _run(tmp_path, run: dict, on_status=None):
+    port, out = free_port(), tmp_path / "out"
+    maps = _team(tmp_path)
+    with Processes() as rovers:
+        status = run_base_station({**run, "out": str(out), "truth": str(tmp_path / "truth.npy")}, host="127.0.0.1", port=port,
+                                  on_ready=lambda: _start_rovers(rovers, port, tmp_path),
+                                  on_status=(lambda st: on_status(st, rovers)) if on_status else None)
+    assert status["state"] == "done"
+    return maps, out, json.loads((out / "metrics.json").read_text())
+
+
+def test_four_rovers_one_round_equal_the_in_process_runner(flower_home):
+    maps, out, m = _run(flower_home, {**RUN, "deadline": 300.0})
+    init, ref = _reference(maps)
+    got = get_weights(load_model(out / "global_model.safetensors"))
+    for k in ref.weights:
+        np.testing.assert_allclose(got[k], ref.weights[k], atol=1e-5)
+    ckpt = get_weights(load_model(out / "global_model_round1.safetensors"))
+    assert all(np.array_equal(ckpt[k], got[k]) for k in got)
+    n = len(Encoder("fp32").encode(init))  # fp32 payload of this network: the same size both ways
+    rnd = m["rounds"][0]
+    assert rnd["missing"] == [] and rnd["dropped"] == {} and sorted(rnd["weights"]) == ["0", "1", "2", "3"]
+    assert rnd["uplink_bytes"] == {str(k): n for k in range(4)} == rnd["downlink_bytes"]
+    assert rnd["flower_uplink_bytes"] == {str(k): n + 135 for k in range(4)} == rnd["flower_downlink_bytes"]
+    assert rnd["final_broadcast_received_by"] == [0, 1, 2, 3]
+    assert m["bytes"] == {"uplink": 4 * n, "downlink": 4 * n, "uplink_per_agent_round": n}
+    assert {"psnr", "ssim", "path"} <= set(m["global"]) and (out / "figure.png").is_file()
+
+
+def test_a_rover_killed_mid_round_leaves_three(flower_home):
+    killed = []
+
+    def kill_rover3(st, rovers):
+        if st["state"] == "running" and st.get("round") == 1 and not st.get("saved") and not killed:
+            rovers.stop("rover3", sig=signal.SIGKILL)  # by its PID (process group), while the round runs
+            killed.append(True)
+
+    maps, out, m = _run(flower_home, {**RUN, "deadline": 120.0}, on_status=kill_rover3)
+    assert killed
+    rnd = m["rounds"][0]
+    assert sorted(rnd["weights"]) == ["0", "1", "2"]
+    assert rnd["missing"] == [3] or list(rnd["dropped"]) == ["3"]
+    _, ref = _reference(maps[:3])
+    got = get_weights(load_model(out / "global_model.safetensors"))
+    for k in ref.weights:
+        np.testing.assert_allclose(got[k], ref.weights[k], atol=1e-5)
