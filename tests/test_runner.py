@@ -131,3 +131,38 @@ def test_mismatched_grids_and_bad_config(tiny_net, blob_map):
         FederationConfig(aggregator="fedprox")
     with pytest.raises(FedmapError, match="rounds"):
         FederationConfig(rounds=0)
+
+
+def test_one_shot_cache_reuses_rover_training(tiny_net, blob_map):
+    """One-round runs that differ only in the aggregator give the same result with the
+    cache, and the second run trains nothing; a two-round run never uses it."""
+    from dataclasses import replace
+
+    from fedmap.explore import explore
+    from fedmap.federation.runner import FederationConfig, run_federation
+    from fedmap.model import build_model, get_weights
+    from fedmap.training import TrainConfig
+
+    maps = explore(blob_map, 4, "quadrants", seed=0)
+    init = get_weights(build_model(tiny_net, seed=1))
+    base = FederationConfig(rounds=1, aggregator="fedavg", local=TrainConfig(epochs=3, lr=1e-3), seed=2)
+    cache: dict = {}
+    steps: list[int] = []
+    run_federation(init, tiny_net, maps, base, one_shot_cache=cache, on_step=lambda s, l: steps.append(s))
+    n_first = len(steps)
+    for agg in ("fedadam", "fedyogi"):
+        cfg = replace(base, aggregator=agg)
+        cached = run_federation(init, tiny_net, maps, cfg, one_shot_cache=cache,
+                                on_step=lambda s, l: steps.append(s))
+        fresh = run_federation(init, tiny_net, maps, cfg)
+        for k in fresh.weights:
+            np.testing.assert_array_equal(cached.weights[k], fresh.weights[k])
+        assert cached.history[0]["uplink_bytes"] == fresh.history[0]["uplink_bytes"]
+    assert n_first > 0 and len(steps) == n_first  # the cached runs trained nothing
+    # a different seed, or more rounds, trains again
+    run_federation(init, tiny_net, maps, replace(base, seed=3), one_shot_cache=cache,
+                   on_step=lambda s, l: steps.append(s))
+    assert len(steps) == 2 * n_first
+    run_federation(init, tiny_net, maps, replace(base, rounds=2), one_shot_cache=cache,
+                   on_step=lambda s, l: steps.append(s))
+    assert len(steps) == 4 * n_first

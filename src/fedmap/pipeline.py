@@ -133,9 +133,11 @@ def run_pipeline(
     on_stage: Callable[[str, int], None] | None = None,
     on_step: Callable[[int, float], None] | None = None,
     on_round: Callable[[dict, dict], None] | None = None,
+    one_shot_cache: dict | None = None,
 ) -> PipelineResult:
     """Run the whole job. ``on_stage(name, total_steps)`` announces each stage;
-    ``on_round(record, weights)`` is passed to :func:`~fedmap.federation.runner.run_federation`.
+    ``on_round(record, weights)`` and ``one_shot_cache`` are passed to
+    :func:`~fedmap.federation.runner.run_federation`.
 
     ``truth`` replaces the built-in terrain and ``local_maps`` the exploration (e.g. a
     heterogeneous team made with :func:`fedmap.explore.explore`).
@@ -163,7 +165,7 @@ def run_pipeline(
     t = time.perf_counter()
     stage("federated training", total_local_steps(local_maps, config.federation))
     fed = run_federation(get_weights(init_model), net_config, local_maps, config.federation, on_step=on_step,
-                         on_round=on_round)
+                         on_round=on_round, one_shot_cache=one_shot_cache)
     timings["federation_s"] = time.perf_counter() - t
 
     t = time.perf_counter()

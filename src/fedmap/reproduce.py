@@ -126,12 +126,13 @@ def _row_config(row: Row, config: ReproduceConfig, *, central: bool) -> Pipeline
 def run_table2(name: str, truth: GridMap, config: ReproduceConfig, *, on_stage=None, on_step=None) -> dict:
     """Every Table II row on one terrain; returns the rows and the results kept for figures."""
     rows, results = [], {}
+    cache: dict = {}  # one-round rows that differ only in the aggregator train the rovers once
     for row in table2_rows(config.eta, config.epochs):
         central = config.central and row.label == "paper preset, FedAvg"
         cfg = _row_config(row, config, central=central)
         if on_stage:
             on_stage(f"{name}: {row.label}", 0)
-        res = run_pipeline(cfg, truth=truth, on_stage=on_stage, on_step=on_step)
+        res = run_pipeline(cfg, truth=truth, on_stage=on_stage, on_step=on_step, one_shot_cache=cache)
         fed = cfg.federation
         rec = {"label": row.label, "method": row.method, "net": cfg.net, "aggregator": fed.aggregator,
                "eta": fed.eta if fed.aggregator in ("fedadam", "fedyogi") else None, "rounds": fed.rounds,
