@@ -18,45 +18,18 @@ import json
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
-from PIL import Image
 
-from fedmap.maps.dem import Dem
-from fedmap.maps.io import load_dem
+from fedmap.maps.io import centre_crop, load_dem, mosaic_heightmap_tiles
 from fedmap.maps.traversability import dem_to_traversability
 from fedmap.pipeline import run_pipeline
 from fedmap.presets import method_config
-
-MOON_PX = 1737.4e3 * np.pi / 180 / 256  # 1 degree of the 1737.4 km sphere over 256 px
-
-
-def centre_crop(dem: Dem, n: int) -> Dem:
-    h, w = dem.shape
-    if h < n or w < n:
-        raise SystemExit(f"{dem.source} is {h}x{w}, smaller than {n}")
-    r, c = (h - n) // 2, (w - n) // 2
-    return Dem(dem.elevation[r : r + n, c : c + n], dem.pixel_size, f"{dem.source}[{r}:{r + n},{c}:{c + n}]")
-
-
-def moon_mosaic(folder: Path, lon: int, lat: int, tiles: int) -> Dem:
-    """GLD100 RGB-packed tiles (metres = R + 256 G + 65536 B - 10000), north at the top."""
-    rows = []
-    for la in reversed(range(lat, lat + tiles)):
-        row = []
-        for lo in range(lon, lon + tiles):
-            rgb = np.asarray(Image.open(folder / f"256p+{lo}+{la}.png").convert("RGB"), dtype=np.float64)
-            row.append(rgb[..., 0] + 256 * rgb[..., 1] + 65536 * rgb[..., 2] - 10000)
-        rows.append(np.concatenate(row, axis=1))
-    z = np.concatenate(rows, axis=0)
-    z[z <= -10000] = np.nan
-    return Dem(z, MOON_PX, f"GLD100 lon {lon}-{lon + tiles - 1} lat {lat}-{lat + tiles - 1}")
 
 
 def terrains(data: Path, n: int) -> dict:
     return {
         "mars (Gale 1 m)": centre_crop(load_dem(data / "mars/missionDEM_gale_1m.tif"), n),
-        "moon (GLD100 Hadley)": centre_crop(moon_mosaic(data / "moon/gld100_256p", 3, 25, 2), n),
+        "moon (GLD100 Hadley)": centre_crop(mosaic_heightmap_tiles(data / "moon/gld100_256p", lon=3, lat=25, n=2), n),
         "ice (Columbia 100 m)": centre_crop(load_dem(data / "ice/test-files_columbia_dem_Columbia.tif"), n),
     }
 

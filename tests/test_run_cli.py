@@ -24,6 +24,7 @@ def _run(args, capsys):
     return rc, out.out, out.err
 
 
+@pytest.mark.slow
 def test_run_example_builtin_config_tiny(tmp_path, capsys):
     out = tmp_path / "o"
     rc, stdout, err = _run([EXAMPLES / "builtin.toml", *TINY, "--set", "refine.min_size=20", "-o", out], capsys)

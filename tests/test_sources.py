@@ -56,6 +56,8 @@ def test_round_trip_and_errors(tmp_path):
     assert TerrainSource.from_dict(d) == src
     with pytest.raises(FedmapError, match="unknown key 'sise' in terrain source \\(did you mean 'size'\\?\\)"):
         TerrainSource.from_dict({"kind": "dem", "path": "x", "sise": 3})
+    with pytest.raises(FedmapError, match="crop does not apply to built-in terrain"):
+        TerrainSource(crop=64)
     with pytest.raises(FedmapError, match="needs a path"):
         TerrainSource(kind="dem")
     with pytest.raises(FedmapError, match="needs lon and lat"):

@@ -105,6 +105,8 @@ class TerrainSource:
         unknown = sorted(set(self.options) - set(READER_OPTIONS))
         if unknown:
             raise FedmapError(f"unknown reader option {unknown[0]!r}; known: {', '.join(READER_OPTIONS)}")
+        if self.kind == "builtin" and self.crop is not None:
+            raise FedmapError("crop does not apply to built-in terrain (set size instead)")
         if self.kind == "builtin" and self.size is None:
             object.__setattr__(self, "size", DEFAULT_BUILTIN_SIZE)
         if isinstance(self.thresholds, dict):

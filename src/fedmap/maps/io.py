@@ -682,7 +682,7 @@ def mosaic_tiles(paths, *, pixel_size: float | None = None, **options) -> Dem:
     elev = np.block([[d.elevation for d in r] for r in dems])
     meta = {"format": "mosaic", "tiles": [[d.source for d in r] for r in dems], "tile_shape": list(first.shape),
             "pixel_size": first.pixel_size, "pixel_size_from": first.meta.get("pixel_size_from")}
-    return Dem(elev, first.pixel_size, f"mosaic of {len(rows)}x{len(rows[0])} tiles from {first.source}", meta)
+    return Dem(elev, first.pixel_size, f"mosaic of {len(rows)}x{len(rows[0])} tiles, north-west {first.source}", meta)
 
 
 def gld100_tile_path(folder, lon: int, lat: int) -> Path:
