@@ -272,8 +272,9 @@ def main(grid: Grid, context: Context) -> None:
     settings = RunSettings.from_run_config(dict(context.run_config))
     try:
         out = run_base_station(grid, settings)
-    except FedmapError as e:
-        write_status(settings.out, "failed", message=str(e))
-        log(INFO, "fedmap: error: %s", e)
+    except Exception as e:  # the base-station command waits on this file: never leave it "running"
+        msg = str(e) if isinstance(e, FedmapError) else f"{type(e).__name__}: {e}".splitlines()[0]
+        write_status(settings.out, "failed", message=msg)
+        log(INFO, "fedmap: error: %s", msg)
         raise
     log(INFO, "fedmap: outputs in %s", out)
