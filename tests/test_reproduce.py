@@ -12,7 +12,7 @@ from fedmap.errors import FedmapError
 from fedmap.pipeline import PipelineConfig, load_truth, run_pipeline
 from fedmap.reproduce import ReproduceConfig, _row_config, Row, reproduce, rounds_curve, terrains
 
-TINY = dict(size=64, epochs=2, pairs=5, curve_rounds=2, curve_epochs=1, central=False, bandwidth=False)
+TINY = dict(size=64, epochs=2, pairs=5, curve_rounds=2, curve_epochs=1, central=False, bandwidth=False, ablation_tiles=0)
 
 
 def test_rounds_curve_matches_independent_runs():
@@ -31,7 +31,8 @@ def test_rounds_curve_matches_independent_runs():
 
 def test_reproduce_report(tmp_path):
     out = tmp_path / "rep"
-    res = reproduce(out, ReproduceConfig(**TINY, terrain_names=("mars",)))
+    res = reproduce(out, ReproduceConfig(**{**TINY, "ablation_tiles": 1, "ablation_max_steps": 3},
+                                         terrain_names=("mars",)))
     data = json.loads((out / "reproduce.json").read_text())
     rows = data["terrains"]["mars"]["table2"]
     labels = [r["label"] for r in rows]
@@ -51,6 +52,23 @@ def test_reproduce_report(tmp_path):
         with Image.open(out / fig) as im:
             assert im.size[0] > 300
     assert res["rounds_curve"]["mars"]["paper"][0]["round"] == 1
+    # Table I on one tile, three initialisations, with the shipped meta-init as the target
+    t1 = data["table1"]
+    assert t1["n_maps"] == 1 and set(t1["table"]) == {"random", "empty", "meta"}
+    assert t1["table"]["meta"]["steps_to_meta"]["mean"] <= t1["config"]["n_steps"]
+    assert (out / "table1" / "fig3.png").is_file() and "Table I" in md
+
+
+def test_ablation_tiles_are_disjoint_windows_of_the_maps():
+    from fedmap.reproduce import ablation_tiles
+
+    truth = load_truth(PipelineConfig(terrain="mars", size=128))
+    tiles = ablation_tiles({"m": truth}, 3)
+    assert len(tiles) == 3
+    np.testing.assert_array_equal(tiles[0].classes, truth.classes[:64, :64])
+    np.testing.assert_array_equal(tiles[1].classes, truth.classes[:64, 64:])
+    np.testing.assert_array_equal(tiles[2].classes, truth.classes[64:, :64])
+    assert ablation_tiles({"m": truth}, 9)[-1].classes.shape == (64, 64) and len(ablation_tiles({"m": truth}, 9)) == 4
 
 
 def test_one_shot_fedadam_step_is_bounded_by_eta():
