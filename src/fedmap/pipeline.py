@@ -21,11 +21,13 @@ from fedmap.explore import explore
 from fedmap.federation.runner import FederationConfig, FederationResult, run_federation, total_local_steps
 from fedmap.maps.grid import UNKNOWN, GridMap, check_same_frame, classes_from_rgb
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
-from fedmap.model import NetConfig, build_model, get_weights, preset, render, set_weights
+from fedmap.meta.prior import empty_prior
+from fedmap.meta.shipped import load_init_weights
+from fedmap.model import build_model, get_weights, preset, render, set_weights
 from fedmap.refine import RefineConfig, refine
 from fedmap.training import TrainConfig, fit, steps_per_epoch
 
-INITS = ("random", "empty")
+INITS = ("random", "empty", "meta")
 
 
 @dataclass(frozen=True)
@@ -38,6 +40,7 @@ class PipelineConfig:
     sensor_radius: float = 12.0
     net: str = "paper"
     init: str = "random"
+    init_weights: str | None = None  # init="meta": a weights file (default: the shipped meta-init)
     prior_steps: int = 150
     central: bool = True  # also fit one network to the union of the local maps (upper bound)
     federation: FederationConfig = field(default_factory=FederationConfig)
@@ -59,6 +62,10 @@ class PipelineConfig:
         if self.eval_pairs <= 0:
             raise FedmapError(f"eval pairs must be positive, got {self.eval_pairs}")
         preset(self.net)
+        if self.init == "meta" and self.net == "grid":
+            raise FedmapError("init 'meta' is for the Fourier networks (paper, small); a grid network starts at zero")
+        if self.init_weights is not None and self.init != "meta":
+            raise FedmapError(f"init weights are only used with init 'meta', not {self.init!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -76,18 +83,6 @@ class PipelineResult:
     federation: FederationResult
     metrics: dict
     timings: dict
-
-
-def empty_prior(net_config: NetConfig, *, steps: int, seed: int, size: int = 64) -> torch.nn.Module:
-    """The empty-map prior theta_0: the network fitted to an all-UNKNOWN map.
-
-    Fitted on a ``size x size`` grid; the network is a function of continuous
-    coordinates, so it renders grey at any resolution.
-    """
-    model = build_model(net_config, seed=seed)
-    blank = GridMap(np.full((size, size), UNKNOWN, dtype=np.uint8), source="empty-map")
-    fit(model, blank, TrainConfig(epochs=steps, lr=1e-3), seed=seed)
-    return model
 
 
 def union_map(local_maps: list[GridMap]) -> GridMap:
@@ -143,6 +138,10 @@ def run_pipeline(
     if config.init == "empty":
         stage("empty-map prior", config.prior_steps)
         init_model = empty_prior(net_config, steps=config.prior_steps, seed=config.seed)
+    elif config.init == "meta":
+        stage("meta-init weights", 0)
+        init_model = build_model(net_config)
+        set_weights(init_model, load_init_weights(net_config, config.init_weights))
     else:
         init_model = build_model(net_config, seed=config.seed)
     timings["init_s"] = time.perf_counter() - t
