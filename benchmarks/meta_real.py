@@ -107,9 +107,9 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[1] / ".." / "shared" / "data")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/meta_real"))
-    ap.add_argument("--iterations", type=int, default=300)
-    ap.add_argument("--maps", type=int, default=10, help="test maps per test set")
-    ap.add_argument("--max-steps", type=int, default=100)
+    ap.add_argument("--iterations", type=int, default=150)
+    ap.add_argument("--maps", type=int, default=8, help="test maps per test set")
+    ap.add_argument("--max-steps", type=int, default=80)
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     if not args.data.is_dir():
@@ -137,7 +137,7 @@ def main() -> None:
     for name, (maps, info) in sets.items():
         test = pick_maps(maps, args.maps, seed=1)
         for lr in (1e-4, 1e-3):
-            conf = AblationConfig(lr=lr, max_steps=args.max_steps if lr == 1e-4 else 40, seed=1)
+            conf = AblationConfig(lr=lr, max_steps=args.max_steps if lr == 1e-4 else 30, seed=1)
             t = time.perf_counter()
             r = run_ablation(test if lr == 1e-4 else test[: max(1, len(test) // 2)], inits, net, conf)
             r.update(test_set=name, sources=info, available_maps=len(maps), wall_s=time.perf_counter() - t)
