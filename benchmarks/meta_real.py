@@ -17,6 +17,9 @@ percentile of its own slope (about a quarter of the cells impassable); the limit
 for each source is written to the JSON.
 
 Needs the data folder (CI has it at ../shared/data); the package itself never does.
+Several GeoTIFFs are LZW-compressed and need ``pip install imagecodecs`` to load.
+The defaults (150 Reptile iterations, 8 test maps per set, cap 80 steps) are what the
+README reports; the Earth meta-init is kept as ``benchmarks/results/meta_real_earth.safetensors``.
 """
 
 from __future__ import annotations
