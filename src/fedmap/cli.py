@@ -90,7 +90,10 @@ def demo(
     uplink: Optional[str] = typer.Option(None, help="Rover -> base codec: fp32, fp16, bf16, int8, int4, topk:0.01, update-int4, ... (+zstd)."),
     downlink: Optional[str] = typer.Option(None, help="Base -> rover codec (same grammar)."),
     eta: float = typer.Option(1e-2, help="Server learning rate for fedadam/fedyogi."),
-    init: str = typer.Option("random", help="Initial weights: random or empty (empty-map prior)."),
+    init: Optional[str] = typer.Option(None, help="Initial weights: random, empty (empty-map prior) or meta "
+                                       "(shipped meta-init) [paper net: meta; grid: random = zero grids]."),
+    init_weights: Optional[Path] = typer.Option(None, "--init-weights", help="With --init meta: a weights file "
+                                                "from fedmap meta-train instead of the shipped one."),
     masked: Optional[bool] = typer.Option(None, help="Loss on known cells only [paper: off, unknown is trained as grey; fedmap: on]."),
     min_size: int = typer.Option(0, "--min-size", help="Refinement: remove impassable blobs smaller than this many cells (paper: 200; 0 = off)."),
     pairs: int = typer.Option(75, help="Random start/goal pairs for the path F1."),
@@ -108,9 +111,12 @@ def demo(
     chosen = method_settings(method, lr=lr, aggregator=aggregator, net=net, uplink=uplink, downlink=downlink,
                              masked=masked)
     lr, aggregator, net, uplink, downlink, masked = (chosen[k] for k in ("lr", "aggregator", "net", "uplink", "downlink", "masked"))
+    if init is None:
+        init = "meta" if net in ("paper",) or init_weights is not None else "random"
     t0 = time.perf_counter()
     config = PipelineConfig(
         terrain=terrain, size=size, agents=agents, explore=explore, init=init, seed=seed, eval_pairs=pairs,
+        init_weights=str(init_weights) if init_weights is not None else None,
         net=net, central=central,
         federation=FederationConfig(rounds=rounds, aggregator=aggregator, eta=eta, seed=seed, uplink=uplink,
                                     downlink=downlink,
@@ -261,6 +267,12 @@ app.command("run")(run_command)
 from fedmap.federation.flower_cli import register as _register_flower  # noqa: E402
 
 _register_flower(app, console, _progress)
+
+# -- meta-initialisation (bodies in fedmap.meta_cli) --------------------------------------
+from fedmap.meta_cli import ablate_init as _ablate_init, meta_train as _meta_train  # noqa: E402
+
+app.command("meta-train")(_meta_train)
+app.command("ablate-init")(_ablate_init)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -21,11 +21,13 @@ from fedmap.explore import explore
 from fedmap.federation.runner import FederationConfig, FederationResult, run_federation, total_local_steps
 from fedmap.maps.grid import UNKNOWN, GridMap, check_same_frame, classes_from_rgb
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
+from fedmap.meta.prior import empty_prior
+from fedmap.meta.shipped import load_init_weights
 from fedmap.model import NetConfig, build_model, get_weights, preset, render, set_weights
 from fedmap.refine import RefineConfig, refine
 from fedmap.training import TrainConfig, fit, steps_per_epoch
 
-INITS = ("random", "empty")
+INITS = ("random", "empty", "meta")
 
 
 @dataclass(frozen=True)
@@ -38,6 +40,7 @@ class PipelineConfig:
     sensor_radius: float = 12.0
     net: str = "paper"
     init: str = "random"
+    init_weights: str | None = None  # init="meta": a weights file (default: the shipped meta-init)
     prior_steps: int = 150
     central: bool = True  # also fit one network to the union of the local maps (upper bound)
     federation: FederationConfig = field(default_factory=FederationConfig)
@@ -60,6 +63,10 @@ class PipelineConfig:
         if self.eval_pairs <= 0:
             raise FedmapError(f"eval pairs must be positive, got {self.eval_pairs}")
         preset(self.net)
+        if self.init == "meta" and self.net == "grid":
+            raise FedmapError("init 'meta' is for the Fourier networks (paper, small); a grid network starts at zero")
+        if self.init_weights is not None and self.init != "meta":
+            raise FedmapError(f"init weights are only used with init 'meta', not {self.init!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -79,20 +86,10 @@ class PipelineResult:
     timings: dict
 
 
-def empty_prior(net_config: NetConfig, *, steps: int, seed: int, size: int = 64) -> torch.nn.Module:
-    """The empty-map prior theta_0: the network fitted to an all-UNKNOWN map.
-
-    Fitted on a ``size x size`` grid; the network is a function of continuous
-    coordinates, so it renders grey at any resolution.
-    """
-    model = build_model(net_config, seed=seed)
-    blank = GridMap(np.full((size, size), UNKNOWN, dtype=np.uint8), source="empty-map")
-    fit(model, blank, TrainConfig(epochs=steps, lr=1e-3), seed=seed)
-    return model
-
-
-def initial_model(net_config: NetConfig, *, init: str, seed: int, prior_steps: int) -> torch.nn.Module:
-    """The model every rover starts round 1 from: seeded random weights or the empty-map prior.
+def initial_model(net_config: NetConfig, *, init: str, seed: int, prior_steps: int,
+                  init_weights: str | Path | None = None) -> torch.nn.Module:
+    """The model every rover starts round 1 from: seeded random weights, the empty-map
+    prior, or meta-initialised weights (``init_weights``, default: the shipped ones).
 
     Deterministic, so rovers and the base station rebuild it alone and it never travels.
     """
@@ -100,7 +97,10 @@ def initial_model(net_config: NetConfig, *, init: str, seed: int, prior_steps: i
         raise FedmapError(f"unknown init {init!r}; choose one of {', '.join(INITS)}")
     if init == "empty":
         return empty_prior(net_config, steps=prior_steps, seed=seed)
-    return build_model(net_config, seed=seed)
+    model = build_model(net_config, seed=seed)
+    if init == "meta":
+        set_weights(model, load_init_weights(net_config, init_weights))
+    return model
 
 
 def union_map(local_maps: list[GridMap]) -> GridMap:
@@ -159,7 +159,10 @@ def run_pipeline(
     t = time.perf_counter()
     if config.init == "empty":
         stage("empty-map prior", config.prior_steps)
-    init_model = initial_model(net_config, init=config.init, seed=config.seed, prior_steps=config.prior_steps)
+    elif config.init == "meta":
+        stage("meta-init weights", 0)
+    init_model = initial_model(net_config, init=config.init, seed=config.seed, prior_steps=config.prior_steps,
+                               init_weights=config.init_weights)
     timings["init_s"] = time.perf_counter() - t
 
     t = time.perf_counter()

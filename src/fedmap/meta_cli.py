@@ -1,0 +1,198 @@
+"""``fedmap meta-train`` and ``fedmap ablate-init`` (registered in :mod:`fedmap.cli`)."""
+
+from __future__ import annotations
+
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from fedmap.errors import FedmapError
+
+
+def _collection(source: str, *, layout: str, size: int, per_category: int, categories: Optional[str],
+                max_slope: Optional[float], seed: int):
+    from fedmap.maps.traversability import TraversabilityThresholds
+    from fedmap.meta.collections import BUILTIN_CATEGORIES, earth_like, load_collection
+
+    names = tuple(c.strip() for c in categories.split(",") if c.strip()) if categories else None
+    if source == "builtin":
+        return earth_like(size=size, per_category=per_category, seed=seed, categories=names or BUILTIN_CATEGORIES)
+    th = TraversabilityThresholds(max_slope_deg=max_slope) if max_slope is not None else None
+    coll = load_collection(source, layout=layout, size=size, max_per_category=per_category, thresholds=th, seed=seed)
+    return coll.subset(names) if names else coll
+
+
+def _threads(threads: int) -> None:
+    import torch
+
+    if threads < 1:
+        raise FedmapError(f"threads must be at least 1, got {threads}")
+    torch.set_num_threads(threads)
+
+
+def meta_train(
+    collection: str = typer.Option("builtin", help="'builtin' (Earth-like generator) or a folder of maps."),
+    layout: str = typer.Option("maps", help="Folder layout: maps, kitti, domars or dem (see fedmap.meta.collections)."),
+    categories: Optional[str] = typer.Option(None, help="Comma-separated categories to use (default: all)."),
+    per_category: int = typer.Option(32, "--per-category", help="Maps per category (generated, or a seeded subset)."),
+    max_slope: Optional[float] = typer.Option(None, "--max-slope", help="dem layout: slope limit in degrees [15]."),
+    size: int = typer.Option(64, help="Map side in cells for meta-training."),
+    net: str = typer.Option("paper", help="Network preset: paper or small."),
+    iterations: int = typer.Option(300, help="Reptile meta-iterations."),
+    inner_steps: int = typer.Option(5, "--inner-steps", help="Adam steps per task (k)."),
+    inner_lr: float = typer.Option(1e-3, "--inner-lr", help="Inner Adam learning rate."),
+    meta_batch: int = typer.Option(4, "--meta-batch", help="Tasks per meta-iteration."),
+    eps_start: float = typer.Option(1.0, "--eps-start", help="Meta step size at the first iteration."),
+    eps_end: float = typer.Option(0.0, "--eps-end", help="Meta step size at the last iteration (linear)."),
+    prior_steps: int = typer.Option(150, "--prior-steps", help="Adam steps of the empty-map prior theta_0."),
+    holdout: int = typer.Option(2, help="Maps per category held out for validation."),
+    val_every: int = typer.Option(25, "--val-every", help="Validation PSNR every this many iterations."),
+    seed: int = typer.Option(0),
+    threads: int = typer.Option(1, help="torch CPU threads (1 is fastest for 64x64 maps on a shared CPU)."),
+    out: Path = typer.Option(Path("fedmap-out/meta/meta_init.safetensors"), "--out", "-o",
+                             help="Weights file; also the checkpoint (rewritten atomically)."),
+    resume: bool = typer.Option(False, help="Continue from --out (same options)."),
+) -> None:
+    """Empty-map prior -> Reptile over a map collection (each category a task) -> meta-init weights."""
+    from fedmap import __version__
+    from fedmap.cli import _progress, console
+    from fedmap.meta.reptile import MetaConfig
+    from fedmap.meta.reptile import meta_train as run
+    from fedmap.model import preset
+
+    _threads(threads)
+    config = MetaConfig(iterations=iterations, inner_steps=inner_steps, inner_lr=inner_lr, meta_batch=meta_batch,
+                        eps_start=eps_start, eps_end=eps_end, prior_steps=prior_steps, val_every=val_every, seed=seed)
+    net_config = preset(net)
+    if net_config.encoding != "fourier":
+        raise FedmapError("meta-training is for the Fourier networks (paper, small)")
+    coll = _collection(collection, layout=layout, size=size, per_category=per_category, categories=categories,
+                       max_slope=max_slope, seed=seed)
+    train, val = coll.split(holdout=holdout, seed=seed)
+    extra = {"command": "fedmap " + shlex.join(sys.argv[1:]), "fedmap_version": __version__, "seed": seed,
+             "collection": coll.summary(), "size": size, "validation_maps": len(val)}
+    t0 = time.perf_counter()
+    with _progress() as progress:
+        task = progress.add_task("Reptile", total=iterations, loss="")
+        last = {"val": None}
+
+        def on_step(it: int, info: dict) -> None:
+            if "val_psnr" in info:
+                last["val"] = info["val_psnr"]
+            val_txt = f"val {last['val']:.2f} dB" if last["val"] is not None else ""
+            progress.update(task, completed=it, loss=f"eps {info['epsilon']:.3f} {val_txt}")
+
+        result = run(train, net_config, config, val_maps=val, checkpoint=out, resume=resume, extra=extra,
+                     on_step=on_step)
+    for h in result.history:
+        if h["iteration"] in (0, result.iteration) or h is result.history[-1]:
+            console.print(f"iteration {h['iteration']:>5}: validation PSNR after {config.val_steps} steps "
+                          f"(lr {config.val_lr:g}) {h['val_psnr']:.2f} dB")
+    console.print(f"{coll.name}: {coll.n_maps} maps in {len(coll.categories)} categories "
+                  f"({', '.join(coll.categories)}); {len(val)} held out")
+    console.print(f"weights: {out}  wall time {time.perf_counter() - t0:.1f} s")
+
+
+def ablate_init(
+    collection: str = typer.Option("builtin", help="Test maps: 'builtin' or a folder."),
+    layout: str = typer.Option("maps", help="Folder layout: maps, kitti, domars or dem."),
+    categories: Optional[str] = typer.Option(None, help="Comma-separated categories (default: all)."),
+    maps: int = typer.Option(16, help="Number of test maps (seeded random choice)."),
+    max_slope: Optional[float] = typer.Option(None, "--max-slope", help="dem layout: slope limit in degrees [15]."),
+    size: int = typer.Option(64, help="Map side in cells."),
+    steps: int = typer.Option(2, help="N: optimisation steps for the PSNR/SSIM columns."),
+    lr: float = typer.Option(1e-4, help="Adam learning rate (paper: 1e-4)."),
+    max_steps: int = typer.Option(150, "--max-steps", help="Cap for the steps-to-reach count."),
+    init_weights: Optional[Path] = typer.Option(None, "--init-weights", help="Meta weights (default: the shipped ones)."),
+    prior_steps: int = typer.Option(150, "--prior-steps", help="Adam steps of the empty-map prior."),
+    seed: int = typer.Option(1, help="Seed for the test maps (builtin), the random init and the prior."),
+    threads: int = typer.Option(1, help="torch CPU threads."),
+    out: Path = typer.Option(Path("fedmap-out/ablate-init"), "--out", "-o", help="Output folder (replaced atomically)."),
+) -> None:
+    """Table I: PSNR/SSIM after N steps from random, empty-map and meta inits, and steps to reach meta."""
+    from rich.table import Table
+
+    from fedmap.cli import _progress, console
+    from fedmap.meta.ablation import AblationConfig, run_ablation
+
+    _threads(threads)
+    config = AblationConfig(n_steps=steps, lr=lr, max_steps=max_steps, seed=seed)
+    if maps < 1:
+        raise FedmapError(f"need at least one test map, got {maps}")
+    coll = _collection(collection, layout=layout, size=size, per_category=maps, categories=categories,
+                       max_slope=max_slope, seed=seed)
+    test = pick_maps(coll.maps(), maps, seed=seed)
+    t0 = time.perf_counter()
+    with _progress() as progress:
+        task = progress.add_task("inits", total=0, loss="")
+        progress.update(task, description="empty-map prior")
+        inits = make_inits(init_weights=init_weights, prior_steps=prior_steps, seed=seed)
+        progress.update(task, description="fit test maps", total=len(test) * len(inits), completed=0)
+        result = run_ablation(test, inits, _net(), config,
+                              on_map=lambda i, name: progress.update(task, advance=1, loss=f"map {i + 1} {name}"))
+        result["collection"] = coll.summary()
+        result["init_weights"] = str(init_weights) if init_weights else "shipped"
+        write_ablation(result, test[0], inits, config, out, title=f"{coll.name}, {len(test)} maps {size}x{size}")
+    console.print(table_of(result, Table))
+    console.print(f"random needs {result['random_over_meta_steps']:.1f}x the steps of meta to reach meta's "
+                  f"{steps}-step PSNR (capped runs count as {max_steps})")
+    console.print(f"outputs: {out}/  (ablation.json, fig3.png, psnr_curve.png); wall time {time.perf_counter() - t0:.1f} s")
+
+
+# -- helpers shared with benchmarks/meta_real.py -------------------------------------------
+
+def _net():
+    from fedmap.model import preset
+
+    return preset("paper")
+
+
+def pick_maps(all_maps: list, n: int, *, seed: int) -> list:
+    import numpy as np
+
+    if len(all_maps) <= n:
+        return list(all_maps)
+    idx = np.random.default_rng(seed).choice(len(all_maps), n, replace=False)
+    return [all_maps[i] for i in sorted(idx)]
+
+
+def make_inits(*, init_weights: Optional[Path], prior_steps: int, seed: int, net_config=None) -> dict:
+    """The three initialisations of Table I: random, empty-map prior, meta."""
+    from fedmap.meta.prior import empty_prior
+    from fedmap.meta.shipped import load_init_weights
+    from fedmap.model import build_model, get_weights
+
+    net_config = net_config or _net()
+    return {
+        "random": get_weights(build_model(net_config, seed=seed)),
+        "empty": get_weights(empty_prior(net_config, steps=prior_steps, seed=seed)),
+        "meta": load_init_weights(net_config, init_weights),
+    }
+
+
+def write_ablation(result: dict, fig_map, inits: dict, config, out: Path, *, title: str) -> None:
+    """ablation.json, fig3.png (reconstructions at steps 0..4) and psnr_curve.png, atomically."""
+    from fedmap.meta.ablation import curve_plot, fig3
+    from fedmap.report import AtomicDir, to_json
+
+    with AtomicDir(out) as tmp:
+        (tmp / "ablation.json").write_text(to_json(result))
+        fig3(fig_map, {k: inits[k] for k in ("random", "meta")}, _net(), config, tmp / "fig3.png",
+             title=f"{title}: {fig_map.source}")
+        curve_plot(result, tmp / "psnr_curve.png", title=title)
+
+
+def table_of(result: dict, Table):
+    n = result["config"]["n_steps"]
+    t = Table(title=f"Table I: {result['n_maps']} maps, Adam lr {result['config']['lr']:g}", header_style="bold")
+    for col in ("init", f"PSNR @{n}", f"SSIM @{n}", "PSNR @0", "steps to meta's PSNR", "capped"):
+        t.add_column(col, justify="left" if col == "init" else "right", no_wrap=True)
+    for name, r in result["table"].items():
+        s = r["steps_to_meta"]
+        t.add_row(name, f"{r['psnr']['mean']:.2f} ± {r['psnr']['std']:.2f}", f"{r['ssim']['mean']:.3f}",
+                  f"{r['psnr_step0']['mean']:.2f}", f"{s['mean']:.2f} ± {s['std']:.2f}", f"{s['capped']}/{s['n']}")
+    return t
