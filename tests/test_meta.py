@@ -295,7 +295,8 @@ def test_cli_meta_train_then_ablate(tmp_path, capsys):
     res = json.loads((tmp_path / "a" / "ablation.json").read_text())
     assert res["n_maps"] == 2 and res["init_weights"] == "shipped"
     for png in ("fig3.png", "psnr_curve.png"):
-        assert Image.open(tmp_path / "a" / png).size[0] > 100
+        with Image.open(tmp_path / "a" / png) as im:
+            assert im.size[0] > 100
 
 
 def test_cli_meta_errors(tmp_path, capsys):

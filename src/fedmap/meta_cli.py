@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import shlex
-import sys
 import time
 from pathlib import Path
 from typing import Optional
@@ -24,6 +23,24 @@ def _collection(source: str, *, layout: str, size: int, per_category: int, categ
     th = TraversabilityThresholds(max_slope_deg=max_slope) if max_slope is not None else None
     coll = load_collection(source, layout=layout, size=size, max_per_category=per_category, thresholds=th, seed=seed)
     return coll.subset(names) if names else coll
+
+
+def _command_line() -> str:
+    """The running command with every option spelled out (works under ``main(argv)`` too)."""
+    import click
+
+    ctx = click.get_current_context()
+    parts = ["fedmap", ctx.info_name or ""]
+    for p in ctx.command.params:
+        v = ctx.params.get(p.name)
+        if v is None:
+            continue
+        if isinstance(v, bool):
+            flag = p.opts[0] if v else (p.secondary_opts[0] if p.secondary_opts else None)
+            parts += [flag] if flag else []
+        else:
+            parts += [p.opts[0], str(v)]
+    return shlex.join(parts)
 
 
 def _threads(threads: int) -> None:
@@ -73,7 +90,7 @@ def meta_train(
     coll = _collection(collection, layout=layout, size=size, per_category=per_category, categories=categories,
                        max_slope=max_slope, seed=seed)
     train, val = coll.split(holdout=holdout, seed=seed)
-    extra = {"command": "fedmap " + shlex.join(sys.argv[1:]), "fedmap_version": __version__, "seed": seed,
+    extra = {"command": _command_line(), "fedmap_version": __version__, "seed": seed,
              "collection": coll.summary(), "size": size, "validation_maps": len(val)}
     t0 = time.perf_counter()
     with _progress() as progress:
