@@ -23,7 +23,8 @@ def test_rounds_curve_matches_independent_runs():
         curve = rounds_curve(truth, method, config)
         assert [p["round"] for p in curve] == [1, 2]
         for k in (1, 2):
-            cfg = _row_config(Row("x", method, rounds=k, epochs=1), config, central=False)
+            init = {"init": "meta"} if method == "paper" else {}  # the paper's curve starts from the meta-init
+            cfg = _row_config(Row("x", method, rounds=k, epochs=1, overrides=init), config, central=False)
             g = run_pipeline(cfg, truth=truth).metrics["global"]
             assert curve[k - 1]["psnr"] == pytest.approx(g["psnr"])
             assert curve[k - 1]["f1"] == pytest.approx(g["path"]["f1"])
@@ -36,7 +37,10 @@ def test_reproduce_report(tmp_path):
     data = json.loads((out / "reproduce.json").read_text())
     rows = data["terrains"]["mars"]["table2"]
     labels = [r["label"] for r in rows]
-    assert labels[0] == "paper preset, FedAvg" and "fedmap, R=3" in labels and len(rows) == 5
+    assert labels[0] == "paper preset, FedAvg" and "fedmap, R=3" in labels and len(rows) == 6
+    # the paper's rows start from the shipped meta-init (its Algorithm 1), one row from random
+    inits = {r["label"]: r["init"] for r in rows}
+    assert inits["paper preset, FedAvg"] == "meta" and inits["paper preset, FedAvg, random init"] == "random"
     aggs = {r["label"]: r["aggregator"] for r in rows}
     assert aggs["paper preset, FedAvg"] == "fedavg" and "fedadam" in aggs.values() and "fedyogi" in aggs.values()
     # the stated eta is the one used, and only for the adaptive server optimisers

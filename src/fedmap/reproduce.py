@@ -52,16 +52,26 @@ class Row:
     overrides: dict = field(default_factory=dict)
 
 
-def table2_rows(eta: float, epochs: int = 100) -> list[Row]:
-    """The paper preset with each aggregator, and fedmap with one and three rounds (R=3 splits
-    the same local epochs over the rounds)."""
-    return [
-        Row("paper preset, FedAvg", "paper", epochs=epochs),
-        Row(f"paper preset, FedAdam (eta={eta:g})", "paper", epochs=epochs, overrides={"aggregator": "fedadam"}),
-        Row(f"paper preset, FedYogi (eta={eta:g})", "paper", epochs=epochs, overrides={"aggregator": "fedyogi"}),
-        Row("fedmap, R=1", "fedmap", epochs=epochs),
-        Row("fedmap, R=3", "fedmap", rounds=3, epochs=-(-epochs // 3)),
+def table2_rows(eta: float, epochs: int = 100, *, meta: bool = True) -> list[Row]:
+    """The paper preset with each aggregator (from the meta-init, as in the paper's
+    Algorithm 1, when ``meta``; and once from a random start), and fedmap with one and three
+    rounds (R=3 splits the same local epochs over the rounds)."""
+    init = {"init": "meta"} if meta else {}
+    rows = [
+        Row("paper preset, FedAvg", "paper", epochs=epochs, overrides=init),
+        Row(f"paper preset, FedAdam (eta={eta:g})", "paper", epochs=epochs, overrides={"aggregator": "fedadam", **init}),
+        Row(f"paper preset, FedYogi (eta={eta:g})", "paper", epochs=epochs, overrides={"aggregator": "fedyogi", **init}),
     ]
+    if meta:
+        rows.append(Row("paper preset, FedAvg, random init", "paper", epochs=epochs))
+    return rows + [Row("fedmap, R=1", "fedmap", epochs=epochs),
+                   Row("fedmap, R=3", "fedmap", rounds=3, epochs=-(-epochs // 3))]
+
+
+def _has_meta_weights() -> bool:
+    from fedmap.meta.shipped import SHIPPED_WEIGHTS
+
+    return SHIPPED_WEIGHTS.is_file()
 
 
 @dataclass(frozen=True)
@@ -120,23 +130,25 @@ def _summary(metrics: dict, key: str = "global") -> dict:
 
 
 def _row_config(row: Row, config: ReproduceConfig, *, central: bool) -> PipelineConfig:
+    overrides = dict(row.overrides)
+    init = overrides.pop("init", "random")
     cfg = method_config(row.method, rounds=row.rounds, epochs=row.epochs, seed=config.seed, central=central,
-                        eval_pairs=config.pairs, **row.overrides)
-    return replace(cfg, size=config.size, federation=replace(cfg.federation, eta=config.eta))
+                        eval_pairs=config.pairs, **overrides)
+    return replace(cfg, size=config.size, init=init, federation=replace(cfg.federation, eta=config.eta))
 
 
 def run_table2(name: str, truth: GridMap, config: ReproduceConfig, *, on_stage=None, on_step=None) -> dict:
     """Every Table II row on one terrain; returns the rows and the results kept for figures."""
     rows, results = [], {}
     cache: dict = {}  # one-round rows that differ only in the aggregator train the rovers once
-    for row in table2_rows(config.eta, config.epochs):
+    for row in table2_rows(config.eta, config.epochs, meta=_has_meta_weights()):
         central = config.central and row.label == "paper preset, FedAvg"
         cfg = _row_config(row, config, central=central)
         if on_stage:
             on_stage(f"{name}: {row.label}", 0)
         res = run_pipeline(cfg, truth=truth, on_stage=on_stage, on_step=on_step, one_shot_cache=cache)
         fed = cfg.federation
-        rec = {"label": row.label, "method": row.method, "net": cfg.net, "aggregator": fed.aggregator,
+        rec = {"label": row.label, "method": row.method, "net": cfg.net, "init": cfg.init, "aggregator": fed.aggregator,
                "eta": fed.eta if fed.aggregator in ("fedadam", "fedyogi") else None, "rounds": fed.rounds,
                "local_epochs": fed.local.epochs, "uplink": fed.uplink,
                "uplink_bytes_per_rover_round": res.metrics["bytes"]["uplink_per_agent_round"],
@@ -152,8 +164,9 @@ def run_table2(name: str, truth: GridMap, config: ReproduceConfig, *, on_stage=N
 
 def rounds_curve(truth: GridMap, method: str, config: ReproduceConfig, *, on_stage=None, on_step=None) -> list[dict]:
     """Global-map quality after each of ``config.curve_rounds`` rounds of ``curve_epochs`` epochs."""
-    cfg = replace(_row_config(Row("curve", method, rounds=config.curve_rounds, epochs=config.curve_epochs), config,
-                              central=False))
+    init = {"init": "meta"} if method == "paper" and _has_meta_weights() else {}
+    cfg = _row_config(Row("curve", method, rounds=config.curve_rounds, epochs=config.curve_epochs, overrides=init),
+                      config, central=False)
     net = preset(cfg.net, truth.shape[0])
     model = build_model(net)
     points: list[dict] = []
