@@ -91,3 +91,20 @@ def test_gale_geotiff():
     dem = load_dem(data_file("mars/missionDEM_gale_1m.tif"))
     assert dem.shape == (337, 348) and dem.pixel_size == pytest.approx(1.0, rel=0.01)
     assert -4_600 < np.nanmin(dem.elevation) < np.nanmax(dem.elevation) < -4_300  # Gale floor, below datum
+
+
+@needs_data
+def test_lzw_geotiff_reads_with_imagecodecs():
+    """Mt Mongón is LZW-compressed (imagecodecs is a dependency for that)."""
+    import tifffile
+
+    path = data_file("earth/mongon_dem.tif")
+    with tifffile.TiffFile(path) as tif:
+        assert tif.pages[0].compression == tifffile.COMPRESSION.LZW
+        raw = tif.pages[0].asarray()
+    dem = load_dem(path)
+    assert dem.shape == raw.shape == (117, 117)
+    assert dem.pixel_size == pytest.approx(30.85, abs=0.01)
+    valid = np.isfinite(dem.elevation)
+    np.testing.assert_allclose(dem.elevation[valid], raw[valid].astype(np.float32))
+    assert 0 < np.nanmin(dem.elevation) < np.nanmax(dem.elevation) < 2000  # a coastal massif (~1,100 m), metres
