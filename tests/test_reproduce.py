@@ -33,7 +33,7 @@ def test_rounds_curve_matches_independent_runs():
 def test_reproduce_report(tmp_path):
     out = tmp_path / "rep"
     res = reproduce(out, ReproduceConfig(**{**TINY, "ablation_tiles": 1, "ablation_max_steps": 3},
-                                         terrain_names=("mars",)))
+                                         terrain_names=("mars",), random_baseline=True))
     data = json.loads((out / "reproduce.json").read_text())
     rows = data["terrains"]["mars"]["table2"]
     labels = [r["label"] for r in rows]

@@ -180,14 +180,16 @@ def reproduce(
     size: Optional[int] = typer.Option(None, help="Map side in cells [128; quick: 64]."),
     pairs: Optional[int] = typer.Option(None, help="A* start/goal pairs per map [75; quick: 30]."),
     eta: float = typer.Option(1e-2, help="Server learning rate for FedAdam/FedYogi."),
+    curve_epochs: Optional[int] = typer.Option(None, "--curve-epochs", help="Local epochs per round in the rounds curve [10]."),
+    random_baseline: bool = typer.Option(False, "--random-baseline", help="Table II: also the paper's FedAvg from a random start."),
     seed: int = typer.Option(0),
     out: Path = typer.Option(Path("fedmap-out/reproduce"), "--out", "-o", help="Report folder (replaced atomically)."),
 ) -> None:
     """The paper's experiments: Table II (+ fedmap), Fig. 4 panels, rounds curve, Table III."""
     from fedmap.reproduce import ReproduceConfig, reproduce as run_reproduce
 
-    kw = {k: v for k, v in {"data": data, "size": size, "pairs": pairs, "eta": eta, "seed": seed}.items()
-          if v is not None}
+    kw = {k: v for k, v in {"data": data, "size": size, "pairs": pairs, "eta": eta, "seed": seed,
+                            "curve_epochs": curve_epochs, "random_baseline": random_baseline}.items() if v is not None}
     config = ReproduceConfig.quick(**kw) if quick else ReproduceConfig(**kw)
     t0 = time.perf_counter()
     with _progress() as progress:
