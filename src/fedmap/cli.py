@@ -198,8 +198,9 @@ def reproduce(
         on_stage(None, 0)
     for name, t in res["terrains"].items():
         table = Table(title=f"Table II — {name}", header_style="bold")
-        for col in ("configuration", "PSNR", "SSIM", "P", "R", "F1", "B/rover/round"):
-            table.add_column(col, justify="left" if col == "configuration" else "right", no_wrap=True)
+        table.add_column("configuration", overflow="fold")
+        for col in ("PSNR", "SSIM", "P", "R", "F1", "B/rover/round"):
+            table.add_column(col, justify="right", no_wrap=True)
         for r in t["table2"]:
             b = r["uplink_bytes_per_rover_round"]
             table.add_row(r["label"], _fmt(r["psnr"]), _fmt(r["ssim"], 3), _fmt(r["precision"]), _fmt(r["recall"]),

@@ -284,6 +284,9 @@ def markdown(result: dict) -> str:
                       f"{'-' if b is None else f'{b:,.0f}'} |")
         md += ["", f"![Fig. 4, paper preset]({t['figures']['paper']})  ", f"![Fig. 4, fedmap]({t['figures']['fedmap']})",
                ""]
+    md += ["In one round from the same start FedAdam and FedYogi take the same step: their second-moment "
+           "updates differ only by (1 - beta2) * v0 = 1e-8. With any server optimiser the one-shot step is about "
+           "eta * sign(average update), whatever the rovers learned.", ""]
     md += ["Paper (Table II, FedAvg): " + "; ".join(f"{k} PSNR {v['psnr']} / SSIM {v['ssim']} / F1 {v['f1']}"
                                                     for k, v in PAPER_TABLE2.items()) + ".", ""]
     md += ["## Global map quality vs rounds", "", f"![rounds curve]({result['figures']['rounds_curve']})", "",
