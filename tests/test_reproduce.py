@@ -114,3 +114,16 @@ def test_reproduce_quick_cli(tmp_path, capsys):
         assert by["fedmap, R=1"]["psnr"] is None or by["fedmap, R=1"]["psnr"] > by["paper preset, FedAvg"]["psnr"]
         assert by["fedmap, R=1"]["f1"] >= by["paper preset, FedAvg"]["f1"]
     assert "Table II" in captured.out
+
+
+def test_markdown_shows_exact_maps_as_inf_after_a_json_round_trip(tmp_path):
+    """JSON stores an infinite PSNR as null; the report must still say inf, not '-'."""
+    from fedmap.report import to_json
+    from fedmap.reproduce import markdown
+
+    res = reproduce(tmp_path / "r", ReproduceConfig(**TINY, terrain_names=("mars",)))
+    res["terrains"]["mars"]["table2"][0]["psnr"] = float("inf")
+    back = json.loads(to_json(res))
+    assert back["terrains"]["mars"]["table2"][0]["psnr"] is None
+    row = next(line for line in markdown(back).splitlines() if line.startswith("| paper preset, FedAvg |"))
+    assert row.split("|")[2].strip() == "inf"

@@ -260,6 +260,11 @@ def _fmt(x, nd=2):
     return f"{x:.{nd}f}"
 
 
+def _psnr(x) -> str:
+    """PSNR for tables: an exact map has infinite PSNR (stored as null in JSON)."""
+    return "inf" if x is None or not np.isfinite(x) else f"{x:.2f}"
+
+
 def markdown(result: dict) -> str:
     c = result["config"]
     src = "built-in terrains" if c["data"] is None else f"real terrain from `{c['data']}`"
@@ -279,7 +284,7 @@ def markdown(result: dict) -> str:
         for r in t["table2"]:
             ref = r.get("refined", {}).get("f1")
             b = r["uplink_bytes_per_rover_round"]
-            md.append(f"| {r['label']} | {_fmt(r['psnr'])} | {_fmt(r['ssim'], 3)} | {_fmt(r['precision'])} | "
+            md.append(f"| {r['label']} | {_psnr(r['psnr'])} | {_fmt(r['ssim'], 3)} | {_fmt(r['precision'])} | "
                       f"{_fmt(r['recall'])} | {_fmt(r['f1'])} | {_fmt(r['f1_tolerant'])} | {_fmt(ref)} | "
                       f"{'-' if b is None else f'{b:,.0f}'} |")
         md += ["", f"![Fig. 4, paper preset]({t['figures']['paper']})  ", f"![Fig. 4, fedmap]({t['figures']['fedmap']})",
@@ -295,7 +300,7 @@ def markdown(result: dict) -> str:
            "|---|---|" + "---:|" * c["curve_rounds"]]
     for terrain, by_method in result["rounds_curve"].items():
         for method, pts in by_method.items():
-            md.append(f"| {terrain} | {method} | " + " | ".join(f"{_fmt(p['psnr'], 1)} dB / {_fmt(p['f1'])}"
+            md.append(f"| {terrain} | {method} | " + " | ".join(f"{_psnr(p['psnr'])} dB / {_fmt(p['f1'])}"
                                                                for p in pts) + " |")
     md.append("")
     if result.get("table1"):
