@@ -185,7 +185,7 @@ def reproduce(
     seed: int = typer.Option(0),
     out: Path = typer.Option(Path("fedmap-out/reproduce"), "--out", "-o", help="Report folder (replaced atomically)."),
 ) -> None:
-    """The paper's experiments: Table II (+ fedmap), Fig. 4 panels, rounds curve, Table III."""
+    """The paper's experiments: Table II (+ fedmap), Fig. 4 panels, rounds curve, Tables I and III."""
     from fedmap.reproduce import ReproduceConfig, reproduce as run_reproduce
 
     kw = {k: v for k, v in {"data": data, "size": size, "pairs": pairs, "eta": eta, "seed": seed,

@@ -3,16 +3,20 @@
 For every terrain, 4 rovers (quadrants), one round:
 
 * **Table II** — the ``paper`` preset (its exact settings: Fourier MLP, UNKNOWN trained as
-  grey, 100 local epochs, fp32 payloads) aggregated with FedAvg, FedAdam and FedYogi (the
-  server learning rate η is stated), beside fedmap's method (feature grids, masked loss,
+  grey, 100 local epochs, fp32 payloads, the shipped meta-init as in its Algorithm 1)
+  aggregated with FedAvg, FedAdam and FedYogi (the server learning rate η is stated), beside fedmap's method (feature grids, masked loss,
   coverage-weighted FedAvg, int4/int8 update payloads) with R = 1 and R = 3, and the
   centralised upper bound of the paper network (one network fitted to the union of the
-  rovers' maps for the same number of steps).
+  rovers' maps for the same number of steps); ``random_baseline`` adds the paper's FedAvg
+  from a random start.
 * **Fig. 4** — one panel per terrain for the paper's FedAvg and one for fedmap.
 * **Rounds curve** — PSNR and path F1 of the global map after each of R = 1…10 rounds
   of 10 local epochs (R = 10 costs the one-shot's 100 epochs), both methods, every terrain.
+* **Table I** — random vs empty-map vs meta initialisation on 64x64 tiles of the same
+  terrains (:mod:`fedmap.meta.ablation`), when the shipped meta-init weights exist.
 * **Table III** — bytes of the paper network in fedmap's codecs and image codecs of the
-  same map (:mod:`fedmap.bandwidth_report`), beside the bytes each method really sent.
+  first terrain's map (:mod:`fedmap.bandwidth_report`); Table II has the bytes each
+  method really sent.
 
 Everything is written atomically into one folder: ``report.md``, ``reproduce.json`` and
 PNG figures.
