@@ -103,6 +103,23 @@ def initial_model(net_config: NetConfig, *, init: str, seed: int, prior_steps: i
     return model
 
 
+def global_map(net_config: NetConfig, weights: dict, shape: tuple[int, int],
+               refine_config: RefineConfig) -> tuple[torch.nn.Module, np.ndarray, np.ndarray, np.ndarray]:
+    """What every rover makes of the global weights: the model, its (H, W, 3) rendering,
+    the rendering snapped to classes, and the refined classes."""
+    model = build_model(net_config)
+    set_weights(model, weights)
+    rgb = render(model, *shape)
+    classes = classes_from_rgb(rgb)
+    return model, rgb, classes, refine(classes, refine_config)
+
+
+def truth_summary(truth: GridMap) -> dict:
+    """The ground truth as ``metrics.json`` describes it."""
+    h, w = truth.shape
+    return {"shape": [h, w], "pixel_size_m": truth.pixel_size, "source": truth.source, **truth.fractions()}
+
+
 def union_map(local_maps: list[GridMap]) -> GridMap:
     """All agents' observations in one map: what the base would hold with raw maps."""
     out = np.full(local_maps[0].shape, UNKNOWN, dtype=np.uint8)
@@ -173,18 +190,14 @@ def run_pipeline(
 
     t = time.perf_counter()
     stage("render, refine, evaluate", 0)
-    model = build_model(net_config)
-    set_weights(model, fed.weights)
     h, w = truth.shape
-    global_rgb = render(model, h, w)
-    global_classes = classes_from_rgb(global_rgb)
-    refined = refine(global_classes, config.refine)
+    model, global_rgb, global_classes, refined = global_map(net_config, fed.weights, (h, w), config.refine)
     metrics = {
         "global": evaluate(truth, global_classes, config),
         "refined": evaluate(truth, refined, config),
         "agents": [{"agent": k, "known_cells": m.n_known, **{kk: v for kk, v in evaluate(truth, m.classes, config).items()}}
                    for k, m in enumerate(local_maps)],
-        "truth": {"shape": [h, w], "pixel_size_m": truth.pixel_size, "source": truth.source, **truth.fractions()},
+        "truth": truth_summary(truth),
         "aggregator": fed.aggregator,
         "bytes": fed.total_bytes(),
         "ledger": fed.ledger(),

@@ -33,7 +33,7 @@ import numpy as np
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import GridMap, classes_from_rgb
 from fedmap.model import build_model, preset, render, set_weights
-from fedmap.pipeline import PipelineConfig, evaluate, load_truth, run_pipeline
+from fedmap.pipeline import PipelineConfig, evaluate, load_truth, run_pipeline, truth_summary
 from fedmap.presets import method_config
 
 #: The paper's Table II (FedAvg rows; FedAdam and FedYogi were worse), for comparison.
@@ -348,8 +348,7 @@ def reproduce(out: str | Path, config: ReproduceConfig, *, on_stage: Callable | 
                 fig4_panel(res.local_maps, truth, res.global_classes, res.refined, tmp / figs[key],
                            title=f"{name}: {label}", scores=scores)
             result["terrains"][name] = {
-                "truth": {"source": truth.source, "shape": list(truth.shape), "pixel_size_m": truth.pixel_size,
-                          **truth.fractions()},
+                "truth": truth_summary(truth),
                 "table2": t2["rows"], "figures": figs}
             result["rounds_curve"][name] = {
                 method: rounds_curve(truth, method, config, on_stage=on_stage, on_step=on_step)

@@ -215,18 +215,15 @@ def run_base_station(grid: Grid, settings: RunSettings) -> Path:
 
 def write_base_outputs(strategy: FedmapStrategy, settings: RunSettings, *, federation_s: float) -> Path:
     """The demo's output folder (plus per-round checkpoints and the byte ledger)."""
-    from fedmap.maps.grid import GridMap, classes_from_rgb
-    from fedmap.model import render
-    from fedmap.refine import RefineConfig, refine
+    from fedmap.maps.grid import GridMap
+    from fedmap.pipeline import global_map
+    from fedmap.refine import RefineConfig
 
     fed = strategy.result()
     h, w = strategy.shape
-    model = build_model(preset(settings.net, h))
-    set_weights(model, fed.weights)
     t = time.perf_counter()
-    rgb = render(model, h, w)
-    classes = classes_from_rgb(rgb)
-    refined = refine(classes, RefineConfig(min_size=settings.min_size))
+    model, rgb, classes, refined = global_map(preset(settings.net, h), fed.weights, (h, w),
+                                              RefineConfig(min_size=settings.min_size))
     truth = load_truth(settings)
     flower = {
         "settings": {k: v for k, v in vars(settings).items() if k != "federation"} | {"out": str(settings.out)},
@@ -238,7 +235,7 @@ def write_base_outputs(strategy: FedmapStrategy, settings: RunSettings, *, feder
                "rounds": fed.history, "flower": flower}
     out = settings.out
     if truth is not None:
-        from fedmap.pipeline import PipelineConfig, PipelineResult, evaluate, write_outputs
+        from fedmap.pipeline import PipelineConfig, PipelineResult, evaluate, truth_summary, write_outputs
 
         if truth.shape != (h, w):
             raise FedmapError(f"the ground truth is {truth.shape}, the rovers' maps are {(h, w)}")
@@ -247,8 +244,7 @@ def write_base_outputs(strategy: FedmapStrategy, settings: RunSettings, *, feder
                             refine=RefineConfig(min_size=settings.min_size), eval_pairs=settings.pairs,
                             seed=settings.federation.seed)
         metrics = {"global": evaluate(truth, classes, pc), "refined": evaluate(truth, refined, pc), "agents": [],
-                   "truth": {"shape": [h, w], "pixel_size_m": truth.pixel_size, "source": truth.source,
-                             **truth.fractions()}, **metrics}
+                   "truth": truth_summary(truth), **metrics}
         timings = {"federation_s": federation_s, "evaluate_s": time.perf_counter() - t}
         write_outputs(PipelineResult(pc, truth, [], model, rgb, classes, refined, fed, metrics, timings), out)
     else:
