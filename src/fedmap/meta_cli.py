@@ -134,7 +134,7 @@ def ablate_init(
     from rich.table import Table
 
     from fedmap.cli import _progress, console
-    from fedmap.meta.ablation import AblationConfig, run_ablation
+    from fedmap.meta.ablation import AblationConfig, make_inits, pick_maps, run_ablation, write_ablation
 
     _threads(threads)
     config = AblationConfig(n_steps=steps, lr=lr, max_steps=max_steps, seed=seed)
@@ -160,47 +160,10 @@ def ablate_init(
     console.print(f"outputs: {out}/  (ablation.json, fig3.png, psnr_curve.png); wall time {time.perf_counter() - t0:.1f} s")
 
 
-# -- helpers shared with benchmarks/meta_real.py -------------------------------------------
-
 def _net():
     from fedmap.model import preset
 
     return preset("paper")
-
-
-def pick_maps(all_maps: list, n: int, *, seed: int) -> list:
-    import numpy as np
-
-    if len(all_maps) <= n:
-        return list(all_maps)
-    idx = np.random.default_rng(seed).choice(len(all_maps), n, replace=False)
-    return [all_maps[i] for i in sorted(idx)]
-
-
-def make_inits(*, init_weights: Optional[Path], prior_steps: int, seed: int, net_config=None) -> dict:
-    """The three initialisations of Table I: random, empty-map prior, meta."""
-    from fedmap.meta.prior import empty_prior
-    from fedmap.meta.shipped import load_init_weights
-    from fedmap.model import build_model, get_weights
-
-    net_config = net_config or _net()
-    return {
-        "random": get_weights(build_model(net_config, seed=seed)),
-        "empty": get_weights(empty_prior(net_config, steps=prior_steps, seed=seed)),
-        "meta": load_init_weights(net_config, init_weights),
-    }
-
-
-def write_ablation(result: dict, fig_map, inits: dict, config, out: Path, *, title: str) -> None:
-    """ablation.json, fig3.png (reconstructions at steps 0..4) and psnr_curve.png, atomically."""
-    from fedmap.meta.ablation import curve_plot, fig3
-    from fedmap.report import AtomicDir, to_json
-
-    with AtomicDir(out) as tmp:
-        (tmp / "ablation.json").write_text(to_json(result))
-        fig3(fig_map, {k: inits[k] for k in ("random", "meta")}, _net(), config, tmp / "fig3.png",
-             title=f"{title}: {fig_map.source}")
-        curve_plot(result, tmp / "psnr_curve.png", title=title)
 
 
 def table_of(result: dict, Table):

@@ -202,10 +202,9 @@ def ablation_tiles(maps: dict[str, GridMap], per_terrain: int, *, size: int = 64
 
 def run_table1(maps: dict[str, GridMap], out: Path, config: ReproduceConfig, *, on_stage=None) -> dict | None:
     """Table I (random vs empty-map vs meta initialisation) on tiles of the terrains, written
-    to ``out`` as :func:`fedmap.meta_cli.write_ablation` does; None without meta weights."""
-    from fedmap.meta.ablation import AblationConfig, run_ablation
+    to ``out`` as :func:`fedmap.meta.ablation.write_ablation` does; None without meta weights."""
+    from fedmap.meta.ablation import AblationConfig, make_inits, run_ablation, write_ablation
     from fedmap.meta.shipped import SHIPPED_WEIGHTS
-    from fedmap.meta_cli import make_inits, write_ablation
 
     if config.ablation_tiles < 1 or not SHIPPED_WEIGHTS.is_file():
         return None
@@ -218,7 +217,7 @@ def run_table1(maps: dict[str, GridMap], out: Path, config: ReproduceConfig, *, 
     abl = AblationConfig(max_steps=config.ablation_max_steps, seed=config.seed)
     inits = make_inits(init_weights=None, prior_steps=150, seed=config.seed, net_config=net)
     result = run_ablation(tiles, inits, net, abl)
-    write_ablation(result, tiles[0], inits, abl, out, title=f"{len(tiles)} terrain tiles 64x64")
+    write_ablation(result, tiles[0], inits, abl, out, title=f"{len(tiles)} terrain tiles 64x64", net_config=net)
     return result
 
 

@@ -21,13 +21,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
 from fedmap.errors import FedmapError
 from fedmap.evaluation.metrics import ssim
 from fedmap.maps.grid import GridMap
-from fedmap.model import NetConfig, Weights, build_model, render, set_weights
+from fedmap.model import NetConfig, Weights, build_model, get_weights, preset, render, set_weights
 from fedmap.training import TrainConfig, fit
 
 
@@ -192,3 +193,37 @@ def curve_plot(result: dict, path, *, title: str = "") -> None:
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def pick_maps(all_maps: list, n: int, *, seed: int) -> list:
+    """A seeded choice of ``n`` maps (all of them if there are no more), in their order."""
+    if len(all_maps) <= n:
+        return list(all_maps)
+    idx = np.random.default_rng(seed).choice(len(all_maps), n, replace=False)
+    return [all_maps[i] for i in sorted(idx)]
+
+
+def make_inits(*, init_weights: str | Path | None, prior_steps: int, seed: int,
+               net_config: NetConfig | None = None) -> dict[str, Weights]:
+    """The three initialisations of Table I: random, empty-map prior, meta (default: shipped)."""
+    from fedmap.meta.prior import empty_prior
+    from fedmap.meta.shipped import load_init_weights
+
+    net_config = net_config or preset("paper")
+    return {
+        "random": get_weights(build_model(net_config, seed=seed)),
+        "empty": get_weights(empty_prior(net_config, steps=prior_steps, seed=seed)),
+        "meta": load_init_weights(net_config, init_weights),
+    }
+
+
+def write_ablation(result: dict, fig_map: GridMap, inits: dict[str, Weights], config: AblationConfig,
+                   out: str | Path, *, title: str, net_config: NetConfig | None = None) -> None:
+    """ablation.json, fig3.png (reconstructions at steps 0..4) and psnr_curve.png, atomically."""
+    from fedmap.report import AtomicDir, to_json
+
+    with AtomicDir(out) as tmp:
+        (tmp / "ablation.json").write_text(to_json(result))
+        fig3(fig_map, {k: inits[k] for k in ("random", "meta")}, net_config or preset("paper"), config,
+             tmp / "fig3.png", title=f"{title}: {fig_map.source}")
+        curve_plot(result, tmp / "psnr_curve.png", title=title)
