@@ -32,14 +32,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from federated_gap import MOON_PX, moon_mosaic  # same folder: GLD100 decoding (TODO: use fedmap.maps readers)
 from fedmap.maps.dem import Dem
-from fedmap.maps.io import load_dem
+from fedmap.maps.io import load_dem, mosaic_heightmap_tiles
 from fedmap.maps.traversability import TraversabilityThresholds, slope_degrees
 from fedmap.meta.ablation import AblationConfig, run_ablation
 from fedmap.meta.collections import MapCollection, dem_tiles
 from fedmap.meta.reptile import MetaConfig, meta_train
-from fedmap.meta_cli import make_inits, pick_maps, write_ablation
+from fedmap.meta.ablation import make_inits, pick_maps, write_ablation
 from fedmap.model import get_weights, preset, save_model, build_model, set_weights
 from fedmap.report import to_json
 
@@ -75,11 +74,12 @@ def earth(data: Path) -> tuple[MapCollection, list]:
 
 
 def mola(data: Path) -> Dem:
-    # TODO: use fedmap.maps readers (raw MOLA .img)
-    z = np.fromfile(data / "mars/mola_megt90n000cb.img", ">i2").reshape(720, 1440).astype(np.float32)
+    px = 2 * np.pi * MARS_RADIUS_M / 1440  # one pixel = 1/4 degree along the equator
+    z = load_dem(data / "mars/mola_megt90n000cb.img", shape=(720, 1440), dtype="int16", byteorder="big",
+                 pixel_size=px).elevation
     # +-60 deg latitude (rows 120..600): no polar caps, and equal-angle pixels are within
-    # a factor 2 of square there; one pixel = 1/4 degree along the equator.
-    return Dem(z[120:600], 2 * np.pi * MARS_RADIUS_M / 1440, "MOLA MEGDR 4 px/deg, lat +-60")
+    # a factor 2 of square there.
+    return Dem(z[120:600], px, "MOLA MEGDR 4 px/deg, lat +-60")
 
 
 def test_sets(data: Path) -> dict[str, tuple[list, list]]:
@@ -87,7 +87,7 @@ def test_sets(data: Path) -> dict[str, tuple[list, list]]:
     moon = data / "moon/gld100_256p"
     maps, info = [], []
     for lon, lat in [(0, 22), (3, 25), (6, 28), (14, 22), (17, 25), (20, 28), (30, 9), (60, 3), (90, 15), (120, 30)]:
-        m, i = tiles(moon_mosaic(moon, lon, lat, 1))
+        m, i = tiles(mosaic_heightmap_tiles(moon, lon=lon, lat=lat, n=1))
         maps += m
         info.append(i)
     out["Moon GLD100 (118 m)"] = (maps, info)
