@@ -14,7 +14,6 @@ Needs the data folder (CI has it); the package itself never does.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -82,7 +81,7 @@ def main() -> None:
 
 
 def write(rows: list[dict], out: Path) -> str:
-    from fedmap.report import to_json
+    from fedmap.outputs import to_json
 
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(to_json(rows))

@@ -22,12 +22,12 @@ from pathlib import Path
 import torch
 
 from fedmap.explore import explore
-from fedmap.federation.flower.settings import RunSettings
-from fedmap.federation.flower_cli import Processes, flower_env, free_port, run_base_station
 from fedmap.federation.runner import run_federation
+from fedmap.flower.launch import Processes, flower_env, free_port, run_base_station
+from fedmap.flower.settings import RunSettings
 from fedmap.maps.grid import classes_from_rgb
 from fedmap.maps.io import save_map
-from fedmap.model import build_model, get_weights, preset, render, set_weights
+from fedmap.nets.model import build_model, get_weights, preset, render, set_weights
 from fedmap.pipeline import PipelineConfig, evaluate, load_truth
 from fedmap.refine import RefineConfig, refine
 

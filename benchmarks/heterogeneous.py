@@ -17,7 +17,8 @@ import time
 import torch
 
 from fedmap.explore import explore
-from fedmap.pipeline import PipelineConfig, load_truth, run_pipeline
+from fedmap.maps.sources import TerrainSource, load_truth
+from fedmap.pipeline import PipelineConfig, run_pipeline
 from fedmap.presets import method_config
 
 TEAMS = {
@@ -34,8 +35,8 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=["fedmap"])
     args = ap.parse_args()
     torch.set_num_threads(2)
-    truth = load_truth(PipelineConfig(terrain=args.terrain, size=args.size))
-    print(f"| team | method | seen | federated PSNR / F1 | central PSNR / F1 | uplink B/rover | s |")
+    truth = load_truth(TerrainSource(terrain=args.terrain, size=args.size))
+    print("| team | method | seen | federated PSNR / F1 | central PSNR / F1 | uplink B/rover | s |")
     print("|---|---|---|---|---|---|---|")
     for tname, team in TEAMS.items():
         for mname in args.methods:

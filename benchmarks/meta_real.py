@@ -25,7 +25,6 @@ README reports; the Earth meta-init is kept as ``benchmarks/results/meta_real_ea
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -35,12 +34,11 @@ import torch
 from fedmap.maps.dem import Dem
 from fedmap.maps.io import load_dem, mosaic_heightmap_tiles
 from fedmap.maps.traversability import TraversabilityThresholds, slope_degrees
-from fedmap.meta.ablation import AblationConfig, run_ablation
+from fedmap.meta.ablation import AblationConfig, make_inits, pick_maps, run_ablation, write_ablation
 from fedmap.meta.collections import MapCollection, dem_tiles
 from fedmap.meta.reptile import MetaConfig, meta_train
-from fedmap.meta.ablation import make_inits, pick_maps, write_ablation
-from fedmap.model import get_weights, preset, save_model, build_model, set_weights
-from fedmap.report import to_json
+from fedmap.nets.model import build_model, preset, save_model, set_weights
+from fedmap.outputs import to_json
 
 SIZE = 64
 QUANTILE = 0.75

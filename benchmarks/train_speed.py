@@ -14,8 +14,8 @@ import torch
 from torch import nn
 
 from fedmap.maps.grid import FREE, GridMap
-from fedmap.model import build_model, grid_coords
-from fedmap.training import TrainConfig, fit
+from fedmap.nets.model import build_model, grid_coords
+from fedmap.nets.training import TrainConfig, fit
 
 
 def conv_twin(model) -> nn.Sequential:

@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from fedmap.maps.grid import FREE, IMPASSABLE, GridMap
-from fedmap.model import NetConfig
+from fedmap.nets.model import NetConfig
 
 torch.set_num_threads(2)
 

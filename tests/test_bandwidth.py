@@ -1,4 +1,4 @@
-"""Tests for fedmap.bandwidth: the paper's Table III arithmetic and the image codecs.
+"""Tests for fedmap.experiments.bandwidth: the paper's Table III arithmetic and the image codecs.
 
 References: Table III of the paper as printed (the numbers in ``PRINTED`` below, typed
 from the paper, not from the module), 199,683 parameters x 2 B (fp16); bit layouts and
@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from PIL import features
 
-from fedmap.bandwidth import (
+from fedmap.errors import FedmapError
+from fedmap.experiments.bandwidth import (
     ImageCodec,
     classes_to_gray,
     compare_image_codecs,
@@ -25,7 +26,6 @@ from fedmap.bandwidth import (
     rd_figure,
     unpack_2bit,
 )
-from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.terrain import generate_dem
 from fedmap.maps.traversability import dem_to_traversability

@@ -8,10 +8,9 @@ import pytest
 import fedmap.pipeline as pipeline_mod
 from fedmap.cli import main
 from fedmap.errors import FedmapError
-from fedmap.maps.grid import classes_from_rgb
+from fedmap.maps.grid import GridMap, classes_from_rgb
 from fedmap.maps.io import load_map, save_map
-from fedmap.maps.grid import GridMap
-from fedmap.model import load_model, render
+from fedmap.nets.model import load_model, render
 
 TINY = ["demo", "--size", "64", "--local-epochs", "2", "--pairs", "5"]
 
@@ -110,7 +109,7 @@ def test_failed_run_keeps_previous_results(tmp_path, capsys, monkeypatch):
 
 
 def test_bandwidth_report_tiny(tmp_path, capsys, monkeypatch):
-    import fedmap.bandwidth_report as br
+    import fedmap.experiments.table3 as br
 
     # shrink the federated runs to 1-2 local epochs so the test stays fast
     tiny = {label: (method, rounds, 2, overrides)

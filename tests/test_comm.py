@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from fedmap.comm import CodecSpec, Encoder, decode, dense_model_bytes, payload_header_bytes, scale_count
 from fedmap.errors import FedmapError
-from fedmap.model import build_model, get_weights
+from fedmap.federation.codecs import CodecSpec, Encoder, decode, dense_model_bytes, payload_header_bytes, scale_count
+from fedmap.nets.model import build_model, get_weights
 
 DENSE = ["fp32", "fp16", "bf16", "int8", "int8-tensor", "int4", "int4-tensor"]
 ALL = DENSE + ["update-" + d for d in DENSE] + ["topk:0.05", "topk:0.05,values=fp32", "topk:0.05,values=int8", "topk:0.5"]

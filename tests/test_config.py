@@ -6,9 +6,21 @@ import tomllib
 
 import pytest
 
-from fedmap.config import dumps_toml, parse_set, resolve, terrain_source, to_pipeline_config
+from fedmap.config import (
+    dumps_toml,
+    load_preset,
+    method_config,
+    overrides_from,
+    parse_set,
+    preset_names,
+    resolve,
+    terrain_source,
+    to_pipeline_config,
+)
 from fedmap.errors import FedmapError
-from fedmap.presets import method_config
+from fedmap.federation.runner import FederationConfig
+from fedmap.nets.training import TrainConfig
+from fedmap.pipeline import PipelineConfig
 
 
 def write(tmp_path, text, name="run.toml"):
@@ -17,14 +29,38 @@ def write(tmp_path, text, name="run.toml"):
     return path
 
 
-@pytest.mark.parametrize("method", ["paper", "fedmap"])
-def test_defaults_match_the_method_presets(method):
-    cfg = to_pipeline_config(resolve(overrides=[{"method": method}]), size=128)
-    ref = method_config(method)  # presets build the same PipelineConfig independently
-    assert cfg.net == ref.net
-    assert cfg.federation == ref.federation
-    assert cfg.refine == ref.refine and cfg.thresholds == ref.thresholds
-    assert (cfg.agents, cfg.explore, cfg.eval_pairs, cfg.seed, cfg.central) == (4, "quadrants", 75, 0, True)
+def test_paper_preset_is_the_papers_setup():
+    """The paper's stated settings (DESIGN.md section 3), built by hand through the config classes."""
+    cfg = method_config("paper")
+    ref = PipelineConfig(net="paper", init="meta", federation=FederationConfig(
+        rounds=1, aggregator="fedavg", uplink="fp32", downlink="fp32", local=TrainConfig(epochs=100, lr=1e-3, masked=False)))
+    assert cfg == ref
+
+
+def test_fedmap_preset_is_grids_coverage_and_update_payloads():
+    cfg = method_config("fedmap")
+    ref = PipelineConfig(net="grid", init="random", federation=FederationConfig(
+        aggregator="coverage", uplink="update-int4+zstd", downlink="update-int8+zstd",
+        local=TrainConfig(epochs=100, lr=0.05, masked=True)))
+    assert cfg == ref
+
+
+def test_presets_are_shipped_data_and_validated():
+    assert preset_names() == ("fedmap", "paper")
+    assert load_preset("paper")["model"] == {"net": "paper", "init": "meta"}
+    with pytest.raises(FedmapError, match="unknown method 'papr'; choose one of fedmap, paper"):
+        method_config("papr")
+
+
+def test_method_config_keywords_are_the_run_config():
+    """Python keywords and TOML sections are one path: the same settings give the same config."""
+    cfg = method_config("paper", rounds=3, epochs=7, eta=0.003, aggregator="fedadam", pairs=20, seed=5, size=64)
+    r = resolve(overrides=[{"seed": 5, "terrain": {"size": 64}, "train": {"epochs": 7}, "evaluate": {"pairs": 20},
+                            "federation": {"rounds": 3, "eta": 0.003, "aggregator": "fedadam"}}])
+    assert cfg == to_pipeline_config(r)
+    assert cfg.federation.seed == 5 and cfg.init == "meta"
+    with pytest.raises(FedmapError, match="unknown setting 'epoch' \\(did you mean 'epochs'\\?\\)"):
+        overrides_from({"epoch": 3})
 
 
 def test_file_then_options_override(tmp_path):

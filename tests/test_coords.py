@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from fedmap.coords import coord_to_pixel, pixel_centres
+from fedmap.maps.coords import coord_to_pixel, pixel_centres
 
 
 def test_pixel_centres_convention():

@@ -17,19 +17,20 @@ from flwr.app import ConfigRecord, Context, RecordDict  # noqa: E402
 from flwr.server.superlink.linkstate.utils import create_message_error_unavailable_res_message  # noqa: E402
 from flwr.supercore.task_identity import TaskIdentity  # noqa: E402
 
-from fedmap.comm import Encoder  # noqa: E402
 from fedmap.errors import FedmapError  # noqa: E402
 from fedmap.explore import explore  # noqa: E402
 from fedmap.federation.aggregate import weighted_average  # noqa: E402
-from fedmap.federation.flower import client_app  # noqa: E402
-from fedmap.federation.flower.records import check_flower_count, flower_overhead, from_record, to_record  # noqa: E402
-from fedmap.federation.flower.server_app import FedmapStrategy  # noqa: E402
-from fedmap.federation.flower.settings import RunSettings, load_local_map  # noqa: E402
-from fedmap.federation.flower_cli import key_values, make_certs, rover_node_config  # noqa: E402
+from fedmap.federation.codecs import Encoder  # noqa: E402
 from fedmap.federation.runner import agent_seed, run_federation  # noqa: E402
+from fedmap.flower import client_app  # noqa: E402
+from fedmap.flower.launch import key_values, make_certs, rover_node_config  # noqa: E402
+from fedmap.flower.records import check_flower_count, flower_overhead, from_record, to_record  # noqa: E402
+from fedmap.flower.server_app import FedmapStrategy  # noqa: E402
+from fedmap.flower.settings import RunSettings  # noqa: E402
+from fedmap.flower.task import load_local_map  # noqa: E402
 from fedmap.maps.io import save_map  # noqa: E402
-from fedmap.model import build_model, get_weights, preset, set_weights  # noqa: E402
-from fedmap.training import fit  # noqa: E402
+from fedmap.nets.model import build_model, get_weights, preset, set_weights  # noqa: E402
+from fedmap.nets.training import fit  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
@@ -60,7 +61,7 @@ def _team(tmp_path, blob_map, n=4):
     return maps, nodes
 
 
-RUN = {"net": "small", "epochs": 3, "lr": 1e-2, "seed": 4, "rovers": 4, "min-rovers": 2}
+RUN = {"net": "small", "init": "random", "epochs": 3, "lr": 1e-2, "seed": 4, "rovers": 4, "min-rovers": 2}
 
 
 def _round(strategy, grid, contexts, arrays, server_round, *, skip=(), fail=()):
@@ -188,11 +189,13 @@ def test_run_config_errors():
 
 
 def test_node_config_generator_matches_the_demo_exploration():
-    from fedmap.pipeline import PipelineConfig, load_truth
+    from fedmap.maps.sources import TerrainSource, load_truth
+    from fedmap.pipeline import PipelineConfig
 
     pid, m = load_local_map({"partition-id": 2, "terrain": "moon", "size": 64, "agents": 4, "seed": 3})
     cfg = PipelineConfig(terrain="moon", size=64, seed=3)
-    ref = explore(load_truth(cfg), 4, "quadrants", seed=3, sensor_radius=cfg.sensor_radius)[2]
+    ref = explore(load_truth(TerrainSource(terrain="moon", size=64), seed=3), 4, "quadrants", seed=3,
+                  sensor_radius=cfg.sensor_radius)[2]
     assert pid == 2 and np.array_equal(m.classes, ref.classes)
     with pytest.raises(FedmapError, match="partition-id"):
         load_local_map({"terrain": "moon"})
@@ -246,10 +249,10 @@ def test_fedmap_imports_and_runs_without_flwr(tmp_path):
 
 def test_app_pyproject_declares_every_run_config_key():
     """`flwr run` only accepts overrides of keys the app declares; they must match fedmap's defaults."""
-    from fedmap.federation.flower.settings import RUN_DEFAULTS
-    from fedmap.federation.flower_cli import app_dir
+    from fedmap.flower.launch import app_dir
+    from fedmap.flower.settings import RUN_DEFAULTS
 
     app = tomllib.loads((app_dir() / "pyproject.toml").read_text())["tool"]["flwr"]["app"]
     assert app["config"] == RUN_DEFAULTS
-    assert app["components"] == {"serverapp": "fedmap.federation.flower.server_app:app",
-                                 "clientapp": "fedmap.federation.flower.client_app:app"}
+    assert app["components"] == {"serverapp": "fedmap.flower.server_app:app",
+                                 "clientapp": "fedmap.flower.client_app:app"}

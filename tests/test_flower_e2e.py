@@ -14,19 +14,20 @@ import pytest
 
 pytest.importorskip("flwr")
 
-from fedmap.comm import Encoder  # noqa: E402
 from fedmap.explore import explore  # noqa: E402
-from fedmap.federation.flower.settings import RunSettings  # noqa: E402
-from fedmap.federation.flower_cli import Processes, flower_env, free_port, run_base_station  # noqa: E402
+from fedmap.federation.codecs import Encoder  # noqa: E402
 from fedmap.federation.runner import run_federation  # noqa: E402
+from fedmap.flower.launch import Processes, flower_env, free_port, run_base_station  # noqa: E402
+from fedmap.flower.settings import RunSettings  # noqa: E402
 from fedmap.maps.io import save_map  # noqa: E402
-from fedmap.model import build_model, get_weights, load_model, preset  # noqa: E402
-from fedmap.pipeline import PipelineConfig, load_truth  # noqa: E402
+from fedmap.nets.model import build_model, get_weights, load_model, preset  # noqa: E402
+from fedmap.maps.sources import TerrainSource, load_truth  # noqa: E402
+from fedmap.pipeline import PipelineConfig  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
 SEED = 1
-RUN = {"net": "small", "epochs": 5, "lr": 1e-2, "seed": SEED, "rovers": 4,
+RUN = {"net": "small", "init": "random", "epochs": 5, "lr": 1e-2, "seed": SEED, "rovers": 4,
        "min-rovers": 3, "connect-timeout": 120.0, "pairs": 10}
 
 
@@ -40,7 +41,7 @@ def flower_home(tmp_path, monkeypatch):
 
 def _team(tmp_path):
     """Ground truth and the four rovers' local maps (as the demo explores them), saved as files."""
-    truth = load_truth(PipelineConfig(terrain="mars", size=64, seed=SEED))
+    truth = load_truth(TerrainSource(terrain="mars", size=64), seed=SEED)
     maps = explore(truth, 4, "quadrants", seed=SEED, sensor_radius=PipelineConfig().sensor_radius)
     save_map(truth, tmp_path / "truth.npy")
     for k, m in enumerate(maps):

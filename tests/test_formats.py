@@ -13,7 +13,13 @@ from scipy import ndimage
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
 from fedmap.maps.io import (
-    GLD100_PIXEL_SIZE_M, centre_crop, crop_dem, gld100_tile_path, load_dem, mosaic_heightmap_tiles, mosaic_tiles,
+    GLD100_PIXEL_SIZE_M,
+    centre_crop,
+    crop_dem,
+    gld100_tile_path,
+    load_dem,
+    mosaic_heightmap_tiles,
+    mosaic_tiles,
     resample_dem,
 )
 from fedmap.maps.regrid import area_weights
@@ -146,12 +152,12 @@ def test_raw_with_pds3_label_attached_and_detached(tmp_path):
     arr = (np.arange(12 * 8, dtype=np.float32).reshape(12, 8) - 40) * 0.5
     arr[0, 0] = -1e4
     label = (
-        "PDS_VERSION_ID = PDS3\r\nRECORD_TYPE = FIXED_LENGTH\r\nRECORD_BYTES = 64\r\nLABEL_RECORDS = 8\r\n"
-        "^IMAGE = 9\r\nOBJECT = IMAGE\r\n  LINES = 12\r\n  LINE_SAMPLES = 8\r\n  SAMPLE_TYPE = PC_REAL\r\n"
-        "  SAMPLE_BITS = 32\r\n  MISSING_CONSTANT = -10000.0 /* gap */\r\n  SCALING_FACTOR = 2\r\n  OFFSET = 1\r\n"
-        "END_OBJECT = IMAGE\r\nOBJECT = IMAGE_MAP_PROJECTION\r\n  MAP_SCALE = 0.25 <KM/PIXEL>\r\n"
-        "END_OBJECT = IMAGE_MAP_PROJECTION\r\nEND\r\n"
-    ).encode()
+        b"PDS_VERSION_ID = PDS3\r\nRECORD_TYPE = FIXED_LENGTH\r\nRECORD_BYTES = 64\r\nLABEL_RECORDS = 8\r\n"
+        b"^IMAGE = 9\r\nOBJECT = IMAGE\r\n  LINES = 12\r\n  LINE_SAMPLES = 8\r\n  SAMPLE_TYPE = PC_REAL\r\n"
+        b"  SAMPLE_BITS = 32\r\n  MISSING_CONSTANT = -10000.0 /* gap */\r\n  SCALING_FACTOR = 2\r\n  OFFSET = 1\r\n"
+        b"END_OBJECT = IMAGE\r\nOBJECT = IMAGE_MAP_PROJECTION\r\n  MAP_SCALE = 0.25 <KM/PIXEL>\r\n"
+        b"END_OBJECT = IMAGE_MAP_PROJECTION\r\nEND\r\n"
+    )
     assert len(label) <= 8 * 64
     attached = tmp_path / "a.img"
     attached.write_bytes(label.ljust(8 * 64, b" ") + arr.astype("<f4").tobytes())

@@ -11,7 +11,7 @@ import tifffile
 from PIL import Image
 
 from fedmap.errors import FedmapError
-from fedmap.maps import io as mio
+from fedmap import _util
 from fedmap.maps.grid import FREE, IMPASSABLE, PALETTE, UNKNOWN, GridMap
 from fedmap.maps.io import atomic_write_bytes, load_dem, load_map, save_map
 
@@ -207,7 +207,7 @@ def test_failed_write_leaves_old_file(tmp_path, monkeypatch):
     def broken_replace(src, dst):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(mio.os, "replace", broken_replace)
+    monkeypatch.setattr(_util.os, "replace", broken_replace)
     with pytest.raises(FedmapError, match="cannot write") as exc:
         save_map(random_map(seed=16), path)
     assert str(path) in str(exc.value)

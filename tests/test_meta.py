@@ -10,14 +10,13 @@ from PIL import Image
 from fedmap.cli import main
 from fedmap.errors import FedmapError
 from fedmap.evaluation.metrics import psnr
-from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap, classes_from_rgb
+from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.io import save_map
 from fedmap.meta.ablation import AblationConfig, adapted_render, psnr_curve, run_ablation, steps_to_reach
 from fedmap.meta.collections import BUILTIN_CATEGORIES, MapCollection, earth_like, load_collection, resize_classes
-from fedmap.meta.prior import empty_prior
 from fedmap.meta.reptile import MetaConfig, meta_train, read_checkpoint_info, reptile_update, validation_psnr
-from fedmap.meta.shipped import SHIPPED_WEIGHTS, load_init_weights
-from fedmap.model import build_model, count_parameters, get_weights, load_model, preset, render, save_model
+from fedmap.nets.init import SHIPPED_WEIGHTS, empty_prior, load_init_weights
+from fedmap.nets.model import build_model, count_parameters, get_weights, load_model, preset, render
 
 
 @pytest.fixture(autouse=True)

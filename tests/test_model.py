@@ -4,8 +4,16 @@ import torch
 from torch import nn
 
 from fedmap.errors import FedmapError
-from fedmap.model import (
-    CoordNet, NetConfig, build_model, count_parameters, get_weights, load_model, preset, render, save_model,
+from fedmap.nets.model import (
+    CoordNet,
+    NetConfig,
+    build_model,
+    count_parameters,
+    get_weights,
+    load_model,
+    preset,
+    render,
+    save_model,
     set_weights,
 )
 
@@ -58,7 +66,7 @@ def test_linear_layout_equals_conv1x1_layout():
     torch.manual_seed(0)
     model = build_model(seed=3)
     h, w = 12, 10
-    from fedmap.model import grid_coords
+    from fedmap.nets.model import grid_coords
 
     feats = model.features(grid_coords(h, w))  # (H*W, C)
     with torch.no_grad():
@@ -144,7 +152,7 @@ def test_batchnorm_keeps_no_running_statistics():
 
 
 def test_grid_net_starts_as_the_empty_map_and_is_local():
-    from fedmap.model import grid_config, grid_coords
+    from fedmap.nets.model import grid_config, grid_coords
 
     cfg = grid_config(32, levels=3, features=2)
     assert cfg.grid_res == (8, 16, 32)

@@ -1,4 +1,4 @@
-"""Tests for fedmap.evaluation.planning: A*, path validity, and the path-planning F1.
+"""Tests for fedmap.maps.planning: A*, path validity, and the path-planning F1.
 
 Reference values come from an independent shortest-path solver: a graph built here
 cell by cell (8-connected, cost 1 / sqrt 2, a diagonal only when both orthogonal cells
@@ -21,15 +21,15 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from fedmap.errors import FedmapError
-from fedmap.evaluation.planning import (
+from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
+from fedmap.evaluation.paths import path_f1
+from fedmap.maps.planning import (
     astar,
     passable_mask,
-    path_f1,
     path_is_valid,
     path_length,
     sample_pairs,
 )
-from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 
 SQ2 = math.sqrt(2.0)
 
@@ -320,13 +320,13 @@ def test_path_f1_identical_maps(seed):
     pairs = sample_pairs(classes == FREE, n, seed=seed)
     with_path = sum(np.isfinite(ref_dist(classes == FREE, s)[g]) for s, g in pairs)
     assert 0 < with_path < n  # the grid has both reachable and unreachable pairs
-    assert res["tp"] == with_path
-    assert res["tn"] == n - with_path
-    assert res["fp"] == res["fn"] == 0
-    assert res["precision"] == res["recall"] == res["f1"] == 1.0
-    assert res["tolerant"]["tp"] == with_path and res["tolerant"]["f1"] == 1.0
-    assert res["mean_length_ratio"] == 1.0
-    assert res["pairs"] == n
+    assert res.tp == with_path
+    assert res.tn == n - with_path
+    assert res.fp == res.fn == 0
+    assert res.precision == res.recall == res.f1 == 1.0
+    assert res.tolerant.tp == with_path and res.tolerant.f1 == 1.0
+    assert res.mean_length_ratio == 1.0
+    assert res.pairs == n
 
 
 def test_path_f1_blocked_corridor_counts_false_negatives():
@@ -346,12 +346,12 @@ def test_path_f1_blocked_corridor_counts_false_negatives():
     tp = sum(side(s) == side(g) != "X" for s, g in pairs)
     fn = n - tp
     assert 0 < tp < n
-    assert (res["tp"], res["fp"], res["fn"], res["tn"]) == (tp, 0, fn, 0)
-    assert res["precision"] == 1.0
-    assert res["recall"] == pytest.approx(tp / (tp + fn))
-    assert res["f1"] == pytest.approx(2 * tp / (2 * tp + fn))
+    assert (res.tp, res.fp, res.fn, res.tn) == (tp, 0, fn, 0)
+    assert res.precision == 1.0
+    assert res.recall == pytest.approx(tp / (tp + fn))
+    assert res.f1 == pytest.approx(2 * tp / (2 * tp + fn))
     # tolerant variant: nothing to tolerate
-    assert (res["tolerant"]["tp"], res["tolerant"]["fp"], res["tolerant"]["fn"]) == (tp, 0, fn)
+    assert (res.tolerant.tp, res.tolerant.fp, res.tolerant.fn) == (tp, 0, fn)
 
 
 def test_path_f1_opened_wall_counts_false_positives():
@@ -366,11 +366,11 @@ def test_path_f1_opened_wall_counts_false_positives():
     tp = sum((s[1] <= 7) == (g[1] <= 7) for s, g in pairs)
     fp = n - tp
     assert 0 < tp < n
-    assert (res["tp"], res["fp"], res["fn"], res["tn"]) == (tp, fp, 0, 0)
-    assert res["precision"] == pytest.approx(tp / (tp + fp))
-    assert res["recall"] == 1.0
-    assert res["f1"] == pytest.approx(2 * tp / (2 * tp + fp))
-    assert res["tolerant"]["fp"] == fp  # a path through a truth wall is never tolerated
+    assert (res.tp, res.fp, res.fn, res.tn) == (tp, fp, 0, 0)
+    assert res.precision == pytest.approx(tp / (tp + fp))
+    assert res.recall == 1.0
+    assert res.f1 == pytest.approx(2 * tp / (2 * tp + fp))
+    assert res.tolerant.fp == fp  # a path through a truth wall is never tolerated
 
 
 def loop_map() -> np.ndarray:
@@ -438,20 +438,20 @@ def test_path_f1_longer_route_is_fp_and_fn_tolerant_within_tolerance(tolerance):
             exp["tol_fn"] += 1
 
     assert exp["fp"] > 0 and exp["tp"] > 0  # both kinds of pair occur
-    assert (res["tp"], res["fp"], res["fn"], res["tn"]) == (exp["tp"], exp["fp"], exp["fn"], 0)
-    tol = res["tolerant"]
-    assert (tol["tp"], tol["fp"], tol["fn"]) == (exp["tol_tp"], exp["tol_fp"], exp["tol_fn"])
-    assert tol["length_tolerance"] == tolerance
-    assert res["mean_length_ratio"] == pytest.approx(float(np.mean(ratios)))
+    assert (res.tp, res.fp, res.fn, res.tn) == (exp["tp"], exp["fp"], exp["fn"], 0)
+    tol = res.tolerant
+    assert (tol.tp, tol.fp, tol.fn) == (exp["tol_tp"], exp["tol_fp"], exp["tol_fn"])
+    assert tol.length_tolerance == tolerance
+    assert res.mean_length_ratio == pytest.approx(float(np.mean(ratios)))
     if tolerance == 0.0:
-        assert tol["tp"] == res["tp"]  # no detour accepted
+        assert tol.tp == res.tp  # no detour accepted
     if tolerance == 1e6:
-        assert tol["tp"] == res["tp"] + res["fp"]  # every detour accepted
+        assert tol.tp == res.tp + res.fp  # every detour accepted
     # hand: precision/recall from the counts
     p = exp["tp"] / (exp["tp"] + exp["fp"])
     r = exp["tp"] / (exp["tp"] + exp["fn"])
-    assert res["precision"] == pytest.approx(p) and res["recall"] == pytest.approx(r)
-    assert res["f1"] == pytest.approx(2 * p * r / (p + r))
+    assert res.precision == pytest.approx(p) and res.recall == pytest.approx(r)
+    assert res.f1 == pytest.approx(2 * p * r / (p + r))
 
 
 def test_path_f1_single_detour_ratio_within_and_beyond_tolerance():
@@ -475,14 +475,14 @@ def test_path_f1_single_detour_ratio_within_and_beyond_tolerance():
     beyond = path_f1(truth, pred, n_pairs=n, seed=seed, length_tolerance=0.99)  # 2 > 1.99
     for res in (within, beyond):
         # every (A,B) pair changes route: FP and FN; strict never accepts it
-        assert res["fp"] >= ab and res["fn"] >= ab
+        assert res.fp >= ab and res.fn >= ab
     # Hand: the other pairs with a pred path have ratios 1 (unchanged), sqrt 2 (e.g.
     # A->(0,1): diagonal sqrt 2 in truth, 2 round (0,0) in pred) or 3/(1+sqrt 2) = 1.24
     # (e.g. A->(0,2)); only (A,B) has a ratio in (1.99, 2], so the tolerant scores of
     # the two tolerances differ by exactly the (A,B) pairs.
-    assert within["tolerant"]["tp"] - beyond["tolerant"]["tp"] == ab
-    assert beyond["tolerant"]["fp"] - within["tolerant"]["fp"] == ab
-    assert beyond["tolerant"]["fn"] - within["tolerant"]["fn"] == ab
+    assert within.tolerant.tp - beyond.tolerant.tp == ab
+    assert beyond.tolerant.fp - within.tolerant.fp == ab
+    assert beyond.tolerant.fn - within.tolerant.fn == ab
 
 
 def test_tolerant_score_rejects_paths_through_truth_obstacles():
@@ -507,9 +507,9 @@ def test_tolerant_score_rejects_paths_through_truth_obstacles():
     cross = n - same - middle
     assert same > 0 and middle > 0 and cross > 0
     res = path_f1(truth, pred, n_pairs=n, seed=seed, length_tolerance=1e6)
-    assert (res["tp"], res["fp"], res["fn"], res["tn"]) == (same, cross, cross + middle, 0)
-    tol = res["tolerant"]
-    assert (tol["tp"], tol["fp"], tol["fn"]) == (same, cross, cross + middle)
+    assert (res.tp, res.fp, res.fn, res.tn) == (same, cross, cross + middle, 0)
+    tol = res.tolerant
+    assert (tol.tp, tol.fp, tol.fn) == (same, cross, cross + middle)
 
 
 def test_path_f1_unknown_is_impassable_by_default():
@@ -524,12 +524,12 @@ def test_path_f1_unknown_is_impassable_by_default():
     pairs = sample_pairs(truth == FREE, n, seed=1)
     tp = sum((s[1] < 4 and g[1] < 4) or (s[1] > 4 and g[1] > 4) for s, g in pairs)
     assert 0 < tp < n
-    assert (res["tp"], res["fp"], res["fn"], res["tn"]) == (tp, 0, n - tp, 0)
+    assert (res.tp, res.fp, res.fn, res.tn) == (tp, 0, n - tp, 0)
     # optimistic: the UNKNOWN cell is passable, the maps plan identically -> all TP
     # (the drawn pairs are the same: truth has no UNKNOWN cell)
     res = path_f1(truth, pred, n_pairs=n, seed=1, unknown_passable=True)
-    assert (res["tp"], res["fp"], res["fn"], res["tn"]) == (n, 0, 0, 0)
-    assert res["unknown_passable"] is True
+    assert (res.tp, res.fp, res.fn, res.tn) == (n, 0, 0, 0)
+    assert res.unknown_passable is True
 
 
 def test_path_f1_unknown_in_truth_default_and_optimistic():
@@ -541,9 +541,9 @@ def test_path_f1_unknown_in_truth_default_and_optimistic():
     pairs = sample_pairs(truth == FREE, n, seed=2)
     cross = sum((s[1] < 2) != (g[1] < 2) for s, g in pairs)
     assert 0 < cross < n
-    assert (res["tp"], res["fp"], res["fn"], res["tn"]) == (n - cross, 0, 0, cross)
+    assert (res.tp, res.fp, res.fn, res.tn) == (n - cross, 0, 0, cross)
     res = path_f1(truth, truth.copy(), n_pairs=n, seed=2, unknown_passable=True)
-    assert (res["tp"], res["fp"], res["fn"], res["tn"]) == (n, 0, 0, 0)
+    assert (res.tp, res.fp, res.fn, res.tn) == (n, 0, 0, 0)
 
 
 def test_path_f1_argument_errors():

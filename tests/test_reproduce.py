@@ -1,7 +1,6 @@
 """``fedmap reproduce``: report structure, and the rounds curve against independent runs."""
 
 import json
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -9,8 +8,9 @@ from PIL import Image
 
 from fedmap.cli import main
 from fedmap.errors import FedmapError
-from fedmap.pipeline import PipelineConfig, load_truth, run_pipeline
-from fedmap.reproduce import ReproduceConfig, _row_config, Row, reproduce, rounds_curve, terrains
+from fedmap.experiments.reproduce import ReproduceConfig, Row, _row_config, reproduce, rounds_curve, terrains
+from fedmap.maps.sources import TerrainSource, load_truth
+from fedmap.pipeline import PipelineConfig, run_pipeline
 
 TINY = dict(size=64, epochs=2, pairs=5, curve_rounds=2, curve_epochs=1, central=False, bandwidth=False, ablation_tiles=0)
 
@@ -18,7 +18,7 @@ TINY = dict(size=64, epochs=2, pairs=5, curve_rounds=2, curve_epochs=1, central=
 def test_rounds_curve_matches_independent_runs():
     """The curve's point at R=k must be the global map of a separate k-round run."""
     config = ReproduceConfig(**TINY, seed=4)
-    truth = load_truth(PipelineConfig(terrain="moon", size=64, seed=4))
+    truth = load_truth(TerrainSource(terrain="moon", size=64), seed=4)
     for method in ("paper", "fedmap"):
         curve = rounds_curve(truth, method, config)
         assert [p["round"] for p in curve] == [1, 2]
@@ -64,9 +64,9 @@ def test_reproduce_report(tmp_path):
 
 
 def test_ablation_tiles_are_disjoint_windows_of_the_maps():
-    from fedmap.reproduce import ablation_tiles
+    from fedmap.experiments.reproduce import ablation_tiles
 
-    truth = load_truth(PipelineConfig(terrain="mars", size=128))
+    truth = load_truth(TerrainSource(terrain="mars", size=128))
     tiles = ablation_tiles({"m": truth}, 3)
     assert len(tiles) == 3
     np.testing.assert_array_equal(tiles[0].classes, truth.classes[:64, :64])
@@ -78,10 +78,10 @@ def test_ablation_tiles_are_disjoint_windows_of_the_maps():
 def test_one_shot_fedadam_step_is_bounded_by_eta():
     """FedAdam after one round from theta0 moves every weight by at most ~eta (Reddi et al.)."""
     config = ReproduceConfig(**TINY)
-    truth = load_truth(PipelineConfig(terrain="mars", size=64))
+    truth = load_truth(TerrainSource(terrain="mars", size=64))
     cfg = _row_config(Row("x", "paper", epochs=2, overrides={"aggregator": "fedadam"}), config, central=False)
     res = run_pipeline(cfg, truth=truth)
-    from fedmap.model import build_model, get_weights, preset
+    from fedmap.nets.model import build_model, get_weights, preset
 
     w0 = get_weights(build_model(preset("paper", 64), seed=cfg.seed))
     w1 = res.federation.weights
@@ -120,8 +120,8 @@ def test_reproduce_quick_cli(tmp_path, capsys):
 
 def test_markdown_shows_exact_maps_as_inf_after_a_json_round_trip(tmp_path):
     """JSON stores an infinite PSNR as null; the report must still say inf, not '-'."""
-    from fedmap.report import to_json
-    from fedmap.reproduce import markdown
+    from fedmap.experiments.reproduce import markdown
+    from fedmap.outputs import to_json
 
     res = reproduce(tmp_path / "r", ReproduceConfig(**TINY, terrain_names=("mars",)))
     res["terrains"]["mars"]["table2"][0]["psnr"] = float("inf")

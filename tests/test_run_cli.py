@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from fedmap.cli import main
+from fedmap.maps.dem import Dem
 from fedmap.maps.io import load_map
 from fedmap.maps.traversability import dem_to_traversability
-from fedmap.maps.dem import Dem
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 TINY = ["--size", "64", "--local-epochs", "2", "--pairs", "5", "--no-central"]

@@ -5,11 +5,11 @@ import fedmap.federation.runner as runner_mod
 from fedmap.errors import FedmapError
 from fedmap.explore import explore
 from fedmap.federation.aggregate import weighted_average
+from fedmap.federation.codecs import Encoder, decode
 from fedmap.federation.runner import FederationConfig, agent_seed, run_federation
 from fedmap.maps.grid import GridMap
-from fedmap.comm import Encoder, decode
-from fedmap.model import build_model, get_weights, set_weights
-from fedmap.training import TrainConfig, fit
+from fedmap.nets.model import build_model, get_weights, set_weights
+from fedmap.nets.training import TrainConfig, fit
 
 
 def _manual_round(net, init, maps, local, seed, r):
@@ -140,8 +140,8 @@ def test_one_shot_cache_reuses_rover_training(tiny_net, blob_map):
 
     from fedmap.explore import explore
     from fedmap.federation.runner import FederationConfig, run_federation
-    from fedmap.model import build_model, get_weights
-    from fedmap.training import TrainConfig
+    from fedmap.nets.model import build_model, get_weights
+    from fedmap.nets.training import TrainConfig
 
     maps = explore(blob_map, 4, "quadrants", seed=0)
     init = get_weights(build_model(tiny_net, seed=1))

@@ -9,9 +9,9 @@ from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
 from fedmap.maps.grid import GridMap
 from fedmap.maps.io import save_map
+from fedmap.maps.sources import TerrainSource, load_source_dem, load_truth
 from fedmap.maps.terrain import generate_dem
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
-from fedmap.sources import TerrainSource, load_source_dem, load_truth
 
 
 def test_builtin_matches_generator():

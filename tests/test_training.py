@@ -4,8 +4,8 @@ import torch
 
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import UNKNOWN, GridMap
-from fedmap.model import build_model, get_weights, render
-from fedmap.training import TrainConfig, fit, map_targets, steps_per_epoch
+from fedmap.nets.model import build_model, get_weights, render
+from fedmap.nets.training import TrainConfig, fit, map_targets, steps_per_epoch
 
 
 def test_fit_lowers_loss_and_learns_the_map(tiny_net, blob_map):
@@ -54,7 +54,7 @@ def test_masked_targets_ignore_unknown(tiny_net, blob_map):
 
 def test_masked_loss_gradient_zero_from_unknown_cells(tiny_net):
     # Gradient of the masked loss w.r.t. the network output is exactly 0 on UNKNOWN cells.
-    from fedmap.training import _loss
+    from fedmap.nets.training import _loss
 
     pred = torch.rand(6, 3, requires_grad=True)
     target = torch.rand(6, 3)

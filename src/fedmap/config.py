@@ -1,12 +1,12 @@
-"""Run configuration for ``fedmap run``: a TOML file, CLI overrides, one resolved dict.
+"""The one way to build a run's configuration: presets, a TOML file, options -> PipelineConfig.
 
 Layout (every key optional; defaults come from the ``method`` preset and the library's
 config classes)::
 
-    method = "paper"          # preset (fedmap.presets): paper or fedmap
+    method = "paper"          # preset (src/fedmap/presets/<name>.toml): paper or fedmap
     seed = 0
 
-    [terrain]                 # fedmap.sources.TerrainSource
+    [terrain]                 # fedmap.maps.sources.TerrainSource
     kind = "dem"              # builtin | dem | map | tiles
     path = "gale.tif"         # relative paths are relative to the TOML file
     crop = 320                # centred square side, or [row0, row1, col0, col1]
@@ -14,28 +14,40 @@ config classes)::
     [terrain.options]         # reader options, e.g. pixel_size, nodata, shape, byteorder
     [thresholds]              # TraversabilityThresholds: max_slope_deg, max_step_m, ...
     [explore]                 # agents, mode, overlap, sensor_radius
-    [model]                   # net, init, prior_steps
+    [model]                   # net, init (random | empty | meta), init_weights, prior_steps
     [train]                   # epochs, lr, masked, batch (cells per batch; 0 = full grid)
     [federation]              # rounds, aggregator, eta, beta1, beta2, tau, uplink, downlink
     [refine]                  # window, min_votes, iterations, min_size
     [evaluate]                # pairs, unknown_passable, central
 
-Resolution: method preset < TOML file < CLI options. An unknown section or key, or a
-value of the wrong type, is a :class:`~fedmap.errors.FedmapError` naming the key and
-the file. :func:`to_pipeline_config` maps the result onto
-:class:`~fedmap.pipeline.PipelineConfig` (whose classes do the value checks) and
-:func:`terrain_source` onto :class:`~fedmap.sources.TerrainSource`.
+Resolution: library defaults < method preset < TOML file < options (:func:`resolve`). An
+unknown section or key, or a value of the wrong type, is a
+:class:`~fedmap.errors.FedmapError` naming the key and the file. :func:`to_pipeline_config`
+maps the result onto :class:`~fedmap.pipeline.PipelineConfig` (whose classes do the
+value checks) and :func:`terrain_source` onto :class:`~fedmap.maps.sources.TerrainSource`.
+:func:`method_config` is the same path for Python callers: a method plus overrides.
+Every command (``demo``, ``run``, ``reproduce``, ``bandwidth``, ``base-station``) builds
+its configuration here.
 """
 
 from __future__ import annotations
 
 import copy
-import difflib
 import math
 import tomllib
+from importlib import resources
 from pathlib import Path
+from typing import Any
 
+from fedmap._util import check_keys, suggest
 from fedmap.errors import FedmapError
+from fedmap.federation.runner import FederationConfig
+from fedmap.maps.grid import GridMap
+from fedmap.maps.sources import READER_OPTIONS, TerrainSource, load_truth
+from fedmap.maps.traversability import TraversabilityThresholds
+from fedmap.nets.training import TrainConfig
+from fedmap.pipeline import PipelineConfig
+from fedmap.refine import RefineConfig
 
 _NUM = (int, float)
 
@@ -45,7 +57,7 @@ SCHEMA: dict[str, dict[str, tuple[type, ...]]] = {
                 "crop": (int, list), "size": (int,), "resample": (str,), "options": (dict,)},
     "thresholds": {"max_slope_deg": _NUM, "max_step_m": _NUM, "max_roughness_m": _NUM, "rover_scale_max_px": _NUM},
     "explore": {"agents": (int,), "mode": (str,), "overlap": (int,), "sensor_radius": _NUM},
-    "model": {"net": (str,), "init": (str,), "prior_steps": (int,)},
+    "model": {"net": (str,), "init": (str,), "init_weights": (str,), "prior_steps": (int,)},
     "train": {"epochs": (int,), "lr": _NUM, "masked": (bool,), "batch": (int,)},
     "federation": {"rounds": (int,), "aggregator": (str,), "eta": _NUM, "beta1": _NUM, "beta2": _NUM, "tau": _NUM,
                    "uplink": (str,), "downlink": (str,)},
@@ -56,18 +68,6 @@ TOP_LEVEL: dict[str, tuple[type, ...]] = {"method": (str,), "seed": (int,)}
 
 _TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", bool: "true or false", list: "a list",
                dict: "a table"}
-
-
-def _suggest(key: str, allowed) -> str:
-    close = difflib.get_close_matches(key, list(allowed), n=1)
-    return f" (did you mean {close[0]!r}?)" if close else f"; known: {', '.join(allowed)}"
-
-
-def check_keys(data: dict, allowed, where: str) -> None:
-    """Raise for the first key of ``data`` not in ``allowed``, suggesting the closest."""
-    for key in data:
-        if key not in allowed:
-            raise FedmapError(f"unknown key {key!r} in {where}{_suggest(key, allowed)}")
 
 
 def _check_type(value, types: tuple[type, ...], what: str) -> None:
@@ -82,8 +82,6 @@ def _check_type(value, types: tuple[type, ...], what: str) -> None:
 
 def validate(data: dict, where: str) -> None:
     """Check sections, keys and value types of a (partial) run config."""
-    from fedmap.sources import READER_OPTIONS
-
     for key, value in data.items():
         if key in TOP_LEVEL:
             _check_type(value, TOP_LEVEL[key], f"{key!r} in {where}")
@@ -94,7 +92,7 @@ def validate(data: dict, where: str) -> None:
             for k, v in value.items():
                 _check_type(v, SCHEMA[key][k], f"[{key}] {k} in {where}")
         else:
-            raise FedmapError(f"unknown key {key!r} in {where}{_suggest(key, [*TOP_LEVEL, *SCHEMA])}")
+            raise FedmapError(f"unknown key {key!r} in {where}{suggest(key, [*TOP_LEVEL, *SCHEMA])}")
     options = data.get("terrain", {}).get("options", {})
     check_keys(options, READER_OPTIONS, f"[terrain.options] of {where}")
     for k, v in options.items():
@@ -111,34 +109,50 @@ def load_toml(path) -> dict:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise FedmapError(f"cannot read config {path}: {' '.join(str(exc).split())}") from exc
     validate(data, path.name)
-    terrain = data.get("terrain", {})
-    if "path" in terrain and not Path(terrain["path"]).is_absolute():
-        terrain["path"] = str((path.parent / terrain["path"]).resolve())
+    for section, key in (("terrain", "path"), ("model", "init_weights")):
+        table = data.get(section, {})
+        if key in table and not Path(table[key]).is_absolute():
+            table[key] = str((path.parent / table[key]).resolve())
     return data
+
+
+def preset_names() -> tuple[str, ...]:
+    """The presets shipped in ``fedmap/presets/``: ``("fedmap", "paper")``."""
+    files = resources.files("fedmap.presets").iterdir()
+    return tuple(sorted(f.name.removesuffix(".toml") for f in files if f.name.endswith(".toml")))
+
+
+def load_preset(method: str) -> dict:
+    """A preset's settings as a partial run config (validated like any TOML file)."""
+    names = preset_names()
+    if method not in names:
+        raise FedmapError(f"unknown method {method!r}; choose one of {', '.join(names)}")
+    text = resources.files("fedmap.presets").joinpath(f"{method}.toml").read_text(encoding="utf-8")
+    data = tomllib.loads(text)
+    validate(data, f"preset {method}")
+    return data
+
+
+def base_defaults() -> dict:
+    """The library's defaults (its config classes) as a full run config, before any preset."""
+    p, f, r = PipelineConfig(), FederationConfig(), RefineConfig()
+    return {
+        "method": "paper", "seed": 0,
+        "terrain": {},  # TerrainSource's defaults: built-in mars, 128 cells
+        "thresholds": TraversabilityThresholds().to_dict(),
+        "explore": {"agents": p.agents, "mode": p.explore, "overlap": p.overlap, "sensor_radius": p.sensor_radius},
+        "model": {"net": p.net, "init": p.init, "prior_steps": p.prior_steps},
+        "train": {"epochs": f.local.epochs, "lr": f.local.lr, "masked": f.local.masked, "batch": 0},
+        "federation": {"rounds": f.rounds, "aggregator": f.aggregator, "eta": f.eta, "beta1": f.beta1,
+                       "beta2": f.beta2, "tau": f.tau, "uplink": f.uplink, "downlink": f.downlink},
+        "refine": r.to_dict(),
+        "evaluate": {"pairs": p.eval_pairs, "unknown_passable": p.unknown_passable, "central": p.central},
+    }
 
 
 def defaults(method: str = "paper") -> dict:
     """The full run config of a method preset before any file or option."""
-    from fedmap.federation.runner import FederationConfig
-    from fedmap.maps.traversability import TraversabilityThresholds
-    from fedmap.pipeline import PipelineConfig
-    from fedmap.presets import method_settings
-    from fedmap.refine import RefineConfig
-
-    s = method_settings(method)
-    p, f, r = PipelineConfig(), FederationConfig(), RefineConfig()
-    return {
-        "method": method, "seed": 0,
-        "terrain": {},  # TerrainSource's defaults: built-in mars, 128 cells
-        "thresholds": TraversabilityThresholds().to_dict(),
-        "explore": {"agents": p.agents, "mode": p.explore, "overlap": p.overlap, "sensor_radius": p.sensor_radius},
-        "model": {"net": s["net"], "init": p.init, "prior_steps": p.prior_steps},
-        "train": {"epochs": f.local.epochs, "lr": s["lr"], "masked": s["masked"], "batch": 0},
-        "federation": {"rounds": f.rounds, "aggregator": s["aggregator"], "eta": f.eta, "beta1": f.beta1,
-                       "beta2": f.beta2, "tau": f.tau, "uplink": s["uplink"], "downlink": s["downlink"]},
-        "refine": r.to_dict(),
-        "evaluate": {"pairs": p.eval_pairs, "unknown_passable": p.unknown_passable, "central": p.central},
-    }
+    return {**merge(base_defaults(), load_preset(method)), "method": method}
 
 
 def merge(base: dict, update: dict) -> dict:
@@ -198,22 +212,18 @@ def resolve(config_path=None, overrides: list[dict] | None = None, *, terrain: d
     return resolved
 
 
-def terrain_source(resolved: dict):
-    """The :class:`~fedmap.sources.TerrainSource` of a resolved config."""
-    from fedmap.sources import TerrainSource
-
+def terrain_source(resolved: dict) -> TerrainSource:
+    """The :class:`~fedmap.maps.sources.TerrainSource` of a resolved config."""
     return TerrainSource.from_dict({**resolved["terrain"], "thresholds": resolved["thresholds"]},
                                    where="[terrain]")
 
 
-def to_pipeline_config(resolved: dict, *, size: int, label: str = ""):
-    """The :class:`~fedmap.pipeline.PipelineConfig` of a resolved config for a ``size``-cell map."""
-    from fedmap.federation.runner import FederationConfig
-    from fedmap.maps.traversability import TraversabilityThresholds
-    from fedmap.pipeline import PipelineConfig
-    from fedmap.refine import RefineConfig
-    from fedmap.training import TrainConfig
+def to_pipeline_config(resolved: dict, *, size: int | None = None, label: str = "") -> PipelineConfig:
+    """The :class:`~fedmap.pipeline.PipelineConfig` of a resolved config.
 
+    ``size`` is the side of the map the run trains on (a loaded terrain's; default: the
+    built-in terrain's ``[terrain] size``). ``label`` names a file source in titles.
+    """
     e, m, t, f, ev = (resolved[k] for k in ("explore", "model", "train", "federation", "evaluate"))
     seed = resolved["seed"]
     local = TrainConfig(epochs=t["epochs"], lr=float(t["lr"]), masked=t["masked"], batch_pixels=t["batch"] or None)
@@ -222,19 +232,103 @@ def to_pipeline_config(resolved: dict, *, size: int, label: str = ""):
                            downlink=f["downlink"])
     terrain = resolved["terrain"]
     builtin = terrain.get("kind", "builtin") == "builtin"
+    if size is None:
+        size = int(terrain.get("size", TerrainSource().size or 128))
     return PipelineConfig(
-        terrain=terrain.get("terrain", "mars") if builtin else "mars", label=label, size=size, agents=e["agents"],
-        explore=e["mode"], overlap=e["overlap"], sensor_radius=float(e["sensor_radius"]), net=m["net"], init=m["init"],
-        prior_steps=m["prior_steps"], central=ev["central"], federation=fed, refine=RefineConfig(**resolved["refine"]),
+        terrain=terrain.get("terrain", "mars") if builtin else "mars", label="" if builtin else label, size=size,
+        agents=e["agents"], explore=e["mode"], overlap=e["overlap"], sensor_radius=float(e["sensor_radius"]),
+        net=m["net"], init=m["init"], init_weights=m.get("init_weights"), prior_steps=m["prior_steps"], central=ev["central"], federation=fed, refine=RefineConfig(**resolved["refine"]),
         thresholds=TraversabilityThresholds(**resolved["thresholds"]), eval_pairs=ev["pairs"],
         unknown_passable=ev["unknown_passable"], seed=seed,
     )
 
 
+#: ``method_config`` keyword -> (section, key) of the run config (None: top level).
+KEYWORDS: dict[str, tuple[str | None, str]] = {
+    "method": (None, "method"), "seed": (None, "seed"),
+    "terrain": ("terrain", "terrain"), "size": ("terrain", "size"), "crop": ("terrain", "crop"),
+    "max_slope_deg": ("thresholds", "max_slope_deg"), "max_step_m": ("thresholds", "max_step_m"),
+    "max_roughness_m": ("thresholds", "max_roughness_m"),
+    "agents": ("explore", "agents"), "explore": ("explore", "mode"), "overlap": ("explore", "overlap"),
+    "sensor_radius": ("explore", "sensor_radius"),
+    "net": ("model", "net"), "init": ("model", "init"), "init_weights": ("model", "init_weights"),
+    "prior_steps": ("model", "prior_steps"),
+    "epochs": ("train", "epochs"), "lr": ("train", "lr"), "masked": ("train", "masked"), "batch": ("train", "batch"),
+    "rounds": ("federation", "rounds"), "aggregator": ("federation", "aggregator"), "eta": ("federation", "eta"),
+    "beta1": ("federation", "beta1"), "beta2": ("federation", "beta2"), "tau": ("federation", "tau"),
+    "uplink": ("federation", "uplink"), "downlink": ("federation", "downlink"),
+    "min_size": ("refine", "min_size"), "eval_pairs": ("evaluate", "pairs"), "pairs": ("evaluate", "pairs"),
+    "unknown_passable": ("evaluate", "unknown_passable"), "central": ("evaluate", "central"),
+}
+
+
+def overrides_from(values: dict[str, Any], keys: dict[str, tuple[str | None, str]] = KEYWORDS) -> dict:
+    """A partial run config from flat ``{keyword: value}`` (None values are left out)."""
+    out: dict = {}
+    for name, value in values.items():
+        if value is None:
+            continue
+        if name not in keys:
+            raise FedmapError(f"unknown setting {name!r}{suggest(name, keys)}")
+        section, key = keys[name]
+        if section is None:
+            out[key] = value
+        else:
+            out.setdefault(section, {})[key] = value
+    return out
+
+
+def method_config(method: str = "paper", **settings: Any) -> PipelineConfig:
+    """The :class:`~fedmap.pipeline.PipelineConfig` of a preset with ``settings`` laid over it.
+
+    ``settings`` are keywords of :data:`KEYWORDS` (``rounds``, ``epochs``, ``lr``, ``init``,
+    ``aggregator``, ``uplink``, ``size``, ``seed``, ...); None means "the preset's value".
+    This is :func:`resolve` + :func:`to_pipeline_config` for Python callers, so
+    ``method_config("paper")`` is exactly what ``fedmap demo`` and ``fedmap run`` run.
+    """
+    if settings.get("init_weights") is not None:
+        settings["init_weights"] = str(settings["init_weights"])
+    return to_pipeline_config(resolve(None, [{"method": method}, overrides_from(settings)]))
+
+
+#: Side limits of the map the pipeline trains on.
+MIN_SIDE, MAX_SIDE = 64, 2048
+
+
+def terrain_table(*, dem: str | Path | None = None, map_path: str | Path | None = None,
+                  builtin: str | None = None) -> dict | None:
+    """The ``[terrain]`` table that a DEM file, a class map or a built-in terrain put in
+    place of a config file's (None when none is given; at most one may be)."""
+    given = [(k, v) for k, v in (("dem", dem), ("map", map_path), ("builtin", builtin)) if v is not None]
+    if len(given) > 1:
+        raise FedmapError("give at most one of --dem, --map and --terrain")
+    if not given:
+        return None
+    kind, value = given[0]
+    return {"kind": kind, "terrain": value} if kind == "builtin" else {"kind": kind, "path": str(Path(value).resolve())}
+
+
+def load_run(config_path: str | Path | None = None, overrides: list[dict] | None = None, *,
+             terrain: dict | None = None) -> tuple[dict, TerrainSource, GridMap, PipelineConfig]:
+    """Resolve a run and load its ground truth: ``(resolved, source, truth, pipeline config)``.
+
+    The map must be square with a side in ``[MIN_SIDE, MAX_SIDE]`` (set ``[terrain] size``).
+    """
+    resolved = resolve(config_path, overrides, terrain=terrain)
+    source = terrain_source(resolved)
+    resolved["terrain"] = {k: v for k, v in source.to_dict().items() if k != "thresholds"}
+    truth = load_truth(source, seed=resolved["seed"])
+    h, w = truth.shape
+    if h != w or not MIN_SIDE <= h <= MAX_SIDE:
+        raise FedmapError(f"the terrain map is {h}x{w} cells; the pipeline needs a square map of {MIN_SIDE}..{MAX_SIDE} "
+                          f"cells: set [terrain] size (or --size)")
+    return resolved, source, truth, to_pipeline_config(resolved, size=h, label=source.label)
+
+
 # --------------------------------------------------------------------------- writing TOML
 
 
-def _toml_value(v) -> str:
+def _toml_value(v: Any) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (int, float)):

@@ -25,8 +25,8 @@ import numpy as np
 from scipy import ndimage
 
 from fedmap.errors import FedmapError
-from fedmap.evaluation.planning import astar, passable_mask
 from fedmap.maps.grid import UNKNOWN, GridMap
+from fedmap.maps.planning import astar, passable_mask
 
 EXPLORE_MODES = ("quadrants", "strips", "grid", "traverse")
 

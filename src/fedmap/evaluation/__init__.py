@@ -1,1 +1,1 @@
-"""Map quality (PSNR, SSIM) and path-planning evaluation (A* path F1)."""
+"""Scoring a map against ground truth: image metrics, the path F1, and typed results."""

@@ -33,11 +33,22 @@ The averaging is done in float64 and the result cast back to float32.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from typing import Protocol
 
 import numpy as np
 
 from fedmap.errors import FedmapError
-from fedmap.model import Weights
+from fedmap.nets.model import Weights
+
+
+class Aggregator(Protocol):
+    """What the base station needs of an aggregation rule (FedAvg, FedAdam, ...)."""
+
+    name: str
+
+    def aggregate(self, global_w: Weights, updates: list[Weights], counts: list[float]) -> Weights: ...
+
+    def hyperparameters(self) -> dict: ...
 
 
 def _check_updates(updates: list[Weights], counts: list[float]) -> None:
@@ -167,10 +178,10 @@ class FedYogi(_FedOpt):
         return v - (1 - self.beta2) * d2 * np.sign(v - d2)
 
 
-AGGREGATORS = {"fedavg": FedAvg, "fedadam": FedAdam, "fedyogi": FedYogi, "coverage": CoverageAvg}
+AGGREGATORS: dict[str, type] = {"fedavg": FedAvg, "fedadam": FedAdam, "fedyogi": FedYogi, "coverage": CoverageAvg}
 
 
-def make_aggregator(name: str, **hparams: float):
+def make_aggregator(name: str, **hparams: float | None) -> Aggregator:
     """Build an aggregator by name; FedAdam/FedYogi take eta, beta1, beta2, tau, v0."""
     key = name.lower()
     if key not in AGGREGATORS:

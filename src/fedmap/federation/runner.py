@@ -1,6 +1,6 @@
 """In-process federation: distribute -> local fit -> encode/send -> aggregate, R rounds.
 
-Every payload really goes through bytes (:mod:`fedmap.comm`) in both directions and the
+Every payload really goes through bytes (:mod:`fedmap.federation.codecs`) in both directions and the
 models are rebuilt from the decoded bytes, so metrics are computed on what a link
 delivers and byte counts are ``len()`` of what it carries.
 
@@ -27,12 +27,12 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from fedmap.errors import FedmapError
-from fedmap.federation.aggregate import make_aggregator
+from fedmap.errors import FedmapError, RejectedUpdate
+from fedmap.federation.aggregate import Aggregator, make_aggregator
+from fedmap.federation.codecs import CodecSpec, Encoder, decode
 from fedmap.maps.grid import GridMap, check_same_frame
-from fedmap.comm import CodecSpec, Encoder, decode
-from fedmap.model import NetConfig, Weights, build_model, get_weights, set_weights
-from fedmap.training import TrainConfig, fit, steps_per_epoch
+from fedmap.nets.model import NetConfig, Weights, build_model, get_weights, set_weights
+from fedmap.nets.training import TrainConfig, fit, steps_per_epoch
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,7 @@ class FederationConfig:
     tau: float = 1e-3
     local: TrainConfig = field(default_factory=TrainConfig)
     seed: int = 0
-    uplink: str = "fp32"  # payload codec, see fedmap.comm.CodecSpec.parse
+    uplink: str = "fp32"  # payload codec, see fedmap.federation.codecs.CodecSpec.parse
     downlink: str = "fp32"
 
     def __post_init__(self) -> None:
@@ -53,7 +53,11 @@ class FederationConfig:
             raise FedmapError(f"rounds must be >= 1, got {self.rounds}")
         CodecSpec.parse(self.uplink)
         CodecSpec.parse(self.downlink)
-        make_aggregator(self.aggregator, eta=self.eta, beta1=self.beta1, beta2=self.beta2, tau=self.tau)
+        self.make_aggregator()
+
+    def make_aggregator(self) -> Aggregator:
+        """A fresh aggregator of this config (FedAdam / FedYogi with their server state)."""
+        return make_aggregator(self.aggregator, eta=self.eta, beta1=self.beta1, beta2=self.beta2, tau=self.tau)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -108,13 +112,14 @@ def rover_step(
     Flower ClientApp both call it. ``round_idx`` is 0-based; the training seed is
     :func:`agent_seed` ``(config.seed, round_idx, agent)``. Returns the uplink payload
     (relative to ``held`` for update codecs) and the last training loss. Raises
-    :class:`FedmapError` when training diverges or the weights are not finite.
+    :class:`~fedmap.errors.RejectedUpdate` when training diverges or the weights are not
+    finite; any other error is a mistake that stops the run.
     """
     set_weights(model, held)
     steps = fit(model, local, config.local, seed=agent_seed(config.seed, round_idx, agent), on_step=on_step)
     w = get_weights(model)
     if not all(np.isfinite(v).all() for v in w.values()):
-        raise FedmapError("update holds NaN or infinite weights")
+        raise RejectedUpdate("update holds NaN or infinite weights")
     return encoder.encode(w, reference=held), (steps[-1] if steps else None)
 
 
@@ -151,7 +156,7 @@ def base_step(
     for k in sorted(payloads):
         try:
             updates.append(decode(payloads[k], reference=held))
-        except FedmapError as e:
+        except RejectedUpdate as e:
             dropped[k] = str(e)
             continue
         used[k] = counts[k]
@@ -185,7 +190,7 @@ def run_federation(
     in the paper's Table II). Runs of more than one round ignore it.
     """
     check_same_frame(local_maps)
-    aggregator = make_aggregator(config.aggregator, eta=config.eta, beta1=config.beta1, beta2=config.beta2, tau=config.tau)
+    aggregator = config.make_aggregator()
     up_spec, down_spec = CodecSpec.parse(config.uplink), CodecSpec.parse(config.downlink)
     held = {k: np.asarray(v, dtype=np.float32) for k, v in init_weights.items()}  # the initial model is known to all
     down_enc = Encoder(down_spec)
@@ -206,7 +211,7 @@ def run_federation(
                 try:
                     payloads[k], losses[k] = rover_step(model, local, held, up_encs[k], config, round_idx=r, agent=k,
                                                         on_step=on_step)
-                except FedmapError as e:
+                except RejectedUpdate as e:
                     dropped[k] = str(e)
             if cache_key is not None:
                 one_shot_cache[cache_key] = (dict(payloads), dict(losses), dict(dropped))

@@ -11,13 +11,26 @@ from __future__ import annotations
 
 import math
 import re
+import struct
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from fedmap._util import one_line as _one_line
 from fedmap.errors import FedmapError
-from fedmap.maps.io import EARTH_RADIUS_M, _one_line, _pil_errors
+
+#: Sphere radius used for geographic rasters whose GeoKeys declare no ellipsoid (Earth).
+EARTH_RADIUS_M: float = 6_371_000.0
+
+
+def _pil_errors() -> tuple[type[BaseException], ...]:
+    """What Pillow raises for unreadable, truncated or corrupt images."""
+    from PIL import Image, UnidentifiedImageError
+
+    return (UnidentifiedImageError, ValueError, OSError, EOFError, SyntaxError, struct.error, zlib.error,
+            Image.DecompressionBombError)
 
 #: Elevation offset of RGB-packed heightmap tiles: ``metres = R + 256 G + 65536 B - offset``.
 HEIGHTMAP_OFFSET_M: float = 10000.0

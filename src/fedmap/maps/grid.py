@@ -83,7 +83,7 @@ class GridMap:
         counts = np.bincount(self.classes.ravel(), minlength=3) / self.classes.size
         return {name: float(counts[i]) for i, name in enumerate(CLASS_NAMES)}
 
-    def with_classes(self, classes: np.ndarray, source: str | None = None) -> "GridMap":
+    def with_classes(self, classes: np.ndarray, source: str | None = None) -> GridMap:
         """A copy with new classes and the same metadata."""
         return GridMap(classes, self.pixel_size, self.source if source is None else source, dict(self.meta))
 

@@ -84,27 +84,25 @@ from __future__ import annotations
 import io
 import logging
 import math
-import os
 import pickle
-import stat
 import struct
-import uuid
 import xml.etree.ElementTree as ET
 import zlib
 from pathlib import Path
 
 import numpy as np
 
+from fedmap._util import atomic_write_bytes  # noqa: F401  (part of this API)
+from fedmap._util import one_line as _one_line
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
+from fedmap.maps.formats import EARTH_RADIUS_M, READERS, _pil_errors
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb, render_classes
 from fedmap.maps.regrid import centre_crop, crop_dem, resample_dem  # noqa: F401  (part of this API)
 
 MAP_SUFFIXES: tuple[str, ...] = (".png", ".npy")
 DEM_SUFFIXES: tuple[str, ...] = (".tif", ".tiff", ".npy", ".asc", ".img", ".raw", ".png")
 
-#: Sphere radius used for geographic rasters whose GeoKeys declare no ellipsoid (Earth).
-EARTH_RADIUS_M: float = 6_371_000.0
 
 #: Relative difference of x and y ground spacing above which a DEM is resampled.
 SQUARE_TOLERANCE: float = 0.01
@@ -134,11 +132,6 @@ _ANGULAR_UNITS_DEG = {9101: 180.0 / math.pi, 9102: 1.0, 9103: 1.0 / 60.0, 9104: 
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text if len(text) <= 200 else text[:197] + "..."
 
 
 def _suffix(path: Path, supported: tuple[str, ...], what: str) -> str:
@@ -175,43 +168,6 @@ def _load_npy(path: Path, what: str) -> np.ndarray:
 # --------------------------------------------------------------------------- writing
 
 
-def atomic_write_bytes(path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically.
-
-    The bytes go to a temporary file in the same folder, are flushed to disk, and the
-    temporary file is renamed over ``path`` with :func:`os.replace`. Readers see either
-    the old file or the new one, never a partial write; if anything fails the temporary
-    file is removed and an existing ``path`` is left untouched. The parent folder is
-    created if missing. An existing file keeps its permission bits; a new one gets the
-    usual ``0o666 & ~umask``.
-    """
-    path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise FedmapError(f"cannot create folder {path.parent}: {_one_line(exc)}") from exc
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        try:
-            os.chmod(tmp, stat.S_IMODE(os.stat(path).st_mode))
-        except FileNotFoundError:
-            pass
-        os.replace(tmp, path)
-    except BaseException as exc:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        if isinstance(exc, OSError):
-            raise FedmapError(f"cannot write {path}: {_one_line(exc)}") from exc
-        raise
-
-
 def save_map(grid: GridMap, path) -> None:
     """Write a map as ``.png`` (8-bit RGB rendering) or ``.npy`` (uint8 classes), atomically."""
     path = Path(path)
@@ -242,14 +198,6 @@ def _classes_from_gray(gray: np.ndarray, path: Path) -> np.ndarray:
             f"0 (free), 1 (impassable), 2 (unknown); save other maps as RGB in the map colours"
         )
     return gray.astype(np.uint8)
-
-
-def _pil_errors() -> tuple[type[BaseException], ...]:
-    """What Pillow raises for unreadable, truncated or corrupt images."""
-    from PIL import Image, UnidentifiedImageError
-
-    return (UnidentifiedImageError, ValueError, OSError, EOFError, SyntaxError, struct.error, zlib.error,
-            Image.DecompressionBombError)
 
 
 def _read_png_map(path: Path) -> tuple[np.ndarray, dict, float | None]:
@@ -571,8 +519,6 @@ def _read_dem_values(path: Path, suffix: str, options: dict, pixel_size: float |
         spacing = (geo["pixel_size_x_m"], geo["pixel_size_y_m"]) if geo is not None else None
         scale_offset = _gdal_scale_offset(tags) if tags else (1.0, 0.0)
         return arr, file_nodata, scale_offset, spacing, meta
-
-    from fedmap.maps.formats import READERS
 
     reader, accepted = READERS[suffix]
     unknown = sorted(set(options) - set(accepted))

@@ -323,7 +323,7 @@ class _Craters:
     def __len__(self) -> int:
         return int(self.row.size)
 
-    def subset(self, keep: np.ndarray) -> "_Craters":
+    def subset(self, keep: np.ndarray) -> _Craters:
         return _Craters(**{k: v[keep] for k, v in vars(self).items()})
 
 

@@ -1,7 +1,7 @@
 """Table I of the paper: how fast a network fits new maps from each initialisation.
 
 For every test map and every initialisation (random, empty-map prior, meta) the network
-is fitted with full-grid Adam (:func:`fedmap.training.fit`, MSE on the RGB rendering,
+is fitted with full-grid Adam (:func:`fedmap.nets.training.fit`, MSE on the RGB rendering,
 UNKNOWN cells trained as grey) and its PSNR is recorded after every step. Reported:
 
 * PSNR (and SSIM) after ``n_steps`` steps, mean and std over the maps;
@@ -12,7 +12,7 @@ UNKNOWN cells trained as grey) and its PSNR is recorded after every step. Report
 PSNR is computed on the raw network output (RGB in [0, 1]) against the map rendered
 in the palette, data range 1. With full-grid training the loss before step ``t`` *is*
 the MSE of the output after ``t - 1`` steps (BatchNorm uses the full-grid statistics, as
-:func:`fedmap.model.render` does), so the PSNR curve comes from the training losses:
+:func:`fedmap.nets.model.render` does), so the PSNR curve comes from the training losses:
 ``psnr_t = -10 log10(loss_{t+1})``.
 """
 
@@ -25,11 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
+from fedmap._util import AtomicDir, to_json
 from fedmap.errors import FedmapError
-from fedmap.evaluation.metrics import ssim
+from fedmap.evaluation.metrics import psnr, ssim
 from fedmap.maps.grid import GridMap
-from fedmap.model import NetConfig, Weights, build_model, get_weights, preset, render, set_weights
-from fedmap.training import TrainConfig, fit
+from fedmap.nets.init import empty_prior, load_init_weights
+from fedmap.nets.model import NetConfig, Weights, build_model, get_weights, preset, render, set_weights
+from fedmap.nets.training import TrainConfig, fit
 
 
 @dataclass(frozen=True)
@@ -147,7 +149,6 @@ def fig3(grid: GridMap, inits: dict[str, Weights], net_config: NetConfig, config
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from fedmap.evaluation.metrics import psnr
 
     steps = list(range(config.fig_steps + 1))
     fig, axes = plt.subplots(len(inits), len(steps) + 1, figsize=(1.9 * (len(steps) + 1), 2.0 * len(inits)),
@@ -206,8 +207,6 @@ def pick_maps(all_maps: list, n: int, *, seed: int) -> list:
 def make_inits(*, init_weights: str | Path | None, prior_steps: int, seed: int,
                net_config: NetConfig | None = None) -> dict[str, Weights]:
     """The three initialisations of Table I: random, empty-map prior, meta (default: shipped)."""
-    from fedmap.meta.prior import empty_prior
-    from fedmap.meta.shipped import load_init_weights
 
     net_config = net_config or preset("paper")
     return {
@@ -220,7 +219,6 @@ def make_inits(*, init_weights: str | Path | None, prior_steps: int, seed: int,
 def write_ablation(result: dict, fig_map: GridMap, inits: dict[str, Weights], config: AblationConfig,
                    out: str | Path, *, title: str, net_config: NetConfig | None = None) -> None:
     """ablation.json, fig3.png (reconstructions at steps 0..4) and psnr_curve.png, atomically."""
-    from fedmap.report import AtomicDir, to_json
 
     with AtomicDir(out) as tmp:
         (tmp / "ablation.json").write_text(to_json(result))

@@ -39,7 +39,7 @@ from scipy import ndimage
 
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
-from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
+from fedmap.maps.grid import FREE, IMPASSABLE, GridMap
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
 
 LAYOUTS = ("maps", "kitti", "domars", "dem")
@@ -72,13 +72,13 @@ class MapCollection:
         maps = self.categories[names[int(rng.integers(len(names)))]]
         return maps[int(rng.integers(len(maps)))]
 
-    def subset(self, names: list[str] | tuple[str, ...]) -> "MapCollection":
+    def subset(self, names: list[str] | tuple[str, ...]) -> MapCollection:
         missing = [n for n in names if n not in self.categories]
         if missing:
             raise FedmapError(f"collection {self.name!r} has no category {missing[0]!r}; it has {', '.join(self.categories)}")
         return MapCollection(f"{self.name}[{','.join(names)}]", {n: self.categories[n] for n in names})
 
-    def split(self, *, holdout: int, seed: int = 0) -> tuple["MapCollection", list[GridMap]]:
+    def split(self, *, holdout: int, seed: int = 0) -> tuple[MapCollection, list[GridMap]]:
         """Hold ``holdout`` maps of every category out (for validation); the rest train.
 
         A category with ``holdout`` maps or fewer keeps all of them for training.

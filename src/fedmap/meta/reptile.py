@@ -2,18 +2,18 @@
 
 One meta-iteration samples ``meta_batch`` tasks (a task is a category of maps), one map
 from each, adapts a copy of theta to that map with ``inner_steps`` full-grid Adam steps
-(:func:`fedmap.training.fit`, a fresh optimiser every time) and moves theta toward the
+(:func:`fedmap.nets.training.fit`, a fresh optimiser every time) and moves theta toward the
 adapted weights:
 
     theta <- theta + eps_i * (mean_b phi_b - theta)
 
 with ``eps_i`` annealed linearly from ``eps_start`` to ``eps_end`` over the iterations
 (the paper's serial/batched Reptile). theta starts from the empty-map prior
-(:func:`fedmap.meta.prior.empty_prior`).
+(:func:`fedmap.nets.init.empty_prior`).
 
 Every random choice of iteration ``i`` comes from ``numpy.random.default_rng([seed, i])``,
 so a run resumed from a checkpoint gives the same bytes as an uninterrupted one.
-Checkpoints are written atomically with :func:`fedmap.model.save_model` and carry the
+Checkpoints are written atomically with :func:`fedmap.nets.model.save_model` and carry the
 iteration, the settings and the validation history.
 """
 
@@ -28,10 +28,11 @@ import numpy as np
 
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import GridMap
+from fedmap.meta.ablation import psnr_curve
 from fedmap.meta.collections import MapCollection
-from fedmap.meta.prior import empty_prior
-from fedmap.model import NetConfig, Weights, build_model, get_weights, load_model, save_model, set_weights
-from fedmap.training import TrainConfig, fit
+from fedmap.nets.init import empty_prior
+from fedmap.nets.model import NetConfig, Weights, build_model, get_weights, load_model, save_model, set_weights
+from fedmap.nets.training import TrainConfig, fit
 
 
 @dataclass(frozen=True)
@@ -92,13 +93,12 @@ class MetaResult:
 def validation_psnr(weights: Weights, net_config: NetConfig, maps: list[GridMap], *, steps: int, lr: float,
                     seed: int = 0) -> float:
     """Mean PSNR (dB, raw RGB output) over ``maps`` after ``steps`` Adam steps from ``weights``."""
-    from fedmap.meta.ablation import psnr_curve
 
     return float(np.mean([psnr_curve(weights, net_config, m, steps=steps, lr=lr, seed=seed)[-1] for m in maps]))
 
 
 def read_checkpoint_info(path: str | Path) -> dict:
-    """The ``extra`` metadata stored with a model file by :func:`fedmap.model.save_model`."""
+    """The ``extra`` metadata stored with a model file by :func:`fedmap.nets.model.save_model`."""
     from safetensors import SafetensorError, safe_open
 
     try:

@@ -1,4 +1,4 @@
-"""``fedmap base-station`` / ``fedmap rover`` / ``fedmap certs``: one line per machine.
+"""Launching Flower's processes for ``fedmap base-station`` / ``rover`` / ``certs``: one line per machine.
 
 The commands start Flower's own processes (``flower-superlink``, ``flower-supernode``,
 ``flwr run``) with the right flags and wait for them; every process is started in its
@@ -20,24 +20,23 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
-import typer
-
+from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
+from fedmap.flower import require_flwr
+from fedmap.flower.settings import RunSettings
+from fedmap.flower.task import load_local_map, run_dir, run_status_path
 
 CONNECTION = "fedmap"  # the connection name written to $FLWR_HOME/config.toml
 
 
 def app_dir() -> Path:
     """The Flower App (its ``pyproject.toml``) that ``flwr run`` submits."""
-    return Path(__file__).resolve().parent / "flower" / "app"
+    return Path(__file__).resolve().parent / "app"
 
 
 def flower_executable(name: str) -> str:
     """Path of a Flower command next to this Python, with a one-line install hint if absent."""
-    from fedmap.federation.flower import require_flwr
-
     require_flwr()
     here = Path(sys.executable).parent / name
     found = str(here) if here.exists() else shutil.which(name)
@@ -118,7 +117,7 @@ class Processes:
             tail = self.logs[name].read_text(errors="replace").strip().splitlines()[-1:] if self.logs[name].exists() else []
             raise FedmapError(f"{name} exited with code {p.returncode}" + (f": {tail[0]}" if tail else ""))
 
-    def __enter__(self) -> "Processes":
+    def __enter__(self) -> Processes:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -134,7 +133,7 @@ class Tls:
     key: Path
 
     @classmethod
-    def from_dir(cls, d: Path) -> "Tls":
+    def from_dir(cls, d: Path) -> Tls:
         d = Path(d).resolve()  # Flower wants absolute paths in its config
         t = cls(d / "ca.crt", d / "server.pem", d / "server.key")
         for f in (t.ca, t.cert, t.key):
@@ -171,8 +170,6 @@ def write_connection(flwr_home: Path, *, address: str, root_cert: Path | None) -
     lines = ["[superlink]", f'default = "{CONNECTION}"', "", f"[superlink.{CONNECTION}]", f"address = {toml_value(address)}"]
     lines.append(f"root-certificates = {toml_value(str(root_cert))}" if root_cert else "insecure = true")
     flwr_home.mkdir(parents=True, exist_ok=True)
-    from fedmap.maps.io import atomic_write_bytes
-
     atomic_write_bytes(flwr_home / "config.toml", ("\n".join(lines) + "\n").encode())
 
 
@@ -216,8 +213,6 @@ def submit_run(flwr_home: Path, run_config: dict, *, env: dict, timeout: float =
 
 
 def read_status(out: Path) -> dict | None:
-    from fedmap.federation.flower.settings import run_status_path
-
     p = run_status_path(out)
     try:
         return json.loads(p.read_text())
@@ -228,8 +223,6 @@ def read_status(out: Path) -> dict | None:
 def wait_for_result(out: Path, *, since: float, timeout: float, alive: Callable[[], None],
                     on_status: Callable[[dict], None] | None = None) -> dict:
     """Poll ``<out>.run/status.json`` (newer than ``since``) until the run is done or failed."""
-    from fedmap.federation.flower.settings import run_status_path
-
     t_end = time.monotonic() + timeout
     last = None
     while time.monotonic() < t_end:
@@ -264,11 +257,9 @@ def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365)
     from cryptography.hazmat.primitives.asymmetric import ec
     from cryptography.x509.oid import NameOID
 
-    from fedmap.maps.io import atomic_write_bytes
-
     if rovers < 0:
         raise FedmapError(f"rovers must be >= 0, got {rovers}")
-    now = dt.datetime.now(dt.timezone.utc)
+    now = dt.datetime.now(dt.UTC)
     pem = serialization.Encoding.PEM
 
     def key_bytes(k) -> bytes:
@@ -320,11 +311,9 @@ def run_base_station(run_config: dict, *, host: str = "0.0.0.0", port: int = 909
                  on_ready: Callable[[], None] | None = None) -> dict:
     """Start a SuperLink, submit fedmap's ServerApp, wait for it; returns the final status.
 
-    ``run_config`` holds run-config keys (see :data:`fedmap.federation.flower.settings.RUN_DEFAULTS`);
+    ``run_config`` holds run-config keys (see :data:`fedmap.flower.settings.RUN_DEFAULTS`);
     ``out`` is made absolute so the ServerApp writes where the user asked.
     """
-    from fedmap.federation.flower.settings import RunSettings, run_dir, run_status_path
-
     run_config = {**run_config, "out": str(Path(run_config.get("out", "fedmap-out/flower")).resolve())}
     settings = RunSettings.from_run_config(run_config)  # bad options fail here, before any process starts
     tls = Tls.from_dir(certs) if certs is not None else None
@@ -374,8 +363,6 @@ class _sigterm_as_interrupt:
 def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str | None, size: int, agents: int,
                       explore: str, seed: int, out: Path | None) -> dict:
     """The SuperNode's node config for one rover (checked by loading the map once)."""
-    from fedmap.federation.flower.settings import load_local_map
-
     cfg: dict = {"partition-id": partition_id}
     if (map_path is None) == (terrain is None):
         raise FedmapError("give exactly one of --map (the rover's local map) or --terrain (the built-in generator)")
@@ -410,112 +397,3 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
     with Processes() as procs:
         p = procs.start("supernode", argv, env=env, log=log)
         return p.wait()
-
-
-# -- typer wiring (registered in fedmap.cli) ------------------------------------------------------
-
-def register(app, console, progress_factory) -> None:
-    """Add ``base-station``, ``rover`` and ``certs`` to the ``fedmap`` typer app."""
-    @app.command("base-station")
-    def base_station_cmd(
-        rovers: int = typer.Option(4, help="Rovers in the team (partition ids 0..rovers-1)."),
-        min_rovers: int = typer.Option(1, "--min-rovers", help="Fewest rovers a round may aggregate; fewer ends the run."),
-        deadline: float = typer.Option(600.0, help="Seconds a round waits for replies; late rovers are recorded as missing."),
-        connect_timeout: float = typer.Option(120.0, "--connect-timeout", help="Seconds to wait for rovers to connect."),
-        rounds: int = typer.Option(1, help="Communication rounds R."),
-        aggregator: str = typer.Option("fedavg", help="fedavg, fedadam, fedyogi or coverage."),
-        eta: float = typer.Option(1e-2, help="Server learning rate for fedadam/fedyogi."),
-        local_epochs: int = typer.Option(100, "--local-epochs", help="Local epochs per round E."),
-        lr: float = typer.Option(1e-3, help="Local Adam learning rate."),
-        masked: bool = typer.Option(False, help="Loss on known cells only."),
-        net: str = typer.Option("paper", help="Network: paper, small or grid."),
-        init: str = typer.Option("random", help="Initial weights: random or empty (empty-map prior)."),
-        uplink: str = typer.Option("fp32", help="Rover -> base codec (see fedmap demo --help)."),
-        downlink: str = typer.Option("fp32", help="Base -> rover codec."),
-        seed: int = typer.Option(0, help="Seed of the initial model and the rovers' training."),
-        terrain: Optional[str] = typer.Option(None, help="Ground truth from the built-in generator (mars, moon, ice)."),
-        size: int = typer.Option(128, help="Generated ground truth side in cells."),
-        truth: Optional[Path] = typer.Option(None, help="Ground-truth map file (.png or .npy) to evaluate against."),
-        pairs: int = typer.Option(75, help="Random start/goal pairs for the path F1."),
-        min_size: int = typer.Option(0, "--min-size", help="Refinement: remove impassable blobs smaller than this."),
-        host: str = typer.Option("0.0.0.0", help="Address the SuperLink listens on."),
-        port: int = typer.Option(9092, help="SuperLink port (rovers connect to HOST:PORT)."),
-        certs: Optional[Path] = typer.Option(None, help="TLS: folder from `fedmap certs` (ca.crt, server.pem, server.key)."),
-        auth_keys: Optional[Path] = typer.Option(None, "--auth-keys", help="SuperNode authentication: folder of rover *.pub keys."),
-        out: Path = typer.Option(Path("fedmap-out/flower"), "--out", "-o", help="Output folder (replaced atomically)."),
-    ) -> None:
-        """Base station: start a SuperLink and run fedmap's ServerApp for R rounds."""
-        import json as _json
-
-        cfg = {"rovers": rovers, "min-rovers": min_rovers, "deadline": deadline, "connect-timeout": connect_timeout,
-               "rounds": rounds, "aggregator": aggregator, "eta": eta, "epochs": local_epochs, "lr": lr,
-               "masked": masked, "net": net, "init": init, "uplink": uplink, "downlink": downlink, "seed": seed,
-               "terrain": terrain or "", "size": size, "truth": str(truth.resolve()) if truth else "", "pairs": pairs,
-               "min-size": min_size, "out": str(out)}
-        t0 = time.perf_counter()
-        with progress_factory() as progress:
-            task = progress.add_task("waiting for rovers", total=rounds, loss="")
-
-            def on_status(st: dict) -> None:
-                done = st.get("round", 0) - (0 if st.get("saved") or st["state"] == "done" else 1)
-                what = "finished" if st["state"] == "done" else f"round {st.get('round', 0)}/{rounds}"
-                progress.update(task, completed=min(rounds, done), description=what,
-                                loss=f"{st.get('nodes', '')} rovers" if "nodes" in st else "")
-
-            def on_ready() -> None:
-                console.print(f"ready: SuperLink on {host}:{port} ({'TLS' if certs else 'insecure'}"
-                              f"{', SuperNode auth' if auth_keys else ''}); start the rovers with: "
-                              f"fedmap rover --superlink <this host>:{port} --partition-id K ...")
-
-            run_base_station(cfg, host=host, port=port, certs=certs, auth_keys=auth_keys, on_status=on_status,
-                             on_ready=on_ready)
-        m = _json.loads((out / "metrics.json").read_text())
-        for r in m["rounds"]:
-            console.print(f"round {r['round']}: aggregated rovers {sorted(int(k) for k in r['weights'])}; "
-                          f"missing {r['missing'] or 'none'}; dropped {r['dropped'] or 'none'}; "
-                          f"uplink {sum(r['uplink_bytes'].values()):,} B")
-        if "global" in m:
-            console.print(f"global map: PSNR {m['global']['psnr']:.2f} dB, path F1 {m['global']['path']['f1']:.2f}")
-        b = m["bytes"]
-        console.print(f"link: {b['uplink']:,} B uplink, {b['downlink']:,} B downlink; "
-                      f"{b['uplink_per_agent_round']:,.0f} B per rover per round uplink")
-        console.print(f"outputs: {out}/  (metrics.json, global_model*.safetensors, maps); "
-                      f"wall time {time.perf_counter() - t0:.1f} s")
-
-    @app.command()
-    def rover(
-        superlink: str = typer.Option(..., help="The base station's SuperLink as HOST:PORT."),
-        partition_id: int = typer.Option(..., "--partition-id", help="This rover's index in the team (0-based)."),
-        map_path: Optional[Path] = typer.Option(None, "--map", help="This rover's local map (.png or .npy)."),
-        terrain: Optional[str] = typer.Option(None, help="Or: take the local map from the built-in generator (mars, moon, ice)."),
-        size: int = typer.Option(128, help="Generator: map side in cells."),
-        agents: int = typer.Option(4, help="Generator: rovers in the team."),
-        explore: str = typer.Option("quadrants", help="Generator: exploration pattern."),
-        seed: int = typer.Option(0, help="Generator: seed (the same as the base station's)."),
-        root_cert: Optional[Path] = typer.Option(None, "--root-cert", help="TLS: the base station's ca.crt (else insecure)."),
-        auth_key: Optional[Path] = typer.Option(None, "--auth-key", help="SuperNode authentication: this rover's private key."),
-        port: int = typer.Option(0, help="Local port of the SuperNode's own API (0: any free port)."),
-        out: Optional[Path] = typer.Option(None, "--out", "-o", help="Save the final global model and map here."),
-    ) -> None:
-        """Rover: run a Flower SuperNode that trains on this rover's local map."""
-        cfg = rover_node_config(partition_id=partition_id, map_path=map_path, terrain=terrain, size=size,
-                                agents=agents, explore=explore, seed=seed, out=out)
-        if root_cert is None:
-            console.print("warning: no --root-cert, connecting without TLS (fine on a trusted local network only)")
-        console.print(f"rover {partition_id}: connecting to {superlink}")
-        code = run_rover(cfg, superlink=superlink, root_cert=root_cert, auth_key=auth_key, port=port)
-        raise typer.Exit(code)
-
-    @app.command()
-    def certs(
-        out_dir: Path = typer.Argument(..., help="Folder for the certificates and keys."),
-        host: list[str] = typer.Option(["localhost", "127.0.0.1"], "--host",
-                                       help="Name or IP the rovers use to reach the base station (repeat)."),
-        rovers: int = typer.Option(4, help="SuperNode authentication key pairs to make (rover0..)."),
-        days: int = typer.Option(365, help="Certificate lifetime in days."),
-    ) -> None:
-        """TLS certificates for the SuperLink and SuperNode authentication keys for the rovers."""
-        files = make_certs(out_dir, hosts=host, rovers=rovers, days=days)
-        console.print(f"{out_dir}: " + ", ".join(f.name for f in files))
-        console.print("base station: fedmap base-station --certs DIR [--auth-keys DIR]; "
-                      "rover k: fedmap rover --root-cert DIR/ca.crt [--auth-key DIR/roverK] ...")

@@ -1,4 +1,4 @@
-"""``fedmap meta-train`` and ``fedmap ablate-init`` (registered in :mod:`fedmap.cli`)."""
+"""``fedmap meta-train`` and ``fedmap ablate-init``: meta-initialisation (:mod:`fedmap.meta`)."""
 
 from __future__ import annotations
 
@@ -7,16 +7,24 @@ import time
 from pathlib import Path
 from typing import Optional
 
+import click
+import torch
 import typer
+from rich.table import Table
 
+from fedmap import __version__
+from fedmap.cli.ui import console, progress_bar
 from fedmap.errors import FedmapError
+from fedmap.maps.traversability import TraversabilityThresholds
+from fedmap.meta.ablation import AblationConfig, make_inits, pick_maps, run_ablation, write_ablation
+from fedmap.meta.collections import BUILTIN_CATEGORIES, MapCollection, earth_like, load_collection
+from fedmap.meta.reptile import MetaConfig
+from fedmap.meta.reptile import meta_train as run_meta_train
+from fedmap.nets.model import NetConfig, preset
 
 
 def _collection(source: str, *, layout: str, size: int, per_category: int, categories: Optional[str],
-                max_slope: Optional[float], seed: int):
-    from fedmap.maps.traversability import TraversabilityThresholds
-    from fedmap.meta.collections import BUILTIN_CATEGORIES, earth_like, load_collection
-
+                max_slope: Optional[float], seed: int) -> MapCollection:
     names = tuple(c.strip() for c in categories.split(",") if c.strip()) if categories else None
     if source == "builtin":
         return earth_like(size=size, per_category=per_category, seed=seed, categories=names or BUILTIN_CATEGORIES)
@@ -27,8 +35,6 @@ def _collection(source: str, *, layout: str, size: int, per_category: int, categ
 
 def _command_line() -> str:
     """The running command with every option spelled out (works under ``main(argv)`` too)."""
-    import click
-
     ctx = click.get_current_context()
     parts = ["fedmap", ctx.info_name or ""]
     for p in ctx.command.params:
@@ -44,8 +50,6 @@ def _command_line() -> str:
 
 
 def _threads(threads: int) -> None:
-    import torch
-
     if threads < 1:
         raise FedmapError(f"threads must be at least 1, got {threads}")
     torch.set_num_threads(threads)
@@ -75,12 +79,6 @@ def meta_train(
     resume: bool = typer.Option(False, help="Continue from --out (same options)."),
 ) -> None:
     """Empty-map prior -> Reptile over a map collection (each category a task) -> meta-init weights."""
-    from fedmap import __version__
-    from fedmap.cli import _progress, console
-    from fedmap.meta.reptile import MetaConfig
-    from fedmap.meta.reptile import meta_train as run
-    from fedmap.model import preset
-
     _threads(threads)
     config = MetaConfig(iterations=iterations, inner_steps=inner_steps, inner_lr=inner_lr, meta_batch=meta_batch,
                         eps_start=eps_start, eps_end=eps_end, prior_steps=prior_steps, val_every=val_every, seed=seed)
@@ -93,7 +91,7 @@ def meta_train(
     extra = {"command": _command_line(), "fedmap_version": __version__, "seed": seed,
              "collection": coll.summary(), "size": size, "validation_maps": len(val)}
     t0 = time.perf_counter()
-    with _progress() as progress:
+    with progress_bar() as progress:
         task = progress.add_task("Reptile", total=iterations, loss="")
         last = {"val": None}
 
@@ -103,7 +101,7 @@ def meta_train(
             val_txt = f"val {last['val']:.2f} dB" if last["val"] is not None else ""
             progress.update(task, completed=it, loss=f"eps {info['epsilon']:.3f} {val_txt}")
 
-        result = run(train, net_config, config, val_maps=val, checkpoint=out, resume=resume, extra=extra,
+        result = run_meta_train(train, net_config, config, val_maps=val, checkpoint=out, resume=resume, extra=extra,
                      on_step=on_step)
     for h in result.history:
         if h["iteration"] in (0, result.iteration) or h is result.history[-1]:
@@ -131,11 +129,6 @@ def ablate_init(
     out: Path = typer.Option(Path("fedmap-out/ablate-init"), "--out", "-o", help="Output folder (replaced atomically)."),
 ) -> None:
     """Table I: PSNR/SSIM after N steps from random, empty-map and meta inits, and steps to reach meta."""
-    from rich.table import Table
-
-    from fedmap.cli import _progress, console
-    from fedmap.meta.ablation import AblationConfig, make_inits, pick_maps, run_ablation, write_ablation
-
     _threads(threads)
     config = AblationConfig(n_steps=steps, lr=lr, max_steps=max_steps, seed=seed)
     if maps < 1:
@@ -144,7 +137,7 @@ def ablate_init(
                        max_slope=max_slope, seed=seed)
     test = pick_maps(coll.maps(), maps, seed=seed)
     t0 = time.perf_counter()
-    with _progress() as progress:
+    with progress_bar() as progress:
         task = progress.add_task("inits", total=0, loss="")
         progress.update(task, description="empty-map prior")
         inits = make_inits(init_weights=init_weights, prior_steps=prior_steps, seed=seed)
@@ -154,19 +147,17 @@ def ablate_init(
         result["collection"] = coll.summary()
         result["init_weights"] = str(init_weights) if init_weights else "shipped"
         write_ablation(result, test[0], inits, config, out, title=f"{coll.name}, {len(test)} maps {size}x{size}")
-    console.print(table_of(result, Table))
+    console.print(table_of(result))
     console.print(f"random needs {result['random_over_meta_steps']:.1f}x the steps of meta to reach meta's "
                   f"{steps}-step PSNR (capped runs count as {max_steps})")
     console.print(f"outputs: {out}/  (ablation.json, fig3.png, psnr_curve.png); wall time {time.perf_counter() - t0:.1f} s")
 
 
-def _net():
-    from fedmap.model import preset
-
+def _net() -> NetConfig:
     return preset("paper")
 
 
-def table_of(result: dict, Table):
+def table_of(result: dict) -> Table:
     n = result["config"]["n_steps"]
     t = Table(title=f"Table I: {result['n_maps']} maps, Adam lr {result['config']['lr']:g}", header_style="bold")
     for col in ("init", f"PSNR @{n}", f"SSIM @{n}", "PSNR @0", "steps to meta's PSNR", "capped"):

@@ -14,8 +14,6 @@ checkpoints move into ``<out>/`` beside the demo's outputs.
 
 from __future__ import annotations
 
-import json
-import os
 import time
 from logging import INFO
 from pathlib import Path
@@ -25,21 +23,15 @@ from flwr.serverapp import Grid, ServerApp
 from flwr.serverapp.strategy import Strategy
 from flwr.supercore import log
 
-from fedmap.comm import CodecSpec, Encoder
 from fedmap.errors import FedmapError
-from fedmap.federation.aggregate import make_aggregator
-from fedmap.federation.flower.records import check_flower_count, from_record, to_record
-from fedmap.federation.flower.settings import RunSettings, load_truth, run_dir, run_status_path
+from fedmap.federation.codecs import CodecSpec, Encoder
 from fedmap.federation.runner import FederationResult, base_step, round_record
-from fedmap.model import Weights, build_model, get_weights, preset, save_model, set_weights
+from fedmap.flower.records import check_flower_count, from_record, to_record
+from fedmap.flower.settings import RunSettings
+from fedmap.flower.task import initial_weights, save_checkpoint, write_base_outputs, write_status
+from fedmap.nets.model import Weights
 
 app = ServerApp()
-
-
-def write_status(out_dir: Path, state: str, **fields) -> None:
-    from fedmap.maps.io import atomic_write_bytes
-
-    atomic_write_bytes(run_status_path(out_dir), json.dumps({"state": state, **fields}).encode())
 
 
 class FedmapStrategy(Strategy):
@@ -56,7 +48,7 @@ class FedmapStrategy(Strategy):
     def __init__(self, settings: RunSettings, *, sleep=time.sleep) -> None:
         self.settings = settings
         fed = settings.federation
-        self.aggregator = make_aggregator(fed.aggregator, eta=fed.eta, beta1=fed.beta1, beta2=fed.beta2, tau=fed.tau)
+        self.aggregator = fed.make_aggregator()
         self.up_spec, self.down_spec = CodecSpec.parse(fed.uplink), CodecSpec.parse(fed.downlink)
         self.down_encoder = Encoder(self.down_spec)
         self.held: Weights | None = None  # what every rover holds; the initial model until round 1 ends
@@ -97,14 +89,6 @@ class FedmapStrategy(Strategy):
         self._sent = {m.object_id: n for m, n in zip(msgs, nodes)}
         return msgs
 
-    def initial_weights(self, height: int) -> Weights:
-        """The initial model every rover rebuilds from the shared seed (never sent)."""
-        from fedmap.pipeline import initial_model
-
-        s = self.settings
-        return get_weights(initial_model(preset(s.net, height), init=s.init, seed=s.federation.seed,
-                                         prior_steps=s.prior_steps))
-
     # -- Strategy --------------------------------------------------------------------------
 
     def configure_train(self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid) -> list[Message]:
@@ -138,7 +122,10 @@ class FedmapStrategy(Strategy):
                 dropped[pid] = f"its map is {shape[0]}x{shape[1]}, the team's is {self.shape[0]}x{self.shape[1]}"
                 continue
             if "error" in msg.content.config_records:
-                dropped[pid] = str(msg.content["error"]["reason"])
+                error = msg.content["error"]
+                if error.get("fatal", False):  # a mistake, not a rejected update: the run stops
+                    raise FedmapError(f"rover {pid}: {error['reason']}")
+                dropped[pid] = str(error["reason"])
                 continue
             record = msg.content["uplink"]
             payloads[pid] = from_record(record)
@@ -151,7 +138,7 @@ class FedmapStrategy(Strategy):
                 f"round {server_round}: {len(payloads)} rover(s) delivered an update, fewer than min-rovers="
                 f"{s.min_rovers} (missing: {missing or 'none'}; dropped: {dropped or 'none'})")
         if self.held is None:
-            self.held = self.initial_weights(self.shape[0])
+            self.held = initial_weights(s, self.shape[0])
         step = base_step(self.aggregator, self.held, payloads, counts, self.down_encoder, dropped=dropped,
                          round_label=server_round)
         self.held = step.held
@@ -192,11 +179,7 @@ class FedmapStrategy(Strategy):
         """``evaluate_fn`` hook: save the global model after every round, atomically."""
         if server_round == 0 or self.held is None:
             return None
-        model = build_model(preset(self.settings.net, self.shape[0]))
-        set_weights(model, self.held)
-        save_model(model, run_dir(self.settings.out) / f"global_model_round{server_round}.safetensors",
-                   extra={"round": server_round})
-        write_status(self.settings.out, "running", round=server_round, saved=True)
+        save_checkpoint(self.settings, self.held, self.shape[0], server_round)
         return None
 
     def result(self) -> FederationResult:
@@ -210,57 +193,14 @@ def run_base_station(grid: Grid, settings: RunSettings) -> Path:
     strategy = FedmapStrategy(settings)
     strategy.start(grid=grid, initial_arrays=to_record(b""), num_rounds=settings.federation.rounds,
                    timeout=settings.deadline, evaluate_fn=strategy.checkpoint)
-    return write_base_outputs(strategy, settings, federation_s=time.perf_counter() - t0)
-
-
-def write_base_outputs(strategy: FedmapStrategy, settings: RunSettings, *, federation_s: float) -> Path:
-    """The demo's output folder (plus per-round checkpoints and the byte ledger)."""
-    from fedmap.maps.grid import GridMap
-    from fedmap.pipeline import global_map
-    from fedmap.refine import RefineConfig
-
     fed = strategy.result()
-    h, w = strategy.shape
-    t = time.perf_counter()
-    model, rgb, classes, refined = global_map(preset(settings.net, h), fed.weights, (h, w),
-                                              RefineConfig(min_size=settings.min_size))
-    truth = load_truth(settings)
     flower = {
-        "settings": {k: v for k, v in vars(settings).items() if k != "federation"} | {"out": str(settings.out)},
+        "settings": settings.record(),
         "missing": {r["round"]: r["missing"] for r in fed.history},
         "flower_bytes": [{"round": r["round"], "uplink": r["flower_uplink_bytes"],
                           "downlink": r["flower_downlink_bytes"]} for r in fed.history],
     }
-    metrics = {"aggregator": fed.aggregator, "bytes": fed.total_bytes(), "ledger": fed.ledger(),
-               "rounds": fed.history, "flower": flower}
-    out = settings.out
-    if truth is not None:
-        from fedmap.pipeline import PipelineConfig, PipelineResult, evaluate, truth_summary, write_outputs
-
-        if truth.shape != (h, w):
-            raise FedmapError(f"the ground truth is {truth.shape}, the rovers' maps are {(h, w)}")
-        pc = PipelineConfig(terrain=settings.terrain or "mars", size=max(64, h), agents=settings.rovers,
-                            net=settings.net, init=settings.init, central=False, federation=settings.federation,
-                            refine=RefineConfig(min_size=settings.min_size), eval_pairs=settings.pairs,
-                            seed=settings.federation.seed)
-        metrics = {"global": evaluate(truth, classes, pc), "refined": evaluate(truth, refined, pc), "agents": [],
-                   "truth": truth_summary(truth), **metrics}
-        timings = {"federation_s": federation_s, "evaluate_s": time.perf_counter() - t}
-        write_outputs(PipelineResult(pc, truth, [], model, rgb, classes, refined, fed, metrics, timings), out)
-    else:
-        from fedmap.maps.io import save_map
-        from fedmap.report import AtomicDir, to_json
-
-        frame = GridMap(classes, 1.0, "federated global map")
-        with AtomicDir(out) as tmp:
-            (tmp / "metrics.json").write_text(to_json({**metrics, "timings": {"federation_s": federation_s}}))
-            save_model(model, tmp / "global_model.safetensors", extra={"flower": flower["settings"]})
-            save_map(frame, tmp / "global_map.png")
-            save_map(frame.with_classes(refined, "refined global map"), tmp / "refined_map.png")
-    for ckpt in sorted(run_dir(out).glob("global_model_round*.safetensors")):
-        os.replace(ckpt, out / ckpt.name)  # same filesystem: each move is atomic
-    write_status(out, "done", rounds=len(fed.history), out=str(out))
-    return out
+    return write_base_outputs(fed, strategy.shape, settings, flower, federation_s=time.perf_counter() - t0)
 
 
 @app.main()

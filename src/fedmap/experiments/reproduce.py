@@ -15,7 +15,7 @@ For every terrain, 4 rovers (quadrants), one round:
 * **Table I** — random vs empty-map vs meta initialisation on 64x64 tiles of the same
   terrains (:mod:`fedmap.meta.ablation`), when the shipped meta-init weights exist.
 * **Table III** — bytes of the paper network in fedmap's codecs and image codecs of the
-  first terrain's map (:mod:`fedmap.bandwidth_report`); Table II has the bytes each
+  first terrain's map (:mod:`fedmap.experiments.table3`); Table II has the bytes each
   method really sent.
 
 Everything is written atomically into one folder: ``report.md``, ``reproduce.json`` and
@@ -25,16 +25,25 @@ PNG figures.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from fedmap._util import AtomicDir, to_json
+from fedmap.config import method_config
 from fedmap.errors import FedmapError
+from fedmap.evaluation.scores import MapScores, score_map
+from fedmap.experiments.real_terrain import REAL_TERRAINS, load_real
+from fedmap.experiments.table3 import bandwidth_report
 from fedmap.maps.grid import GridMap, classes_from_rgb
-from fedmap.model import build_model, preset, render, set_weights
-from fedmap.pipeline import PipelineConfig, evaluate, load_truth, run_pipeline, truth_summary
-from fedmap.presets import method_config
+from fedmap.maps.sources import TerrainSource, load_truth
+from fedmap.meta.ablation import AblationConfig, make_inits, run_ablation, write_ablation
+from fedmap.nets.init import SHIPPED_WEIGHTS
+from fedmap.nets.model import build_model, preset, render, set_weights
+from fedmap.outputs import fig4_panel, panel_scores
+from fedmap.pipeline import PipelineConfig, run_pipeline
+from fedmap.stages import truth_summary
 
 #: The paper's Table II (FedAvg rows; FedAdam and FedYogi were worse), for comparison.
 PAPER_TABLE2 = {
@@ -73,8 +82,6 @@ def table2_rows(eta: float, epochs: int = 100, *, meta: bool = True, random_base
 
 
 def _has_meta_weights() -> bool:
-    from fedmap.meta.shipped import SHIPPED_WEIGHTS
-
     return SHIPPED_WEIGHTS.is_file()
 
 
@@ -96,7 +103,7 @@ class ReproduceConfig:
     ablation_max_steps: int = 100
 
     @classmethod
-    def quick(cls, **kw) -> "ReproduceConfig":
+    def quick(cls, **kw) -> ReproduceConfig:
         """The CI smoke configuration: 64x64 maps, 40 local epochs, 30 routes, rounds curve
         to R=3 (10 epochs each), Table I on one tile per terrain with at most 20 steps, no
         centralised bound and no Table III."""
@@ -114,10 +121,8 @@ def terrains(config: ReproduceConfig) -> dict[str, GridMap]:
     """Ground-truth traversability maps by name."""
     if config.data is None:
         names = BUILTIN_TERRAINS
-        load = lambda name: load_truth(PipelineConfig(terrain=name, size=config.size, seed=config.seed))  # noqa: E731
+        load = lambda name: load_truth(TerrainSource(terrain=name, size=config.size), seed=config.seed)  # noqa: E731
     else:
-        from fedmap.real_terrain import REAL_TERRAINS, load_real
-
         names = tuple(REAL_TERRAINS)
         load = lambda name: load_real(Path(config.data), name, config.size)  # noqa: E731
     chosen = config.terrain_names or names
@@ -127,19 +132,18 @@ def terrains(config: ReproduceConfig) -> dict[str, GridMap]:
     return {name: load(name) for name in chosen}
 
 
-def _summary(metrics: dict, key: str = "global") -> dict:
-    m = metrics[key]
-    p = m["path"]
-    return {"psnr": m["psnr"], "ssim": m["ssim"], "accuracy": m["accuracy"], "precision": p["precision"],
-            "recall": p["recall"], "f1": p["f1"], "f1_tolerant": p["tolerant"]["f1"]}
+def _summary(m: MapScores) -> dict:
+    p = m.path
+    return {"psnr": m.psnr, "ssim": m.ssim, "accuracy": m.accuracy, "precision": p.precision,
+            "recall": p.recall, "f1": p.f1, "f1_tolerant": p.tolerant.f1}
 
 
 def _row_config(row: Row, config: ReproduceConfig, *, central: bool) -> PipelineConfig:
-    overrides = dict(row.overrides)
-    init = overrides.pop("init", "random")
-    cfg = method_config(row.method, rounds=row.rounds, epochs=row.epochs, seed=config.seed, central=central,
-                        eval_pairs=config.pairs, **overrides)
-    return replace(cfg, size=config.size, init=init, federation=replace(cfg.federation, eta=config.eta))
+    """A Table II row's config: its method preset with the row's settings; the paper rows
+    start from the random init unless the row asks for the meta-init."""
+    overrides = {"init": "random", **row.overrides}
+    return method_config(row.method, rounds=row.rounds, epochs=row.epochs, seed=config.seed, central=central,
+                         pairs=config.pairs, size=config.size, eta=config.eta, **overrides)
 
 
 def run_table2(name: str, truth: GridMap, config: ReproduceConfig, *, on_stage=None, on_step=None) -> dict:
@@ -157,14 +161,14 @@ def run_table2(name: str, truth: GridMap, config: ReproduceConfig, *, on_stage=N
         rec = {"label": row.label, "method": row.method, "net": cfg.net, "init": cfg.init, "aggregator": fed.aggregator,
                "eta": fed.eta if fed.aggregator in ("fedadam", "fedyogi") else None, "rounds": fed.rounds,
                "local_epochs": fed.local.epochs, "uplink": fed.uplink,
-               "uplink_bytes_per_rover_round": res.metrics["bytes"]["uplink_per_agent_round"],
-               **_summary(res.metrics), "refined": _summary(res.metrics, "refined")}
+               "uplink_bytes_per_rover_round": res.federation.total_bytes()["uplink_per_agent_round"],
+               **_summary(res.global_scores), "refined": _summary(res.refined_scores)}
         rows.append(rec)
         results[row.label] = res
-        if central:
+        if central and res.central_scores is not None:
             rows.append({"label": "paper net, centralised (upper bound)", "method": "paper", "net": cfg.net,
-                         "aggregator": None, "eta": None, "rounds": None, "local_epochs": res.metrics["central"]["steps"],
-                         "uplink": "raw maps", "uplink_bytes_per_rover_round": None, **_summary(res.metrics, "central")})
+                         "aggregator": None, "eta": None, "rounds": None, "local_epochs": res.central_steps,
+                         "uplink": "raw maps", "uplink_bytes_per_rover_round": None, **_summary(res.central_scores)})
     return {"rows": rows, "results": results}
 
 
@@ -180,9 +184,10 @@ def rounds_curve(truth: GridMap, method: str, config: ReproduceConfig, *, on_sta
     def score(rec: dict, weights: dict) -> None:
         set_weights(model, weights)
         classes = classes_from_rgb(render(model, *truth.shape))
-        m = evaluate(truth, classes, cfg)
-        points.append({"round": rec["round"], "psnr": m["psnr"], "ssim": m["ssim"], "f1": m["path"]["f1"],
-                       "f1_tolerant": m["path"]["tolerant"]["f1"],
+        m = score_map(truth.classes, classes, pairs=cfg.eval_pairs, seed=cfg.seed,
+                      unknown_passable=cfg.unknown_passable)
+        points.append({"round": rec["round"], "psnr": m.psnr, "ssim": m.ssim, "f1": m.path.f1,
+                       "f1_tolerant": m.path.tolerant.f1,
                        "uplink_bytes": sum(rec["uplink_bytes"].values())})
 
     run_pipeline(cfg, truth=truth, on_stage=on_stage, on_step=on_step, on_round=score)
@@ -203,8 +208,6 @@ def ablation_tiles(maps: dict[str, GridMap], per_terrain: int, *, size: int = 64
 def run_table1(maps: dict[str, GridMap], out: Path, config: ReproduceConfig, *, on_stage=None) -> dict | None:
     """Table I (random vs empty-map vs meta initialisation) on tiles of the terrains, written
     to ``out`` as :func:`fedmap.meta.ablation.write_ablation` does; None without meta weights."""
-    from fedmap.meta.ablation import AblationConfig, make_inits, run_ablation, write_ablation
-    from fedmap.meta.shipped import SHIPPED_WEIGHTS
 
     if config.ablation_tiles < 1 or not SHIPPED_WEIGHTS.is_file():
         return None
@@ -321,14 +324,13 @@ def markdown(result: dict) -> str:
         md += ["", "Paper (Table I): meta 13.30 dB, empty 9.37 (26.98 ± 1.84 steps), random 8.16 (68.68 ± 1.06 steps).",
                "", "![Fig. 3](table1/fig3.png)  ", "![PSNR vs step](table1/psnr_curve.png)", ""]
     if result.get("bandwidth"):
-        md += ["## Table III — bytes on the link", "", f"See [bandwidth/report.md](bandwidth/report.md).", ""]
+        md += ["## Table III — bytes on the link", "", "See [bandwidth/report.md](bandwidth/report.md).", ""]
     return "\n".join(md)
 
 
 def reproduce(out: str | Path, config: ReproduceConfig, *, on_stage: Callable | None = None,
               on_step: Callable | None = None) -> dict:
     """Run every experiment and write the report folder ``out`` atomically."""
-    from fedmap.report import AtomicDir, fig4_panel, to_json
 
     maps = terrains(config)
     result: dict = {"config": {**{k: v for k, v in config.__dict__.items()}, "data": None if config.data is None
@@ -340,9 +342,7 @@ def reproduce(out: str | Path, config: ReproduceConfig, *, on_stage: Callable | 
             figs = {}
             for key, label in (("paper", "paper preset, FedAvg"), ("fedmap", "fedmap, R=1")):
                 res = t2["results"][label]
-                m = res.metrics
-                scores = {"federated global map": {"psnr": m["global"]["psnr"], "f1": m["global"]["path"]["f1"]},
-                          "refined global map": {"psnr": m["refined"]["psnr"], "f1": m["refined"]["path"]["f1"]}}
+                scores = panel_scores(res.global_scores, res.refined_scores)
                 figs[key] = f"fig4_{slug}_{key}.png"
                 fig4_panel(res.local_maps, truth, res.global_classes, res.refined, tmp / figs[key],
                            title=f"{name}: {label}", scores=scores)
@@ -358,7 +358,6 @@ def reproduce(out: str | Path, config: ReproduceConfig, *, on_stage: Callable | 
         result["figures"]["rounds_curve"] = "rounds_curve.png"
         curve_figure(result["rounds_curve"], tmp / "rounds_curve.png", epochs=config.curve_epochs)
         if config.bandwidth:
-            from fedmap.bandwidth_report import bandwidth_report
 
             first = next(iter(maps))
             if on_stage:

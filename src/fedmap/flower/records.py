@@ -1,6 +1,6 @@
 """fedmap payloads inside Flower records, and Flower's own count of their size.
 
-A payload (:mod:`fedmap.comm` bytes) travels as one 1-D ``uint8`` array under the key
+A payload (:mod:`fedmap.federation.codecs` bytes) travels as one 1-D ``uint8`` array under the key
 ``"payload"`` of an ``ArrayRecord``. Flower serialises an array with ``np.save``, so its
 own count (``ArrayRecord.count_bytes()``) is the payload plus the ``.npy`` header plus the
 key: :func:`flower_overhead` says exactly how much, and :func:`check_flower_count`

@@ -9,7 +9,7 @@ Codecs (:class:`CodecSpec`, text form in :meth:`CodecSpec.parse`)
     float32 values as they are (exact).
 ``fp16``
     ``astype(float16)`` (round to nearest even). Values beyond the fp16 range
-    (|x| > 65504 after rounding) are refused with :class:`FedmapError`.
+    (|x| > 65504 after rounding) are refused with :class:`~fedmap.errors.RejectedUpdate`.
 ``bf16``
     The upper 16 bits of the float32 pattern after round-to-nearest-even (numpy only,
     the same rounding as ``torch.bfloat16``).
@@ -102,8 +102,8 @@ from dataclasses import dataclass
 import numpy as np
 import zstandard
 
-from fedmap.errors import FedmapError
-from fedmap.model import Weights
+from fedmap.errors import FedmapError, RejectedUpdate
+from fedmap.nets.model import Weights
 
 MAGIC = b"FMWP"
 VERSION = 1
@@ -178,7 +178,7 @@ class CodecSpec:
             put("zstd", int(self.zstd))
 
     @classmethod
-    def parse(cls, text: str) -> "CodecSpec":
+    def parse(cls, text: str) -> CodecSpec:
         """``fp16``, ``fp16+zstd``, ``int8``, ``int8-tensor``, ``int4+zstd``, ``topk:0.01``,
         ``topk:0.005,values=int8,momentum=0.9+zstd:9``, ``update-int8,noef``, ... (see
         :data:`GRAMMAR`)."""
@@ -309,7 +309,7 @@ class _Layout:
         self.total = int(self.offsets[-1])
 
     @classmethod
-    def of(cls, weights: Weights) -> "_Layout":
+    def of(cls, weights: Weights) -> _Layout:
         if not isinstance(weights, dict):
             raise FedmapError(f"weights must be a dict of arrays, got {type(weights).__name__}")
         for k in weights:
@@ -451,7 +451,7 @@ def _to_fp16(x: np.ndarray, what: str) -> np.ndarray:
     with np.errstate(over="ignore"):
         h = x.astype("<f2")
     if not np.all(np.isfinite(h)):
-        raise FedmapError(f"{what} exceed the fp16 range (|x| > 65504); use fp32, bf16 or int8")
+        raise RejectedUpdate(f"{what} exceed the fp16 range (|x| > 65504); use fp32, bf16 or int8")
     return h
 
 
@@ -672,14 +672,14 @@ def decode(data: bytes, reference: Weights | None = None) -> Weights:
     the sender used (names and shapes are checked)."""
     buf = memoryview(data).cast("B")
     if len(buf) < _PREFIX + _CRC:
-        raise FedmapError(f"malformed payload: {len(buf)} bytes is shorter than the smallest payload")
+        raise RejectedUpdate(f"malformed payload: {len(buf)} bytes is shorter than the smallest payload")
     if bytes(buf[:4]) != MAGIC:
-        raise FedmapError("malformed payload: bad magic (not a fedmap payload)")
+        raise RejectedUpdate("malformed payload: bad magic (not a fedmap payload)")
     if buf[4] != VERSION:
-        raise FedmapError(f"malformed payload: format version {buf[4]}, this fedmap reads version {VERSION}")
+        raise RejectedUpdate(f"malformed payload: format version {buf[4]}, this fedmap reads version {VERSION}")
     (crc,) = struct.unpack("<I", buf[-_CRC:])
     if zlib.crc32(buf[:-_CRC]) != crc:
-        raise FedmapError(f"malformed payload: CRC mismatch ({len(buf)} bytes; truncated or corrupted)")
+        raise RejectedUpdate(f"malformed payload: CRC mismatch ({len(buf)} bytes; truncated or corrupted)")
     codec, flags = buf[5], buf[6]
     try:
         if codec >= len(KINDS) or flags & ~_KNOWN_FLAGS:
@@ -695,7 +695,7 @@ def decode(data: bytes, reference: Weights | None = None) -> Weights:
                 raise _Malformed(f"zstd: {e}") from None
         return _decode_content(KINDS[codec], flags, content, reference)
     except _Malformed as e:
-        raise FedmapError(f"malformed payload: {e}") from None
+        raise RejectedUpdate(f"malformed payload: {e}") from None
 
 
 def _decode_content(kind: str, flags: int, content: memoryview, reference: Weights | None) -> Weights:

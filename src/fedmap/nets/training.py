@@ -12,9 +12,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from fedmap.errors import FedmapError
+from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.maps.grid import GridMap
-from fedmap.model import CoordNet, grid_coords
+from fedmap.nets.model import CoordNet, grid_coords
 
 
 @dataclass(frozen=True)
@@ -80,7 +80,7 @@ def fit(
     """
     coords, target, weight = map_targets(grid, masked=config.masked)
     if config.masked and not weight.any():
-        raise FedmapError(f"map {grid.source!r} has no known cell to train on")
+        raise RejectedUpdate(f"map {grid.source!r} has no known cell to train on")
     if getattr(model, "cacheable_features", False):
         with torch.no_grad():
             feats = model.features(coords)  # (N, 2*mapping): fixed, so computed once
@@ -110,7 +110,7 @@ def fit(
             if on_step is not None:
                 on_step(len(losses), losses[-1])
     if losses and not np.isfinite(losses[-1]):
-        raise FedmapError(f"training diverged on {grid.source!r} (loss is {losses[-1]}); lower the learning rate")
+        raise RejectedUpdate(f"training diverged on {grid.source!r} (loss is {losses[-1]}); lower the learning rate")
     return losses
 
 

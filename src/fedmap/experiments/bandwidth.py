@@ -23,7 +23,7 @@ units, and both readings are given:
   402,000 B (decimal, like the other KB), giving 0.7 % both ways. Read as KiB
   (411,648 B) it would be 3.0 %.
 * The model's 399,366 B counts parameter values only; a real payload adds framing
-  (fedmap's own fp16 payload format adds 176 B, see ``fedmap.comm``), as every image
+  (fedmap's own fp16 payload format adds 176 B, see ``fedmap.federation.codecs``), as every image
   file below carries its own header.
 
 Image codecs (:class:`ImageCodec`)
@@ -68,7 +68,7 @@ exactly as those files would on a real link.
 
 Comparison (:func:`compare_image_codecs`) scores each decoded class map against the truth
 with :func:`fedmap.evaluation.metrics.image_scores` (PSNR/SSIM on the paper-colour
-renderings) and :func:`fedmap.evaluation.planning.path_f1`, plus PSNR/SSIM of the decoded
+renderings) and :func:`fedmap.evaluation.paths.path_f1`, plus PSNR/SSIM of the decoded
 grey image before snapping (``psnr_gray``/``ssim_gray``, data range 255), which is what
 an image-compression paper usually reports.
 """
@@ -91,7 +91,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from fedmap.errors import FedmapError
 from fedmap.evaluation.metrics import image_scores
-from fedmap.evaluation.planning import path_f1
+from fedmap.evaluation.paths import PathScores, path_f1
 from fedmap.maps.grid import FREE, IMPASSABLE, PALETTE, UNKNOWN, GridMap
 
 # -- Table III ---------------------------------------------------------------------------
@@ -453,7 +453,7 @@ def image_codecs(qualities: Iterable[int] = DEFAULT_QUALITIES, *, webp: bool | N
 
 # -- comparison --------------------------------------------------------------------------
 
-def _path_scores(args: tuple) -> dict:
+def _path_scores(args: tuple) -> PathScores:
     truth, decoded, n_pairs, seed = args
     return path_f1(truth, decoded, n_pairs=n_pairs, seed=seed)
 
@@ -552,9 +552,9 @@ def compare_image_codecs(
         by_key = dict(zip(keys, results))
         for row, key in zip(rows, row_keys):
             pf = by_key[key]
-            row["f1"] = pf["f1"]
-            row["f1_tolerant"] = pf["tolerant"]["f1"]
-            row["mean_length_ratio"] = pf["mean_length_ratio"]
+            row["f1"] = pf.f1
+            row["f1_tolerant"] = pf.tolerant.f1
+            row["mean_length_ratio"] = pf.mean_length_ratio
     return rows
 
 

@@ -1,4 +1,4 @@
-"""Deterministic grid A* and the paper's path-planning F1.
+"""Deterministic grid A*: the one planner for exploration and for scoring.
 
 Planner
 -------
@@ -10,7 +10,7 @@ path never squeezes between two diagonal obstacles. The heuristic is the octile 
 the same map always gives the same path.
 
 Because diagonals need both orthogonal neighbours, two cells are connected exactly when
-they are in the same 4-connected component; :func:`path_f1` uses that to answer
+they are in the same 4-connected component; :func:`fedmap.evaluation.paths.path_f1` uses that to answer
 "no path" without searching.
 
 UNKNOWN cells are impassable by default (a rover does not plan through unobserved
@@ -23,7 +23,6 @@ import heapq
 import math
 
 import numpy as np
-from scipy import ndimage
 
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN
@@ -140,86 +139,3 @@ def sample_pairs(passable: np.ndarray, n_pairs: int, *, seed: int = 0) -> list[t
         a, b = rng.choice(len(cells), size=2, replace=False)
         pairs.append((tuple(int(v) for v in cells[a]), tuple(int(v) for v in cells[b])))
     return pairs
-
-
-def path_f1(
-    truth: np.ndarray,
-    pred: np.ndarray,
-    *,
-    n_pairs: int = 75,
-    seed: int = 0,
-    unknown_passable: bool = False,
-    length_tolerance: float = 0.05,
-) -> dict:
-    """The paper's path-planning F1, plus a tolerant variant.
-
-    For ``n_pairs`` seeded start/goal pairs drawn from the passable cells of ``truth``,
-    plan with the same A* on both maps:
-
-    * TP: both find a path and the paths are identical, cell for cell;
-    * FP: the learned map gives a path that is not the true one (the truth has none, or
-      a different one);
-    * FN: the truth has a path that the learned map does not reproduce (none found, or a
-      different one). So a different path counts once as FP and once as FN;
-    * TN: neither map has a path.
-
-    Conventions for empty denominators: with no learned path at all precision is 1
-    (nothing was claimed wrongly); with no true path at all recall is 1; so when every
-    pair has no path on either map, precision, recall and F1 are all 1.
-
-    The tolerant variant counts a learned path as correct when it is collision-free on
-    the true map and at most ``(1 + length_tolerance)`` times the true path's length.
-    """
-    truth = np.asarray(truth)
-    pred = np.asarray(pred)
-    if truth.shape != pred.shape:
-        raise FedmapError(f"learned map {pred.shape} and ground truth {truth.shape} differ in size")
-    if n_pairs <= 0:
-        raise FedmapError(f"n_pairs must be positive, got {n_pairs}")
-    pt = passable_mask(truth, unknown_passable=unknown_passable)
-    pp = passable_mask(pred, unknown_passable=unknown_passable)
-    lt, _ = ndimage.label(pt)  # 4-connectivity == reachability (see module doc)
-    lp, _ = ndimage.label(pp)
-    tp = fp = fn = tn = 0
-    tol_tp = tol_fp = tol_fn = 0
-    ratios = []
-    for s, g in sample_pairs(pt, n_pairs, seed=seed):
-        true_path = astar(pt, s, g) if lt[s] == lt[g] else None
-        pred_path = astar(pp, s, g) if (lp[s] and lp[s] == lp[g]) else None
-        if true_path is None and pred_path is None:
-            tn += 1
-            continue
-        if true_path is not None and pred_path is not None and true_path == pred_path:
-            tp += 1
-        else:
-            fp += pred_path is not None
-            fn += true_path is not None
-        # tolerant variant
-        if true_path is not None and pred_path is not None:
-            ratio = path_length(pred_path) / max(path_length(true_path), 1e-12)
-            ratios.append(ratio)
-            if path_is_valid(pt, pred_path) and ratio <= 1 + length_tolerance:
-                tol_tp += 1
-            else:
-                tol_fp += 1
-                tol_fn += 1
-        else:
-            tol_fp += pred_path is not None
-            tol_fn += true_path is not None
-
-    def prf(tp_: int, fp_: int, fn_: int) -> tuple[float, float, float]:
-        p = tp_ / (tp_ + fp_) if tp_ + fp_ else 1.0
-        r = tp_ / (tp_ + fn_) if tp_ + fn_ else 1.0
-        f = 2 * p * r / (p + r) if p + r else 0.0
-        return p, r, f
-
-    p, r, f = prf(tp, fp, fn)
-    tp_, tr_, tf_ = prf(tol_tp, tol_fp, tol_fn)
-    return {
-        "pairs": n_pairs, "tp": tp, "fp": fp, "fn": fn, "tn": tn,
-        "precision": p, "recall": r, "f1": f,
-        "tolerant": {"length_tolerance": length_tolerance, "tp": tol_tp, "fp": tol_fp, "fn": tol_fn,
-                     "precision": tp_, "recall": tr_, "f1": tf_},
-        "mean_length_ratio": float(np.mean(ratios)) if ratios else None,
-        "unknown_passable": unknown_passable,
-    }

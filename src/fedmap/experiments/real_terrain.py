@@ -1,4 +1,4 @@
-"""The real terrains ``fedmap reproduce --data DIR`` maps, as :class:`~fedmap.sources.TerrainSource` s.
+"""The real terrains ``fedmap reproduce --data DIR`` maps, as :class:`~fedmap.maps.sources.TerrainSource` s.
 
 ``DIR`` is a folder laid out like the project's shared data folder (``mars/``, ``moon/``,
 ``ice/``; see its README). Nothing here is shipped: without the folder, ``reproduce``
@@ -18,8 +18,8 @@ from pathlib import Path
 
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import GridMap
+from fedmap.maps.sources import TerrainSource, load_truth
 from fedmap.maps.traversability import TraversabilityThresholds
-from fedmap.sources import TerrainSource, load_truth
 
 GLD100_PX = 118.45  # metres: 1 degree of the 1737.4 km sphere over 256 px
 

@@ -2,7 +2,7 @@
 
 Three parts, written as one folder (``report.md``, ``bandwidth.json``, ``rd.png``):
 
-1. **Table III** as the paper computes it (:func:`fedmap.bandwidth.paper_table3`).
+1. **Table III** as the paper computes it (:func:`fedmap.experiments.bandwidth.paper_table3`).
 2. **The model on the link**: the paper network's payload in every fedmap codec, each
    the ``len()`` of a real payload (dense codecs: the weights; update codecs: the
    difference between two seeded initialisations, standing in for a local update).
@@ -14,15 +14,16 @@ Three parts, written as one folder (``report.md``, ``bandwidth.json``, ``rd.png`
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 
-from fedmap.bandwidth import compare_image_codecs, markdown_table, paper_table3, rd_figure
-from fedmap.comm import Encoder
-from fedmap.model import build_model, count_parameters, get_weights
-from fedmap.pipeline import PipelineConfig, load_truth, run_pipeline
-from fedmap.presets import method_config
-from fedmap.report import AtomicDir, to_json
+from fedmap._util import AtomicDir, to_json
+from fedmap.config import method_config
+from fedmap.experiments.bandwidth import compare_image_codecs, markdown_table, paper_table3, rd_figure
+from fedmap.federation.codecs import Encoder
+from fedmap.maps.grid import GridMap
+from fedmap.maps.sources import TerrainSource, load_truth
+from fedmap.nets.model import build_model, count_parameters, get_weights
+from fedmap.pipeline import run_pipeline
 
 MODEL_CODECS = ("fp32", "fp16", "bf16", "int8", "int8-tensor", "int4", "int4+zstd",
                 "topk:0.01,values=fp16", "topk:0.01,values=int8+zstd", "topk:0.005,values=int8+zstd")
@@ -49,28 +50,30 @@ def model_payloads(seed: int = 0) -> list[dict]:
     return rows
 
 
-def federated_points(truth, *, seed: int, pairs: int, on_stage: Callable[[str, int], None] | None = None,
+def federated_points(truth: GridMap, *, seed: int, pairs: int, on_stage: Callable[[str, int], None] | None = None,
                      on_step: Callable[[int, float], None] | None = None) -> list[dict]:
     points = []
     for label, (method, rounds, epochs, overrides) in FEDERATED_RUNS.items():
-        cfg = method_config(method, rounds=rounds, epochs=epochs, seed=seed, eval_pairs=pairs, central=False,
-                            **overrides)
+        cfg = method_config(method, rounds=rounds, epochs=epochs, seed=seed, pairs=pairs, central=False,
+                            size=truth.shape[0], **overrides)
         if on_stage:
             on_stage(label, 0)
         res = run_pipeline(cfg, truth=truth, on_step=on_step)
-        g = res.metrics["global"]
-        b = res.metrics["bytes"]
+        g = res.global_scores
+        b = res.federation.total_bytes()
         points.append({"label": label, "bytes": b["uplink"], "uplink_per_agent_round": b["uplink_per_agent_round"],
-                       "downlink": b["downlink"], "rounds": cfg.federation.rounds, "psnr": g["psnr"],
-                       "ssim": g["ssim"], "f1": g["path"]["f1"], "f1_tolerant": g["path"]["tolerant"]["f1"]})
+                       "downlink": b["downlink"], "rounds": cfg.federation.rounds, "psnr": g.psnr,
+                       "ssim": g.ssim, "f1": g.path.f1, "f1_tolerant": g.path.tolerant.f1})
     return points
 
 
 def bandwidth_report(out: str | Path, *, terrain: str = "mars", size: int = 256, pairs: int = 75, seed: int = 0,
-                     federated: bool = True, truth=None, on_stage=None, on_step=None) -> dict:
+                     federated: bool = True, truth: GridMap | None = None,
+                     on_stage: Callable[[str | None, int], None] | None = None,
+                     on_step: Callable[[int, float], None] | None = None) -> dict:
     """Write the bandwidth report for a built-in terrain, or for ``truth`` (a GridMap) if given."""
     if truth is None:
-        truth = load_truth(replace(PipelineConfig(), terrain=terrain, size=size, seed=seed))
+        truth = load_truth(TerrainSource(terrain=terrain, size=size), seed=seed)
     else:
         terrain, size = truth.source, truth.shape[0]
     if on_stage:

@@ -19,9 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
+from fedmap._util import check_keys
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
 from fedmap.maps.grid import GridMap
+from fedmap.maps.io import crop_dem, load_dem, load_map, mosaic_heightmap_tiles, resample_dem
+from fedmap.maps.regrid import RESAMPLE_METHODS
+from fedmap.maps.terrain import generate_dem
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
 
 SOURCE_KINDS: tuple[str, ...] = ("builtin", "dem", "map", "tiles")
@@ -98,8 +102,6 @@ class TerrainSource:
                 object.__setattr__(self, "crop", tuple(crop))
         if self.size is not None and (isinstance(self.size, bool) or not isinstance(self.size, int) or self.size < 3):
             raise FedmapError(f"terrain size must be an integer number of cells, got {self.size!r}")
-        from fedmap.maps.regrid import RESAMPLE_METHODS
-
         if self.resample not in RESAMPLE_METHODS:
             raise FedmapError(f"unknown resample method {self.resample!r}; choose one of {', '.join(RESAMPLE_METHODS)}")
         unknown = sorted(set(self.options) - set(READER_OPTIONS))
@@ -125,11 +127,9 @@ class TerrainSource:
         return {k: v for k, v in d.items() if v is not None and k not in unused and v != {}}
 
     @classmethod
-    def from_dict(cls, data: dict, *, where: str = "terrain source") -> "TerrainSource":
+    def from_dict(cls, data: dict, *, where: str = "terrain source") -> TerrainSource:
         """Build from a dict (e.g. a TOML ``[terrain]`` table plus ``thresholds``);
         unknown keys raise a :class:`FedmapError` naming the key and ``where``."""
-        from fedmap.config import check_keys
-
         names = [f.name for f in fields(cls)]
         check_keys(data, names, where)
         return cls(**data)
@@ -169,11 +169,7 @@ def _square_box(shape: tuple[int, int], crop) -> tuple[tuple[int, int], tuple[in
 
 def load_source_dem(source: TerrainSource, *, seed: int = 0) -> Dem:
     """The DEM of a builtin, dem or tiles source, cropped square and resampled to ``size``."""
-    from fedmap.maps.io import crop_dem, load_dem, mosaic_heightmap_tiles, resample_dem
-
     if source.kind == "builtin":
-        from fedmap.maps.terrain import generate_dem
-
         px = source.options.get("pixel_size")
         return generate_dem(source.terrain, source.size, seed=seed,
                             pixel_size=None if px is None else float(px))
@@ -207,8 +203,6 @@ def _nearest_classes(classes: np.ndarray, size: int) -> np.ndarray:
 def load_truth(source: TerrainSource, *, seed: int = 0) -> GridMap:
     """The ground-truth traversability map of a source (see the module docstring)."""
     if source.kind == "map":
-        from fedmap.maps.io import load_map
-
         grid = load_map(source.path, pixel_size=source.options.get("pixel_size"))
         (r0, r1), (c0, c1) = _square_box(grid.shape, source.crop)
         classes, px = grid.classes[r0:r1, c0:c1], grid.pixel_size

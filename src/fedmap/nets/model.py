@@ -24,8 +24,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from fedmap.coords import pixel_centres
+from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
+from fedmap.maps.coords import pixel_centres
 
 Weights = dict[str, np.ndarray]
 
@@ -67,7 +68,7 @@ class NetConfig:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "NetConfig":
+    def from_dict(cls, d: dict) -> NetConfig:
         unknown = set(d) - set(cls.__dataclass_fields__)
         if unknown:
             raise FedmapError(f"unknown network config keys: {sorted(unknown)}")
@@ -284,7 +285,6 @@ def save_model(model: nn.Module, path: str | os.PathLike, *, extra: dict | None 
     # between calls, so several keys would make identical models differ in bytes.
     meta = {"fedmap": json.dumps({"config": model.config.to_dict(), "extra": extra or {}}, sort_keys=True)}
     data = save({k: v.contiguous() for k, v in model.state_dict().items()}, metadata=meta)
-    from fedmap.maps.io import atomic_write_bytes
 
     atomic_write_bytes(path, data)
 

@@ -1,0 +1,134 @@
+"""Small helpers every layer uses: atomic writes, JSON for people, key checks.
+
+Writes of results and checkpoints are atomic: a file is written to a temporary sibling
+and renamed over its target (:func:`atomic_write_bytes`); a result folder is built in a
+temporary sibling folder and swapped into place (:class:`AtomicDir`). A failure leaves
+the previous result untouched.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import math
+import os
+import shutil
+import stat
+import tempfile
+import uuid
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fedmap.errors import FedmapError
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message on one line (at most 200 characters)."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def atomic_write_bytes(path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically.
+
+    The bytes go to a temporary file in the same folder, are flushed to disk, and the
+    temporary file is renamed over ``path`` with :func:`os.replace`. Readers see either
+    the old file or the new one, never a partial write; if anything fails the temporary
+    file is removed and an existing ``path`` is left untouched. The parent folder is
+    created if missing. An existing file keeps its permission bits; a new one gets the
+    usual ``0o666 & ~umask``.
+    """
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FedmapError(f"cannot create folder {path.parent}: {one_line(exc)}") from exc
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        try:
+            os.chmod(tmp, stat.S_IMODE(os.stat(path).st_mode))
+        except FileNotFoundError:
+            pass
+        os.replace(tmp, path)
+    except BaseException as exc:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        if isinstance(exc, OSError):
+            raise FedmapError(f"cannot write {path}: {one_line(exc)}") from exc
+        raise
+
+
+
+class AtomicDir:
+    """Write a result folder completely or not at all.
+
+    Files go into a temporary sibling folder; :meth:`commit` swaps it into place (the old
+    folder is removed only after the new one is complete). On an exception nothing of
+    the new run is left behind and the old folder is untouched.
+    """
+
+    def __init__(self, target: str | os.PathLike) -> None:
+        self.target = Path(target)
+
+    def __enter__(self) -> Path:
+        self.target.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.tmp-", dir=self.target.parent))
+        return self.tmp
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            return
+        old = None
+        if self.target.exists():
+            old = self.target.with_name(f".{self.target.name}.old-{os.getpid()}")
+            os.replace(self.target, old)
+        os.replace(self.tmp, self.target)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+def clean_json(obj: Any) -> Any:
+    """JSON-safe copy: inf/nan -> None, numpy scalars -> Python, keys -> str."""
+    if isinstance(obj, dict):
+        return {str(k): clean_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [clean_json(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def to_json(obj: Any) -> str:
+    """Indented JSON text of ``obj`` after :func:`clean_json`."""
+    return json.dumps(clean_json(obj), indent=2, sort_keys=False) + "\n"
+
+
+def suggest(key: str, allowed: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` for the closest allowed key, else the list of them."""
+    allowed = list(allowed)
+    close = difflib.get_close_matches(key, list(allowed), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else f"; known: {', '.join(allowed)}"
+
+
+def check_keys(data: dict, allowed: Iterable[str], where: str) -> None:
+    """Raise for the first key of ``data`` not in ``allowed``, suggesting the closest."""
+    allowed = list(allowed)
+    for key in data:
+        if key not in allowed:
+            raise FedmapError(f"unknown key {key!r} in {where}{suggest(key, allowed)}")

@@ -1,0 +1,123 @@
+"""``fedmap base-station`` / ``rover`` / ``certs``: real federation with Flower (:mod:`fedmap.flower`).
+
+Nothing here imports ``flwr``: the commands start Flower's own processes
+(:mod:`fedmap.flower.launch`), which load fedmap's ClientApp and ServerApp.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from fedmap.cli.ui import console, progress_bar
+from fedmap.config import overrides_from, resolve
+from fedmap.flower.launch import make_certs, rover_node_config, run_base_station, run_rover
+from fedmap.flower.settings import run_config_from
+
+
+def base_station(
+    rovers: int = typer.Option(4, help="Rovers in the team (partition ids 0..rovers-1)."),
+    min_rovers: int = typer.Option(1, "--min-rovers", help="Fewest rovers a round may aggregate; fewer ends the run."),
+    deadline: float = typer.Option(600.0, help="Seconds a round waits for replies; late rovers are recorded as missing."),
+    connect_timeout: float = typer.Option(120.0, "--connect-timeout", help="Seconds to wait for rovers to connect."),
+    method: Optional[str] = typer.Option(None, help="Preset: paper or fedmap (the options below override it) [paper]."),
+    rounds: Optional[int] = typer.Option(None, help="Communication rounds R [1]."),
+    aggregator: Optional[str] = typer.Option(None, help="fedavg, fedadam, fedyogi or coverage."),
+    eta: Optional[float] = typer.Option(None, help="Server learning rate for fedadam/fedyogi [0.01]."),
+    local_epochs: Optional[int] = typer.Option(None, "--local-epochs", help="Local epochs per round E [100]."),
+    lr: Optional[float] = typer.Option(None, help="Local Adam learning rate."),
+    masked: Optional[bool] = typer.Option(None, help="Loss on known cells only."),
+    net: Optional[str] = typer.Option(None, help="Network: paper, small or grid."),
+    init: Optional[str] = typer.Option(None, help="Initial weights: random, empty (empty-map prior) or meta (shipped meta-init)."),
+    uplink: Optional[str] = typer.Option(None, help="Rover -> base codec (see fedmap demo --help)."),
+    downlink: Optional[str] = typer.Option(None, help="Base -> rover codec."),
+    seed: Optional[int] = typer.Option(None, help="Seed of the initial model and the rovers' training [0]."),
+    terrain: Optional[str] = typer.Option(None, help="Ground truth from the built-in generator (mars, moon, ice)."),
+    size: Optional[int] = typer.Option(None, help="Generated ground truth side in cells [128]."),
+    truth: Optional[Path] = typer.Option(None, help="Ground-truth map file (.png or .npy) to evaluate against."),
+    pairs: Optional[int] = typer.Option(None, help="Random start/goal pairs for the path F1 [75]."),
+    min_size: Optional[int] = typer.Option(None, "--min-size", help="Refinement: remove impassable blobs smaller than this [0]."),
+    host: str = typer.Option("0.0.0.0", help="Address the SuperLink listens on."),
+    port: int = typer.Option(9092, help="SuperLink port (rovers connect to HOST:PORT)."),
+    certs: Optional[Path] = typer.Option(None, help="TLS: folder from `fedmap certs` (ca.crt, server.pem, server.key)."),
+    auth_keys: Optional[Path] = typer.Option(None, "--auth-keys", help="SuperNode authentication: folder of rover *.pub keys."),
+    out: Path = typer.Option(Path("fedmap-out/flower"), "--out", "-o", help="Output folder (replaced atomically)."),
+) -> None:
+    """Base station: start a SuperLink and run fedmap's ServerApp for R rounds."""
+    settings = dict(method=method, rounds=rounds, aggregator=aggregator, eta=eta, epochs=local_epochs, lr=lr,
+                    masked=masked, net=net, init=init, uplink=uplink, downlink=downlink, seed=seed, size=size,
+                    pairs=pairs, min_size=min_size)
+    resolved = resolve(None, [overrides_from(settings)])
+    cfg = run_config_from(resolved, rovers=rovers, min_rovers=min_rovers, deadline=deadline,
+                          connect_timeout=connect_timeout, terrain=terrain, out=str(out),
+                          truth=str(truth.resolve()) if truth else None)
+    rounds = cfg["rounds"]
+    t0 = time.perf_counter()
+    with progress_bar() as progress:
+        task = progress.add_task("waiting for rovers", total=rounds, loss="")
+
+        def on_status(st: dict) -> None:
+            done = st.get("round", 0) - (0 if st.get("saved") or st["state"] == "done" else 1)
+            what = "finished" if st["state"] == "done" else f"round {st.get('round', 0)}/{rounds}"
+            progress.update(task, completed=min(rounds, done), description=what,
+                            loss=f"{st.get('nodes', '')} rovers" if "nodes" in st else "")
+
+        def on_ready() -> None:
+            console.print(f"ready: SuperLink on {host}:{port} ({'TLS' if certs else 'insecure'}"
+                          f"{', SuperNode auth' if auth_keys else ''}); start the rovers with: "
+                          f"fedmap rover --superlink <this host>:{port} --partition-id K ...")
+
+        run_base_station(cfg, host=host, port=port, certs=certs, auth_keys=auth_keys, on_status=on_status,
+                         on_ready=on_ready)
+    m = json.loads((out / "metrics.json").read_text())
+    for r in m["rounds"]:
+        console.print(f"round {r['round']}: aggregated rovers {sorted(int(k) for k in r['weights'])}; "
+                      f"missing {r['missing'] or 'none'}; dropped {r['dropped'] or 'none'}; "
+                      f"uplink {sum(r['uplink_bytes'].values()):,} B")
+    if "global" in m:
+        console.print(f"global map: PSNR {m['global']['psnr']:.2f} dB, path F1 {m['global']['path']['f1']:.2f}")
+    b = m["bytes"]
+    console.print(f"link: {b['uplink']:,} B uplink, {b['downlink']:,} B downlink; "
+                  f"{b['uplink_per_agent_round']:,.0f} B per rover per round uplink")
+    console.print(f"outputs: {out}/  (metrics.json, global_model*.safetensors, maps); "
+                  f"wall time {time.perf_counter() - t0:.1f} s")
+
+def rover(
+    superlink: str = typer.Option(..., help="The base station's SuperLink as HOST:PORT."),
+    partition_id: int = typer.Option(..., "--partition-id", help="This rover's index in the team (0-based)."),
+    map_path: Optional[Path] = typer.Option(None, "--map", help="This rover's local map (.png or .npy)."),
+    terrain: Optional[str] = typer.Option(None, help="Or: take the local map from the built-in generator (mars, moon, ice)."),
+    size: int = typer.Option(128, help="Generator: map side in cells."),
+    agents: int = typer.Option(4, help="Generator: rovers in the team."),
+    explore: str = typer.Option("quadrants", help="Generator: exploration pattern."),
+    seed: int = typer.Option(0, help="Generator: seed (the same as the base station's)."),
+    root_cert: Optional[Path] = typer.Option(None, "--root-cert", help="TLS: the base station's ca.crt (else insecure)."),
+    auth_key: Optional[Path] = typer.Option(None, "--auth-key", help="SuperNode authentication: this rover's private key."),
+    port: int = typer.Option(0, help="Local port of the SuperNode's own API (0: any free port)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Save the final global model and map here."),
+) -> None:
+    """Rover: run a Flower SuperNode that trains on this rover's local map."""
+    cfg = rover_node_config(partition_id=partition_id, map_path=map_path, terrain=terrain, size=size,
+                            agents=agents, explore=explore, seed=seed, out=out)
+    if root_cert is None:
+        console.print("warning: no --root-cert, connecting without TLS (fine on a trusted local network only)")
+    console.print(f"rover {partition_id}: connecting to {superlink}")
+    code = run_rover(cfg, superlink=superlink, root_cert=root_cert, auth_key=auth_key, port=port)
+    raise typer.Exit(code)
+
+def certs(
+    out_dir: Path = typer.Argument(..., help="Folder for the certificates and keys."),
+    host: list[str] = typer.Option(["localhost", "127.0.0.1"], "--host",
+                                   help="Name or IP the rovers use to reach the base station (repeat)."),
+    rovers: int = typer.Option(4, help="SuperNode authentication key pairs to make (rover0..)."),
+    days: int = typer.Option(365, help="Certificate lifetime in days."),
+) -> None:
+    """TLS certificates for the SuperLink and SuperNode authentication keys for the rovers."""
+    files = make_certs(out_dir, hosts=host, rovers=rovers, days=days)
+    console.print(f"{out_dir}: " + ", ".join(f.name for f in files))
+    console.print("base station: fedmap base-station --certs DIR [--auth-keys DIR]; "
+                  "rover k: fedmap rover --root-cert DIR/ca.crt [--auth-key DIR/roverK] ...")

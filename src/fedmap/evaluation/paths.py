@@ -1,0 +1,128 @@
+"""The paper's path-planning F1 of a learned map against ground truth, and a tolerant variant.
+
+Both maps are planned on with the one A* of :mod:`fedmap.maps.planning`, for seeded
+start/goal pairs drawn from the passable cells of the truth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from fedmap.errors import FedmapError
+from fedmap.maps.planning import astar, passable_mask, path_is_valid, path_length, sample_pairs
+
+
+@dataclass(frozen=True)
+class TolerantScores:
+    """A learned path counts as correct when it is collision-free on the true map and at
+    most ``1 + length_tolerance`` times the true path's length."""
+
+    length_tolerance: float
+    tp: int
+    fp: int
+    fn: int
+    precision: float
+    recall: float
+    f1: float
+
+
+@dataclass(frozen=True)
+class PathScores:
+    """Counts and precision / recall / F1 of :func:`path_f1` (``to_dict`` for JSON)."""
+
+    pairs: int
+    tp: int
+    fp: int
+    fn: int
+    tn: int
+    precision: float
+    recall: float
+    f1: float
+    tolerant: TolerantScores
+    mean_length_ratio: float | None
+    unknown_passable: bool
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _prf(tp: int, fp: int, fn: int) -> tuple[float, float, float]:
+    p = tp / (tp + fp) if tp + fp else 1.0
+    r = tp / (tp + fn) if tp + fn else 1.0
+    f = 2 * p * r / (p + r) if p + r else 0.0
+    return p, r, f
+
+
+def path_f1(
+    truth: np.ndarray,
+    pred: np.ndarray,
+    *,
+    n_pairs: int = 75,
+    seed: int = 0,
+    unknown_passable: bool = False,
+    length_tolerance: float = 0.05,
+) -> PathScores:
+    """The paper's path-planning F1, plus a tolerant variant.
+
+    For ``n_pairs`` seeded start/goal pairs drawn from the passable cells of ``truth``,
+    plan with the same A* on both maps:
+
+    * TP: both find a path and the paths are identical, cell for cell;
+    * FP: the learned map gives a path that is not the true one (the truth has none, or
+      a different one);
+    * FN: the truth has a path that the learned map does not reproduce (none found, or a
+      different one). So a different path counts once as FP and once as FN;
+    * TN: neither map has a path.
+
+    Conventions for empty denominators: with no learned path at all precision is 1
+    (nothing was claimed wrongly); with no true path at all recall is 1; so when every
+    pair has no path on either map, precision, recall and F1 are all 1.
+
+    The tolerant variant counts a learned path as correct when it is collision-free on
+    the true map and at most ``(1 + length_tolerance)`` times the true path's length.
+    """
+    truth = np.asarray(truth)
+    pred = np.asarray(pred)
+    if truth.shape != pred.shape:
+        raise FedmapError(f"learned map {pred.shape} and ground truth {truth.shape} differ in size")
+    if n_pairs <= 0:
+        raise FedmapError(f"n_pairs must be positive, got {n_pairs}")
+    pt = passable_mask(truth, unknown_passable=unknown_passable)
+    pp = passable_mask(pred, unknown_passable=unknown_passable)
+    lt, _ = ndimage.label(pt)  # 4-connectivity == reachability (see module doc)
+    lp, _ = ndimage.label(pp)
+    tp = fp = fn = tn = 0
+    tol_tp = tol_fp = tol_fn = 0
+    ratios = []
+    for s, g in sample_pairs(pt, n_pairs, seed=seed):
+        true_path = astar(pt, s, g) if lt[s] == lt[g] else None
+        pred_path = astar(pp, s, g) if (lp[s] and lp[s] == lp[g]) else None
+        if true_path is None and pred_path is None:
+            tn += 1
+            continue
+        if true_path is not None and pred_path is not None and true_path == pred_path:
+            tp += 1
+        else:
+            fp += pred_path is not None
+            fn += true_path is not None
+        # tolerant variant
+        if true_path is not None and pred_path is not None:
+            ratio = path_length(pred_path) / max(path_length(true_path), 1e-12)
+            ratios.append(ratio)
+            if path_is_valid(pt, pred_path) and ratio <= 1 + length_tolerance:
+                tol_tp += 1
+            else:
+                tol_fp += 1
+                tol_fn += 1
+        else:
+            tol_fp += pred_path is not None
+            tol_fn += true_path is not None
+
+    p, r, f = _prf(tp, fp, fn)
+    tp_, tr_, tf_ = _prf(tol_tp, tol_fp, tol_fn)
+    tolerant = TolerantScores(length_tolerance, tol_tp, tol_fp, tol_fn, tp_, tr_, tf_)
+    return PathScores(n_pairs, tp, fp, fn, tn, p, r, f, tolerant, float(np.mean(ratios)) if ratios else None,
+                      unknown_passable)

@@ -1,0 +1,35 @@
+"""Real federation between processes on Flower (``flwr``): one SuperNode per rover.
+
+A thin adapter, laid out like Flower's own quickstart apps:
+
+``client_app``  the rover's ``ClientApp`` (imports ``flwr``)
+``server_app``  the base station's ``ServerApp`` and its strategy (imports ``flwr``)
+``records``     fedmap payload bytes inside Flower records (imports ``flwr``)
+``task``        what the apps do, Flower-free: rover rounds, ground truth, checkpoints, outputs
+``settings``    Flower's run / node config -> fedmap settings, through :mod:`fedmap.config`
+``launch``      starting SuperLink / SuperNode / ``flwr run`` processes for the CLI
+
+The math is the code the in-process runner uses (:func:`fedmap.federation.runner.rover_step`
+and :func:`~fedmap.federation.runner.base_step`); what crosses the link is fedmap's own
+payload bytes (:mod:`fedmap.federation.codecs`) carried as a ``uint8`` array in an
+``ArrayRecord``. Flower is an optional extra (``pip install 'fedmap[flower]'``): only
+``client_app``, ``server_app`` and ``records`` import it (an import-linter contract).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+
+from fedmap.errors import FedmapError
+
+INSTALL_HINT = "Flower is not installed; run: pip install 'fedmap[flower]'"
+
+
+def require_flwr() -> None:
+    """Raise a one-line :class:`FedmapError` when ``flwr`` cannot be imported."""
+    try:
+        found = importlib.util.find_spec("flwr") is not None
+    except ValueError:  # sys.modules["flwr"] is None: the import is blocked
+        found = False
+    if not found:
+        raise FedmapError(INSTALL_HINT)

@@ -1,0 +1,96 @@
+"""The rover: a Flower ``ClientApp`` that trains on its own local map.
+
+Each ``train`` message carries the base station's downlink payload (empty in round 1:
+every rover rebuilds the initial model, as in the in-process runner). The rover decodes
+it relative to the model it holds, trains (:func:`fedmap.flower.task.train_round`) and
+replies with its uplink payload and its number of known cells. What the rover holds
+between rounds (the decoded global model and its uplink encoder with the error-feedback
+residual) lives in ``context.state``.
+
+A rejected update (:class:`~fedmap.errors.RejectedUpdate`) is reported in the reply and
+the base drops this rover for the round; any other error is reported as ``fatal`` and
+stops the run.
+
+The final ``evaluate`` message delivers the last global model; with ``out=<dir>`` in the
+node config the rover saves it there with its rendering.
+"""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import numpy as np
+from flwr.app import Array, ArrayRecord, ConfigRecord, Context, Message, MetricRecord, RecordDict
+from flwr.clientapp import ClientApp
+
+from fedmap.errors import FedmapError, RejectedUpdate
+from fedmap.federation.codecs import Encoder
+from fedmap.flower.records import from_record, to_record
+from fedmap.flower.settings import RunSettings
+from fedmap.flower.task import load_local_map, receive, save_received, train_round
+from fedmap.nets.model import Weights
+
+app = ClientApp()
+
+_HELD, _ENCODER = "fedmap.held", "fedmap.encoder"
+
+
+def _restore(context: Context) -> tuple[Weights | None, Encoder | None]:
+    """The model this rover holds and its uplink encoder (None before round 1)."""
+    if _HELD not in context.state:
+        return None, None
+    held = {k: v.numpy() for k, v in context.state[_HELD].items()}
+    # the encoder is this rover's own state, written by this rover: unpickling is safe
+    return held, pickle.loads(context.state[_ENCODER]["pickle"])
+
+
+def _store(context: Context, held: Weights, encoder: Encoder) -> None:
+    context.state[_HELD] = ArrayRecord({k: Array(np.ascontiguousarray(v)) for k, v in held.items()})
+    context.state[_ENCODER] = ConfigRecord({"pickle": pickle.dumps(encoder)})
+
+
+def _error_reply(msg: Message, metrics: dict, e: FedmapError) -> Message:
+    """Reported, not raised: the base drops this rover for the round (a rejected update)
+    or stops the run with this line (any other error)."""
+    error = {"reason": str(e), "fatal": not isinstance(e, RejectedUpdate)}
+    return Message(RecordDict({"metrics": MetricRecord(metrics), "error": ConfigRecord(error)}), reply_to=msg)
+
+
+@app.train()
+def train(msg: Message, context: Context) -> Message:
+    settings = RunSettings.from_run_config(dict(context.run_config))
+    pid, local = load_local_map(dict(context.node_config))
+    server_round = int(msg.content["config"]["server-round"])
+    down = from_record(msg.content.array_records.get("downlink"))
+    metrics = {"partition-id": pid, "known-cells": local.n_known, "height": local.shape[0], "width": local.shape[1],
+               "downlink-bytes": len(down)}
+    try:
+        held, encoder = receive(settings, local, *_restore(context), down)
+    except FedmapError as e:
+        return _error_reply(msg, metrics, e)
+    try:
+        payload, loss = train_round(settings, local, pid, server_round, held, encoder)
+    except FedmapError as e:
+        _store(context, held, encoder)
+        return _error_reply(msg, metrics, e)
+    _store(context, held, encoder)
+    metrics["uplink-bytes"] = len(payload)
+    if loss is not None:
+        metrics["loss"] = float(loss)
+    return Message(RecordDict({"uplink": to_record(payload), "metrics": MetricRecord(metrics)}), reply_to=msg)
+
+
+@app.evaluate()
+def receive_global(msg: Message, context: Context) -> Message:
+    """The final broadcast: decode it, keep it, optionally save it (node config ``out``)."""
+    settings = RunSettings.from_run_config(dict(context.run_config))
+    pid, local = load_local_map(dict(context.node_config))
+    down = from_record(msg.content.array_records.get("downlink"))
+    held, encoder = receive(settings, local, *_restore(context), down)
+    _store(context, held, encoder)
+    out = context.node_config.get("out")
+    if out:
+        save_received(settings, local, held, Path(str(out)))
+    return Message(RecordDict({"metrics": MetricRecord({"partition-id": pid, "downlink-bytes": len(down)})}),
+                   reply_to=msg)

@@ -1,0 +1,174 @@
+"""What the Flower apps do, without Flower: the rover's map and round, the base station's
+ground truth, status file, checkpoints and outputs.
+
+As in Flower's quickstart apps (``task.py`` beside two thin app files), the ClientApp and
+ServerApp only move messages; the work is here and in the library
+(:func:`fedmap.federation.runner.rover_step` / :func:`~fedmap.federation.runner.base_step`,
+:mod:`fedmap.stages`, :mod:`fedmap.evaluation`, :mod:`fedmap.outputs`). Nothing here
+imports ``flwr``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from fedmap._util import AtomicDir, atomic_write_bytes, to_json
+from fedmap.errors import FedmapError
+from fedmap.evaluation.scores import score_map
+from fedmap.explore import explore
+from fedmap.federation.codecs import Encoder, decode
+from fedmap.federation.runner import FederationResult, rover_step
+from fedmap.flower.settings import RunSettings
+from fedmap.maps.grid import GridMap, classes_from_rgb
+from fedmap.maps.io import save_map
+from fedmap.maps.sources import TerrainSource, load_truth
+from fedmap.nets.init import initial_model
+from fedmap.nets.model import Weights, build_model, get_weights, preset, render, save_model, set_weights
+from fedmap.outputs import write_outputs
+from fedmap.pipeline import PipelineConfig, PipelineResult
+from fedmap.stages import global_map
+
+# --------------------------------------------------------------------------- the rover
+
+
+def load_local_map(node_config: dict) -> tuple[int, GridMap]:
+    """``(partition_id, local map)`` of one rover from its node config.
+
+    ``partition-id`` is required. The map is ``map=<path to a PNG/npy map>``, or the
+    built-in generator: ``terrain``, ``size``, ``agents``, ``explore``, ``seed`` give the
+    same local maps as ``fedmap demo`` (rover ``partition-id`` takes the k-th of them).
+    """
+    if "partition-id" not in node_config:
+        raise FedmapError("node config needs partition-id=<rover index>")
+    pid = node_config["partition-id"]
+    if isinstance(pid, bool) or not isinstance(pid, int) or pid < 0:
+        raise FedmapError(f"partition-id must be an integer >= 0, got {pid!r}")
+    if "map" in node_config:
+        from fedmap.maps.io import load_map
+
+        return pid, load_map(str(node_config["map"]))
+    if "terrain" not in node_config:
+        raise FedmapError("node config needs map=<path> or terrain=<mars|moon|ice> (with size, agents, explore, seed)")
+    agents = int(node_config.get("agents", 4))
+    if pid >= agents:
+        raise FedmapError(f"partition-id {pid} is not below agents={agents}")
+    cfg = PipelineConfig(terrain=str(node_config["terrain"]), size=int(node_config.get("size", 128)),
+                         agents=agents, explore=str(node_config.get("explore", "quadrants")),
+                         seed=int(node_config.get("seed", 0)))
+    truth = load_truth(cfg.terrain_source(), seed=cfg.seed)
+    maps = explore(truth, cfg.agents, cfg.explore, seed=cfg.seed, overlap=cfg.overlap, sensor_radius=cfg.sensor_radius)
+    return pid, maps[pid]
+
+
+def initial_weights(settings: RunSettings, height: int) -> Weights:
+    """The initial model every rover and the base rebuild alone (never sent)."""
+    p = settings.pipeline
+    return get_weights(initial_model(preset(p.net, height), init=p.init, seed=p.seed, prior_steps=p.prior_steps,
+                                     init_weights=p.init_weights))
+
+
+def receive(settings: RunSettings, local: GridMap, held: Weights | None, encoder: Encoder | None,
+            downlink: bytes) -> tuple[Weights, Encoder]:
+    """What a rover holds once the broadcast arrived: ``held`` / ``encoder`` are what it
+    kept from its last round (None in round 1: it rebuilds the initial model); an empty
+    ``downlink`` (round 1) leaves the model as it is."""
+    if held is None or encoder is None:
+        held, encoder = initial_weights(settings, local.shape[0]), Encoder(settings.federation.uplink)
+    if downlink:  # the previous round's broadcast, relative to what this rover holds
+        held = decode(downlink, reference=held)
+    return held, encoder
+
+
+def train_round(settings: RunSettings, local: GridMap, pid: int, server_round: int, held: Weights,
+                encoder: Encoder) -> tuple[bytes, float | None]:
+    """One rover's round (:func:`~fedmap.federation.runner.rover_step`): the uplink payload
+    and the last loss; raises :class:`~fedmap.errors.RejectedUpdate` when this rover's
+    update must be left out."""
+    model = build_model(preset(settings.pipeline.net, local.shape[0]))
+    return rover_step(model, local, held, encoder, settings.federation, round_idx=server_round - 1, agent=pid)
+
+
+def save_received(settings: RunSettings, local: GridMap, held: Weights, out: Path) -> None:
+    """The final global model a rover received, and its rendering, in ``out``."""
+    model = build_model(preset(settings.pipeline.net, local.shape[0]))
+    set_weights(model, held)
+    save_model(model, out / "global_model.safetensors")
+    rgb = render(model, *local.shape)
+    save_map(local.with_classes(classes_from_rgb(rgb), "global map received by the rover"), out / "global_map.png")
+
+
+# --------------------------------------------------------------------------- the base station
+
+
+def run_dir(out: Path) -> Path:
+    """``<out>.run/``: the base station's status and per-round checkpoints while a run goes."""
+    out = Path(out)
+    return out.with_name(out.name + ".run")
+
+
+def run_status_path(out: Path) -> Path:
+    """``<out>.run/status.json``: ``{"state": "running" | "done" | "failed", ...}``."""
+    return run_dir(out) / "status.json"
+
+
+def write_status(out_dir: Path, state: str, **fields: Any) -> None:
+    atomic_write_bytes(run_status_path(out_dir), json.dumps({"state": state, **fields}).encode())
+
+
+def save_checkpoint(settings: RunSettings, held: Weights, height: int, server_round: int) -> None:
+    """The global model after ``server_round``, atomically, in ``<out>.run/``."""
+    model = build_model(preset(settings.pipeline.net, height))
+    set_weights(model, held)
+    save_model(model, run_dir(settings.out) / f"global_model_round{server_round}.safetensors",
+               extra={"round": server_round})
+    write_status(settings.out, "running", round=server_round, saved=True)
+
+
+def base_truth(settings: RunSettings) -> GridMap | None:
+    """The ground truth the base evaluates against: a map file, a built-in terrain, or None."""
+    p = settings.pipeline
+    if settings.truth:
+        return load_truth(TerrainSource(kind="map", path=settings.truth))
+    if settings.terrain:
+        return load_truth(p.terrain_source(), seed=p.seed)
+    return None
+
+
+def write_base_outputs(fed: FederationResult, shape: tuple[int, int], settings: RunSettings, flower: dict,
+                       *, federation_s: float) -> Path:
+    """The demo's output folder (plus per-round checkpoints and the byte ledger)."""
+    import time
+
+    p = settings.pipeline
+    h, w = shape
+    t = time.perf_counter()
+    net = preset(p.net, h)
+    model, rgb, classes, refined = global_map(net, fed.weights, (h, w), p.refine)
+    truth = base_truth(settings)
+    metrics = {"aggregator": fed.aggregator, "bytes": fed.total_bytes(), "ledger": fed.ledger(),
+               "rounds": fed.history, "flower": flower}
+    out = settings.out
+    if truth is not None:
+        if truth.shape != (h, w):
+            raise FedmapError(f"the ground truth is {truth.shape}, the rovers' maps are {(h, w)}")
+
+        def score(c):
+            return score_map(truth.classes, c, pairs=p.eval_pairs, seed=p.seed, unknown_passable=p.unknown_passable)
+
+        result = PipelineResult(p, truth, [], model, rgb, classes, refined, fed, score(classes), score(refined), [],
+                                timings={"federation_s": federation_s, "evaluate_s": time.perf_counter() - t})
+        write_outputs(result, out, extra_metrics={"flower": flower})
+    else:
+        frame = GridMap(classes, 1.0, "federated global map")
+        with AtomicDir(out) as tmp:
+            (tmp / "metrics.json").write_text(to_json({**metrics, "timings": {"federation_s": federation_s}}))
+            save_model(model, tmp / "global_model.safetensors", extra={"flower": flower["settings"]})
+            save_map(frame, tmp / "global_map.png")
+            save_map(frame.with_classes(refined, "refined global map"), tmp / "refined_map.png")
+    for ckpt in sorted(run_dir(out).glob("global_model_round*.safetensors")):
+        os.replace(ckpt, out / ckpt.name)  # same filesystem: each move is atomic
+    write_status(out, "done", rounds=len(fed.history), out=str(out))
+    return out

@@ -1,0 +1,1 @@
+"""Networks and local training: the coordinate networks, ``fit``, and where they start."""

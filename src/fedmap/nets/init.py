@@ -1,0 +1,81 @@
+"""Where every network starts: seeded random weights, the empty-map prior, or the meta-init.
+
+``random``  the network's seeded initialisation (for GridNet: zero grids, which *is* the
+            empty-map prior, since its frozen decoder renders a zero grid grey).
+``empty``   theta_0: the network fitted to an all-UNKNOWN map, so that a region it has not
+            been trained on renders as UNKNOWN grey (what the paper's meta-training starts
+            from).
+``meta``    meta-initialised weights (Reptile on Earth maps): the file shipped with the
+            package, ``weights/paper_meta.safetensors``, or any file from
+            ``fedmap meta-train``. Nothing is downloaded at run time.
+
+The initial model is deterministic, so rovers and the base station rebuild it alone and
+it never travels.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fedmap.errors import FedmapError
+from fedmap.maps.grid import UNKNOWN, GridMap
+from fedmap.nets.model import NetConfig, Weights, build_model, get_weights, load_model, set_weights
+from fedmap.nets.training import TrainConfig, fit
+
+INITS = ("random", "empty", "meta")
+
+#: The meta-initialised paper network shipped with the package (its metadata holds the
+#: exact ``fedmap meta-train`` command that produced it).
+SHIPPED_WEIGHTS = Path(__file__).resolve().parent.parent / "weights" / "paper_meta.safetensors"
+
+
+def check_init(init: str, net: str) -> None:
+    """Raise a one-line error for an unknown init or one the network cannot start from."""
+    if init not in INITS:
+        raise FedmapError(f"unknown init {init!r}; choose one of {', '.join(INITS)}")
+    if init == "meta" and net == "grid":
+        raise FedmapError("init 'meta' is for the Fourier networks (paper, small); a grid network starts at zero")
+
+
+def empty_prior(net_config: NetConfig, *, steps: int, seed: int, size: int = 64, lr: float = 1e-3) -> torch.nn.Module:
+    """The network fitted for ``steps`` full-grid Adam steps to an all-UNKNOWN map.
+
+    Fitted on a ``size x size`` grid; the network is a function of continuous
+    coordinates, so it renders grey at any resolution.
+    """
+    model = build_model(net_config, seed=seed)
+    blank = GridMap(np.full((size, size), UNKNOWN, dtype=np.uint8), source="empty-map")
+    fit(model, blank, TrainConfig(epochs=steps, lr=lr), seed=seed)
+    return model
+
+
+def load_init_weights(net_config: NetConfig, path: str | Path | None = None) -> Weights:
+    """Weights of a stored network for ``net_config`` (default: the shipped meta-init).
+
+    Raises a one-line :class:`FedmapError` when the file is missing, is not a fedmap
+    model file, or was built for another network.
+    """
+    p = Path(path) if path is not None else SHIPPED_WEIGHTS
+    if path is None and not p.is_file():
+        raise FedmapError(f"the shipped meta-init weights are missing ({p}); reinstall fedmap or run fedmap meta-train")
+    model = load_model(p)
+    if model.config != net_config:
+        raise FedmapError(f"{p} holds a network built with {model.config.to_dict()}, "
+                          f"but this run uses {net_config.to_dict()}")
+    return get_weights(model)
+
+
+def initial_model(net_config: NetConfig, *, init: str, seed: int, prior_steps: int,
+                  init_weights: str | Path | None = None) -> torch.nn.Module:
+    """The model every rover starts round 1 from (see the module docstring)."""
+    if init not in INITS:
+        raise FedmapError(f"unknown init {init!r}; choose one of {', '.join(INITS)}")
+    if init == "empty":
+        return empty_prior(net_config, steps=prior_steps, seed=seed)
+    model = build_model(net_config, seed=seed)
+    if init == "meta":
+        set_weights(model, load_init_weights(net_config, init_weights))
+    return model

@@ -1,0 +1,86 @@
+"""What a run leaves on disk for people: the Fig. 4 panel, maps, the model and metrics.
+
+:func:`write_outputs` writes a :class:`~fedmap.pipeline.PipelineResult` as one atomic
+folder (:class:`fedmap._util.AtomicDir`): the previous folder stays until the new one is
+complete.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from fedmap._util import AtomicDir, to_json
+from fedmap.evaluation.scores import MapScores
+from fedmap.maps.grid import GridMap, render_classes
+from fedmap.maps.io import save_map
+from fedmap.nets.model import save_model
+from fedmap.pipeline import PipelineResult
+
+
+def fig4_panel(local_maps: list[GridMap], truth: GridMap, global_classes: np.ndarray, refined: np.ndarray,
+               path: Path, *, title: str = "", scores: dict | None = None) -> None:
+    """Agents' local maps | ground truth | federated global map | refined map."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    panels = [(f"agent {k + 1} local map", m.classes) for k, m in enumerate(local_maps)]
+    panels += [("ground truth", truth.classes), ("federated global map", global_classes), ("refined global map", refined)]
+    n = len(panels)
+    fig, axes = plt.subplots(1, n, figsize=(2.4 * n, 2.9), dpi=110)
+    for ax, (name, cls) in zip(np.atleast_1d(axes), panels):
+        ax.imshow(render_classes(cls), interpolation="nearest")
+        label = name
+        if scores and name in scores:
+            s = scores[name]
+            label += f"\nPSNR {s['psnr']:.1f}  F1 {s['f1']:.2f}"
+        ax.set_title(label, fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    handles = [Patch(color=(0, 1, 0), label="free"), Patch(color=(1, 0, 0), label="impassable"),
+               Patch(color=(0.5, 0.5, 0.5), label="unknown")]
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout(rect=(0, 0.07, 1, 0.95 if title else 1))
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def panel_scores(global_scores: MapScores, refined_scores: MapScores) -> dict[str, dict[str, float]]:
+    """The scores :func:`fig4_panel` prints under the global and refined maps."""
+    return {"federated global map": {"psnr": global_scores.psnr, "f1": global_scores.path.f1},
+            "refined global map": {"psnr": refined_scores.psnr, "f1": refined_scores.path.f1}}
+
+
+def write_outputs(result: PipelineResult, out_dir: str | Path, *, extra: dict[str, str] | None = None,
+                  extra_metrics: dict | None = None) -> Path:
+    """Write metrics.json, config.json, the global model, maps and the Fig. 4 panel, atomically.
+
+    ``extra`` maps further file names to text written into the same folder (e.g. the
+    resolved run config); ``extra_metrics`` adds entries to ``metrics.json``.
+    """
+    out = Path(out_dir)
+    with AtomicDir(out) as tmp:
+        metrics = {**result.metrics, **(extra_metrics or {}), "timings": result.timings}
+        (tmp / "metrics.json").write_text(to_json(metrics))
+        (tmp / "config.json").write_text(to_json(result.config.to_dict()))
+        for name, text in (extra or {}).items():
+            (tmp / name).write_text(text)
+        save_model(result.model, tmp / "global_model.safetensors", extra={"pipeline": result.config.to_dict()})
+        save_map(result.truth, tmp / "truth.png")
+        save_map(result.truth.with_classes(result.global_classes, "federated global map"), tmp / "global_map.png")
+        save_map(result.truth.with_classes(result.refined, "refined global map"), tmp / "refined_map.png")
+        for k, m in enumerate(result.local_maps):
+            save_map(m, tmp / f"agent{k + 1}_local.png")
+        c = result.config
+        init = "zero grids (empty-map prior)" if c.net == "grid" else f"init {c.init}"
+        title = (f"{c.label or c.terrain} {c.size}x{c.size}, {c.agents} agents ({c.explore}), {c.net} net, {init}, "
+                 f"{c.federation.aggregator} x {c.federation.rounds} round(s), {c.federation.local.epochs} local epochs")
+        fig4_panel(result.local_maps, result.truth, result.global_classes, result.refined, tmp / "figure.png",
+                   title=title, scores=panel_scores(result.global_scores, result.refined_scores))
+    return out
