@@ -17,7 +17,7 @@ from flwr.app import ConfigRecord, Context, RecordDict  # noqa: E402
 from flwr.server.superlink.linkstate.utils import create_message_error_unavailable_res_message  # noqa: E402
 from flwr.supercore.task_identity import TaskIdentity  # noqa: E402
 
-from fedmap.errors import FedmapError  # noqa: E402
+from fedmap.errors import FedmapError, RejectedUpdate  # noqa: E402
 from fedmap.explore import explore  # noqa: E402
 from fedmap.federation.aggregate import weighted_average  # noqa: E402
 from fedmap.federation.codecs import Encoder  # noqa: E402
@@ -151,6 +151,42 @@ def test_too_few_rovers_end_the_run(tmp_path, blob_map):
     strategy = FedmapStrategy(RunSettings.from_run_config(run))
     with pytest.raises(FedmapError, match=r"2 rover\(s\) delivered an update, fewer than min-rovers=3"):
         _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1, skip={101, 102})
+
+
+def test_rejected_update_drops_a_rover_and_a_mistake_stops_the_run(tmp_path, blob_map, monkeypatch):
+    """The ClientApp reports a RejectedUpdate (the base drops that rover) apart from any
+    other error (fatal: the base stops the run with the rover's line)."""
+    run = {**RUN, "rounds": 1}
+    _, nodes = _team(tmp_path, blob_map)
+    real = client_app.train_round
+
+    def failing(error):
+        def train_round(settings, local, pid, server_round, held, encoder):
+            if pid == 1:
+                raise error
+            return real(settings, local, pid, server_round, held, encoder)
+        return train_round
+
+    monkeypatch.setattr(client_app, "train_round", failing(RejectedUpdate("update holds NaN or infinite weights")))
+    strategy = FedmapStrategy(RunSettings.from_run_config(run))
+    _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1)
+    rec = strategy.history[0]
+    assert rec["dropped"] == {1: "update holds NaN or infinite weights"} and sorted(rec["weights"]) == [0, 2, 3]
+
+    monkeypatch.setattr(client_app, "train_round", failing(FedmapError("no such init weights file x.safetensors")))
+    strategy = FedmapStrategy(RunSettings.from_run_config(run))
+    with pytest.raises(FedmapError, match="^rover 1: no such init weights file x.safetensors$"):
+        _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1)
+
+
+def test_flower_settings_are_the_one_config_builder():
+    """The base station's run config builds the same PipelineConfig as fedmap run / method_config."""
+    from fedmap.config import method_config
+
+    s = RunSettings.from_run_config({})
+    assert s.pipeline == method_config("paper")
+    s = RunSettings.from_run_config({"rounds": 3, "net": "small", "init": "random", "lr": 0.01, "min-size": 20})
+    assert s.pipeline == method_config("paper", rounds=3, net="small", init="random", lr=0.01, min_size=20)
 
 
 def test_waiting_for_rovers_has_a_deadline():

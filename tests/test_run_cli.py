@@ -115,3 +115,23 @@ def test_bad_toml_and_earlier_results_kept(tmp_path, capsys):
     rc, _, err = _run(["--dem", tmp_path / "small.npy", "-o", out], capsys)
     assert rc == 2 and err.startswith("error: the terrain map is 40x40 cells; the pipeline needs a square map of 64..2048")
     assert (out / "metrics.json").read_text() == "{}"
+
+
+def test_demo_is_run_with_the_demos_defaults(tmp_path, capsys):
+    """`fedmap demo` and `fedmap run --method paper` build one config and give the same map,
+    model bytes and metrics; both start the paper network from the shipped meta-init."""
+    a, b = tmp_path / "demo", tmp_path / "run"
+    rc, _, err = _run(["--method", "paper", *TINY, "-o", b], capsys)
+    assert rc == 0, err
+    rc = main(["demo", *TINY, "-o", str(a)])
+    assert rc == 0, capsys.readouterr().err
+    assert (a / "global_model.safetensors").read_bytes() == (b / "global_model.safetensors").read_bytes()
+    assert (a / "global_map.png").read_bytes() == (b / "global_map.png").read_bytes()
+    ma, mb = (json.loads((p / "metrics.json").read_text()) for p in (a, b))
+    for m in (ma, mb):
+        m.pop("timings")
+        for r in m["rounds"]:
+            r.pop("seconds")
+    assert ma == mb
+    assert json.loads((a / "config.json").read_text())["init"] == "meta"
+    assert (a / "config.toml").read_text() == (b / "config.toml").read_text()

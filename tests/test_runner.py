@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 import fedmap.federation.runner as runner_mod
-from fedmap.errors import FedmapError
+from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.explore import explore
 from fedmap.federation.aggregate import weighted_average
 from fedmap.federation.codecs import Encoder, decode
@@ -166,3 +166,40 @@ def test_one_shot_cache_reuses_rover_training(tiny_net, blob_map):
     run_federation(init, tiny_net, maps, replace(base, rounds=2), one_shot_cache=cache,
                    on_step=lambda s, l: steps.append(s))
     assert len(steps) == 4 * n_first
+
+
+def test_a_mistake_inside_fit_stops_the_run_at_once(tiny_net, blob_map, monkeypatch):
+    """Only a RejectedUpdate drops a rover; any other FedmapError is a mistake and stops the
+    run on the first rover that hits it (no rover after it trains)."""
+    maps = explore(blob_map, 4, "quadrants")
+    init = get_weights(build_model(tiny_net, seed=0))
+    real_fit = runner_mod.fit
+    trained = []
+
+    def mistaken(model, grid, config, *, seed, on_step=None):
+        trained.append(grid.meta["agent"])
+        if grid.meta["agent"] == 1:
+            raise FedmapError("a configuration mistake")
+        return real_fit(model, grid, config, seed=seed, on_step=on_step)
+
+    monkeypatch.setattr(runner_mod, "fit", mistaken)
+    with pytest.raises(FedmapError, match="^a configuration mistake$"):
+        run_federation(init, tiny_net, maps, FederationConfig(local=TrainConfig(epochs=2), seed=1))
+    assert trained == [0, 1]
+
+
+def test_diverged_training_is_a_rejected_update(tiny_net, blob_map, monkeypatch):
+    """fit's own divergence check raises RejectedUpdate, which the round survives."""
+    maps = explore(blob_map, 4, "quadrants")
+    init = get_weights(build_model(tiny_net, seed=0))
+    real_fit = runner_mod.fit
+
+    def diverging(model, grid, config, *, seed, on_step=None):
+        if grid.meta["agent"] == 3:
+            raise RejectedUpdate("training diverged on 'x' (loss is nan); lower the learning rate")
+        return real_fit(model, grid, config, seed=seed, on_step=on_step)
+
+    monkeypatch.setattr(runner_mod, "fit", diverging)
+    res = run_federation(init, tiny_net, maps, FederationConfig(local=TrainConfig(epochs=2), seed=1))
+    assert list(res.history[0]["dropped"]) == [3] and "diverged" in res.history[0]["dropped"][3]
+    assert issubclass(RejectedUpdate, FedmapError)  # the CLI still prints it as one line

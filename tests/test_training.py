@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from fedmap.errors import FedmapError
+from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.maps.grid import UNKNOWN, GridMap
 from fedmap.nets.model import build_model, get_weights, render
 from fedmap.nets.training import TrainConfig, fit, map_targets, steps_per_epoch
@@ -63,10 +63,17 @@ def test_masked_loss_gradient_zero_from_unknown_cells(tiny_net):
     assert torch.all(pred.grad[weight == 0] == 0) and torch.all(pred.grad[weight == 1] != 0)
 
 
-def test_all_unknown_masked_is_an_error(tiny_net):
+def test_all_unknown_masked_is_a_rejected_update(tiny_net):
     blank = GridMap(np.full((8, 8), UNKNOWN, np.uint8), 1.0, "blank")
-    with pytest.raises(FedmapError, match="no known cell"):
+    with pytest.raises(RejectedUpdate, match="no known cell"):
         fit(build_model(tiny_net), blank, TrainConfig(epochs=1, masked=True))
+
+
+def test_divergence_is_a_rejected_update(tiny_net, blob_map):
+    """An absurd learning rate makes the loss NaN within 20 steps: the round can leave this
+    rover out (RejectedUpdate), where a bad setting such as lr=0 is a plain FedmapError."""
+    with pytest.raises(RejectedUpdate, match="training diverged on 'blobs'"):
+        fit(build_model(tiny_net, seed=0), blob_map, TrainConfig(epochs=20, lr=1e20), seed=0)
 
 
 def test_config_validation():
