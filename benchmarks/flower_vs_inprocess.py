@@ -48,7 +48,8 @@ def main() -> None:
 
     t = time.perf_counter()
     net = preset(args.net, args.size)
-    fed = run_federation(get_weights(build_model(net, seed=args.seed)), net, maps, RunSettings.from_run_config(run).federation)
+    fed = run_federation(get_weights(build_model(net, seed=args.seed)), net, maps,
+                         RunSettings.from_run_config(run).federation)
     model = build_model(net)
     set_weights(model, fed.weights)
     classes = classes_from_rgb(render(model, args.size, args.size))

@@ -18,7 +18,7 @@ import torch
 
 from fedmap.explore import explore
 from fedmap.maps.sources import TerrainSource, load_truth
-from fedmap.pipeline import PipelineConfig, run_pipeline
+from fedmap.pipeline import run_pipeline
 from fedmap.presets import method_config
 
 TEAMS = {

@@ -163,15 +163,19 @@ def markdown(rows: list[dict], s: dict) -> str:
     lines = [f"Reptile on {sum(c['tiles'] for c in s['earth'])} Earth DEM tiles ({s['size']}x{s['size']}), "
              f"{s['meta_config']['iterations']} iterations ({s['meta_train_s'] / 60:.1f} min); Table I, N = 2 steps, "
              "mean ± std over test maps; steps to reach meta's 2-step PSNR (capped runs count as the cap).", "",
-             "| test set | lr | maps | PSNR@2 meta | empty | random | SSIM@2 meta / empty / random | steps: empty | steps: random (capped) | random/meta steps |",
+             "| test set | lr | maps | PSNR@2 meta | empty | random | SSIM@2 meta / empty / random "
+             "| steps: empty | steps: random (capped) | random/meta steps |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         t = r["table"]
         ps = lambda k: f"{t[k]['psnr']['mean']:.2f} ± {t[k]['psnr']['std']:.2f}"
         st = lambda k: f"{t[k]['steps_to_meta']['mean']:.1f} ± {t[k]['steps_to_meta']['std']:.1f}"
-        lines.append(f"| {r['test_set']} | {r['config']['lr']:g} | {r['n_maps']} | {ps('meta')} | {ps('empty')} | {ps('random')} | "
-                     f"{t['meta']['ssim']['mean']:.3f} / {t['empty']['ssim']['mean']:.3f} / {t['random']['ssim']['mean']:.3f} | "
-                     f"{st('empty')} | {st('random')} ({t['random']['steps_to_meta']['capped']}, cap {r['config']['max_steps']}) | "
+        lines.append(f"| {r['test_set']} | {r['config']['lr']:g} | {r['n_maps']} | "
+                     f"{ps('meta')} | {ps('empty')} | {ps('random')} | "
+                     f"{t['meta']['ssim']['mean']:.3f} / {t['empty']['ssim']['mean']:.3f} / "
+                     f"{t['random']['ssim']['mean']:.3f} | "
+                     f"{st('empty')} | {st('random')} ({t['random']['steps_to_meta']['capped']}, "
+                     f"cap {r['config']['max_steps']}) | "
                      f"{r['random_over_meta_steps']:.1f}x |")
     return "\n".join(lines) + "\n"
 

@@ -39,7 +39,8 @@ PRINTED = [
     ("2.88 MB", "399 KB", "86.1 %"),
     ("6.48 MB", "399 KB", "93.8 %"),
 ]
-LOSSLESS = ["raw-gray", "png-gray", "png-palette", "zstd-2bit", "zstd-uint8"] + (["webp-lossless"] if features.check("webp") else [])
+LOSSLESS = ["raw-gray", "png-gray", "png-palette", "zstd-2bit", "zstd-uint8"] + (
+    ["webp-lossless"] if features.check("webp") else [])
 needs_webp = pytest.mark.skipif(not features.check("webp"), reason="Pillow built without WebP")
 
 
@@ -112,7 +113,8 @@ def test_grey_levels_and_snapping():
     np.testing.assert_array_equal(classes_to_gray(np.array([[FREE, IMPASSABLE, UNKNOWN]])), [[255, 0, 128]])
     g = np.array([0, 63, 64, 65, 128, 191, 192, 255], dtype=np.uint8)
     # 64 is equidistant from 0 (impassable) and 128 (unknown): lower class value wins
-    np.testing.assert_array_equal(gray_to_classes(g), [IMPASSABLE, IMPASSABLE, IMPASSABLE, UNKNOWN, UNKNOWN, UNKNOWN, FREE, FREE])
+    np.testing.assert_array_equal(gray_to_classes(g),
+                                  [IMPASSABLE, IMPASSABLE, IMPASSABLE, UNKNOWN, UNKNOWN, UNKNOWN, FREE, FREE])
     with pytest.raises(FedmapError):
         gray_to_classes(g.astype(np.int16))
 

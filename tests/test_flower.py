@@ -247,8 +247,8 @@ def test_key_values_parse_back_with_flowers_parser():
 
     d = {"partition-id": 3, "map": "/data/my maps/rover 3.png", "seed": 0, "masked": False, "lr": 0.001}
     assert parse_config_args([key_values(d)]) == d
-    assert tomllib.loads("\n".join(f"{k} = {v}" for k, v in (kv.split("=", 1) for kv in
-                                                                  key_values({"a": 1.5, "b": "x"}).split())))  == {"a": 1.5, "b": "x"}
+    pairs = (kv.split("=", 1) for kv in key_values({"a": 1.5, "b": "x"}).split())
+    assert tomllib.loads("\n".join(f"{k} = {v}" for k, v in pairs)) == {"a": 1.5, "b": "x"}
 
 
 def test_certs_verify(tmp_path):
@@ -276,7 +276,8 @@ def test_fedmap_imports_and_runs_without_flwr(tmp_path):
         "import sys; sys.modules['flwr'] = None\n"
         "import fedmap.cli, fedmap.pipeline, fedmap.federation.runner\n"
         "from fedmap.cli import main\n"
-        "sys.exit(main(['rover', '--superlink', '127.0.0.1:1', '--partition-id', '0', '--terrain', 'mars', '--size', '64']))\n"
+        "sys.exit(main(['rover', '--superlink', '127.0.0.1:1', '--partition-id', '0', '--terrain', 'mars', "
+        "'--size', '64']))\n"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr

@@ -20,8 +20,8 @@ from fedmap.federation.runner import run_federation  # noqa: E402
 from fedmap.flower.launch import Processes, flower_env, free_port, run_base_station  # noqa: E402
 from fedmap.flower.settings import RunSettings  # noqa: E402
 from fedmap.maps.io import save_map  # noqa: E402
-from fedmap.nets.model import build_model, get_weights, load_model, preset  # noqa: E402
 from fedmap.maps.sources import TerrainSource, load_truth  # noqa: E402
+from fedmap.nets.model import build_model, get_weights, load_model, preset  # noqa: E402
 from fedmap.pipeline import PipelineConfig  # noqa: E402
 
 pytestmark = pytest.mark.slow
@@ -67,7 +67,8 @@ def _run(tmp_path, run: dict, on_status=None):
     port, out = free_port(), tmp_path / "out"
     maps = _team(tmp_path)
     with Processes() as rovers:
-        status = run_base_station({**run, "out": str(out), "truth": str(tmp_path / "truth.npy")}, host="127.0.0.1", port=port,
+        status = run_base_station({**run, "out": str(out), "truth": str(tmp_path / "truth.npy")}, host="127.0.0.1",
+                                  port=port,
                                   on_ready=lambda: _start_rovers(rovers, port, tmp_path),
                                   on_status=(lambda st: on_status(st, rovers)) if on_status else None)
     assert status["state"] == "done"

@@ -10,8 +10,8 @@ import pytest
 import tifffile
 from PIL import Image
 
-from fedmap.errors import FedmapError
 from fedmap import _util
+from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, PALETTE, UNKNOWN, GridMap
 from fedmap.maps.io import atomic_write_bytes, load_dem, load_map, save_map
 

@@ -184,7 +184,8 @@ def test_dem_layout_tiles_and_thresholds(tmp_path):
     assert (right.classes[:, 2:-2] == IMPASSABLE).all()  # 45 deg > 15 deg
     from fedmap.maps.traversability import TraversabilityThresholds
 
-    lax = load_collection(tmp_path, layout="dem", size=20, thresholds=TraversabilityThresholds(max_slope_deg=60, rover_scale_max_px=0.5))
+    lax = load_collection(tmp_path, layout="dem", size=20,
+                          thresholds=TraversabilityThresholds(max_slope_deg=60, rover_scale_max_px=0.5))
     assert (lax.categories["hills"][2].classes == FREE).all()
 
 

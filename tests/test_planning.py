@@ -21,8 +21,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from fedmap.errors import FedmapError
-from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.evaluation.paths import path_f1
+from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.maps.planning import (
     astar,
     passable_mask,

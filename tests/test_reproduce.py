@@ -10,7 +10,7 @@ from fedmap.cli import main
 from fedmap.errors import FedmapError
 from fedmap.experiments.reproduce import ReproduceConfig, Row, _row_config, reproduce, rounds_curve, terrains
 from fedmap.maps.sources import TerrainSource, load_truth
-from fedmap.pipeline import PipelineConfig, run_pipeline
+from fedmap.pipeline import run_pipeline
 
 TINY = dict(size=64, epochs=2, pairs=5, curve_rounds=2, curve_epochs=1, central=False, bandwidth=False, ablation_tiles=0)
 

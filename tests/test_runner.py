@@ -148,12 +148,12 @@ def test_one_shot_cache_reuses_rover_training(tiny_net, blob_map):
     base = FederationConfig(rounds=1, aggregator="fedavg", local=TrainConfig(epochs=3, lr=1e-3), seed=2)
     cache: dict = {}
     steps: list[int] = []
-    run_federation(init, tiny_net, maps, base, one_shot_cache=cache, on_step=lambda s, l: steps.append(s))
+    run_federation(init, tiny_net, maps, base, one_shot_cache=cache, on_step=lambda s, loss: steps.append(s))
     n_first = len(steps)
     for agg in ("fedadam", "fedyogi"):
         cfg = replace(base, aggregator=agg)
         cached = run_federation(init, tiny_net, maps, cfg, one_shot_cache=cache,
-                                on_step=lambda s, l: steps.append(s))
+                                on_step=lambda s, loss: steps.append(s))
         fresh = run_federation(init, tiny_net, maps, cfg)
         for k in fresh.weights:
             np.testing.assert_array_equal(cached.weights[k], fresh.weights[k])
@@ -161,10 +161,10 @@ def test_one_shot_cache_reuses_rover_training(tiny_net, blob_map):
     assert n_first > 0 and len(steps) == n_first  # the cached runs trained nothing
     # a different seed, or more rounds, trains again
     run_federation(init, tiny_net, maps, replace(base, seed=3), one_shot_cache=cache,
-                   on_step=lambda s, l: steps.append(s))
+                   on_step=lambda s, loss: steps.append(s))
     assert len(steps) == 2 * n_first
     run_federation(init, tiny_net, maps, replace(base, rounds=2), one_shot_cache=cache,
-                   on_step=lambda s, l: steps.append(s))
+                   on_step=lambda s, loss: steps.append(s))
     assert len(steps) == 4 * n_first
 
 

@@ -237,7 +237,8 @@ def to_pipeline_config(resolved: dict, *, size: int | None = None, label: str = 
     return PipelineConfig(
         terrain=terrain.get("terrain", "mars") if builtin else "mars", label="" if builtin else label, size=size,
         agents=e["agents"], explore=e["mode"], overlap=e["overlap"], sensor_radius=float(e["sensor_radius"]),
-        net=m["net"], init=m["init"], init_weights=m.get("init_weights"), prior_steps=m["prior_steps"], central=ev["central"], federation=fed, refine=RefineConfig(**resolved["refine"]),
+        net=m["net"], init=m["init"], init_weights=m.get("init_weights"), prior_steps=m["prior_steps"],
+        central=ev["central"], federation=fed, refine=RefineConfig(**resolved["refine"]),
         thresholds=TraversabilityThresholds(**resolved["thresholds"]), eval_pairs=ev["pairs"],
         unknown_passable=ev["unknown_passable"], seed=seed,
     )

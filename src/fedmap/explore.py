@@ -83,10 +83,12 @@ def traverse_mask(
     comp = int(np.argmax(comp_sizes))
     cand = np.argwhere((labels == comp) & region)
     route = np.zeros(truth.shape, dtype=bool)
-    pos = tuple(int(v) for v in cand[rng.integers(len(cand))])
+    r, c = cand[rng.integers(len(cand))]
+    pos = (int(r), int(c))
     route[pos] = True
     for _ in range(waypoints):
-        nxt = tuple(int(v) for v in cand[rng.integers(len(cand))])
+        r, c = cand[rng.integers(len(cand))]
+        nxt = (int(r), int(c))
         path = astar(passable, pos, nxt)
         if path:
             rr, cc = zip(*path)

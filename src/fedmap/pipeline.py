@@ -13,7 +13,6 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
-import torch
 
 from fedmap.errors import FedmapError
 from fedmap.evaluation.scores import MapScores, score_map
@@ -24,7 +23,7 @@ from fedmap.maps.sources import TerrainSource, load_truth
 from fedmap.maps.terrain import TERRAIN_KINDS
 from fedmap.maps.traversability import TraversabilityThresholds
 from fedmap.nets.init import check_init, initial_model
-from fedmap.nets.model import build_model, get_weights, preset, render, set_weights
+from fedmap.nets.model import CoordNet, GridNet, build_model, get_weights, preset, render, set_weights
 from fedmap.nets.training import fit, steps_per_epoch
 from fedmap.refine import RefineConfig
 from fedmap.stages import global_map, truth_summary, union_map
@@ -81,7 +80,7 @@ class PipelineResult:
     config: PipelineConfig
     truth: GridMap
     local_maps: list[GridMap]
-    model: torch.nn.Module  # CoordNet or GridNet
+    model: CoordNet | GridNet
     global_rgb: np.ndarray
     global_classes: np.ndarray
     refined: np.ndarray

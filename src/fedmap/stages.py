@@ -7,15 +7,14 @@ The in-process pipeline, ``reproduce`` and the Flower base station all use these
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb
-from fedmap.nets.model import NetConfig, Weights, build_model, render, set_weights
+from fedmap.nets.model import CoordNet, GridNet, NetConfig, Weights, build_model, render, set_weights
 from fedmap.refine import RefineConfig, refine
 
 
 def global_map(net_config: NetConfig, weights: Weights, shape: tuple[int, int],
-               refine_config: RefineConfig) -> tuple[torch.nn.Module, np.ndarray, np.ndarray, np.ndarray]:
+               refine_config: RefineConfig) -> tuple[CoordNet | GridNet, np.ndarray, np.ndarray, np.ndarray]:
     """What every rover makes of the global weights: the model, its (H, W, 3) rendering,
     the rendering snapped to classes, and the refined classes."""
     model = build_model(net_config)

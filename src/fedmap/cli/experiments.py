@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import typer
 from rich.table import Table
@@ -57,7 +57,7 @@ def reproduce(
     out: Path = typer.Option(Path("fedmap-out/reproduce"), "--out", "-o", help="Report folder (replaced atomically)."),
 ) -> None:
     """The paper's experiments: Table II (+ fedmap), Fig. 4 panels, rounds curve, Tables I and III."""
-    kw = {k: v for k, v in {"data": data, "size": size, "pairs": pairs, "eta": eta, "seed": seed,
+    kw: dict[str, Any] = {k: v for k, v in {"data": data, "size": size, "pairs": pairs, "eta": eta, "seed": seed,
                             "curve_epochs": curve_epochs, "random_baseline": random_baseline}.items() if v is not None}
     config = ReproduceConfig.quick(**kw) if quick else ReproduceConfig(**kw)
     t0 = time.perf_counter()

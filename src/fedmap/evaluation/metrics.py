@@ -41,7 +41,8 @@ def ssim(truth_rgb: np.ndarray, pred_rgb: np.ndarray) -> float:
     pred_rgb = np.asarray(pred_rgb, dtype=np.float64)
     _check(truth_rgb, pred_rgb)
     if min(truth_rgb.shape[:2]) < 7:
-        raise FedmapError(f"SSIM needs maps of at least 7x7 cells (its window), got {truth_rgb.shape[0]}x{truth_rgb.shape[1]}")
+        raise FedmapError("SSIM needs maps of at least 7x7 cells (its window), "
+                          f"got {truth_rgb.shape[0]}x{truth_rgb.shape[1]}")
     return float(structural_similarity(truth_rgb, pred_rgb, data_range=1.0, channel_axis=-1))
 
 

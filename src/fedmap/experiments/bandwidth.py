@@ -201,7 +201,8 @@ _IS_LEVEL = np.isin(np.arange(256), GRAY_LEVELS)
 _PALETTE_BYTES = [int(round(v * 255)) for v in PALETTE.ravel()]  # 0,255,0, 255,0,0, 128,128,128
 _ZSTD_LEVEL = 19
 
-CODEC_NAMES: tuple[str, ...] = ("raw-gray", "jpeg", "webp", "webp-lossless", "png-gray", "png-palette", "zstd-2bit", "zstd-uint8")
+CODEC_NAMES: tuple[str, ...] = ("raw-gray", "jpeg", "webp", "webp-lossless", "png-gray", "png-palette", "zstd-2bit",
+                                "zstd-uint8")
 LOSSY: frozenset[str] = frozenset({"jpeg", "webp"})
 DEFAULT_QUALITIES: tuple[int, ...] = (10, 26, 50, 75, 90)
 
@@ -290,7 +291,8 @@ def _pil_open(payload: bytes, fmt: str, shape: tuple[int, int]) -> Image.Image:
     try:
         img = Image.open(io.BytesIO(payload), formats=[fmt])
         if img.size != (shape[1], shape[0]):
-            raise FedmapError(f"malformed payload: {fmt} image is {img.size[1]}x{img.size[0]}, expected {shape[0]}x{shape[1]}")
+            raise FedmapError(f"malformed payload: {fmt} image is {img.size[1]}x{img.size[0]}, "
+                              f"expected {shape[0]}x{shape[1]}")
         img.load()
     except FedmapError:
         raise
@@ -375,8 +377,10 @@ class ImageCodec:
         if n == "png-gray":
             return _pil_encode(img, "PNG", optimize=True)
         if n == "jpeg":
+            assert self.quality is not None  # __post_init__ requires a quality for the lossy codecs
             return _pil_encode(img, "JPEG", quality=int(self.quality), optimize=False)
         if n == "webp":
+            assert self.quality is not None
             return _pil_encode(img, "WEBP", quality=int(self.quality), method=6)
         if n == "webp-lossless":
             return _pil_encode(img, "WEBP", lossless=True, quality=100, method=6)
@@ -391,7 +395,8 @@ class ImageCodec:
             return GRAY_LEVELS[self.decode(payload, shape)]
         if n == "raw-gray":
             if len(payload) != shape[0] * shape[1]:
-                raise FedmapError(f"malformed payload: {len(payload)} bytes, a {shape[0]}x{shape[1]} grey map needs {shape[0] * shape[1]}")
+                raise FedmapError(f"malformed payload: {len(payload)} bytes, "
+                                  f"a {shape[0]}x{shape[1]} grey map needs {shape[0] * shape[1]}")
             return np.frombuffer(payload, dtype=np.uint8).reshape(shape).copy()
         fmt = {"png-gray": "PNG", "jpeg": "JPEG", "webp": "WEBP", "webp-lossless": "WEBP"}[n]
         return _gray_from_image(_pil_open(payload, fmt, shape))
@@ -511,6 +516,7 @@ def compare_image_codecs(
         if key not in image_by_key:
             image_by_key[key] = image_scores(classes, decoded)
             decoded_by_key[key] = decoded
+        sg: float | None
         if np.array_equal(gray, true_gray):
             pg, sg = math.inf, 1.0
         else:
@@ -592,7 +598,8 @@ def rd_figure(rows: Sequence[dict], path: str | Path, *, model_points: list[dict
             raise FedmapError(f"a model point needs a label and positive bytes, got {p}")
     fig, axes = plt.subplots(1, 2, figsize=(12, 6.0), dpi=110)
     panels = (("psnr", "PSNR of the decoded class map (dB)"), ("f1", "path-planning F1"))
-    finite = {k: [r[k] for r in rows if r.get(k) is not None and math.isfinite(r[k])] + [p[k] for p in model_points if p.get(k) is not None and math.isfinite(p[k])] for k, _ in panels}
+    finite = {k: [r[k] for r in rows if r.get(k) is not None and math.isfinite(r[k])]
+              + [p[k] for p in model_points if p.get(k) is not None and math.isfinite(p[k])] for k, _ in panels}
     for ax, (key, ylabel) in zip(axes, panels):
         vals = finite[key]
         if key == "psnr":
@@ -684,7 +691,8 @@ def markdown_table(rows: Sequence[dict]) -> str:
     if not rows:
         return ""
     if "reduction_paper" in rows[0]:
-        head = ["map", "data bytes", "paper shows", "model bytes", "paper shows", "reduction (paper's way)", "reduction (bytes)", "printed"]
+        head = ["map", "data bytes", "paper shows", "model bytes", "paper shows", "reduction (paper's way)",
+                "reduction (bytes)", "printed"]
         lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for r in rows:
             lines.append("| " + " | ".join([
@@ -692,7 +700,8 @@ def markdown_table(rows: Sequence[dict]) -> str:
                 r["reduction_paper_display"], r["reduction_bytes_display"], r["paper_printed"]["reduction"],
             ]) + " |")
         return "\n".join(lines) + "\n"
-    head = ["codec", "bytes", "bits/cell", "PSNR (dB)", "SSIM", "path F1", "F1 tol.", "accuracy", "grey PSNR (dB)", "grey SSIM", "enc (s)", "dec (s)"]
+    head = ["codec", "bytes", "bits/cell", "PSNR (dB)", "SSIM", "path F1", "F1 tol.", "accuracy", "grey PSNR (dB)",
+            "grey SSIM", "enc (s)", "dec (s)"]
     lines = ["| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
     for r in rows:
         lines.append("| " + " | ".join([

@@ -47,6 +47,7 @@ def load_real(data: Path, name: str, size: int) -> GridMap:
     if name not in REAL_TERRAINS:
         raise FedmapError(f"unknown real terrain {name!r}; choose from {', '.join(REAL_TERRAINS)}")
     desc, src = REAL_TERRAINS[name]
+    assert src.path is not None  # every real terrain is a file or tile source
     path = Path(data) / src.path
     if not path.exists():
         raise FedmapError(f"{name}: {path} is missing from the data folder {data}")

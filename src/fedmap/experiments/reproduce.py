@@ -4,8 +4,9 @@ For every terrain, 4 rovers (quadrants), one round:
 
 * **Table II** — the ``paper`` preset (its exact settings: Fourier MLP, UNKNOWN trained as
   grey, 100 local epochs, fp32 payloads, the shipped meta-init as in its Algorithm 1)
-  aggregated with FedAvg, FedAdam and FedYogi (the server learning rate η is stated), beside fedmap's method (feature grids, masked loss,
-  coverage-weighted FedAvg, int4/int8 update payloads) with R = 1 and R = 3, and the
+  aggregated with FedAvg, FedAdam and FedYogi (the server learning rate η is stated), beside
+  fedmap's method (feature grids, masked loss, coverage-weighted FedAvg, int4/int8 update
+  payloads) with R = 1 and R = 3, and the
   centralised upper bound of the paper network (one network fitted to the union of the
   rovers' maps for the same number of steps); ``random_baseline`` adds the paper's FedAvg
   from a random start.
@@ -119,12 +120,14 @@ class ReproduceConfig:
 
 def terrains(config: ReproduceConfig) -> dict[str, GridMap]:
     """Ground-truth traversability maps by name."""
+    names: tuple[str, ...]
     if config.data is None:
         names = BUILTIN_TERRAINS
         load = lambda name: load_truth(TerrainSource(terrain=name, size=config.size), seed=config.seed)  # noqa: E731
     else:
+        data = config.data
         names = tuple(REAL_TERRAINS)
-        load = lambda name: load_real(Path(config.data), name, config.size)  # noqa: E731
+        load = lambda name: load_real(Path(data), name, config.size)  # noqa: E731
     chosen = config.terrain_names or names
     unknown = [n for n in chosen if n not in names]
     if unknown:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from fedmap._util import AtomicDir, to_json
 from fedmap.config import method_config
@@ -80,9 +81,10 @@ def bandwidth_report(out: str | Path, *, terrain: str = "mars", size: int = 256,
         on_stage("image codecs", 0)
     image_rows = compare_image_codecs(truth, n_pairs=pairs, seed=seed)
     points = federated_points(truth, seed=seed, pairs=pairs, on_stage=on_stage, on_step=on_step) if federated else []
-    result = {"map": {"terrain": terrain, "size": size, "seed": seed, "source": truth.source, **truth.fractions()},
-              "table3": paper_table3(), "model_payloads": model_payloads(seed), "image_codecs": image_rows,
-              "federated": points}
+    result: dict[str, Any] = {
+        "map": {"terrain": terrain, "size": size, "seed": seed, "source": truth.source, **truth.fractions()},
+        "table3": paper_table3(), "model_payloads": model_payloads(seed), "image_codecs": image_rows,
+        "federated": points}
     md = [f"# Bytes on the link — {terrain} {size}x{size} (seed {seed})", "",
           "## The paper's Table III, recomputed", "", markdown_table(result["table3"]),
           "## The paper network (199,683 parameters) in fedmap's codecs", "",

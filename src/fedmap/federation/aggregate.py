@@ -33,7 +33,7 @@ The averaging is done in float64 and the result cast back to float32.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -135,9 +135,15 @@ class _FedOpt:
     m: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     v: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
+    if TYPE_CHECKING:  # each subclass sets ``name`` as an init=False field; not a field here
+
+        @property
+        def name(self) -> str: ...
+
     def __post_init__(self) -> None:
         if not self.eta > 0 or not self.tau > 0 or self.v0 < 0:
-            raise FedmapError(f"{self.name}: eta and tau must be positive and v0 >= 0 (got eta={self.eta}, tau={self.tau}, v0={self.v0})")
+            raise FedmapError(f"{self.name}: eta and tau must be positive and v0 >= 0 "
+                              f"(got eta={self.eta}, tau={self.tau}, v0={self.v0})")
         if not (0 <= self.beta1 < 1 and 0 <= self.beta2 < 1):
             raise FedmapError(f"{self.name}: betas must be in [0, 1), got {self.beta1}, {self.beta2}")
 

@@ -161,7 +161,8 @@ class CodecSpec:
                 put("fraction", float(self.fraction))
                 put("momentum", float(self.momentum))
             except (TypeError, ValueError):
-                raise FedmapError(f"topk fraction and momentum must be numbers, got {self.fraction!r}, {self.momentum!r}") from None
+                raise FedmapError("topk fraction and momentum must be numbers, "
+                                  f"got {self.fraction!r}, {self.momentum!r}") from None
             if not 0.0 < self.fraction <= 1.0:
                 raise FedmapError(f"topk fraction must be in (0, 1], got {self.fraction}")
             if not 0.0 <= self.momentum < 1.0:
@@ -335,7 +336,7 @@ class _Layout:
         """The tensors of ``weights`` (same names and shapes) concatenated in layout order."""
         _check_fits(self, weights, what)
         parts = [np.asarray(weights[n], dtype=np.float32).reshape(-1) for n in self.names]
-        out = np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(0, dtype=dtype)
+        out: np.ndarray = np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(0, dtype=dtype)
         if not np.all(np.isfinite(out)):
             bad = next(n for n in self.names if not np.all(np.isfinite(weights[n])))
             raise FedmapError(f"{what} {bad!r} holds NaN or infinite values")
@@ -613,6 +614,7 @@ class Encoder:
         return scales.tobytes() + packed, sent
 
     def _encode_topk(self, layout: _Layout, delta: np.ndarray) -> bytes:
+        assert self._residual is not None and self._momentum is not None  # set by _state_layout
         spec = self.spec
         n = layout.total
         k = min(n, max(1, round(spec.fraction * n)))
@@ -659,7 +661,8 @@ class Encoder:
         content = _encode_table(layout) + extra + body
         if spec.zstd is not None:
             flags |= _F_ZSTD
-            content = zstandard.ZstdCompressor(level=spec.zstd, write_checksum=False, write_content_size=True).compress(content)
+            content = zstandard.ZstdCompressor(level=spec.zstd, write_checksum=False,
+                                               write_content_size=True).compress(content)
         head = MAGIC + bytes([VERSION, _CODEC_ID[spec.kind], flags])
         crc = zlib.crc32(content, zlib.crc32(head))
         return head + content + struct.pack("<I", crc)
@@ -741,7 +744,7 @@ def _decode_content(kind: str, flags: int, content: memoryview, reference: Weigh
             vals = np.frombuffer(r.take(2 * k), dtype="<f2").astype(np.float32)
         else:
             scales = np.frombuffer(r.take(4 * len(layout.names)), dtype="<f4").astype(np.float32)
-            q = np.frombuffer(r.take(k), dtype=np.int8)
+            q: np.ndarray = np.frombuffer(r.take(k), dtype=np.int8)
             tid = np.searchsorted(layout.offsets, idx, side="right") - 1
             vals = q.astype(np.float32) * scales[tid]
         delta = np.zeros(n, dtype=np.float32)
@@ -764,6 +767,7 @@ def _decode_content(kind: str, flags: int, content: memoryview, reference: Weigh
             q = raw if kind == "int8" else _unpack_int4(raw, n)
             if np.any(np.abs(q.astype(np.int16)) > _QMAX[kind]):
                 raise _Malformed(f"{kind} value out of range")
+            assert seg is not None  # int8 and int4 are in _QMAX
             delta = q.astype(np.float32) * np.repeat(scales, seg)
     if not update:
         return {k_: v.copy() for k_, v in layout.split(delta).items()}

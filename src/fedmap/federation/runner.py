@@ -203,8 +203,8 @@ def run_federation(
                      tuple((k, v.tobytes()) for k, v in sorted(held.items())))
     for r in range(config.rounds):
         t0 = time.perf_counter()
-        payloads, counts, losses, dropped = {}, {}, {}, {}
-        if cache_key is not None and cache_key in one_shot_cache:
+        payloads, losses, dropped = {}, {}, {}
+        if cache_key is not None and one_shot_cache is not None and cache_key in one_shot_cache:
             payloads, losses, dropped = (dict(x) for x in one_shot_cache[cache_key])
         else:
             for k, local in enumerate(local_maps):
@@ -213,9 +213,9 @@ def run_federation(
                                                         on_step=on_step)
                 except RejectedUpdate as e:
                     dropped[k] = str(e)
-            if cache_key is not None:
+            if cache_key is not None and one_shot_cache is not None:
                 one_shot_cache[cache_key] = (dict(payloads), dict(losses), dict(dropped))
-        counts = {k: local_maps[k].n_known for k in payloads}
+        counts: dict[int, float] = {k: local_maps[k].n_known for k in payloads}
         step = base_step(aggregator, held, payloads, counts, down_enc, dropped=dropped, round_label=r + 1)
         held = step.held  # rovers and base continue from the decoded broadcast
         rec = round_record(r + 1, step, losses, {k: len(p) for k, p in payloads.items()},

@@ -19,9 +19,20 @@ from __future__ import annotations
 
 import pickle
 from pathlib import Path
+from typing import cast
 
 import numpy as np
-from flwr.app import Array, ArrayRecord, ConfigRecord, Context, Message, MetricRecord, RecordDict
+from flwr.app import (
+    Array,
+    ArrayRecord,
+    ConfigRecord,
+    ConfigRecordValues,
+    Context,
+    Message,
+    MetricRecord,
+    MetricRecordValues,
+    RecordDict,
+)
 from flwr.clientapp import ClientApp
 
 from fedmap.errors import FedmapError, RejectedUpdate
@@ -40,9 +51,13 @@ def _restore(context: Context) -> tuple[Weights | None, Encoder | None]:
     """The model this rover holds and its uplink encoder (None before round 1)."""
     if _HELD not in context.state:
         return None, None
-    held = {k: v.numpy() for k, v in context.state[_HELD].items()}
+    held_record = context.state[_HELD]
+    assert isinstance(held_record, ArrayRecord)  # written by _store
+    held = {k: v.numpy() for k, v in held_record.items()}
     # the encoder is this rover's own state, written by this rover: unpickling is safe
-    return held, pickle.loads(context.state[_ENCODER]["pickle"])
+    blob = context.state[_ENCODER]["pickle"]
+    assert isinstance(blob, bytes)  # written by _store
+    return held, pickle.loads(blob)
 
 
 def _store(context: Context, held: Weights, encoder: Encoder) -> None:
@@ -53,7 +68,7 @@ def _store(context: Context, held: Weights, encoder: Encoder) -> None:
 def _error_reply(msg: Message, metrics: dict, e: FedmapError) -> Message:
     """Reported, not raised: the base drops this rover for the round (a rejected update)
     or stops the run with this line (any other error)."""
-    error = {"reason": str(e), "fatal": not isinstance(e, RejectedUpdate)}
+    error: dict[str, ConfigRecordValues] = {"reason": str(e), "fatal": not isinstance(e, RejectedUpdate)}
     return Message(RecordDict({"metrics": MetricRecord(metrics), "error": ConfigRecord(error)}), reply_to=msg)
 
 
@@ -61,10 +76,11 @@ def _error_reply(msg: Message, metrics: dict, e: FedmapError) -> Message:
 def train(msg: Message, context: Context) -> Message:
     settings = RunSettings.from_run_config(dict(context.run_config))
     pid, local = load_local_map(dict(context.node_config))
-    server_round = int(msg.content["config"]["server-round"])
+    server_round = int(cast(int, msg.content["config"]["server-round"]))  # the base sends an int
     down = from_record(msg.content.array_records.get("downlink"))
-    metrics = {"partition-id": pid, "known-cells": local.n_known, "height": local.shape[0], "width": local.shape[1],
-               "downlink-bytes": len(down)}
+    metrics: dict[str, MetricRecordValues] = {"partition-id": pid, "known-cells": local.n_known,
+                                              "height": local.shape[0], "width": local.shape[1],
+                                              "downlink-bytes": len(down)}
     try:
         held, encoder = receive(settings, local, *_restore(context), down)
     except FedmapError as e:

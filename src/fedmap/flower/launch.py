@@ -145,7 +145,8 @@ class Tls:
 def superlink_argv(*, host: str, port: int, tls: Tls | None, auth: bool, database: Path | None = None) -> list[str]:
     argv = [flower_executable("flower-superlink"), "--host", host, "--port", str(port),
             "--disable-runtime-dependency-installation"]
-    argv += ["--ssl-ca-certfile", str(tls.ca), "--ssl-certfile", str(tls.cert), "--ssl-keyfile", str(tls.key)] if tls else ["--insecure"]
+    argv += (["--ssl-ca-certfile", str(tls.ca), "--ssl-certfile", str(tls.cert), "--ssl-keyfile", str(tls.key)]
+             if tls else ["--insecure"])
     if auth:
         argv.append("--enable-supernode-auth")
     if database is not None:
@@ -274,7 +275,7 @@ def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365)
           .not_valid_before(now - dt.timedelta(minutes=5)).not_valid_after(now + dt.timedelta(days=days))
           .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
           .sign(ca_key, hashes.SHA256()))
-    sans = []
+    sans: list[x509.GeneralName] = []
     for h in hosts:
         try:
             sans.append(x509.IPAddress(ipaddress.ip_address(h)))

@@ -137,6 +137,7 @@ class FedmapStrategy(Strategy):
             raise FedmapError(
                 f"round {server_round}: {len(payloads)} rover(s) delivered an update, fewer than min-rovers="
                 f"{s.min_rovers} (missing: {missing or 'none'}; dropped: {dropped or 'none'})")
+        assert self.shape is not None  # set by the first rover's reply; at least min-rovers >= 1 replied
         if self.held is None:
             self.held = initial_weights(s, self.shape[0])
         step = base_step(self.aggregator, self.held, payloads, counts, self.down_encoder, dropped=dropped,
@@ -179,10 +180,12 @@ class FedmapStrategy(Strategy):
         """``evaluate_fn`` hook: save the global model after every round, atomically."""
         if server_round == 0 or self.held is None:
             return None
+        assert self.shape is not None  # set before the first aggregation, as held is
         save_checkpoint(self.settings, self.held, self.shape[0], server_round)
         return None
 
     def result(self) -> FederationResult:
+        assert self.held is not None, "no round was aggregated"
         return FederationResult(self.held, self.history, {"name": self.settings.federation.aggregator,
                                                           **self.aggregator.hyperparameters()})
 
@@ -200,6 +203,7 @@ def run_base_station(grid: Grid, settings: RunSettings) -> Path:
         "flower_bytes": [{"round": r["round"], "uplink": r["flower_uplink_bytes"],
                           "downlink": r["flower_downlink_bytes"]} for r in fed.history],
     }
+    assert strategy.shape is not None  # set with the first aggregated round
     return write_base_outputs(fed, strategy.shape, settings, flower, federation_s=time.perf_counter() - t0)
 
 

@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from pathlib import Path
 from typing import Any
 
 from fedmap._util import AtomicDir, atomic_write_bytes, to_json
+from fedmap.config import method_config
 from fedmap.errors import FedmapError
 from fedmap.evaluation.scores import score_map
 from fedmap.explore import explore
@@ -23,12 +25,12 @@ from fedmap.federation.codecs import Encoder, decode
 from fedmap.federation.runner import FederationResult, rover_step
 from fedmap.flower.settings import RunSettings
 from fedmap.maps.grid import GridMap, classes_from_rgb
-from fedmap.maps.io import save_map
+from fedmap.maps.io import load_map, save_map
 from fedmap.maps.sources import TerrainSource, load_truth
 from fedmap.nets.init import initial_model
 from fedmap.nets.model import Weights, build_model, get_weights, preset, render, save_model, set_weights
 from fedmap.outputs import write_outputs
-from fedmap.pipeline import PipelineConfig, PipelineResult
+from fedmap.pipeline import PipelineResult
 from fedmap.stages import global_map
 
 # --------------------------------------------------------------------------- the rover
@@ -47,17 +49,14 @@ def load_local_map(node_config: dict) -> tuple[int, GridMap]:
     if isinstance(pid, bool) or not isinstance(pid, int) or pid < 0:
         raise FedmapError(f"partition-id must be an integer >= 0, got {pid!r}")
     if "map" in node_config:
-        from fedmap.maps.io import load_map
-
         return pid, load_map(str(node_config["map"]))
     if "terrain" not in node_config:
         raise FedmapError("node config needs map=<path> or terrain=<mars|moon|ice> (with size, agents, explore, seed)")
     agents = int(node_config.get("agents", 4))
     if pid >= agents:
         raise FedmapError(f"partition-id {pid} is not below agents={agents}")
-    cfg = PipelineConfig(terrain=str(node_config["terrain"]), size=int(node_config.get("size", 128)),
-                         agents=agents, explore=str(node_config.get("explore", "quadrants")),
-                         seed=int(node_config.get("seed", 0)))
+    cfg = method_config(terrain=str(node_config["terrain"]), size=int(node_config.get("size", 128)), agents=agents,
+                        explore=str(node_config.get("explore", "quadrants")), seed=int(node_config.get("seed", 0)))
     truth = load_truth(cfg.terrain_source(), seed=cfg.seed)
     maps = explore(truth, cfg.agents, cfg.explore, seed=cfg.seed, overlap=cfg.overlap, sensor_radius=cfg.sensor_radius)
     return pid, maps[pid]
@@ -140,8 +139,6 @@ def base_truth(settings: RunSettings) -> GridMap | None:
 def write_base_outputs(fed: FederationResult, shape: tuple[int, int], settings: RunSettings, flower: dict,
                        *, federation_s: float) -> Path:
     """The demo's output folder (plus per-round checkpoints and the byte ledger)."""
-    import time
-
     p = settings.pipeline
     h, w = shape
     t = time.perf_counter()

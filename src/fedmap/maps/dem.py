@@ -43,7 +43,7 @@ class Dem:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.elevation.shape  # type: ignore[return-value]
+        return self.elevation.shape
 
     @property
     def valid(self) -> np.ndarray:

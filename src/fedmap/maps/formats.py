@@ -13,6 +13,7 @@ import math
 import re
 import struct
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -120,6 +121,7 @@ def read_ascii_grid(path: Path, *, geographic: bool | None = None, radius_m: flo
     ncols, nrows = int(ncols), int(nrows)
     dx = header.get("dx", header.get("cellsize"))
     dy = header.get("dy", header.get("cellsize"))
+    assert dx is not None and dy is not None  # the header check above guarantees dx/dy or cellsize
     if not (dx > 0 and dy > 0 and math.isfinite(dx) and math.isfinite(dy)):
         raise FedmapError(f"cannot read DEM {path}: cell size must be positive, got {dx}, {dy}")
     try:
@@ -332,7 +334,7 @@ def read_heightmap_png(path: Path, *, offset: float = HEIGHTMAP_OFFSET_M, zero_i
 
 
 #: Reader and accepted keyword options per suffix.
-READERS = {
+READERS: dict[str, tuple[Callable[..., RawRaster], tuple[str, ...]]] = {
     ".asc": (read_ascii_grid, ("geographic", "radius_m")),
     ".img": (read_raw, ("shape", "dtype", "byteorder", "header_bytes")),
     ".raw": (read_raw, ("shape", "dtype", "byteorder", "header_bytes")),

@@ -64,7 +64,7 @@ class GridMap:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.classes.shape  # type: ignore[return-value]
+        return self.classes.shape
 
     @property
     def known(self) -> np.ndarray:
@@ -112,5 +112,6 @@ def check_same_frame(maps: list[GridMap]) -> tuple[int, int]:
     shape = maps[0].shape
     for i, m in enumerate(maps[1:], start=1):
         if m.shape != shape:
-            raise FedmapError(f"map {i} has grid {m.shape[0]}x{m.shape[1]}, but map 0 has {shape[0]}x{shape[1]}: all agents must share one global grid")
+            raise FedmapError(f"map {i} has grid {m.shape[0]}x{m.shape[1]}, but map 0 has {shape[0]}x{shape[1]}: "
+                              "all agents must share one global grid")
     return shape

@@ -89,6 +89,7 @@ import struct
 import xml.etree.ElementTree as ET
 import zlib
 from pathlib import Path
+from typing import SupportsInt, cast
 
 import numpy as np
 
@@ -322,8 +323,8 @@ def _parse_geokeys(tags) -> dict[int, object]:
         elif location == _TAG_GEOASCII:
             keys[key] = ascii_[offset:offset + count].rstrip("|\x00")
         elif location == _TAG_GEOKEYS and offset + count <= len(d):
-            vals = d[offset:offset + count]
-            keys[key] = vals[0] if count == 1 else tuple(vals)
+            ints = d[offset:offset + count]
+            keys[key] = ints[0] if count == 1 else tuple(ints)
     return keys
 
 
@@ -437,7 +438,7 @@ def _read_tiff(path: Path):
         with tifffile.TiffFile(path) as tf:
             if not tf.pages:
                 raise FedmapError(f"cannot read DEM {path}: the TIFF holds no image")
-            page = tf.pages[0]
+            page = tf.pages.first  # always a TiffPage (tf.pages[0] is typed TiffPage | TiffFrame)
             arr = page.asarray()
             axes = getattr(page, "axes", "")
             # Tag values are read lazily: copy them while the file is open.
@@ -646,7 +647,10 @@ def mosaic_heightmap_tiles(folder, *, lon: int, lat: int, n=1, pixel_size: float
     (lon, lat) and (lon + 1, lat) to its right. ``pixel_size`` defaults to the GLD100
     256p spacing (118.45 m).
     """
-    nr, nc = (int(n), int(n)) if np.isscalar(n) else (int(v) for v in n)
+    if np.isscalar(n):
+        nr = nc = int(cast(SupportsInt, n))  # isscalar's TypeGuard also admits complex, which int() refuses
+    else:
+        nr, nc = (int(v) for v in n)
     if nr < 1 or nc < 1:
         raise FedmapError(f"mosaic needs at least 1x1 tiles, got {nr}x{nc}")
     grid = [[gld100_tile_path(folder, lon + j, lat + nr - 1 - i) for j in range(nc)] for i in range(nr)]

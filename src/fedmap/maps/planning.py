@@ -134,8 +134,8 @@ def sample_pairs(passable: np.ndarray, n_pairs: int, *, seed: int = 0) -> list[t
     if len(cells) < 2:
         raise FedmapError("the ground-truth map has fewer than two passable cells: cannot sample start/goal pairs")
     rng = np.random.default_rng(seed)
-    pairs = []
+    pairs: list[tuple[tuple[int, int], tuple[int, int]]] = []
     for _ in range(n_pairs):
         a, b = rng.choice(len(cells), size=2, replace=False)
-        pairs.append((tuple(int(v) for v in cells[a]), tuple(int(v) for v in cells[b])))
+        pairs.append(((int(cells[a][0]), int(cells[a][1])), (int(cells[b][0]), int(cells[b][1]))))
     return pairs

@@ -7,6 +7,8 @@ made from is nodata. :func:`crop_dem` and :func:`centre_crop` cut a window in ce
 
 from __future__ import annotations
 
+from typing import SupportsInt, cast
+
 import numpy as np
 from scipy import ndimage
 
@@ -105,7 +107,10 @@ def centre_crop(dem: Dem, size=None) -> Dem:
     """The central ``size`` x ``size`` (or ``(rows, cols)``) window; ``None``: the largest square."""
     if size is None:
         size = min(dem.shape)
-    h, w = (int(size), int(size)) if np.isscalar(size) else (int(v) for v in size)
+    if np.isscalar(size):
+        h = w = int(cast(SupportsInt, size))  # isscalar's TypeGuard also admits complex, which int() refuses
+    else:
+        h, w = (int(v) for v in size)
     if h > dem.shape[0] or w > dem.shape[1]:
         raise FedmapError(f"cannot crop {h}x{w} from a {dem.shape[0]}x{dem.shape[1]} DEM")
     r0, c0 = (dem.shape[0] - h) // 2, (dem.shape[1] - w) // 2

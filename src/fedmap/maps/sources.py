@@ -170,6 +170,7 @@ def _square_box(shape: tuple[int, int], crop) -> tuple[tuple[int, int], tuple[in
 def load_source_dem(source: TerrainSource, *, seed: int = 0) -> Dem:
     """The DEM of a builtin, dem or tiles source, cropped square and resampled to ``size``."""
     if source.kind == "builtin":
+        assert source.size is not None  # __post_init__ sets the default size of built-in terrain
         px = source.options.get("pixel_size")
         return generate_dem(source.terrain, source.size, seed=seed,
                             pixel_size=None if px is None else float(px))
@@ -182,6 +183,7 @@ def load_source_dem(source: TerrainSource, *, seed: int = 0) -> Dem:
         extra = {k: v for k, v in opts.items() if k not in ("pixel_size", "offset", "zero_is_nodata")}
         if extra:
             raise FedmapError(f"reader option(s) {', '.join(sorted(extra))} do not apply to heightmap tiles")
+        assert source.lon is not None and source.lat is not None  # __post_init__ refuses tiles without them
         dem = mosaic_heightmap_tiles(source.path, lon=source.lon, lat=source.lat, n=source.tiles, **opts)
     else:
         dem = load_dem(source.path, **opts)

@@ -396,7 +396,8 @@ def _stamp_windows(n: int, c: _Craters) -> np.ndarray:
 _BOULDER_SIGMAS = np.array([0.6, 0.9, 1.35, 2.0, 3.0])
 
 
-def _stamp_boulders(n: int, px: float, rows: np.ndarray, cols: np.ndarray, height: np.ndarray, radius_m: np.ndarray) -> np.ndarray:
+def _stamp_boulders(n: int, px: float, rows: np.ndarray, cols: np.ndarray, height: np.ndarray,
+                    radius_m: np.ndarray) -> np.ndarray:
     """Boulders as Gaussian bumps, by depositing them on cells and blurring per size class.
 
     A boulder's footprint follows its radius (a few width classes, so a 3 m boulder
@@ -451,7 +452,8 @@ def _crater_count(rng: np.random.Generator, area_m2: float, density: float, r_mi
     return int(rng.poisson(area_m2 * density * (r_ref / r_min) ** b))
 
 
-def _place_craters(rng: np.random.Generator, n: int, px: float, count: int, r_min: float, r_max: float, b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _place_craters(rng: np.random.Generator, n: int, px: float, count: int, r_min: float, r_max: float,
+                   b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sizes (cells) and uniform centres over the map plus a margin of the largest reach.
 
     The margin lets craters centred just outside the map show their rims and ejecta at
@@ -585,7 +587,8 @@ def _mars_boulders(rng: np.random.Generator, n: int, px: float, fresh: _Craters)
     cols = fc[parent] + rng.standard_normal(k) * spread[parent] / px
     h, a = _boulder_sizes(rng, k, 0.4, 2.5, 2.0)
     er, ec, eh, ea = _ejecta_boulders(rng, px, fresh, 0.02)
-    return _stamp_boulders(n, px, np.concatenate([rows, er]), np.concatenate([cols, ec]), np.concatenate([h, eh]), np.concatenate([a, ea]))
+    return _stamp_boulders(n, px, np.concatenate([rows, er]), np.concatenate([cols, ec]), np.concatenate([h, eh]),
+                           np.concatenate([a, ea]))
 
 
 def _ejecta_boulders(rng: np.random.Generator, px: float, craters: _Craters, per_m2: float):
@@ -728,7 +731,8 @@ def _scatter(n: int, sel: np.ndarray, values: np.ndarray) -> np.ndarray:
     return out.reshape(n, n)
 
 
-def _crevasse_set(rng: np.random.Generator, px: float, along: np.ndarray, across: np.ndarray, spacing: float, zone: np.ndarray) -> np.ndarray:
+def _crevasse_set(rng: np.random.Generator, px: float, along: np.ndarray, across: np.ndarray, spacing: float,
+                  zone: np.ndarray) -> np.ndarray:
     """A family of parallel crevasses: narrow deep trenches along lines ``along = const``.
 
     Works on flat arrays of selected cells. ``along`` is the coordinate across the
@@ -761,7 +765,8 @@ def _crevasse_set(rng: np.random.Generator, px: float, along: np.ndarray, across
     return -depth * seg * trench
 
 
-def _transverse_crevasses(rng: np.random.Generator, n: int, px: float, s: np.ndarray, u: np.ndarray, half_width: float, weight: np.ndarray) -> np.ndarray:
+def _transverse_crevasses(rng: np.random.Generator, n: int, px: float, s: np.ndarray, u: np.ndarray,
+                          half_width: float, weight: np.ndarray) -> np.ndarray:
     """Crevasse fields across the flow where the ice accelerates, times ``weight``.
 
     The crevasses arc downstream toward the centre line (the centre flows fastest).
@@ -783,7 +788,8 @@ def _transverse_crevasses(rng: np.random.Generator, n: int, px: float, s: np.nda
     return _scatter(n, sel, _crevasse_set(rng, px, along, uu, spacing, zone.ravel()[sel]))
 
 
-def _chevron_crevasses(rng: np.random.Generator, n: int, px: float, s: np.ndarray, u: np.ndarray, weight: np.ndarray) -> np.ndarray:
+def _chevron_crevasses(rng: np.random.Generator, n: int, px: float, s: np.ndarray, u: np.ndarray,
+                       weight: np.ndarray) -> np.ndarray:
     """Marginal (chevron) crevasses at ~45 deg to the margin, pointing up-glacier.
 
     Shear at a margin opens crevasses at about 45 degrees to the flow; mirrored on the
@@ -865,7 +871,8 @@ def _medial_moraines(rng: np.random.Generator, n: int, px: float, u: np.ndarray,
     return np.interp(u, grid, ridge) + _scatter_boulders(rng, n, px, 0.02 * np.interp(u, grid, debris))
 
 
-def _lateral_moraine(rng: np.random.Generator, n: int, px: float, lateral: np.ndarray, half_width: float, outside: np.ndarray) -> np.ndarray:
+def _lateral_moraine(rng: np.random.Generator, n: int, px: float, lateral: np.ndarray, half_width: float,
+                     outside: np.ndarray) -> np.ndarray:
     """A steep-flanked lateral moraine ridge just off the ice, and bouldery ground beyond."""
     height, width = rng.uniform(3.0, 6.0), rng.uniform(6.0, 10.0)
     d = (lateral - half_width - 1.5 * width) / width

@@ -19,7 +19,7 @@ the MSE of the output after ``t - 1`` steps (BatchNorm uses the full-grid statis
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -83,7 +83,7 @@ def steps_to_reach(curve: list[float], target: float) -> int | None:
     return None
 
 
-def _stats(x: list[float]) -> dict:
+def _stats(x: Sequence[float]) -> dict:
     a = np.asarray(x, dtype=np.float64)
     return {"mean": float(a.mean()), "std": float(a.std(ddof=1)) if a.size > 1 else 0.0, "n": int(a.size)}
 

@@ -40,7 +40,8 @@ from scipy import ndimage
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
 from fedmap.maps.grid import FREE, IMPASSABLE, GridMap
-from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
+from fedmap.maps.io import load_dem, load_map
+from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, slope_degrees
 
 LAYOUTS = ("maps", "kitti", "domars", "dem")
 BUILTIN_CATEGORIES = ("urban", "rural", "highway", "natural")
@@ -50,7 +51,6 @@ _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 @dataclass
 class MapCollection:
     """Categories of equally sized maps. ``categories``: name -> list of maps."""
-
     name: str
     categories: dict[str, list[GridMap]] = field(default_factory=dict)
 
@@ -75,7 +75,8 @@ class MapCollection:
     def subset(self, names: list[str] | tuple[str, ...]) -> MapCollection:
         missing = [n for n in names if n not in self.categories]
         if missing:
-            raise FedmapError(f"collection {self.name!r} has no category {missing[0]!r}; it has {', '.join(self.categories)}")
+            raise FedmapError(f"collection {self.name!r} has no category {missing[0]!r}; "
+                              f"it has {', '.join(self.categories)}")
         return MapCollection(f"{self.name}[{','.join(names)}]", {n: self.categories[n] for n in names})
 
     def split(self, *, holdout: int, seed: int = 0) -> tuple[MapCollection, list[GridMap]]:
@@ -200,8 +201,6 @@ def fractal_dem(rng: np.random.Generator, n: int, *, beta: float, pixel_size: fl
 
 def _natural(rng: np.random.Generator, n: int) -> np.ndarray:
     """Fractal hills; the slope limit is set so that 10-35% of the map is too steep."""
-    from fedmap.maps.traversability import slope_degrees
-
     dem = fractal_dem(rng, n, beta=rng.uniform(4.0, 5.0), pixel_size=30.0)
     slope = slope_degrees(dem.elevation, dem.pixel_size)
     limit = float(np.clip(np.quantile(slope, 1 - rng.uniform(0.10, 0.35)), 0.01, 89.0))
@@ -261,7 +260,7 @@ def domars_map(path: Path, size: int, *, edge_quantile: float = 0.8) -> GridMap:
 
     try:
         with Image.open(path) as img:
-            grey = np.asarray(img.convert("L").resize((size, size), Image.BILINEAR), dtype=np.float64) / 255.0
+            grey = np.asarray(img.convert("L").resize((size, size), Image.Resampling.BILINEAR), dtype=np.float64) / 255.0
     except (UnidentifiedImageError, OSError, ValueError) as e:
         raise FedmapError(f"cannot read image {path}: {type(e).__name__}") from e
     mag = np.hypot(ndimage.sobel(grey, 0), ndimage.sobel(grey, 1))
@@ -276,8 +275,6 @@ def load_collection(root: str | Path, *, layout: str = "maps", size: int = 64, m
 
     ``max_per_category`` keeps a seeded random subset of each category.
     """
-    from fedmap.maps.io import load_dem, load_map
-
     root = Path(root)
     if layout not in LAYOUTS:
         raise FedmapError(f"unknown collection layout {layout!r}; choose one of {', '.join(LAYOUTS)}")

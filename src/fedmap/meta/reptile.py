@@ -20,7 +20,7 @@ iteration, the settings and the validation history.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -38,7 +38,6 @@ from fedmap.nets.training import TrainConfig, fit
 @dataclass(frozen=True)
 class MetaConfig:
     """Reptile settings (defaults: the command that built the shipped weights)."""
-
     iterations: int = 300
     inner_steps: int = 5
     inner_lr: float = 1e-3
@@ -93,7 +92,6 @@ class MetaResult:
 def validation_psnr(weights: Weights, net_config: NetConfig, maps: list[GridMap], *, steps: int, lr: float,
                     seed: int = 0) -> float:
     """Mean PSNR (dB, raw RGB output) over ``maps`` after ``steps`` Adam steps from ``weights``."""
-
     return float(np.mean([psnr_curve(weights, net_config, m, steps=steps, lr=lr, seed=seed)[-1] for m in maps]))
 
 
@@ -114,7 +112,7 @@ def meta_train(
     net_config: NetConfig,
     config: MetaConfig,
     *,
-    val_maps: list[GridMap] = (),
+    val_maps: Sequence[GridMap] = (),
     checkpoint: str | Path | None = None,
     checkpoint_every: int = 25,
     resume: bool = False,
@@ -135,23 +133,24 @@ def meta_train(
     if resume:
         if checkpoint is None or not Path(checkpoint).is_file():
             raise FedmapError(f"cannot resume: no checkpoint at {checkpoint}")
-        info = read_checkpoint_info(checkpoint).get("meta_train")
-        if not info:
+        saved = read_checkpoint_info(checkpoint).get("meta_train")
+        if not saved:
             raise FedmapError(f"{checkpoint} is not a meta-training checkpoint")
-        if info["config"] != config.to_dict() or info["collection"] != collection.name:
+        if saved["config"] != config.to_dict() or saved["collection"] != collection.name:
             raise FedmapError(f"{checkpoint} was written with other settings or another collection; "
                               "resume with the same options or start afresh")
         loaded = load_model(checkpoint)
         if loaded.config != net_config:
             raise FedmapError(f"{checkpoint} holds a different network ({loaded.config})")
         theta = get_weights(loaded)
-        history, start = list(info["history"]), int(info["iteration"])
+        history, start = list(saved["history"]), int(saved["iteration"])
     elif config.prior_steps > 0:
         theta = get_weights(empty_prior(net_config, steps=config.prior_steps, seed=config.seed))
     else:
         theta = get_weights(model)
 
     def save(iteration: int) -> None:
+        assert checkpoint is not None  # save() is only called with a checkpoint path
         set_weights(model, theta)
         info = {"iteration": iteration, "config": config.to_dict(), "collection": collection.name,
                 "history": history}
@@ -167,7 +166,7 @@ def meta_train(
     for it in range(start, config.iterations):
         rng = np.random.default_rng([config.seed, it])
         phis = []
-        for b in range(config.meta_batch):
+        for _ in range(config.meta_batch):
             grid = collection.sample(rng)
             set_weights(model, theta)
             fit(model, grid, inner, seed=config.seed)

@@ -18,11 +18,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import UNKNOWN, GridMap
-from fedmap.nets.model import NetConfig, Weights, build_model, get_weights, load_model, set_weights
+from fedmap.nets.model import CoordNet, GridNet, NetConfig, Weights, build_model, get_weights, load_model, set_weights
 from fedmap.nets.training import TrainConfig, fit
 
 INITS = ("random", "empty", "meta")
@@ -40,7 +39,7 @@ def check_init(init: str, net: str) -> None:
         raise FedmapError("init 'meta' is for the Fourier networks (paper, small); a grid network starts at zero")
 
 
-def empty_prior(net_config: NetConfig, *, steps: int, seed: int, size: int = 64, lr: float = 1e-3) -> torch.nn.Module:
+def empty_prior(net_config: NetConfig, *, steps: int, seed: int, size: int = 64, lr: float = 1e-3) -> CoordNet | GridNet:
     """The network fitted for ``steps`` full-grid Adam steps to an all-UNKNOWN map.
 
     Fitted on a ``size x size`` grid; the network is a function of continuous
@@ -69,7 +68,7 @@ def load_init_weights(net_config: NetConfig, path: str | Path | None = None) -> 
 
 
 def initial_model(net_config: NetConfig, *, init: str, seed: int, prior_steps: int,
-                  init_weights: str | Path | None = None) -> torch.nn.Module:
+                  init_weights: str | Path | None = None) -> CoordNet | GridNet:
     """The model every rover starts round 1 from (see the module docstring)."""
     if init not in INITS:
         raise FedmapError(f"unknown init {init!r}; choose one of {', '.join(INITS)}")

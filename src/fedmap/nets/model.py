@@ -19,6 +19,7 @@ import json
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
@@ -108,6 +109,8 @@ class FourierFeatures(nn.Module):
     rebuilt from ``b_seed`` with torch's CPU generator, so every agent has the same B.
     """
 
+    B: torch.Tensor
+
     def __init__(self, mapping_size: int, scale: float, b_seed: int) -> None:
         super().__init__()
         g = torch.Generator().manual_seed(b_seed)
@@ -164,6 +167,10 @@ class GridNet(nn.Module):
     """
 
     cacheable_features = False
+    w1: torch.Tensor
+    b1: torch.Tensor
+    w2: torch.Tensor
+    b2: torch.Tensor
 
     def __init__(self, config: NetConfig) -> None:
         super().__init__()
@@ -191,7 +198,7 @@ class GridNet(nn.Module):
         return self.head(self.features(v))
 
 
-def build_model(config: NetConfig | None = None, *, seed: int = 0) -> nn.Module:
+def build_model(config: NetConfig | None = None, *, seed: int = 0) -> CoordNet | GridNet:
     """A freshly initialised network; ``seed`` fixes the initial weights."""
     config = config or NetConfig()
     if config.encoding == "grid":
@@ -246,7 +253,9 @@ def render(model: nn.Module, height: int, width: int, *, chunk: int = 1 << 16) -
     if n <= chunk or not any(isinstance(m, nn.BatchNorm1d) for m in model.modules()):
         # per-pixel function (no batch statistics): plain chunks are exact
         return torch.cat([model(coords[a : a + chunk]) for a in range(0, n, chunk)]).reshape(height, width, 3).numpy()
-    layers = list(model.mlp)
+    # Only a CoordNet has BatchNorm layers (a GridNet returned above): it has ``mlp`` and ``features``.
+    layers = list(cast(nn.Sequential, model.mlp))
+    features = cast(nn.Module, model.features)
     stats: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def run(x: torch.Tensor, upto: int) -> torch.Tensor:
@@ -263,7 +272,7 @@ def render(model: nn.Module, height: int, width: int, *, chunk: int = 1 << 16) -
             s = torch.zeros(layer.num_features, dtype=torch.float64)
             s2 = torch.zeros_like(s)
             for a in range(0, n, chunk):
-                x = run(model.features(coords[a : a + chunk]), i).double()
+                x = run(features(coords[a : a + chunk]), i).double()
                 s += x.sum(0)
                 s2 += (x * x).sum(0)
             mean = s / n
@@ -271,13 +280,13 @@ def render(model: nn.Module, height: int, width: int, *, chunk: int = 1 << 16) -
             stats[i] = (mean.float(), var.float())
     out = torch.empty(n, 3)
     for a in range(0, n, chunk):
-        out[a : a + chunk] = torch.sigmoid(run(model.features(coords[a : a + chunk]), len(layers)))
+        out[a : a + chunk] = torch.sigmoid(run(features(coords[a : a + chunk]), len(layers)))
     return out.reshape(height, width, 3).numpy()
 
 
 # -- checkpoints -------------------------------------------------------------------------
 
-def save_model(model: nn.Module, path: str | os.PathLike, *, extra: dict | None = None) -> None:
+def save_model(model: CoordNet | GridNet, path: str | os.PathLike, *, extra: dict | None = None) -> None:
     """Write weights + the config that built them as safetensors, atomically."""
     from safetensors.torch import save
 
@@ -289,7 +298,7 @@ def save_model(model: nn.Module, path: str | os.PathLike, *, extra: dict | None 
     atomic_write_bytes(path, data)
 
 
-def load_model(path: str | os.PathLike) -> CoordNet:
+def load_model(path: str | os.PathLike) -> CoordNet | GridNet:
     """Rebuild a network from a checkpoint alone (config is stored inside)."""
     from safetensors import SafetensorError
     from safetensors.torch import load

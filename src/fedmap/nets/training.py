@@ -6,7 +6,7 @@ the Flower apps both call :func:`fit`.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -14,7 +14,7 @@ import torch
 
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.maps.grid import GridMap
-from fedmap.nets.model import CoordNet, grid_coords
+from fedmap.nets.model import CoordNet, GridNet, grid_coords
 
 
 @dataclass(frozen=True)
@@ -67,7 +67,7 @@ def _loss(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> tor
 
 
 def fit(
-    model: CoordNet,
+    model: CoordNet | GridNet,
     grid: GridMap,
     config: TrainConfig,
     *,
@@ -94,12 +94,13 @@ def fit(
     losses: list[float] = []
     for _ in range(config.epochs):
         if config.batch_pixels is None or config.batch_pixels >= n:
-            batches = [None]
+            batches: Sequence[torch.Tensor | None] = [None]
         else:
             perm = torch.randperm(n, generator=gen)
-            batches = [perm[a : a + config.batch_pixels] for a in range(0, n, config.batch_pixels)]
-            if len(batches) > 1 and len(batches[-1]) < 2:  # BatchNorm cannot take one sample
-                batches = batches[:-1]
+            chunks = [perm[a : a + config.batch_pixels] for a in range(0, n, config.batch_pixels)]
+            if len(chunks) > 1 and len(chunks[-1]) < 2:  # BatchNorm cannot take one sample
+                chunks = chunks[:-1]
+            batches = chunks
         for idx in batches:
             x, y, wt = (feats, target, weight) if idx is None else (feats[idx], target[idx], weight[idx])
             opt.zero_grad(set_to_none=True)
