@@ -21,14 +21,16 @@ from pathlib import Path
 
 import torch
 
+from fedmap.evaluation.scores import score_map
 from fedmap.explore import explore
 from fedmap.federation.runner import run_federation
 from fedmap.flower.launch import Processes, flower_env, free_port, run_base_station
 from fedmap.flower.settings import RunSettings
 from fedmap.maps.grid import classes_from_rgb
 from fedmap.maps.io import save_map
+from fedmap.maps.sources import TerrainSource, load_truth
 from fedmap.nets.model import build_model, get_weights, preset, render, set_weights
-from fedmap.pipeline import PipelineConfig, evaluate, load_truth
+from fedmap.pipeline import PipelineConfig
 from fedmap.refine import RefineConfig, refine
 
 
@@ -40,10 +42,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     torch.set_num_threads(2)
-    run = {"net": args.net, "epochs": args.epochs, "seed": args.seed, "rovers": 4, "min-rovers": 4,
+    run = {"net": args.net, "init": "random", "epochs": args.epochs, "seed": args.seed, "rovers": 4, "min-rovers": 4,
            "deadline": 600.0, "connect-timeout": 300.0, "pairs": 75}
     pc = PipelineConfig(terrain="mars", size=args.size, seed=args.seed)
-    truth = load_truth(pc)
+    truth = load_truth(TerrainSource(terrain="mars", size=args.size), seed=args.seed)
     maps = explore(truth, 4, "quadrants", seed=args.seed, sensor_radius=pc.sensor_radius)
 
     t = time.perf_counter()
@@ -53,8 +55,8 @@ def main() -> None:
     model = build_model(net)
     set_weights(model, fed.weights)
     classes = classes_from_rgb(render(model, args.size, args.size))
-    psnr = evaluate(truth, classes, pc)["psnr"]
-    evaluate(truth, refine(classes, RefineConfig()), pc)
+    psnr = score_map(truth.classes, classes, pairs=pc.eval_pairs, seed=pc.seed).psnr
+    score_map(truth.classes, refine(classes, RefineConfig()), pairs=pc.eval_pairs, seed=pc.seed)
     in_process_s = time.perf_counter() - t
 
     with tempfile.TemporaryDirectory(prefix="fedmap-bench-") as tmp:

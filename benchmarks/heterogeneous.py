@@ -16,10 +16,10 @@ import time
 
 import torch
 
+from fedmap.config import method_config
 from fedmap.explore import explore
 from fedmap.maps.sources import TerrainSource, load_truth
 from fedmap.pipeline import run_pipeline
-from fedmap.presets import method_config
 
 TEAMS = {
     "quadrants, no overlap": dict(mode="quadrants"),
@@ -44,14 +44,15 @@ def main() -> None:
             mode = kw.pop("mode")
             local = explore(truth, 4, mode, seed=0, **kw)
             seen = sum(m.known for m in local).clip(0, 1).mean()
-            overrides = {"uplink": "fp16", "downlink": "fp16"} if mname == "paper" else {}
-            cfg = method_config(mname, **overrides)
+            overrides = {"uplink": "fp16", "downlink": "fp16", "init": "random"} if mname == "paper" else {}
+            cfg = method_config(mname, size=args.size, **overrides)
             t = time.perf_counter()
             r = run_pipeline(cfg, truth=truth, local_maps=local)
-            g, c = r.metrics["global"], r.metrics["central"]
+            g, c = r.global_scores, r.central_scores
+            assert c is not None  # central is on in both presets
             fmt = lambda x: "inf" if x == float("inf") else f"{x:.1f}"  # noqa: E731
-            print(f"| {tname} | {mname} | {seen:.0%} | {fmt(g['psnr'])} / {g['path']['f1']:.2f} | "
-                  f"{fmt(c['psnr'])} / {c['path']['f1']:.2f} | {r.metrics['bytes']['uplink_per_agent_round']:,.0f} | "
+            print(f"| {tname} | {mname} | {seen:.0%} | {fmt(g.psnr)} / {g.path.f1:.2f} | "
+                  f"{fmt(c.psnr)} / {c.path.f1:.2f} | {r.federation.total_bytes()['uplink_per_agent_round']:,.0f} | "
                   f"{time.perf_counter() - t:.0f} |", flush=True)
 
 
