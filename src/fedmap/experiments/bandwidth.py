@@ -54,6 +54,8 @@ name                 lossy   payload
 ``zstd-2bit``        no      zstd (level 19, with checksum) of the classes packed 4 per byte,
                              2 bits each, first cell in the high bits (like ``np.packbits``)
 ``zstd-uint8``       no      zstd (level 19, with checksum) of the classes as H*W uint8 bytes
+``context``          no      fedmap's context-model range coder (:mod:`fedmap.federation.mapcodec`):
+                             shape and CRC-32 in the payload
 ===================  ======  ===================================================================
 
 ``raw-gray``, ``zstd-2bit`` and ``zstd-uint8`` carry no shape: both ends share the global
@@ -92,6 +94,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from fedmap.errors import FedmapError
 from fedmap.evaluation.metrics import image_scores
 from fedmap.evaluation.paths import PathScores, path_f1
+from fedmap.federation.mapcodec import decode_map, encode_map
 from fedmap.maps.grid import FREE, IMPASSABLE, PALETTE, UNKNOWN, GridMap
 
 # -- Table III ---------------------------------------------------------------------------
@@ -202,7 +205,7 @@ _PALETTE_BYTES = [int(round(v * 255)) for v in PALETTE.ravel()]  # 0,255,0, 255,
 _ZSTD_LEVEL = 19
 
 CODEC_NAMES: tuple[str, ...] = ("raw-gray", "jpeg", "webp", "webp-lossless", "png-gray", "png-palette", "zstd-2bit",
-                                "zstd-uint8")
+                                "zstd-uint8", "context")
 LOSSY: frozenset[str] = frozenset({"jpeg", "webp"})
 DEFAULT_QUALITIES: tuple[int, ...] = (10, 26, 50, 75, 90)
 
@@ -364,6 +367,8 @@ class ImageCodec:
             raise FedmapError(f"{self.label} decodes free/impassable only, but the map has unknown cells")
         if n == "zstd-2bit":
             return _zstd_compress(pack_2bit(c))
+        if n == "context":
+            return encode_map(c)
         if n == "zstd-uint8":
             return _zstd_compress(np.ascontiguousarray(c).tobytes())
         if n == "png-palette":
@@ -391,7 +396,7 @@ class ImageCodec:
         shape = _check_shape(shape)
         n = self.name
         payload = bytes(payload)
-        if n in ("zstd-2bit", "zstd-uint8", "png-palette"):
+        if n in ("zstd-2bit", "zstd-uint8", "png-palette", "context"):
             return GRAY_LEVELS[self.decode(payload, shape)]
         if n == "raw-gray":
             if len(payload) != shape[0] * shape[1]:
@@ -409,6 +414,11 @@ class ImageCodec:
         payload = bytes(payload)
         if n == "zstd-2bit":
             return unpack_2bit(_zstd_decompress(payload, (shape[0] * shape[1] + 3) // 4), shape)
+        if n == "context":
+            c = decode_map(payload)
+            if c.shape != tuple(shape):
+                raise FedmapError(f"malformed payload: a {c.shape[0]}x{c.shape[1]} map, expected {shape[0]}x{shape[1]}")
+            return c
         if n == "zstd-uint8":
             c = np.frombuffer(_zstd_decompress(payload, shape[0] * shape[1]), dtype=np.uint8).reshape(shape).copy()
             if (c > UNKNOWN).any():
@@ -445,7 +455,7 @@ def image_codecs(qualities: Iterable[int] = DEFAULT_QUALITIES, *, webp: bool | N
     """
     qualities = sorted({int(q) for q in qualities})
     with_webp = features.check("webp") if webp is None else webp
-    out = [ImageCodec(n) for n in ("raw-gray", "png-gray", "png-palette", "zstd-uint8", "zstd-2bit")]
+    out = [ImageCodec(n) for n in ("raw-gray", "png-gray", "png-palette", "zstd-uint8", "zstd-2bit", "context")]
     if with_webp:
         out.append(ImageCodec("webp-lossless"))
     out += [ImageCodec("jpeg", q) for q in qualities]
@@ -572,6 +582,7 @@ _MODEL_COLORS = ("black", "magenta", "darkcyan", "goldenrod", "navy")
 _LOSSLESS_STYLE = {
     "raw-gray": ("0.3", ":"), "png-gray": ("tab:green", "--"), "png-palette": ("tab:olive", "-."),
     "zstd-uint8": ("tab:purple", "--"), "zstd-2bit": ("tab:red", "-"), "webp-lossless": ("tab:brown", "-."),
+    "context": ("black", "-"),
 }
 
 
