@@ -50,8 +50,17 @@ def test_reproduce_report(tmp_path):
     assert 4 * 199_683 < rows[0]["uplink_bytes_per_rover_round"] < 4 * 199_683 + 4096
     for r in rows:
         assert 0 <= r["f1"] <= 1 and 0 <= r["precision"] <= 1 and r["ssim"] <= 1
+        # the paper's F1 read literally, UNKNOWN impassable and passable, with its counts
+        for key in ("f1_paper", "f1_paper_unknown_passable"):
+            assert 0 <= r[key] <= 1
+        for key in ("paper_counts", "paper_counts_unknown_passable"):
+            c = r[key]
+            assert set(c) == {"tp", "fp", "fn", "tn", "differ"} and sum(c.values()) == data["config"]["pairs"]
+        assert list(r)[list(r).index("f1_tolerant") + 1] == "f1_paper"  # appended after the existing keys
     md = (out / "report.md").read_text()
     assert "Table II" in md and "paper preset, FedYogi (eta=0.01)" in md
+    assert "| paper F1 | paper F1 (u.p.) |" in md and "paper F1: the paper's text read literally" in md
+    assert all("f1_paper" in p for pts in data["rounds_curve"]["mars"].values() for p in pts)
     for fig in ["rounds_curve.png", *data["terrains"]["mars"]["figures"].values()]:
         with Image.open(out / fig) as im:
             assert im.size[0] > 300

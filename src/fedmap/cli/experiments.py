@@ -9,8 +9,8 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from fedmap.cli.ui import console, fmt, progress_bar, stage_callbacks
-from fedmap.experiments.reproduce import ReproduceConfig
+from fedmap.cli.ui import console, fit, fmt, progress_bar, stage_callbacks
+from fedmap.experiments.reproduce import F1_MEANINGS, PAPER_TABLE2, ReproduceConfig
 from fedmap.experiments.reproduce import reproduce as run_reproduce
 from fedmap.experiments.table3 import bandwidth_report
 from fedmap.pipeline import PipelineConfig
@@ -68,11 +68,15 @@ def reproduce(
     for name, t in res["terrains"].items():
         table = Table(title=f"Table II — {name}", header_style="bold")
         table.add_column("configuration", overflow="fold")
-        for col in ("PSNR", "SSIM", "P", "R", "F1", "B/rover/round"):
+        for col in ("PSNR", "SSIM", "P", "R", "F1", "paperF1", "paperF1\nu.p.", "B/rover/round"):
             table.add_column(col, justify="right", no_wrap=True)
         for r in t["table2"]:
             b = r["uplink_bytes_per_rover_round"]
             table.add_row(r["label"], fmt(r["psnr"]), fmt(r["ssim"], 3), fmt(r["precision"]), fmt(r["recall"]),
-                          fmt(r["f1"]), "-" if b is None else f"{b:,.0f}")
-        console.print(table)
+                          fmt(r["f1"]), fmt(r["f1_paper"]), fmt(r["f1_paper_unknown_passable"]),
+                          "-" if b is None else f"{b:,.0f}")
+        console.print(fit(table))
+    console.print(F1_MEANINGS)
+    console.print("Paper (Table II, FedAvg): " + "; ".join(f"{k} PSNR {v['psnr']} / SSIM {v['ssim']} / F1 {v['f1']}"
+                                                           for k, v in PAPER_TABLE2.items()))
     console.print(f"outputs: {out}/  (report.md, reproduce.json, figures); wall time {time.perf_counter() - t0:.1f} s")

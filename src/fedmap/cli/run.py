@@ -17,7 +17,7 @@ import numpy as np
 import typer
 
 from fedmap._util import atomic_write_bytes, clean_json, to_json
-from fedmap.cli.ui import console, progress_bar, scores_table, stage_callbacks
+from fedmap.cli.ui import F1_CAPTION, console, progress_bar, scores_table, stage_callbacks
 from fedmap.config import dumps_toml, load_run, overrides_from, parse_set, terrain_table
 from fedmap.errors import FedmapError
 from fedmap.evaluation.scores import score_map
@@ -48,8 +48,8 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
     console.print(f"method: {resolved['method']} ({pconfig.net} net, init {pconfig.init}, {fed.aggregator} x "
                   f"{fed.rounds} round(s), {fed.local.epochs} local epochs)")
     console.print(scores_table(result))
-    console.print("PSNR in dB on RGB renderings; P/R/F1: A* path planning over "
-                  f"{pconfig.eval_pairs} start/goal pairs (identical path = TP); tol.F1: paths within 5% of the true length")
+    console.print(f"PSNR in dB on RGB renderings; P/R/F1: A* path planning over {pconfig.eval_pairs} start/goal pairs "
+                  f"(UNKNOWN {'passable' if pconfig.unknown_passable else 'impassable'}). {F1_CAPTION}")
     b = result.federation.total_bytes()
     console.print(f"link: {b['uplink']:,} B uplink ({fed.uplink}), {b['downlink']:,} B downlink ({fed.downlink}) in "
                   f"total; {b['uplink_per_agent_round']:,.0f} B per rover per round uplink")
@@ -169,7 +169,7 @@ def evaluate(
     seed: int = typer.Option(0),
     unknown_passable: bool = typer.Option(False, help="Let the planner cross UNKNOWN cells."),
 ) -> None:
-    """PSNR, SSIM and A* path F1 of a map against ground truth."""
+    """PSNR, SSIM and A* path F1 of a map against ground truth (strict, tolerant and paper-literal)."""
     a, b = load_map(learned), load_map(truth)
     if a.shape != b.shape:
         raise FedmapError(f"{learned} is {a.shape[0]}x{a.shape[1]} but {truth} is {b.shape[0]}x{b.shape[1]}")

@@ -1,7 +1,12 @@
-"""The paper's path-planning F1 of a learned map against ground truth, and a tolerant variant.
+"""The paper's path-planning F1 of a learned map against ground truth: strict, tolerant and
+literal.
 
 Both maps are planned on with the one A* of :mod:`fedmap.maps.planning`, for seeded
-start/goal pairs drawn from the passable cells of the truth.
+start/goal pairs drawn from the passable cells of the truth. Three readings of the same
+plans (see :func:`path_f1`): strict (:class:`PathScores`: a different path is both a
+false positive and a false negative), tolerant (:class:`TolerantScores`: a collision-free
+path at most 5% longer is correct) and the paper's text read literally
+(:class:`PaperScores`: a different path is not counted at all).
 """
 
 from __future__ import annotations
@@ -30,8 +35,39 @@ class TolerantScores:
 
 
 @dataclass(frozen=True)
+class PaperScores:
+    """The paper's path F1 read literally: its text defines only three outcomes.
+
+    * ``tp``: the learned path is identical to the true one, cell for cell;
+    * ``fp``: the learned map gives a path where the truth has none;
+    * ``fn``: the learned map gives no path where the truth has one;
+    * ``tn``: neither map has a path;
+    * ``differ``: both maps have a path but the paths differ. The paper's text defines no
+      outcome for this case, so it is counted here and left out of precision, recall and
+      F1 (the strict :class:`PathScores` counts it once as FP and once as FN).
+
+    Precision, recall and F1 use the strict F1's conventions for empty denominators: no
+    TP + FP gives precision 1, no TP + FN gives recall 1. So a map whose every pair is a
+    TN or ``differ`` scores precision = recall = F1 = 1.
+    """
+
+    tp: int
+    fp: int
+    fn: int
+    tn: int
+    differ: int
+    precision: float
+    recall: float
+    f1: float
+
+
+@dataclass(frozen=True)
 class PathScores:
-    """Counts and precision / recall / F1 of :func:`path_f1` (``to_dict`` for JSON)."""
+    """Counts and precision / recall / F1 of :func:`path_f1` (``to_dict`` for JSON).
+
+    The top-level counts and scores are the strict reading; ``tolerant`` and ``paper`` (the
+    paper's text read literally) score the same plans, with the same ``unknown_passable``.
+    """
 
     pairs: int
     tp: int
@@ -44,6 +80,7 @@ class PathScores:
     tolerant: TolerantScores
     mean_length_ratio: float | None
     unknown_passable: bool
+    paper: PaperScores
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -65,7 +102,7 @@ def path_f1(
     unknown_passable: bool = False,
     length_tolerance: float = 0.05,
 ) -> PathScores:
-    """The paper's path-planning F1, plus a tolerant variant.
+    """The paper's path-planning F1 (strict), plus a tolerant and a literal reading.
 
     For ``n_pairs`` seeded start/goal pairs drawn from the passable cells of ``truth``,
     plan with the same A* on both maps:
@@ -83,6 +120,11 @@ def path_f1(
 
     The tolerant variant counts a learned path as correct when it is collision-free on
     the true map and at most ``(1 + length_tolerance)`` times the true path's length.
+
+    ``paper`` (:class:`PaperScores`) reads the paper's text literally, from the same plans
+    of the same pairs: TP and TN as above, FP only where the truth has no path, FN only
+    where the learned map has none; a pair where both maps have a path but the paths differ
+    is counted as ``differ`` and in none of TP, FP, FN. Same empty-denominator conventions.
     """
     truth = np.asarray(truth)
     pred = np.asarray(pred)
@@ -96,6 +138,7 @@ def path_f1(
     lp, _ = ndimage.label(pp)
     tp = fp = fn = tn = 0
     tol_tp = tol_fp = tol_fn = 0
+    pap_fp = pap_fn = differ = 0  # the literal reading: its TP and TN are the strict ones
     ratios = []
     for s, g in sample_pairs(pt, n_pairs, seed=seed):
         true_path = astar(pt, s, g) if lt[s] == lt[g] else None
@@ -108,6 +151,11 @@ def path_f1(
         else:
             fp += pred_path is not None
             fn += true_path is not None
+            if true_path is not None and pred_path is not None:
+                differ += 1
+            else:
+                pap_fp += pred_path is not None
+                pap_fn += true_path is not None
         # tolerant variant
         if true_path is not None and pred_path is not None:
             ratio = path_length(pred_path) / max(path_length(true_path), 1e-12)
@@ -124,5 +172,6 @@ def path_f1(
     p, r, f = _prf(tp, fp, fn)
     tp_, tr_, tf_ = _prf(tol_tp, tol_fp, tol_fn)
     tolerant = TolerantScores(length_tolerance, tol_tp, tol_fp, tol_fn, tp_, tr_, tf_)
+    paper = PaperScores(tp, pap_fp, pap_fn, tn, differ, *_prf(tp, pap_fp, pap_fn))
     return PathScores(n_pairs, tp, fp, fn, tn, p, r, f, tolerant, float(np.mean(ratios)) if ratios else None,
-                      unknown_passable)
+                      unknown_passable, paper)

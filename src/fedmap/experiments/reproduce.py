@@ -34,6 +34,7 @@ import numpy as np
 from fedmap._util import AtomicDir, to_json
 from fedmap.config import method_config
 from fedmap.errors import FedmapError
+from fedmap.evaluation.paths import PaperScores
 from fedmap.evaluation.scores import MapScores, score_map
 from fedmap.experiments.real_terrain import REAL_TERRAINS, load_real
 from fedmap.experiments.table3 import bandwidth_report
@@ -135,10 +136,20 @@ def terrains(config: ReproduceConfig) -> dict[str, GridMap]:
     return {name: load(name) for name in chosen}
 
 
+def _paper_counts(s: PaperScores | None) -> dict | None:
+    return None if s is None else {k: getattr(s, k) for k in ("tp", "fp", "fn", "tn", "differ")}
+
+
 def _summary(m: MapScores) -> dict:
+    """A map's row: strict and tolerant path scores (the run's UNKNOWN setting), then the
+    paper-literal F1 and its counts with UNKNOWN impassable (``f1_paper``) and passable."""
     p = m.path
+    imp, pas = m.paper_unknown_impassable, m.paper_unknown_passable
     return {"psnr": m.psnr, "ssim": m.ssim, "accuracy": m.accuracy, "precision": p.precision,
-            "recall": p.recall, "f1": p.f1, "f1_tolerant": p.tolerant.f1}
+            "recall": p.recall, "f1": p.f1, "f1_tolerant": p.tolerant.f1,
+            "f1_paper": None if imp is None else imp.f1,
+            "f1_paper_unknown_passable": None if pas is None else pas.f1,
+            "paper_counts": _paper_counts(imp), "paper_counts_unknown_passable": _paper_counts(pas)}
 
 
 def _row_config(row: Row, config: ReproduceConfig, *, central: bool) -> PipelineConfig:
@@ -189,9 +200,11 @@ def rounds_curve(truth: GridMap, method: str, config: ReproduceConfig, *, on_sta
         classes = classes_from_rgb(render(model, *truth.shape))
         m = score_map(truth.classes, classes, pairs=cfg.eval_pairs, seed=cfg.seed,
                       unknown_passable=cfg.unknown_passable)
+        s = _summary(m)
         points.append({"round": rec["round"], "psnr": m.psnr, "ssim": m.ssim, "f1": m.path.f1,
                        "f1_tolerant": m.path.tolerant.f1,
-                       "uplink_bytes": sum(rec["uplink_bytes"].values())})
+                       "uplink_bytes": sum(rec["uplink_bytes"].values()),
+                       "f1_paper": s["f1_paper"], "f1_paper_unknown_passable": s["f1_paper_unknown_passable"]})
 
     run_pipeline(cfg, truth=truth, on_stage=on_stage, on_step=on_step, on_round=score)
     return points
@@ -274,6 +287,14 @@ def _psnr(x) -> str:
     return "inf" if x is None or not np.isfinite(x) else f"{x:.2f}"
 
 
+#: One line on what each F1 of Table II means (the report's caption).
+F1_MEANINGS = ("F1 (strict): an identical path is a TP, a different path is both an FP and an FN; tol. F1: a "
+               "collision-free path within 5% of the true length is a TP; paper F1: the paper's text read "
+               "literally, TP an identical path, FP a path where the truth has none, FN no path where the truth "
+               "has one, a pair where both maps have different paths not counted (UNKNOWN cells impassable; "
+               "u.p.: passable). Strict and tolerant F1 plan with UNKNOWN cells impassable.")
+
+
 def markdown(result: dict) -> str:
     c = result["config"]
     src = "built-in terrains" if c["data"] is None else f"real terrain from `{c['data']}`"
@@ -281,20 +302,22 @@ def markdown(result: dict) -> str:
           f"{c['size']}x{c['size']} maps, 4 rovers (quadrants), seed {c['seed']}, {c['pairs']} A* routes per map. "
           f"Server learning rate for FedAdam/FedYogi: eta = {c['eta']:g} (beta1 0.9, beta2 0.99, tau 1e-3).", "",
           "## Table II — one-shot federated mapping", "",
-          "PSNR/SSIM on the RGB renderings; P/R/F1 of A* paths (TP = identical path); tol. F1 accepts a "
-          "collision-free path at most 5% longer. Bytes: one rover's uplink per round.", ""]
+          "PSNR/SSIM on the RGB renderings; P/R/F1 of A* paths. Bytes: one rover's uplink per round.", "",
+          F1_MEANINGS, ""]
     for name, t in result["terrains"].items():
         info = t["truth"]
         md += [f"### {name}", "",
                f"{info['source']}; pixel {info['pixel_size_m']:g} m; free {info['free']:.1%}, "
                f"impassable {info['impassable']:.1%}", "",
-               "| configuration | PSNR | SSIM | P | R | F1 | tol. F1 | refined F1 | uplink B/rover/round |",
-               "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+               "| configuration | PSNR | SSIM | P | R | F1 | tol. F1 | paper F1 | paper F1 (u.p.) | refined F1 "
+               "| uplink B/rover/round |",
+               "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in t["table2"]:
             ref = r.get("refined", {}).get("f1")
             b = r["uplink_bytes_per_rover_round"]
             md.append(f"| {r['label']} | {_psnr(r['psnr'])} | {_fmt(r['ssim'], 3)} | {_fmt(r['precision'])} | "
-                      f"{_fmt(r['recall'])} | {_fmt(r['f1'])} | {_fmt(r['f1_tolerant'])} | {_fmt(ref)} | "
+                      f"{_fmt(r['recall'])} | {_fmt(r['f1'])} | {_fmt(r['f1_tolerant'])} | "
+                      f"{_fmt(r.get('f1_paper'))} | {_fmt(r.get('f1_paper_unknown_passable'))} | {_fmt(ref)} | "
                       f"{'-' if b is None else f'{b:,.0f}'} |")
         md += ["", f"![Fig. 4, paper preset]({t['figures']['paper']})  ", f"![Fig. 4, fedmap]({t['figures']['fedmap']})",
                ""]
@@ -302,15 +325,18 @@ def markdown(result: dict) -> str:
            "updates differ only by (1 - beta2) * v0 = 1e-8. With any server optimiser the one-shot step is about "
            "eta * sign(average update), whatever the rovers learned.", ""]
     md += ["Paper (Table II, FedAvg): " + "; ".join(f"{k} PSNR {v['psnr']} / SSIM {v['ssim']} / F1 {v['f1']}"
-                                                    for k, v in PAPER_TABLE2.items()) + ".", ""]
+                                                    for k, v in PAPER_TABLE2.items())
+           + ". The paper does not say how its A* treats UNKNOWN cells: compare its F1 with both paper F1 columns.",
+           ""]
     md += ["## Global map quality vs rounds", "", f"![rounds curve]({result['figures']['rounds_curve']})", "",
+           "Each cell: PSNR / strict F1 / paper F1 (UNKNOWN impassable).", "",
            "| terrain | method | " + " | ".join(f"R={p['round']}" for p in next(iter(next(iter(
                result["rounds_curve"].values())).values()))) + " |",
            "|---|---|" + "---:|" * c["curve_rounds"]]
     for terrain, by_method in result["rounds_curve"].items():
         for method, pts in by_method.items():
-            md.append(f"| {terrain} | {method} | " + " | ".join(f"{_psnr(p['psnr'])} dB / {_fmt(p['f1'])}"
-                                                               for p in pts) + " |")
+            md.append(f"| {terrain} | {method} | " + " | ".join(
+                f"{_psnr(p['psnr'])} dB / {_fmt(p['f1'])} / {_fmt(p.get('f1_paper'))}" for p in pts) + " |")
     md.append("")
     if result.get("table1"):
         t1 = result["table1"]
