@@ -5,6 +5,10 @@ One module per group of commands: :mod:`~fedmap.cli.run` (demo, run, terrain, ev
 (meta-train, ablate-init) and :mod:`~fedmap.cli.flower` (base-station, rover, certs);
 :mod:`~fedmap.cli.ui` holds the console, progress bars and tables.
 
+Global options (before the command): ``--quiet`` prints no progress, ``--log-json`` prints
+each progress event as one JSON object per line. Without a terminal, progress is plain
+log lines (:class:`~fedmap.cli.ui.LogProgress`).
+
 User mistakes (bad files, bad options) print one line ``error: ...`` and exit 2.
 """
 
@@ -15,7 +19,7 @@ import sys
 import click
 import typer
 
-from fedmap.cli import experiments, flower, meta, run
+from fedmap.cli import experiments, flower, meta, run, ui
 from fedmap.errors import FedmapError
 
 app = typer.Typer(
@@ -24,6 +28,21 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     help="Federated multi-agent mapping for planetary exploration.",
 )
+
+
+@app.callback()
+def _global_options(
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress output (results are still printed)."),
+    log_json: bool = typer.Option(False, "--log-json", help="Progress as JSON lines: one object per event."),
+) -> None:
+    """Federated multi-agent mapping for planetary exploration.
+
+    Without a terminal (output piped to a file, CI, nohup), long commands print a plain
+    progress line at each stage boundary and at least every 10 s.
+    """
+    ui.set_output(quiet=quiet, log_json=log_json)
+
+
 app.command()(run.demo)
 app.command("run")(run.run)
 app.command()(experiments.reproduce)
@@ -37,10 +56,17 @@ app.command("meta-train")(meta.meta_train)
 app.command("ablate-init")(meta.ablate_init)
 
 
+_GLOBAL_FLAGS = ("--quiet", "--log-json")
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point: one-line errors, no tracebacks for user mistakes."""
+    """Entry point: one-line errors, no tracebacks for user mistakes. The global options
+    ``--quiet`` and ``--log-json`` may also follow the command (``fedmap demo --quiet``)."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    globals_ = [a for a in args if a in _GLOBAL_FLAGS]
+    args = globals_ + [a for a in args if a not in _GLOBAL_FLAGS]
     try:
-        app(args=argv, standalone_mode=False)
+        app(args=args, standalone_mode=False)
     except FedmapError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

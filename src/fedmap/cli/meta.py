@@ -138,8 +138,7 @@ def ablate_init(
     test = pick_maps(coll.maps(), maps, seed=seed)
     t0 = time.perf_counter()
     with progress_bar() as progress:
-        task = progress.add_task("inits", total=0, loss="")
-        progress.update(task, description="empty-map prior")
+        task = progress.add_task("empty-map prior", total=0, loss="")
         inits = make_inits(init_weights=init_weights, prior_steps=prior_steps, seed=seed)
         progress.update(task, description="fit test maps", total=len(test) * len(inits), completed=0)
         result = run_ablation(test, inits, _net(), config,

@@ -1,13 +1,32 @@
-"""What the commands show people: the console, progress bars, score tables."""
+"""What the commands show people: the console, progress (bars or log lines), score tables.
+
+In a terminal, progress is a transient rich bar per stage. Without one (stdout piped to a
+file, CI, ``nohup``) a :class:`LogProgress` prints plain lines instead: one when a stage
+starts and ends, and one at least every 10 s in between (stage, done/total, elapsed, ETA).
+``fedmap --quiet ...`` prints no progress; ``fedmap --log-json ...`` prints each progress
+event as one JSON object per line (see :func:`set_output`).
+"""
 
 from __future__ import annotations
 
+import json
+import sys
+import threading
+import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TextIO
 
 from rich.console import Console
 from rich.measure import Measurement
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TaskID,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 from rich.table import Table
 
 from fedmap.evaluation.scores import MapScores
@@ -15,9 +34,155 @@ from fedmap.pipeline import PipelineResult
 
 console = Console()
 
+#: How progress is shown, set once per command by the ``fedmap`` callback (:func:`set_output`).
+_OUTPUT: dict[str, bool] = {"quiet": False, "json": False}
 
-def progress_bar() -> Progress:
-    """A transient progress display: one bar per stage, with the last loss."""
+#: Seconds between two plain progress lines within a stage.
+LOG_INTERVAL = 10.0
+
+
+def set_output(*, quiet: bool = False, log_json: bool = False) -> None:
+    """``quiet``: no progress output at all; ``log_json``: progress events as JSON lines, even
+    in a terminal."""
+    _OUTPUT["quiet"], _OUTPUT["json"] = quiet, log_json
+
+
+class LogProgress:
+    """Progress as log lines, for runs without a terminal. It has the part of rich's
+    :class:`~rich.progress.Progress` interface the commands use (``add_task``, ``update``,
+    a context manager), so :func:`stage_callbacks` and the commands drive either.
+
+    A line is written when a stage starts, when it ends (its task completes, a new task is
+    added, its description changes, or the display closes), and during a stage whenever
+    ``interval`` seconds have passed since the last line: on a step, or from a heartbeat
+    thread so that a long step still logs. ``clock`` and ``heartbeat=False`` let tests
+    drive time by hand (:meth:`tick`).
+    """
+
+    def __init__(self, *, json_lines: bool = False, quiet: bool = False, interval: float = LOG_INTERVAL,
+                 clock: Callable[[], float] = time.monotonic, stream: TextIO | None = None,
+                 heartbeat: bool = True) -> None:
+        self.json_lines, self.quiet, self.interval, self.clock = json_lines, quiet, interval, clock
+        self.stream = stream
+        self.heartbeat = heartbeat and not quiet
+        self._tasks: dict[int, dict[str, Any]] = {}
+        self._current: int | None = None
+        self._last = clock()
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> LogProgress:
+        if self.heartbeat:
+            self._thread = threading.Thread(target=self._beat, name="fedmap-progress", daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        if exc_type is None and self._current is not None:
+            self._end(self._current)
+
+    def _beat(self) -> None:
+        while not self._stop.wait(min(1.0, self.interval)):
+            self.tick()
+
+    def add_task(self, description: str, start: bool = True, total: float | None = 100.0, completed: int = 0,
+                 visible: bool = True, **fields: Any) -> TaskID:
+        with self._lock:
+            if self._current is not None:
+                self._end(self._current)
+            task_id = len(self._tasks)
+            self._tasks[task_id] = {"stage": description, "total": total, "done": completed, "counted": bool(total),
+                                    "start": self.clock(), "fields": fields, "ended": False}
+            self._current = task_id
+            self._emit(self._tasks[task_id], "start")
+            return TaskID(task_id)
+
+    def update(self, task_id: TaskID, *, total: float | None = None, completed: float | None = None,
+               advance: float | None = None, description: str | None = None, visible: bool | None = None,
+               refresh: bool = False, **fields: Any) -> None:
+        with self._lock:
+            t = self._tasks[task_id]
+            renamed = description is not None and description != t["stage"]
+            if renamed:  # a new stage in the same task: the old one ends here
+                if self._current is not None:
+                    self._end(self._current)
+            if total is not None:
+                t["total"] = total
+                t["counted"] = t["counted"] or bool(total) and (completed is None or completed < total)
+            if completed is not None:
+                t["done"] = completed
+            if advance is not None:
+                t["done"] += advance
+            t["fields"].update(fields)
+            if renamed:
+                t.update(stage=description, start=self.clock(), ended=False)
+                self._current = task_id
+                self._emit(t, "start")
+            if t["ended"]:
+                return
+            if t["total"] and t["done"] >= t["total"]:
+                self._end(task_id)
+            elif self.clock() - self._last >= self.interval:
+                self._emit(t, "step")
+
+    def tick(self) -> None:
+        """Write a line for the running stage if none was written for ``interval`` seconds."""
+        with self._lock:
+            if self._current is not None and self.clock() - self._last >= self.interval:
+                self._emit(self._tasks[self._current], "step")
+
+    def _end(self, task_id: int) -> None:
+        t = self._tasks[task_id]
+        if not t["ended"]:
+            t["ended"] = True
+            self._emit(t, "end")
+        if self._current == task_id:
+            self._current = None
+
+    def event(self, t: dict[str, Any], phase: str) -> dict[str, Any]:
+        """The progress event of a stage: what a JSON line holds."""
+        now = self.clock()
+        elapsed = now - t["start"]
+        done, total = (t["done"], t["total"] or None) if t["counted"] else (None, None)
+        eta = 0.0 if phase == "end" else (elapsed / done * (total - done) if total and done else None)
+        info = " ".join(str(v) for v in t["fields"].values() if v not in ("", None))
+        return {"event": "progress", "phase": phase, "stage": t["stage"], "done": done, "total": total,
+                "elapsed_s": round(elapsed, 1), "eta_s": None if eta is None else round(eta, 1),
+                "info": info or None, "time": time.strftime("%H:%M:%S")}
+
+    def line(self, ev: dict[str, Any]) -> str:
+        """The plain line of an event, e.g. ``[12:00:10] stage 'federated training' 120/400 (30%)
+        elapsed 12.3 s eta 28.7 s``."""
+        done, total, phase = ev["done"], ev["total"], ev["phase"]
+        count = f" {done:g}/{total:g} ({done / total:.0%})" if total else ""
+        info = f", {ev['info']}" if ev["info"] else ""
+        head = f"[{ev['time']}] stage {ev['stage']!r}"
+        if phase == "start":
+            return f"{head} started{count}"
+        if phase == "end":
+            return f"{head} done{count} in {ev['elapsed_s']:.1f} s{info}"
+        eta = "" if ev["eta_s"] is None else f" eta {ev['eta_s']:.1f} s"
+        return f"{head}{count} elapsed {ev['elapsed_s']:.1f} s{eta}{info}"
+
+    def _emit(self, t: dict[str, Any], phase: str) -> None:
+        self._last = self.clock()
+        if self.quiet:
+            return
+        ev = self.event(t, phase)
+        stream = self.stream or sys.stdout
+        stream.write((json.dumps(ev) if self.json_lines else self.line(ev)) + "\n")
+        stream.flush()
+
+
+def progress_bar() -> Progress | LogProgress:
+    """The progress display of a command: a transient rich bar per stage, with the last loss,
+    in a terminal; :class:`LogProgress` lines otherwise, or with ``--log-json`` / ``--quiet``."""
+    if _OUTPUT["quiet"] or _OUTPUT["json"] or not console.is_terminal:
+        return LogProgress(json_lines=_OUTPUT["json"], quiet=_OUTPUT["quiet"])
     return Progress(
         TextColumn("{task.description:<26}"), BarColumn(bar_width=24), MofNCompleteColumn(),
         TextColumn("{task.fields[loss]}"), TimeElapsedColumn(), TimeRemainingColumn(), console=console,
@@ -25,15 +190,17 @@ def progress_bar() -> Progress:
     )
 
 
-def stage_callbacks(progress: Progress) -> tuple[Callable[[str | None, int], None], Callable[[int, float], None]]:
+def stage_callbacks(progress: Progress | LogProgress) -> tuple[Callable[[str | None, int], None],
+                                                                Callable[[int, float], None]]:
     """``on_stage(name, total)`` closes the running bar and opens the next (``name=None``
     only closes); ``on_step(step, loss)`` advances the current bar."""
-    current: dict[str, Any] = {"task": None}
+    current: dict[str, Any] = {"task": None, "total": 0}
 
     def on_stage(name: str | None, total: int) -> None:
         if current["task"] is not None:
-            progress.update(current["task"], total=1, completed=1)
+            progress.update(current["task"], total=current["total"] or 1, completed=current["total"] or 1)
         current["task"] = progress.add_task(name, total=total or None, loss="") if name is not None else None
+        current["total"] = total
 
     def on_step(step: int, loss: float) -> None:
         progress.update(current["task"], advance=1, loss=f"loss {loss:.4f}")
