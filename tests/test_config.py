@@ -159,3 +159,17 @@ def test_parse_set():
         parse_set("train.lr")
     with pytest.raises(FedmapError, match="unknown key 'lrr' in \\[train\\] of the command-line options"):
         resolve(overrides=[parse_set("train.lrr=1")])
+
+
+def test_the_presets_init_goes_with_its_network(tmp_path):
+    """paper's meta-init is for the paper network: swapping the network without an init
+    starts from random weights; an explicit init, or a weights file, is kept."""
+    assert method_config("paper").init == "meta"
+    assert method_config("paper", net="small").init == "random"
+    assert method_config("paper", net="grid").init == "random"  # (meta would be refused for grid)
+    assert method_config("paper", net="small", init="empty").init == "empty"
+    assert method_config("paper", net="small", init_weights="w.safetensors").init == "meta"
+    path = write(tmp_path, '[model]\nnet = "small"\ninit = "meta"\n')
+    assert to_pipeline_config(resolve(path)).init == "meta"  # said in the file: kept
+    with pytest.raises(FedmapError, match="unknown setting 'crop'"):
+        method_config("paper", crop=64)  # built-in terrain has no crop

@@ -179,6 +179,16 @@ def test_rejected_update_drops_a_rover_and_a_mistake_stops_the_run(tmp_path, blo
         _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1)
 
 
+def test_a_rover_with_a_bad_node_config_stops_the_run(tmp_path, blob_map):
+    """A node config the rover cannot read is a mistake, not a dropout: the base stops."""
+    run = {**RUN, "rounds": 1}
+    _, nodes = _team(tmp_path, blob_map)
+    nodes[103] = {"partition-id": 3, "map": str(tmp_path / "missing.npy")}
+    strategy = FedmapStrategy(RunSettings.from_run_config(run))
+    with pytest.raises(FedmapError, match=r"^a rover \(node 103\) failed before training: .*missing\.npy"):
+        _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1)
+
+
 def test_flower_settings_are_the_one_config_builder():
     """The base station's run config builds the same PipelineConfig as fedmap run / method_config."""
     from fedmap.config import method_config

@@ -177,7 +177,7 @@ def test_reference_mistakes():
     m = _blobs((40, 40), seed=1)
     ref = _blobs((40, 40), seed=2)
     data = encode_map(m, reference=ref)
-    with pytest.raises(FedmapError, match="coded against a reference map; pass the same reference"):
+    with pytest.raises(RejectedUpdate, match="coded against a reference map; pass the same reference"):
         decode_map(data)
     with pytest.raises(RejectedUpdate, match="^malformed map payload: the reference map differs from the encoder's"):
         decode_map(data, reference=_blobs((40, 40), seed=3))
@@ -213,6 +213,10 @@ def test_malformed_payloads_are_rejected_in_one_line():
     forged = head + struct_crc(head)
     with pytest.raises(RejectedUpdate, match="bad header"):
         decode_map(forged)
+    # within the limit, a receiver that knows its grid refuses another shape before decoding
+    head = mapcodec._HEADER.pack(mapcodec.MAGIC, mapcodec.VERSION, 0, 4096, 4096, 0)
+    with pytest.raises(RejectedUpdate, match="a 4096x4096 map, expected 50x60"):
+        decode_map(head + struct_crc(head), expected_shape=(50, 60))
 
 
 def struct_crc(b: bytes) -> bytes:
@@ -238,5 +242,5 @@ def test_context_is_an_image_codec_row():
     payload, back = codec.roundtrip(m)
     np.testing.assert_array_equal(back, m)
     assert codec.lossless and payload == encode_map(m)
-    with pytest.raises(FedmapError, match="a 64x64 map, expected 64x65"):
+    with pytest.raises(RejectedUpdate, match="a 64x64 map, expected 64x65"):
         codec.decode(payload, (64, 65))

@@ -126,3 +126,15 @@ def test_renamed_task_is_a_new_stage():
         "stage 'finished' started 3/3 (100%)",
         "stage 'finished' done 3/3 (100%) in 0.0 s, 4 rovers",
     ]
+
+
+def test_log_json_keeps_stdout_pure_json_lines(tmp_path):
+    """With --log-json every stdout line parses as JSON; the human summary goes to stderr."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "fedmap", "terrain", "moon", str(tmp_path / "m.png"), "--size", "64",
+                        "--log-json"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert all(__import__("json").loads(line) for line in r.stdout.splitlines() if line.strip())
+    assert "64x64 moon" in r.stderr

@@ -188,8 +188,9 @@ def test_a_mistake_inside_fit_stops_the_run_at_once(tiny_net, blob_map, monkeypa
     assert trained == [0, 1]
 
 
-def test_diverged_training_is_a_rejected_update(tiny_net, blob_map, monkeypatch):
-    """fit's own divergence check raises RejectedUpdate, which the round survives."""
+def test_rejected_update_from_fit_drops_that_rover(tiny_net, blob_map, monkeypatch):
+    """A RejectedUpdate raised in a rover's training (as fit's divergence check does, see
+    test_training) drops that rover; the round aggregates the others."""
     maps = explore(blob_map, 4, "quadrants")
     init = get_weights(build_model(tiny_net, seed=0))
     real_fit = runner_mod.fit
@@ -202,4 +203,23 @@ def test_diverged_training_is_a_rejected_update(tiny_net, blob_map, monkeypatch)
     monkeypatch.setattr(runner_mod, "fit", diverging)
     res = run_federation(init, tiny_net, maps, FederationConfig(local=TrainConfig(epochs=2), seed=1))
     assert list(res.history[0]["dropped"]) == [3] and "diverged" in res.history[0]["dropped"][3]
-    assert issubclass(RejectedUpdate, FedmapError)  # the CLI still prints it as one line
+
+
+@pytest.mark.parametrize("uplink", ["fp32", "update-int8"])
+def test_update_that_does_not_fit_the_model_is_dropped(tiny_net, blob_map, uplink):
+    """A payload made for another model (other tensor shapes) is a rejected update at the
+    base, for dense and update codecs alike; the others are averaged."""
+    from fedmap.federation.aggregate import FedAvg
+    from fedmap.federation.runner import base_step
+
+    held = get_weights(build_model(tiny_net, seed=0))
+    good = {k: v + 0.01 for k, v in held.items()}
+    name = next(iter(held))
+    wrong_ref = {**held, name: np.zeros((*np.shape(held[name])[:-1], np.shape(held[name])[-1] + 1), np.float32)}
+    wrong = {**wrong_ref, name: wrong_ref[name] + 0.5}
+    payloads = {0: Encoder(uplink).encode(good, reference=held), 1: Encoder(uplink).encode(wrong, reference=wrong_ref)}
+    step = base_step(FedAvg(), held, payloads, {0: 10.0, 1: 10.0}, Encoder("fp32"))
+    assert list(step.dropped) == [1] and step.dropped[1].startswith("malformed payload")
+    assert list(step.counts) == [0]
+    for k in held:  # FedAvg of the one rover left is its own (decoded) update
+        np.testing.assert_allclose(step.held[k], decode(payloads[0], reference=held)[k], atol=1e-7)

@@ -192,6 +192,10 @@ GRID_KEYS = ("crop", "size", "resample")
 def resolve(config_path=None, overrides: list[dict] | None = None, *, terrain: dict | None = None) -> dict:
     """Preset defaults < TOML file < ``overrides`` (each a partial config, applied in order).
 
+    The preset's ``init`` goes with the preset's ``net``: when the file or the options
+    change the network but say nothing of the init, the run starts from random weights
+    (or, with ``init_weights``, from that file).
+
     ``terrain`` (e.g. ``{"kind": "dem", "path": ...}`` from ``--dem``) replaces the file's
     terrain source: its keys except ``crop``, ``size`` and ``resample`` are dropped.
     """
@@ -209,6 +213,12 @@ def resolve(config_path=None, overrides: list[dict] | None = None, *, terrain: d
     for o in overrides:
         resolved = merge(resolved, o)
     resolved["method"] = method
+    model = resolved["model"]
+    if not any("init" in layer.get("model", {}) for layer in (file_data, *overrides)):
+        # the preset's init belongs to the preset's network: a network swapped in without
+        # an init starts from its seeded weights, or from the given weights file
+        if model["net"] != load_preset(method).get("model", {}).get("net", model["net"]):
+            model["init"] = "meta" if model.get("init_weights") else "random"
     return resolved
 
 
@@ -247,7 +257,7 @@ def to_pipeline_config(resolved: dict, *, size: int | None = None, label: str = 
 #: ``method_config`` keyword -> (section, key) of the run config (None: top level).
 KEYWORDS: dict[str, tuple[str | None, str]] = {
     "method": (None, "method"), "seed": (None, "seed"),
-    "terrain": ("terrain", "terrain"), "size": ("terrain", "size"), "crop": ("terrain", "crop"),
+    "terrain": ("terrain", "terrain"), "size": ("terrain", "size"),
     "max_slope_deg": ("thresholds", "max_slope_deg"), "max_step_m": ("thresholds", "max_step_m"),
     "max_roughness_m": ("thresholds", "max_roughness_m"),
     "agents": ("explore", "agents"), "explore": ("explore", "mode"), "overlap": ("explore", "overlap"),

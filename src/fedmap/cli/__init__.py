@@ -56,7 +56,7 @@ app.command("meta-train")(meta.meta_train)
 app.command("ablate-init")(meta.ablate_init)
 
 
-_GLOBAL_FLAGS = ("--quiet", "--log-json")
+_GLOBAL_FLAGS = ("--quiet", "-q", "--log-json")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     globals_ = [a for a in args if a in _GLOBAL_FLAGS]
     args = globals_ + [a for a in args if a not in _GLOBAL_FLAGS]
     try:
-        app(args=args, standalone_mode=False)
+        code = app(args=args, standalone_mode=False)
     except FedmapError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -81,4 +81,6 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("error: interrupted; no partial output was written", file=sys.stderr)
         return 130
-    return 0
+    finally:
+        ui.set_output()  # --quiet / --log-json last for this command only
+    return code if isinstance(code, int) else 0  # typer.Exit(code) comes back as the result

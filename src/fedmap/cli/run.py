@@ -130,7 +130,7 @@ def run(
     out: Path = typer.Option(Path("fedmap-out/run"), "--out", "-o", help="Output folder (replaced atomically)."),
 ) -> None:
     """Map any terrain (DEM, class map, tiles or built-in) with a federated team; config from TOML + options."""
-    settings = dict(method=method, seed=seed, size=size, crop=crop, max_slope_deg=max_slope, max_step_m=max_step,
+    settings = dict(method=method, seed=seed, size=size, max_slope_deg=max_slope, max_step_m=max_step,
                     max_roughness_m=max_roughness, agents=agents, explore=explore, overlap=overlap, net=net,
                     init=init, init_weights=None if init_weights is None else str(init_weights.resolve()),
                     epochs=local_epochs, lr=lr, masked=masked, rounds=rounds, aggregator=aggregator, eta=eta,
@@ -139,6 +139,8 @@ def run(
     table = terrain_table(dem=dem, map_path=map_, builtin=terrain)
     if pixel_size is not None:
         set_ = [*(set_ or []), f"terrain.options.pixel_size={pixel_size!r}"]
+    if crop is not None:  # a file's crop: not a method_config keyword (built-in terrain has none)
+        set_ = [*(set_ or []), f"terrain.crop={crop}"]
     execute(config, settings, set_=set_, terrain=table, out=out)
 
 

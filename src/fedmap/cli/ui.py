@@ -42,9 +42,11 @@ LOG_INTERVAL = 10.0
 
 
 def set_output(*, quiet: bool = False, log_json: bool = False) -> None:
-    """``quiet``: no progress output at all; ``log_json``: progress events as JSON lines, even
-    in a terminal."""
+    """``quiet``: no progress output at all; ``log_json``: progress events as JSON lines on
+    stdout, even in a terminal, and everything else a command prints on stderr (so stdout
+    is pure JSON lines)."""
     _OUTPUT["quiet"], _OUTPUT["json"] = quiet, log_json
+    console.file = sys.stderr if log_json else None  # type: ignore[assignment]  # None: follow sys.stdout
 
 
 class LogProgress:

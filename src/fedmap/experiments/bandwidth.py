@@ -415,10 +415,7 @@ class ImageCodec:
         if n == "zstd-2bit":
             return unpack_2bit(_zstd_decompress(payload, (shape[0] * shape[1] + 3) // 4), shape)
         if n == "context":
-            c = decode_map(payload)
-            if c.shape != tuple(shape):
-                raise FedmapError(f"malformed payload: a {c.shape[0]}x{c.shape[1]} map, expected {shape[0]}x{shape[1]}")
-            return c
+            return decode_map(payload, expected_shape=(shape[0], shape[1]))
         if n == "zstd-uint8":
             c = np.frombuffer(_zstd_decompress(payload, shape[0] * shape[1]), dtype=np.uint8).reshape(shape).copy()
             if (c > UNKNOWN).any():

@@ -773,7 +773,11 @@ def _decode_content(kind: str, flags: int, content: memoryview, reference: Weigh
         return {k_: v.copy() for k_, v in layout.split(delta).items()}
     if reference is None:
         raise FedmapError(f"this payload is a {kind} update; decode needs the reference weights")
-    out = layout.flat(reference, np.float32, "reference weight") + delta
+    try:
+        ref = layout.flat(reference, np.float32, "reference weight")
+    except FedmapError as e:  # the update was made against another model: it does not fit here
+        raise RejectedUpdate(f"malformed payload: {e}") from None
+    out = ref + delta
     return {k_: v.copy() for k_, v in layout.split(out).items()}
 
 

@@ -69,8 +69,9 @@ _OUTSIDE = 3  # a neighbour outside the map
 _N_CTX = 4**4  # four base-4 neighbour digits
 _REF_KNOWN = 2 * 5  # with a reference: (its class FREE / IMPASSABLE) x (0..4 neighbours changed)
 _LEVELS = 3  # s = 1, s = 2, s >= 4
-#: Largest map a payload may declare (cells); bounds what a decoder allocates.
-MAX_CELLS = 1 << 28
+#: Largest map a payload may declare (cells, 4096²); bounds what a decoder allocates before
+#: the map's CRC can be checked. Pass ``expected_shape`` to bound it to the map you expect.
+MAX_CELLS = 1 << 24
 
 #: Per phase: the four neighbours at distance ``s`` (all known when the phase is coded).
 _OFFSETS = {
@@ -198,8 +199,12 @@ def encode_map(classes: np.ndarray, *, reference: np.ndarray | None = None) -> b
     return head + body + struct.pack("<I", zlib.crc32(head + body))
 
 
-def decode_map(data: bytes, *, reference: np.ndarray | None = None) -> np.ndarray:
-    """The ``(H, W)`` uint8 class map of a :func:`encode_map` payload."""
+def decode_map(data: bytes, *, reference: np.ndarray | None = None,
+               expected_shape: tuple[int, int] | None = None) -> np.ndarray:
+    """The ``(H, W)`` uint8 class map of a :func:`encode_map` payload.
+
+    ``expected_shape``: refuse, before decoding, a payload that declares another shape
+    (a receiver that knows the global grid should pass it)."""
     buf = bytes(data)
     if len(buf) < _HEADER.size + _CRC:
         raise RejectedUpdate(f"malformed map payload: {len(buf)} bytes is shorter than the header")
@@ -213,10 +218,13 @@ def decode_map(data: bytes, *, reference: np.ndarray | None = None) -> np.ndarra
         raise RejectedUpdate(f"malformed map payload: CRC mismatch ({len(buf)} bytes; truncated or corrupted)")
     if flags & ~_F_REFERENCE or h == 0 or w == 0 or h * w > MAX_CELLS or (len(buf) - _HEADER.size - _CRC) % 4:
         raise RejectedUpdate(f"malformed map payload: bad header (flags {flags:#x}, {h}x{w})")
+    if expected_shape is not None and (h, w) != tuple(expected_shape):
+        raise RejectedUpdate(f"malformed map payload: a {h}x{w} map, expected {expected_shape[0]}x{expected_shape[1]}")
     ref = None
     if flags & _F_REFERENCE:
         if reference is None:
-            raise FedmapError("this map payload was coded against a reference map; pass the same reference")
+            raise RejectedUpdate("malformed map payload: it was coded against a reference map; pass the same "
+                                 "reference")
         ref = _check_classes(reference, "reference map")
         if ref.shape != (h, w):
             raise RejectedUpdate(f"malformed map payload: it is {h}x{w}, the reference is {ref.shape[0]}x{ref.shape[1]}")

@@ -155,10 +155,12 @@ def base_step(
     updates, used = [], {}
     for k in sorted(payloads):
         try:
-            updates.append(decode(payloads[k], reference=held))
+            update = decode(payloads[k], reference=held)
+            _check_fits(update, held)
         except RejectedUpdate as e:
             dropped[k] = str(e)
             continue
+        updates.append(update)
         used[k] = counts[k]
     if not updates:
         where = f"round {round_label}: " if round_label is not None else ""
@@ -166,6 +168,16 @@ def base_step(
     global_w = aggregator.aggregate(held, updates, list(used.values()))
     down_payload = down_encoder.encode(global_w, reference=held)
     return BaseStep(decode(down_payload, reference=held), down_payload, used, dict(sorted(dropped.items())))
+
+
+def _check_fits(update: Weights, held: Weights) -> None:
+    """A decoded update must have the tensors of the model the base holds."""
+    if set(update) != set(held):
+        raise RejectedUpdate(f"malformed payload: its tensors {sorted(set(update) ^ set(held))} do not match the model's")
+    for name, value in held.items():
+        if np.shape(update[name]) != np.shape(value):
+            raise RejectedUpdate(f"malformed payload: tensor {name!r} has shape {np.shape(update[name])}, "
+                                 f"the model's is {np.shape(value)}")
 
 
 def run_federation(

@@ -74,8 +74,11 @@ def _error_reply(msg: Message, metrics: dict, e: FedmapError) -> Message:
 
 @app.train()
 def train(msg: Message, context: Context) -> Message:
-    settings = RunSettings.from_run_config(dict(context.run_config))
-    pid, local = load_local_map(dict(context.node_config))
+    try:  # a bad run or node config is a mistake: reported as fatal, the base stops the run
+        settings = RunSettings.from_run_config(dict(context.run_config))
+        pid, local = load_local_map(dict(context.node_config))
+    except FedmapError as e:
+        return _error_reply(msg, {}, e)
     server_round = int(cast(int, msg.content["config"]["server-round"]))  # the base sends an int
     down = from_record(msg.content.array_records.get("downlink"))
     metrics: dict[str, MetricRecordValues] = {"partition-id": pid, "known-cells": local.n_known,

@@ -113,6 +113,9 @@ class FedmapStrategy(Strategy):
                     dropped[pid] = reason
                 continue
             met = msg.content["metrics"]
+            if "partition-id" not in met:  # the rover could not even read its settings or map
+                error = msg.content["error"]
+                raise FedmapError(f"a rover (node {node}) failed before training: {error['reason']}")
             pid = int(met["partition-id"])
             self.node_partition[node] = pid
             shape = (int(met["height"]), int(met["width"]))
