@@ -95,7 +95,7 @@ from fedmap.errors import FedmapError
 from fedmap.evaluation.metrics import image_scores
 from fedmap.evaluation.paths import PathScores, path_f1
 from fedmap.federation.mapcodec import decode_map, encode_map
-from fedmap.maps.grid import FREE, IMPASSABLE, PALETTE, UNKNOWN, GridMap
+from fedmap.maps.grid import FREE, IMPASSABLE, PALETTE, UNKNOWN, GridMap, check_classes
 
 # -- Table III ---------------------------------------------------------------------------
 
@@ -212,7 +212,7 @@ DEFAULT_QUALITIES: tuple[int, ...] = (10, 26, 50, 75, 90)
 
 def classes_to_gray(classes: np.ndarray) -> np.ndarray:
     """Class map -> grey image (uint8): free 255, impassable 0, unknown 128."""
-    return GRAY_LEVELS[_check_classes(classes)]
+    return GRAY_LEVELS[check_classes(classes)]
 
 
 def gray_to_classes(gray: np.ndarray) -> np.ndarray:
@@ -221,15 +221,6 @@ def gray_to_classes(gray: np.ndarray) -> np.ndarray:
     if gray.dtype != np.uint8:
         raise FedmapError(f"a grey image must be uint8, got {gray.dtype}")
     return _GRAY_TO_CLASS[gray]
-
-
-def _check_classes(classes: np.ndarray) -> np.ndarray:
-    c = np.asarray(classes)
-    if c.ndim != 2 or c.size == 0:
-        raise FedmapError(f"a class map must be a non-empty 2-D array, got shape {c.shape}")
-    if not np.issubdtype(c.dtype, np.integer) or c.min() < 0 or c.max() > UNKNOWN:
-        raise FedmapError(f"map classes must be integers 0..{UNKNOWN}")
-    return c.astype(np.uint8, copy=False)
 
 
 def _check_shape(shape: Sequence[int]) -> tuple[int, int]:
@@ -241,7 +232,7 @@ def _check_shape(shape: Sequence[int]) -> tuple[int, int]:
 def pack_2bit(classes: np.ndarray) -> bytes:
     """Classes (values 0..3) packed 4 per byte, 2 bits each, first cell in the high bits;
     the last byte is padded with zeros."""
-    flat = _check_classes(classes).ravel()
+    flat = check_classes(classes).ravel()
     pad = (-flat.size) % 4
     if pad:
         flat = np.concatenate([flat, np.zeros(pad, np.uint8)])
@@ -361,7 +352,7 @@ class ImageCodec:
     # -- encode / decode -------------------------------------------------------------------
     def encode(self, classes: np.ndarray) -> bytes:
         """The exact bytes put on the link."""
-        c = _check_classes(classes)
+        c = check_classes(classes)
         n = self.name
         if self.two_level and (c == UNKNOWN).any():
             raise FedmapError(f"{self.label} decodes free/impassable only, but the map has unknown cells")
@@ -499,7 +490,7 @@ def compare_image_codecs(
     3 minutes per distinct 2000 x 2000 map, single-threaded). The pool uses the
     platform's default start method (fork on Linux).
     """
-    classes = _check_classes(truth.classes if isinstance(truth, GridMap) else truth)
+    classes = check_classes(truth.classes if isinstance(truth, GridMap) else truth)
     if codecs is None:
         codecs = image_codecs(qualities, two_level=two_level)
     if workers < 1:

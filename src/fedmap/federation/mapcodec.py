@@ -54,7 +54,7 @@ import constriction
 import numpy as np
 
 from fedmap.errors import FedmapError, RejectedUpdate
-from fedmap.maps.grid import UNKNOWN
+from fedmap.maps.grid import UNKNOWN, check_classes
 
 MAGIC = b"FMCM"
 VERSION = 1
@@ -85,16 +85,10 @@ _OPPOSITE = {"A": (3, 2, 1, 0), "B": (1, 0, 3, 2), "C": (1, 0, 3, 2)}
 
 
 def _check_classes(classes: np.ndarray, what: str) -> np.ndarray:
-    a = np.asarray(classes)
-    if a.ndim != 2 or a.size == 0:
-        raise FedmapError(f"{what} must be a non-empty 2-D class map, got shape {a.shape}")
-    if not np.issubdtype(a.dtype, np.integer):
-        raise FedmapError(f"{what} must hold integer classes, got {a.dtype}")
-    if a.min() < 0 or a.max() >= N_CLASSES:
-        raise FedmapError(f"{what} must hold classes 0, 1, 2 (free, impassable, unknown), got {a.min()}..{a.max()}")
+    a = check_classes(classes, what)
     if a.size > MAX_CELLS:
         raise FedmapError(f"{what} has {a.size} cells, more than the codec's {MAX_CELLS}")
-    return a.astype(np.uint8, copy=False)
+    return a
 
 
 def _map_crc(m: np.ndarray) -> int:

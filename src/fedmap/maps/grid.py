@@ -88,6 +88,19 @@ class GridMap:
         return GridMap(classes, self.pixel_size, self.source if source is None else source, dict(self.meta))
 
 
+def check_classes(classes: np.ndarray, what: str = "class map") -> np.ndarray:
+    """``classes`` as a ``(H, W)`` uint8 class map; a one-line error names ``what`` when it
+    is not a non-empty 2-D array of integer classes FREE, IMPASSABLE or UNKNOWN."""
+    a = np.asarray(classes)
+    if a.ndim != 2 or a.size == 0:
+        raise FedmapError(f"{what} must be a non-empty 2-D class map, got shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.integer):
+        raise FedmapError(f"{what} must hold integer classes, got {a.dtype}")
+    if a.min() < 0 or a.max() > UNKNOWN:
+        raise FedmapError(f"{what} must hold classes 0, 1, 2 (free, impassable, unknown), got {a.min()}..{a.max()}")
+    return a.astype(np.uint8, copy=False)
+
+
 def render_classes(classes: np.ndarray) -> np.ndarray:
     """Class array (H, W) -> RGB (H, W, 3) float32 in the paper's colours."""
     return PALETTE[np.asarray(classes, dtype=np.intp)]
