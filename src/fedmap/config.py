@@ -43,7 +43,7 @@ from fedmap._util import check_keys, suggest
 from fedmap.errors import FedmapError
 from fedmap.federation.runner import FederationConfig
 from fedmap.maps.grid import GridMap
-from fedmap.maps.sources import READER_OPTIONS, TerrainSource, load_truth
+from fedmap.maps.sources import DEFAULT_BUILTIN_SIZE, READER_OPTIONS, TerrainSource, load_truth
 from fedmap.maps.traversability import TraversabilityThresholds
 from fedmap.nets.training import TrainConfig
 from fedmap.pipeline import PipelineConfig
@@ -243,7 +243,7 @@ def to_pipeline_config(resolved: dict, *, size: int | None = None, label: str = 
     terrain = resolved["terrain"]
     builtin = terrain.get("kind", "builtin") == "builtin"
     if size is None:
-        size = int(terrain.get("size", TerrainSource().size or 128))
+        size = int(terrain.get("size", DEFAULT_BUILTIN_SIZE))
     return PipelineConfig(
         terrain=terrain.get("terrain", "mars") if builtin else "mars", label="" if builtin else label, size=size,
         agents=e["agents"], explore=e["mode"], overlap=e["overlap"], sensor_radius=float(e["sensor_radius"]),

@@ -18,6 +18,7 @@ from typing import Any
 from fedmap.config import defaults, overrides_from, resolve, to_pipeline_config
 from fedmap.errors import FedmapError
 from fedmap.federation.runner import FederationConfig
+from fedmap.maps.sources import DEFAULT_BUILTIN_SIZE
 from fedmap.pipeline import PipelineConfig
 
 #: Run-config key -> (section, key) of fedmap's run config.
@@ -37,11 +38,11 @@ BASE_DEFAULTS: dict[str, Any] = {
 
 
 def flat_run_config(resolved: dict) -> dict[str, Any]:
-    """The run keys of a resolved fedmap run config, as Flower's flat run config."""
-    out: dict[str, Any] = {}
-    for key, (section, name) in RUN_KEYS.items():
-        out[key] = resolved[name] if section is None else resolved[section].get(name, 128 if name == "size" else None)
-    return out
+    """The run keys of a resolved fedmap run config, as Flower's flat run config (a built-in
+    terrain's side, when no ``[terrain] size`` is set, is the built-in default)."""
+    terrain = {"size": DEFAULT_BUILTIN_SIZE, **resolved["terrain"]}
+    return {key: resolved[name] if section is None else (terrain if section == "terrain" else resolved[section])[name]
+            for key, (section, name) in RUN_KEYS.items()}
 
 
 #: Every run-config key with its default: the ``paper`` preset, flattened.
