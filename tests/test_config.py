@@ -173,3 +173,11 @@ def test_the_presets_init_goes_with_its_network(tmp_path):
     assert to_pipeline_config(resolve(path)).init == "meta"  # said in the file: kept
     with pytest.raises(FedmapError, match="unknown setting 'crop'"):
         method_config("paper", crop=64)  # built-in terrain has no crop
+
+
+def test_a_weights_file_without_an_init_is_a_meta_init():
+    """The same rule for every command: --init-weights alone means init meta from that file."""
+    r = resolve(overrides=[{"method": "fedmap", "model": {"net": "paper", "init_weights": "w.safetensors"}}])
+    assert r["model"]["init"] == "meta"
+    r = resolve(overrides=[{"model": {"init_weights": "w.safetensors", "init": "empty"}}])
+    assert r["model"]["init"] == "empty"  # an explicit init wins (PipelineConfig then refuses the pair)

@@ -192,9 +192,9 @@ GRID_KEYS = ("crop", "size", "resample")
 def resolve(config_path=None, overrides: list[dict] | None = None, *, terrain: dict | None = None) -> dict:
     """Preset defaults < TOML file < ``overrides`` (each a partial config, applied in order).
 
-    The preset's ``init`` goes with the preset's ``net``: when the file or the options
-    change the network but say nothing of the init, the run starts from random weights
-    (or, with ``init_weights``, from that file).
+    When the file and the options say nothing of the init, ``init_weights`` means a
+    meta-init from that file; otherwise the preset's ``init`` goes with the preset's
+    ``net``, and a network swapped in starts from random weights.
 
     ``terrain`` (e.g. ``{"kind": "dem", "path": ...}`` from ``--dem``) replaces the file's
     terrain source: its keys except ``crop``, ``size`` and ``resample`` are dropped.
@@ -215,10 +215,13 @@ def resolve(config_path=None, overrides: list[dict] | None = None, *, terrain: d
     resolved["method"] = method
     model = resolved["model"]
     if not any("init" in layer.get("model", {}) for layer in (file_data, *overrides)):
-        # the preset's init belongs to the preset's network: a network swapped in without
-        # an init starts from its seeded weights, or from the given weights file
-        if model["net"] != load_preset(method).get("model", {}).get("net", model["net"]):
-            model["init"] = "meta" if model.get("init_weights") else "random"
+        # a weights file given without an init is a meta-init from that file; otherwise the
+        # preset's init belongs to the preset's network: a network swapped in starts from
+        # its seeded weights
+        if model.get("init_weights"):
+            model["init"] = "meta"
+        elif model["net"] != load_preset(method).get("model", {}).get("net", model["net"]):
+            model["init"] = "random"
     return resolved
 
 

@@ -88,8 +88,6 @@ def demo(
                     epochs=local_epochs, lr=lr, aggregator=aggregator, net=net, central=central, uplink=uplink,
                     downlink=downlink, eta=eta, init=init, init_weights=None if init_weights is None else
                     str(init_weights.resolve()), masked=masked, min_size=min_size, pairs=pairs, seed=seed)
-    if init_weights is not None and init is None:
-        settings["init"] = "meta"
     execute(None, settings, out=out)
 
 
