@@ -145,8 +145,6 @@ def write_base_outputs(fed: FederationResult, shape: tuple[int, int], settings: 
     net = preset(p.net, h)
     model, rgb, classes, refined = global_map(net, fed.weights, (h, w), p.refine)
     truth = base_truth(settings)
-    metrics = {"aggregator": fed.aggregator, "bytes": fed.total_bytes(), "ledger": fed.ledger(),
-               "rounds": fed.history, "flower": flower}
     out = settings.out
     if truth is not None:
         if truth.shape != (h, w):
@@ -160,6 +158,8 @@ def write_base_outputs(fed: FederationResult, shape: tuple[int, int], settings: 
         write_outputs(result, out, extra_metrics={"flower": flower})
     else:
         frame = GridMap(classes, 1.0, "federated global map")
+        metrics = {"aggregator": fed.aggregator, "bytes": fed.total_bytes(), "ledger": fed.ledger(),
+                   "rounds": fed.history, "flower": flower}
         with AtomicDir(out) as tmp:
             (tmp / "metrics.json").write_text(to_json({**metrics, "timings": {"federation_s": federation_s}}))
             save_model(model, tmp / "global_model.safetensors", extra={"flower": flower["settings"]})
