@@ -68,6 +68,11 @@ class PipelineConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    def score(self, truth: GridMap, classes: np.ndarray) -> MapScores:
+        """``classes`` scored against ``truth`` with this run's pairs, seed and planner."""
+        return score_map(truth.classes, classes, pairs=self.eval_pairs, seed=self.seed,
+                         unknown_passable=self.unknown_passable)
+
     def terrain_source(self) -> TerrainSource:
         """The built-in terrain this config maps when no ``truth`` is given."""
         return TerrainSource(kind="builtin", terrain=self.terrain, size=self.size, thresholds=self.thresholds)
@@ -163,12 +168,8 @@ def run_pipeline(
     h, w = truth.shape
     model, global_rgb, global_classes, refined = global_map(net_config, fed.weights, (h, w), config.refine)
 
-    def score(classes: np.ndarray) -> MapScores:
-        return score_map(truth.classes, classes, pairs=config.eval_pairs, seed=config.seed,
-                         unknown_passable=config.unknown_passable)
-
-    global_scores, refined_scores = score(global_classes), score(refined)
-    agent_scores = [score(m.classes) for m in local_maps]
+    global_scores, refined_scores = config.score(truth, global_classes), config.score(truth, refined)
+    agent_scores = [config.score(truth, m.classes) for m in local_maps]
     timings["evaluate_s"] = time.perf_counter() - t
     central_scores, steps = None, None
     if config.central:
@@ -179,7 +180,7 @@ def run_pipeline(
         set_weights(central, get_weights(init_model))
         fit(central, union_map(local_maps), replace(config.federation.local, epochs=steps), seed=config.seed,
             on_step=on_step)
-        central_scores = score(classes_from_rgb(render(central, h, w)))
+        central_scores = config.score(truth, classes_from_rgb(render(central, h, w)))
         timings["central_s"] = time.perf_counter() - t
     return PipelineResult(config, truth, local_maps, model, global_rgb, global_classes, refined, fed, global_scores,
                           refined_scores, agent_scores, central_scores, steps, timings)

@@ -35,7 +35,7 @@ from fedmap._util import AtomicDir, to_json
 from fedmap.config import method_config
 from fedmap.errors import FedmapError
 from fedmap.evaluation.paths import PaperScores
-from fedmap.evaluation.scores import MapScores, score_map
+from fedmap.evaluation.scores import MapScores
 from fedmap.experiments.real_terrain import REAL_TERRAINS, load_real
 from fedmap.experiments.table3 import bandwidth_report
 from fedmap.maps.grid import GridMap, classes_from_rgb
@@ -198,8 +198,7 @@ def rounds_curve(truth: GridMap, method: str, config: ReproduceConfig, *, on_sta
     def score(rec: dict, weights: dict) -> None:
         set_weights(model, weights)
         classes = classes_from_rgb(render(model, *truth.shape))
-        m = score_map(truth.classes, classes, pairs=cfg.eval_pairs, seed=cfg.seed,
-                      unknown_passable=cfg.unknown_passable)
+        m = cfg.score(truth, classes)
         s = _summary(m)
         points.append({"round": rec["round"], "psnr": m.psnr, "ssim": m.ssim, "f1": m.path.f1,
                        "f1_tolerant": m.path.tolerant.f1,

@@ -19,7 +19,6 @@ from typing import Any
 from fedmap._util import AtomicDir, atomic_write_bytes, to_json
 from fedmap.config import method_config
 from fedmap.errors import FedmapError
-from fedmap.evaluation.scores import score_map
 from fedmap.explore import explore
 from fedmap.federation.codecs import Encoder, decode
 from fedmap.federation.runner import FederationResult, rover_step
@@ -149,11 +148,8 @@ def write_base_outputs(fed: FederationResult, shape: tuple[int, int], settings: 
     if truth is not None:
         if truth.shape != (h, w):
             raise FedmapError(f"the ground truth is {truth.shape}, the rovers' maps are {(h, w)}")
-
-        def score(c):
-            return score_map(truth.classes, c, pairs=p.eval_pairs, seed=p.seed, unknown_passable=p.unknown_passable)
-
-        result = PipelineResult(p, truth, [], model, rgb, classes, refined, fed, score(classes), score(refined), [],
+        result = PipelineResult(p, truth, [], model, rgb, classes, refined, fed, p.score(truth, classes),
+                                p.score(truth, refined), [],
                                 timings={"federation_s": federation_s, "evaluate_s": time.perf_counter() - t})
         write_outputs(result, out, extra_metrics={"flower": flower})
     else:
