@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 
 import numpy as np
 import pytest
-import tifffile
+import rasterio
+from affine import Affine
 from PIL import Image
+from rasterio.errors import NotGeoreferencedWarning
+from rasterio.shutil import copy as rio_copy
 
 from fedmap import _util
 from fedmap.errors import FedmapError
@@ -179,8 +183,8 @@ def test_unsupported_suffix_lists_supported(tmp_path):
     with pytest.raises(FedmapError, match=r"\.png, \.npy"):
         save_map(random_map(), tmp_path / "m.bmp")
     assert not (tmp_path / "m.bmp").exists()
-    with pytest.raises(FedmapError, match=r"\.tif, \.tiff, \.npy"):
-        load_dem(tmp_path / "m.jpg")
+    with pytest.raises(FedmapError, match=r"cannot read DEM .*m\.jpg"):
+        load_dem(tmp_path / "m.jpg")  # GDAL reads by content: one b"x" is nothing it knows
 
 
 def test_save_creates_parent_folder(tmp_path):
@@ -224,123 +228,223 @@ def test_atomic_write_keeps_mode_of_existing_file(tmp_path):
     assert (os.stat(path).st_mode & 0o777) == 0o640
 
 
-# --------------------------------------------------------------------------- DEMs
+# --------------------------------------------------------------------------- DEMs (through GDAL)
+
+MOON = "IAU_2015:30100"  # longitude/latitude on the IAU 2015 Moon sphere, 1737.4 km
+MARS = "IAU_2015:49901"  # longitude/latitude (ographic) on the IAU 2015 Mars ellipsoid, 3396.19 x 3376.2 km
 
 
-def geokeys(model_type: int, extra: list[tuple[int, int]] = ()) -> tuple[int, ...]:
-    """A GeoKeyDirectoryTag with short (inline) keys only."""
-    keys = [(1024, model_type), (1025, 1)] + list(extra)
-    out = [1, 1, 0, len(keys)]
-    for key, value in keys:
-        out += [key, 0, 1, value]
-    return tuple(out)
+def write_raster(path, z, *, transform=None, crs=None, nodata=None, driver="GTiff", **kw):
+    """Write ``z`` (H, W) or (B, H, W) with rasterio (GDAL); AAIGrid goes through a GeoTIFF copy."""
+    z = np.asarray(z)
+    bands = z if z.ndim == 3 else z[None]
+    profile = dict(driver="GTiff" if driver == "AAIGrid" else driver, height=bands.shape[1], width=bands.shape[2],
+                   count=bands.shape[0], dtype=bands.dtype.name, crs=crs, nodata=nodata, **kw)
+    if transform is not None:
+        profile["transform"] = transform
+    target = str(path.with_suffix(".src.tif")) if driver == "AAIGrid" else str(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)  # files without a transform on purpose
+        with rasterio.open(target, "w", **profile) as dst:
+            dst.write(bands)
+        if driver == "AAIGrid":
+            rio_copy(target, str(path), driver="AAIGrid")
+    return path
 
 
-def write_geotiff(path, data, *, scale, tiepoint, model_type, nodata=None, extra_keys=()):
-    extratags = [
-        (33550, "d", 3, (scale[0], scale[1], 0.0), True),
-        (33922, "d", 6, (0.0, 0.0, 0.0, tiepoint[0], tiepoint[1], 0.0), True),
-        (34735, "H", len(geokeys(model_type, extra_keys)), geokeys(model_type, extra_keys), True),
-    ]
-    if nodata is not None:
-        extratags.append((42113, "s", 0, nodata, True))
-    tifffile.imwrite(path, data, extratags=extratags)
+def plane(h, w, dx_m, dy_m, gx=0.1, gy=0.2, base=1000.0) -> np.ndarray:
+    """Elevation rising ``gx`` m per metre east and ``gy`` per metre north (row 0 north)."""
+    cols, rows = np.meshgrid(np.arange(w), np.arange(h))
+    return (base + gx * cols * dx_m - gy * rows * dy_m).astype(np.float32)
 
 
-def test_projected_geotiff_pixel_size_and_nodata(tmp_path):
+def test_projected_geotiff_pixel_size_nodata_and_transform(tmp_path):
     rng = np.random.default_rng(20)
     z = rng.uniform(100, 200, size=(30, 40)).astype(np.float32)
     z[2, 3] = z[10, 20] = -9999.0
-    path = tmp_path / "dem.tif"
-    write_geotiff(path, z, scale=(2.5, 2.5), tiepoint=(500000.0, 4000000.0), model_type=1,
-                  nodata="-9999", extra_keys=[(3076, 9001)])
+    t = Affine(2.5, 0, 500000.0, 0, -2.5, 4000000.0)
+    path = write_raster(tmp_path / "dem.tif", z, transform=t, crs="EPSG:32612", nodata=-9999.0)
     dem = load_dem(path)
-    assert dem.pixel_size == pytest.approx(2.5)
-    assert dem.shape == (30, 40)
+    assert dem.pixel_size == pytest.approx(2.5) and dem.shape == (30, 40)
     nan = np.isnan(dem.elevation)
     assert nan.sum() == 2 and nan[2, 3] and nan[10, 20]
     np.testing.assert_array_equal(dem.elevation[~nan], z[z != -9999.0])
-    assert dem.meta["nodata"] == -9999.0 and dem.meta["nodata_from"] == "geotiff"
-    assert dem.meta["pixel_size_from"] == "geotiff"
-    assert dem.source == str(path)
-    # arguments win over the tags
+    assert dem.meta["nodata"] == -9999.0 and dem.meta["pixel_size_from"] == "crs"
+    assert dem.transform == t and "UTM zone 12N" in dem.crs and dem.source == str(path)
+    # arguments win over the file
     dem2 = load_dem(path, pixel_size=7.0, nodata=float(z[0, 0]))
     assert dem2.pixel_size == 7.0 and dem2.meta["pixel_size_from"] == "argument"
     assert np.isnan(dem2.elevation[0, 0]) and not np.isnan(dem2.elevation[2, 3])
 
 
-def test_geotiff_in_feet(tmp_path):
+def test_geotiff_in_us_survey_feet(tmp_path):
     z = np.arange(100, dtype=np.float32).reshape(10, 10)
-    write_geotiff(tmp_path / "ft.tif", z, scale=(10.0, 10.0), tiepoint=(0.0, 0.0), model_type=1,
-                  extra_keys=[(3076, 9002)])
-    assert load_dem(tmp_path / "ft.tif").pixel_size == pytest.approx(3.048)
+    write_raster(tmp_path / "ft.tif", z, transform=Affine(10, 0, 6e6, 0, -10, 2e6), crs="EPSG:2227")  # CA zone 3 ftUS
+    assert load_dem(tmp_path / "ft.tif").pixel_size == pytest.approx(10 * 1200 / 3937)
 
 
-def test_int16_geotiff_nodata_at_type_max(tmp_path):
+def test_int16_nodata_at_type_max_and_float32_lowest(tmp_path):
     z = np.full((8, 9), 500, np.int16)
     z[4, 4] = 32767
-    write_geotiff(tmp_path / "i.tif", z, scale=(30.0, 30.0), tiepoint=(0.0, 0.0), model_type=1, nodata="32767")
+    write_raster(tmp_path / "i.tif", z, nodata=32767)
     dem = load_dem(tmp_path / "i.tif")
-    assert np.isnan(dem.elevation).sum() == 1 and np.isnan(dem.elevation[4, 4])
-    assert dem.elevation.dtype == np.float32
-
-
-def test_float32_lowest_nodata(tmp_path):
-    z = np.full((6, 6), 12.5, np.float32)
-    z[0, 0] = np.finfo(np.float32).min
-    write_geotiff(tmp_path / "f.tif", z, scale=(1.0, 1.0), tiepoint=(0.0, 0.0), model_type=1,
-                  nodata="-3.40282346638529e+38")
+    assert np.isnan(dem.elevation).sum() == 1 and np.isnan(dem.elevation[4, 4]) and dem.elevation.dtype == np.float32
+    f = np.full((6, 6), 12.5, np.float32)
+    f[0, 0] = np.finfo(np.float32).min
+    write_raster(tmp_path / "f.tif", f, nodata=float(np.finfo(np.float32).min))
     dem = load_dem(tmp_path / "f.tif")
     assert np.isnan(dem.elevation[0, 0]) and np.isnan(dem.elevation).sum() == 1
 
 
-def test_geographic_geotiff_pixel_size_in_metres(tmp_path):
-    h, w = 60, 80
-    deg = 1.0 / 1200.0
-    lat_top = 40.0 + h / 2 * deg  # centre latitude exactly 40
-    # a plane rising 0.1 m per metre east and 0.2 m per metre north
-    m_per_deg = math.pi / 180.0 * 6371000.0
+def test_scale_and_offset_are_applied(tmp_path):
+    z = np.arange(20, dtype=np.int16).reshape(4, 5)
+    path = write_raster(tmp_path / "so.tif", z, transform=Affine(1, 0, 0, 0, -1, 4), crs="EPSG:32612")
+    with rasterio.open(path, "r+") as dst:
+        dst.scales, dst.offsets = (0.5,), (-100.0,)
+    np.testing.assert_array_equal(load_dem(path).elevation, z * 0.5 - 100.0)
+
+
+def test_moon_geotiff_degrees_to_metres_on_the_moon_radius(tmp_path):
+    h, w, deg = 60, 80, 1.0 / 64
+    lat_top = 40.0 + h / 2 * deg  # centre latitude exactly 40 N
+    m_per_deg = math.pi / 180 * 1_737_400.0  # by hand: the Moon sphere, not Earth
     dx_m, dy_m = deg * m_per_deg * math.cos(math.radians(40.0)), deg * m_per_deg
-    cols, rows = np.meshgrid(np.arange(w), np.arange(h))
-    z = (1000.0 + 0.1 * cols * dx_m - 0.2 * rows * dy_m).astype(np.float32)
-    path = tmp_path / "geo.tif"
-    write_geotiff(path, z, scale=(deg, deg), tiepoint=(-105.0, lat_top), model_type=2)
+    z = plane(h, w, dx_m, dy_m)
+    path = write_raster(tmp_path / "moon.tif", z, transform=Affine(deg, 0, 20.0, 0, -deg, lat_top), crs=MOON)
     dem = load_dem(path)
-    assert dem.meta["crs"] == "geographic"
-    assert dem.meta["centre_lat_deg"] == pytest.approx(40.0)
-    # by hand: 1/1200 deg = 92.66 m north-south, 70.98 m east-west at 40 deg
-    assert dem.meta["pixel_size_y_m"] == pytest.approx(92.66, rel=0.01)
-    assert dem.meta["pixel_size_x_m"] == pytest.approx(70.98, rel=0.01)
-    assert dem.pixel_size == pytest.approx(70.98, rel=0.01)
-    # cells are made square: rows resampled to the finer east-west spacing
-    assert dem.shape == (round(h * dy_m / dx_m), w)
-    assert dem.meta["resampled"]["axis"] == "rows"
+    assert dem.meta["crs_kind"] == "geographic" and dem.meta["centre_lat_deg"] == pytest.approx(40.0)
+    assert dem.meta["radius_m"] == pytest.approx(1_737_400.0)
+    assert dem.pixel_size == pytest.approx(dx_m, rel=1e-9)  # 363.5 m: the finer (east-west) spacing
+    # rows resampled so that cells are square; the slopes are right in metres
+    assert dem.shape == (round(h * dy_m / dx_m), w) and dem.meta["resampled"]["axis"] == "rows"
     dz_dy, dz_dx = np.gradient(dem.elevation.astype(np.float64), dem.pixel_size)
     assert np.median(dz_dx) == pytest.approx(0.1, rel=0.01)
     assert np.median(-dz_dy) == pytest.approx(0.2, rel=0.01)
+    # the transform still spans the file's extent
+    assert dem.transform @ (dem.shape[1], dem.shape[0]) == pytest.approx((20.0 + w * deg, lat_top - h * deg))
 
 
-def test_geographic_without_tiepoint_needs_pixel_size(tmp_path):
-    z = np.ones((5, 5), np.float32)
-    keys = geokeys(2)
-    tifffile.imwrite(tmp_path / "g.tif", z, extratags=[(33550, "d", 3, (0.001, 0.001, 0.0), True),
-                                                       (34735, "H", len(keys), keys, True)])
-    with pytest.raises(FedmapError, match="pass pixel_size"):
-        load_dem(tmp_path / "g.tif")
-    assert load_dem(tmp_path / "g.tif", pixel_size=90.0).pixel_size == 90.0
+def test_mars_ellipsoid_radii_from_the_crs(tmp_path):
+    deg = 1.0 / 128
+    z = np.ones((16, 16), np.float32)
+    write_raster(tmp_path / "mars.tif", z, transform=Affine(deg, 0, 137.0, 0, -deg, 8 * deg), crs=MARS)  # equator
+    dem = load_dem(tmp_path / "mars.tif")
+    a, b = 3_396_190.0, 3_376_200.0
+    dx = math.radians(deg) * a  # prime vertical radius at the equator is a
+    dy = math.radians(deg) * b * b / a  # meridional radius at the equator is b^2 / a
+    assert dem.pixel_size == pytest.approx(min(dx, dy), rel=1e-9)
+    assert abs(dx - dy) / dy > 0.01  # 1.2%: more than the square-cell tolerance, so
+    assert dem.meta["resampled"]["axis"] == "columns"  # the coarser east-west axis is resampled
 
 
-def test_plain_tiff_defaults_and_first_band(tmp_path):
-    z = np.stack([np.full((5, 6), 3.0), np.full((5, 6), 9.0)], axis=-1).astype(np.float32)
-    tifffile.imwrite(tmp_path / "rgbish.tif", z, photometric="minisblack", planarconfig="contig")
-    dem = load_dem(tmp_path / "rgbish.tif")
+def test_isis3_cube_in_a_moon_crs(tmp_path):
+    z = plane(12, 10, 303.2, 303.2)
+    z[0, 0] = -3.4028226550889045e38  # ISIS NULL
+    path = write_raster(tmp_path / "site.cub", z, driver="ISIS3", crs=MOON, transform=Affine(0.01, 0, 10, 0, -0.01, 0.06))
+    dem = load_dem(path)
+    assert dem.meta["driver"] == "ISIS3"
+    # GDAL writes the cube in simple cylindrical metres: 0.01 deg of the 1737.4 km sphere
+    assert dem.pixel_size == pytest.approx(math.radians(0.01) * 1_737_400.0, rel=1e-9)
+    assert np.isnan(dem.elevation[0, 0]) and np.isnan(dem.elevation).sum() == 1
+    np.testing.assert_array_equal(dem.elevation.ravel()[1:], z.ravel()[1:])
+
+
+def test_pds4_product(tmp_path):
+    z = (np.arange(12 * 10).reshape(12, 10) - 40).astype(np.int16)
+    z[5, 5] = -32768
+    path = write_raster(tmp_path / "site.xml", z, driver="PDS4", crs=MOON, nodata=-32768,
+                        transform=Affine(0.02, 0, 10, 0, -0.02, 0.1))
+    dem = load_dem(path)
+    assert dem.meta["driver"] == "PDS4" and np.isnan(dem.elevation[5, 5]) and np.isnan(dem.elevation).sum() == 1
+    assert dem.pixel_size == pytest.approx(math.radians(0.02) * 1_737_400.0, rel=1e-9)
+    ok = z != -32768
+    np.testing.assert_array_equal(dem.elevation[ok], z[ok])
+
+
+def test_aaigrid_with_nodata_and_prj(tmp_path):
+    z = np.array([[1, 2, 3, 4], [5, -9999, 7, 8], [9, 10, 11, 12.5]], np.float32)
+    path = write_raster(tmp_path / "g.asc", z, driver="AAIGrid", nodata=-9999.0,
+                        transform=Affine(2.5, 0, 100, 0, -2.5, 207.5), crs="EPSG:32612")
+    assert (tmp_path / "g.prj").is_file()
+    dem = load_dem(path)
+    assert dem.meta["driver"] == "AAIGrid" and dem.pixel_size == 2.5 and dem.meta["pixel_size_from"] == "crs"
+    assert np.isnan(dem.elevation[1, 1]) and np.isnan(dem.elevation).sum() == 1
+    np.testing.assert_array_equal(np.nan_to_num(dem.elevation, nan=-9999.0), z)
+    # the lower-left corner of the header (xllcorner 100, yllcorner 200) is where the transform puts it
+    assert dem.transform @ (0, 3) == pytest.approx((100.0, 200.0))
+
+
+def test_handwritten_ascii_grid_without_prj(tmp_path):
+    """An ESRI ASCII grid written from its spec, no .prj: metres assumed; degree-like refused."""
+    text = "ncols 4\nnrows 3\nxllcenter 101.25\nyllcenter 201.25\ncellsize 2.5\nNODATA_value -9999\n"
+    text += "1 2 3 4\n5 -9999 7 8\n9 10 11 12.5\n"
+    (tmp_path / "h.asc").write_text(text)
+    dem = load_dem(tmp_path / "h.asc")
+    assert dem.pixel_size == 2.5 and dem.meta["pixel_size_from"] == "transform (assumed metres)"
+    assert dem.elevation[2, 3] == 12.5 and np.isnan(dem.elevation[1, 1])
+    assert dem.transform @ (0.5, 2.5) == pytest.approx((101.25, 201.25))  # centre of the lower-left cell
+    (tmp_path / "deg.asc").write_text(text.replace("cellsize 2.5", "cellsize 0.000833333")
+                                      .replace("xllcenter 101.25", "xllcenter -105.5")
+                                      .replace("yllcenter 201.25", "yllcenter 40.1"))
+    with pytest.raises(FedmapError, match="looks like degrees; pass crs") as exc:
+        load_dem(tmp_path / "deg.asc")
+    assert_one_line(exc)
+    dem = load_dem(tmp_path / "deg.asc", crs="EPSG:4326")
+    assert dem.meta["crs_kind"] == "geographic" and 60 < dem.pixel_size < 75  # 3" east-west at 40 N
+    assert load_dem(tmp_path / "deg.asc", pixel_size=5.0).pixel_size == 5.0
+
+
+def test_south_up_grid_is_flipped_rotated_grid_refused(tmp_path):
+    z = np.arange(30, dtype=np.float32).reshape(5, 6)
+    t = Affine(10, 0, 1000, 0, 10, 5000)  # row 0 is the south edge
+    dem = load_dem(write_raster(tmp_path / "south.tif", z, transform=t, crs="EPSG:32612"))
+    np.testing.assert_array_equal(dem.elevation, z[::-1])
+    assert dem.transform.e < 0 and dem.meta["flipped"] == ["rows (south-up file)"]
+    # a cell keeps its ground coordinate: file cell (row 0, col 2) is now row 4
+    assert dem.transform @ (2.5, 4.5) == pytest.approx(t @ (2.5, 0.5))
+    rotated = Affine(10, 1, 1000, 1, -10, 5000)
+    write_raster(tmp_path / "rot.tif", z, transform=rotated, crs="EPSG:32612")
+    with pytest.raises(FedmapError, match="rot.tif has a rotated geotransform") as exc:
+        load_dem(tmp_path / "rot.tif")
+    assert_one_line(exc)
+
+
+def test_raw_samples_through_a_gdal_vrt(tmp_path):
+    rng = np.random.default_rng(3)
+    z = rng.integers(-4000, 4000, size=(30, 40)).astype(np.int16)
+    z[3, 4] = -4200
+    for order, code in (("big", ">i2"), ("little", "<i2")):
+        path = tmp_path / f"t_{order}.img"
+        path.write_bytes(b"HEAD" + z.astype(code).tobytes())
+        dem = load_dem(path, shape=(30, 40), byteorder=order, header_bytes=4, pixel_size=100.0, nodata=-4200)
+        assert dem.pixel_size == 100.0 and np.isnan(dem.elevation).sum() == 1
+        np.testing.assert_array_equal(np.nan_to_num(dem.elevation, nan=-4200), z)
+    other = load_dem(tmp_path / "t_big.img", shape=(30, 40), byteorder="little", header_bytes=4).elevation
+    assert not np.array_equal(other, z)
+    with pytest.raises(FedmapError, match="not recognized.*shape=") as exc:
+        load_dem(tmp_path / "t_big.img")
+    assert_one_line(exc)
+    with pytest.raises(FedmapError, match="bytes but 4 header"):
+        load_dem(tmp_path / "t_big.img", shape=(30, 41), header_bytes=4)
+    with pytest.raises(FedmapError, match="byteorder"):
+        load_dem(tmp_path / "t_big.img", shape=(30, 40), header_bytes=4, byteorder="middle")
+
+
+def test_band_option_and_plain_tiff_defaults(tmp_path):
+    z = np.stack([np.full((5, 6), 3.0), np.full((5, 6), 9.0)]).astype(np.float32)
+    path = write_raster(tmp_path / "two.tif", z)
+    dem = load_dem(path)
     assert dem.shape == (5, 6) and np.all(dem.elevation == 3.0)
-    assert dem.pixel_size == 1.0 and dem.meta["pixel_size_from"] == "default"
+    assert dem.pixel_size == 1.0 and dem.meta["pixel_size_from"] == "default" and dem.transform is None
+    assert np.all(load_dem(path, band=2).elevation == 9.0)
+    with pytest.raises(FedmapError, match="has 2 band.*band 3"):
+        load_dem(path, band=3)
+    with pytest.raises(FedmapError, match="heightmap .png tiles only"):
+        load_dem(path, offset=0.0)
 
 
 def test_all_nodata_dem_is_error(tmp_path):
-    z = np.full((10, 10), -9999.0, np.float32)
-    write_geotiff(tmp_path / "empty.tif", z, scale=(1.0, 1.0), tiepoint=(0.0, 0.0), model_type=1, nodata="-9999")
+    write_raster(tmp_path / "empty.tif", np.full((10, 10), -9999.0, np.float32), nodata=-9999.0)
     with pytest.raises(FedmapError, match="nodata") as exc:
         load_dem(tmp_path / "empty.tif")
     assert str(tmp_path / "empty.tif") in str(exc.value)

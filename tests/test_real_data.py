@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fedmap.errors import FedmapError
 from fedmap.maps.io import load_dem, mosaic_heightmap_tiles
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -37,10 +38,17 @@ def test_projected_ascii_grids(name):
 @needs_data
 def test_geographic_ascii_grid_boulder():
     path = data_file("earth/srtmgl3_boulder_a.asc")
-    dem = load_dem(path, geographic=True)
-    # 3 arc-seconds: 92.6 m north-south, times cos(40.15 deg) east-west; rows resampled to x spacing
-    assert dem.pixel_size == pytest.approx(92.66 * np.cos(np.radians(40.15)), rel=2e-3)
-    assert dem.shape == (round(144 * 92.66 / dem.pixel_size), 240)
+    with pytest.raises(FedmapError, match="looks like degrees"):
+        load_dem(path)  # no .prj: the grid's unit is not in the file
+    dem = load_dem(path, crs="EPSG:4326")
+    # 3 arc-seconds on WGS84 at 40.15 N, by hand: prime-vertical radius N = a / sqrt(1 - e2 sin^2),
+    # meridional M = a (1 - e2) / (1 - e2 sin^2)^1.5; east-west N cos(lat), north-south M
+    a, f, lat = 6378137.0, 1 / 298.257223563, np.radians(40.150417)
+    e2 = f * (2 - f)
+    w = np.sqrt(1 - e2 * np.sin(lat) ** 2)
+    dx, dy = np.radians(3 / 3600) * a / w * np.cos(lat), np.radians(3 / 3600) * a * (1 - e2) / w**3
+    assert dem.pixel_size == pytest.approx(dx, rel=1e-6)  # 71.0 m; rows resampled to it
+    assert dem.shape == (round(144 * dy / dx), 240)
     assert 1500 < np.nanmin(dem.elevation) < np.nanmax(dem.elevation) < 4400  # Boulder, Colorado foothills
 
 
@@ -77,8 +85,6 @@ def test_gld100_hadley_8x8_mosaic():
 
 @needs_data
 def test_gld100_gap_tile_is_nodata():
-    from fedmap.errors import FedmapError
-
     gaps = sorted(data_file("moon/gld100_256p").glob("256p+170+*.png"))
     if not gaps:
         pytest.skip("no lon >= 160 tiles")
@@ -90,18 +96,19 @@ def test_gld100_gap_tile_is_nodata():
 def test_gale_geotiff():
     dem = load_dem(data_file("mars/missionDEM_gale_1m.tif"))
     assert dem.shape == (337, 348) and dem.pixel_size == pytest.approx(1.0, rel=0.01)
+    assert dem.meta["pixel_size_from"] == "crs" and "Mars" in (dem.crs or "")  # Mars2000 equidistant cylindrical
     assert -4_600 < np.nanmin(dem.elevation) < np.nanmax(dem.elevation) < -4_300  # Gale floor, below datum
 
 
 @needs_data
-def test_lzw_geotiff_reads_with_imagecodecs():
-    """Mt Mongón is LZW-compressed (imagecodecs is a dependency for that)."""
-    import tifffile
+def test_lzw_geotiff():
+    """Mt Mongón is LZW-compressed; compared with Pillow's independent TIFF decoder."""
+    from PIL import Image
 
     path = data_file("earth/mongon_dem.tif")
-    with tifffile.TiffFile(path) as tif:
-        assert tif.pages[0].compression == tifffile.COMPRESSION.LZW
-        raw = tif.pages[0].asarray()
+    with Image.open(path) as img:
+        assert img.info.get("compression") == "tiff_lzw"
+        raw = np.asarray(img)
     dem = load_dem(path)
     assert dem.shape == raw.shape == (117, 117)
     assert dem.pixel_size == pytest.approx(30.85, abs=0.01)

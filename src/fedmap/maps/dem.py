@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from affine import Affine
 
 from fedmap.errors import FedmapError
 
@@ -21,12 +22,21 @@ class Dem:
         Ground size of one cell in metres.
     source : str
         File path or generator settings.
+    meta : dict
+        What the reader found (format, nodata, CRS notes, ...).
+    transform : affine.Affine, optional
+        Cell (col, row) -> CRS (x, y), north-up (:mod:`fedmap.maps.georef`); None for
+        generated terrain.
+    crs : str, optional
+        The CRS as WKT, or None.
     """
 
     elevation: np.ndarray
     pixel_size: float
     source: str = ""
     meta: dict = field(default_factory=dict)
+    transform: Affine | None = None
+    crs: str | None = None
 
     def __post_init__(self) -> None:
         e = np.asarray(self.elevation, dtype=np.float32)

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from affine import Affine
 
 from fedmap.errors import FedmapError
 
@@ -43,12 +44,21 @@ class GridMap:
         Ground size of one cell in metres.
     source : str
         Where the map came from (file path, generator settings, agent id...).
+    meta : dict
+        Free-form notes (reader, thresholds, warnings).
+    transform : affine.Affine, optional
+        Cell (col, row) -> CRS (x, y), north-up (see :mod:`fedmap.maps.georef`); None for
+        a grid without georeferencing (generated terrain).
+    crs : str, optional
+        The CRS as WKT, or None.
     """
 
     classes: np.ndarray
     pixel_size: float = 1.0
     source: str = ""
     meta: dict = field(default_factory=dict)
+    transform: Affine | None = None
+    crs: str | None = None
 
     def __post_init__(self) -> None:
         c = np.asarray(self.classes)
@@ -84,8 +94,9 @@ class GridMap:
         return {name: float(counts[i]) for i, name in enumerate(CLASS_NAMES)}
 
     def with_classes(self, classes: np.ndarray, source: str | None = None) -> GridMap:
-        """A copy with new classes and the same metadata."""
-        return GridMap(classes, self.pixel_size, self.source if source is None else source, dict(self.meta))
+        """A copy with new classes and the same metadata and georeferencing."""
+        return GridMap(classes, self.pixel_size, self.source if source is None else source, dict(self.meta),
+                       transform=self.transform, crs=self.crs)
 
 
 def check_classes(classes: np.ndarray, what: str = "class map") -> np.ndarray:

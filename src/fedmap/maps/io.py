@@ -16,48 +16,46 @@ Maps (:func:`load_map`, :func:`save_map`)
     An integer ``(H, W)`` array of classes 0..2, a float ``(H, W, 3)`` RGB array in
     [0, 1], or a ``uint8`` ``(H, W, 3)`` RGB array in 0..255. There is no metadata, so
     the caller passes ``pixel_size``. :func:`save_map` writes the ``uint8`` class array.
+``.tif`` / ``.tiff``
+    A georeferenced class map (:mod:`fedmap.maps.geotiff`): uint8 class codes with a
+    colour table, the CRS and the affine transform, so it overlays its DEM in QGIS.
+``.yaml`` / ``.yml``
+    A ROS map_server map (:mod:`fedmap.maps.ros`): the YAML plus its PGM image.
 
-Without a ``pixel_size`` argument (or PNG text chunk) a map's pixel size is 1.0 m.
+Without a ``pixel_size`` argument (or one stored in the file) a map's pixel size is 1.0 m.
 
 DEMs (:func:`load_dem`)
 -----------------------
-``.tif`` / ``.tiff``
-    The first page (first band if it has several samples), integer or float.
+Every raster format GDAL reads goes through rasterio: GeoTIFF and COG, ISIS3 and ISIS2
+cubes, PDS3 (open the labelled ``.img``/``.lbl``) and PDS4 (open the ``.xml`` label),
+VICAR, ESRI ASCII grids, JPEG 2000, netCDF, ... (the format follows the file's content,
+not its suffix). GDAL's reading is honoured as it is:
 
-    * nodata: the ``nodata`` argument if given, else the ``GDAL_NODATA`` tag (42113)
-      if present. Matching cells and non-finite values become NaN. GDAL's per-band
-      ``scale``/``offset`` (in the ``GDAL_METADATA`` tag) are applied when present.
-    * pixel size: the ``pixel_size`` argument if given, else from ``ModelPixelScaleTag``
-      (33550) or ``ModelTransformationTag`` (34264), in the projection's linear unit
-      (metres, feet, US survey feet, kilometres). If the GeoKeys (34735) say the raster
-      is geographic (``GTModelTypeGeoKey`` = 2, angles), the angular spacing is
-      converted to metres at the raster's centre latitude (from ``ModelTiepointTag``
-      33922) on a sphere whose radius is the mean radius ``(2a + b) / 3`` of the
-      ellipsoid the GeoKeys declare, or 6 371 000 m (Earth) when they declare none.
-      For a geographic raster of another body whose file does not name its ellipsoid,
-      pass ``pixel_size``.
-    * non-square cells: a DEM has one pixel size, so when the ground spacing along x and
-      y differs by more than 1% (any geographic raster away from the equator) the
-      coarser axis is resampled by linear interpolation to the finer spacing, so that
-      slopes computed with one pixel size are right. The shape then differs from the
-      file's; ``meta["resampled"]`` records it. Passing ``pixel_size`` disables this.
-    * without any georeferencing the pixel size is 1.0 m.
-``.npy``
-    A 2-D real array; ``pixel_size`` argument, default 1.0 m.
-``.asc``
-    ESRI ASCII grid (:func:`fedmap.maps.formats.read_ascii_grid`): header keys in any
-    case, ``xllcorner``/``xllcenter``, ``cellsize`` or ``dx``/``dy`` (non-square cells
-    are resampled as for GeoTIFF), ``NODATA_value``. The unit is not in the file:
-    ``cellsize`` is taken as metres unless a ``.prj`` sidecar says geographic or the
-    option ``geographic=True`` is given (degrees -> metres at the centre latitude on a
-    sphere of ``radius_m``, default Earth); a degree-sized ``cellsize`` without either is
-    refused. ``pixel_size`` overrides it all.
-``.img`` / ``.raw``
-    Raw PDS-style samples (:func:`fedmap.maps.formats.read_raw`), laid out by a PDS3
-    label (attached, or a ``.lbl`` sidecar) or by the options ``shape=(rows, cols)``,
-    ``dtype`` (default ``"int16"``), ``byteorder`` (``"big"``, default, or ``"little"``),
-    ``header_bytes`` (default 0). The file size must match exactly. Pixel size from the
-    label's ``MAP_SCALE``/``MAP_RESOLUTION``, else ``pixel_size``, default 1.0 m.
+* **nodata**: the band's mask (its nodata value, a per-dataset mask or the format's
+  special values, e.g. ISIS3 NULL) becomes NaN, as do non-finite values; the ``nodata``
+  argument replaces the file's nodata value (compared with the stored values).
+* **scale/offset**: the band's scale and offset are applied (stored * scale + offset).
+* **CRS and transform** are kept on the :class:`~fedmap.maps.dem.Dem`. A south-up (or
+  east-to-west) grid is flipped to north-up, with its transform; a rotated or sheared
+  geotransform is refused (warp it first).
+* **pixel size** in metres from the CRS (:func:`fedmap.maps.georef.cell_size_m`):
+  projected units are converted to metres; geographic degrees become metres on the
+  ellipsoid of *that body*, taken from the CRS, at the grid's centre latitude. When the
+  ground spacing along x and y differs by more than 1% (a geographic grid away from the
+  equator) the coarser axis is resampled by linear interpolation to the finer spacing, so
+  that slopes computed with one pixel size are right; ``meta["resampled"]`` records it.
+  A grid with a transform but no CRS is taken to be in metres, unless its cell size and
+  corner look like degrees, which is refused: pass ``crs`` (e.g. ``"EPSG:4326"``,
+  ``"IAU_2015:30100"``) or ``pixel_size``. Without any georeferencing the pixel size is
+  1.0 m. ``pixel_size`` overrides it all.
+
+Options: ``band`` (1-based, default 1); ``crs`` assigns a CRS to a file that has none (or
+replaces its own); raw samples without a label (e.g. the MOLA MEGDR ``.img``) are read
+through a GDAL raw VRT with ``shape=(rows, cols)``, ``dtype`` (default ``"int16"``),
+``byteorder`` (``"big"``, default, or ``"little"``) and ``header_bytes`` (default 0).
+
+fedmap keeps its own reader only where GDAL has none:
+
 ``.png``
     RGB-packed heightmap tile (:func:`fedmap.maps.formats.read_heightmap_png`):
     ``metres = R + 256 G + 65536 B - offset`` (option ``offset``, default 10000); raw 0
@@ -65,16 +63,18 @@ DEMs (:func:`load_dem`)
     Grey or paletted PNGs are refused (those are class maps: :func:`load_map`). The file
     has no georeferencing: pass ``pixel_size`` (default 1.0 m).
     :func:`mosaic_tiles` joins a grid of tiles, :func:`mosaic_heightmap_tiles` GLD100-named
-    ones (``256p+{lon}+{lat}.png``, 118.45 m pixels).
+    ones (``256p+{lon}+{lat}.png``, 118.45 m pixels, georeferenced in ``IAU_2015:30100``).
+``.npy``
+    A 2-D real array; ``pixel_size`` argument, default 1.0 m.
 
-``nodata`` compares the stored values (before a file's scale/offset). ``Dem.meta``
-records ``format``, ``nodata``, ``nodata_from`` ("argument", the format, or None),
-``nodata_cells`` and ``pixel_size_from`` ("argument", the format, or "default").
-:func:`resample_dem`, :func:`crop_dem` and :func:`centre_crop` (from
-:mod:`fedmap.maps.regrid`) fit a DEM to a run's grid.
+``Dem.meta`` records ``format`` (the GDAL driver, ``heightmap-png`` or ``npy``),
+``nodata``, ``nodata_from``, ``nodata_cells``, ``pixel_size_from`` ("argument", "crs",
+"transform (assumed metres)" or "default") and the CRS notes. :func:`resample_dem`,
+:func:`crop_dem` and :func:`centre_crop` (from :mod:`fedmap.maps.regrid`) fit a DEM to a
+run's grid and keep its transform right.
 
 Every user-facing problem (missing file, unreadable or corrupt file, wrong shape,
-unsupported suffix, DEM entirely nodata) raises :class:`~fedmap.errors.FedmapError`
+unsupported option, DEM entirely nodata) raises :class:`~fedmap.errors.FedmapError`
 with a one-line message naming the file. All writes are atomic
 (:func:`atomic_write_bytes`).
 """
@@ -82,54 +82,37 @@ with a one-line message naming the file. All writes are atomic
 from __future__ import annotations
 
 import io
-import logging
 import math
 import pickle
-import struct
-import xml.etree.ElementTree as ET
-import zlib
+import warnings
 from pathlib import Path
 from typing import SupportsInt, cast
 
 import numpy as np
+from affine import Affine
 
 from fedmap._util import atomic_write_bytes  # noqa: F401  (part of this API)
 from fedmap._util import one_line as _one_line
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
-from fedmap.maps.formats import EARTH_RADIUS_M, READERS, _pil_errors
+from fedmap.maps.formats import HEIGHTMAP_OFFSET_M, _pil_errors, read_heightmap_png
+from fedmap.maps.georef import cell_size_m, crs_wkt, north_up
+from fedmap.maps.geotiff import read_class_geotiff, write_class_geotiff
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb, render_classes
 from fedmap.maps.regrid import centre_crop, crop_dem, resample_dem  # noqa: F401  (part of this API)
+from fedmap.maps.ros import read_ros_map, write_ros_map
 
-MAP_SUFFIXES: tuple[str, ...] = (".png", ".npy")
-DEM_SUFFIXES: tuple[str, ...] = (".tif", ".tiff", ".npy", ".asc", ".img", ".raw", ".png")
-
+MAP_SUFFIXES: tuple[str, ...] = (".png", ".npy", ".tif", ".tiff", ".yaml", ".yml")
 
 #: Relative difference of x and y ground spacing above which a DEM is resampled.
 SQUARE_TOLERANCE: float = 0.01
 
 PNG_PIXEL_SIZE_KEY = "fedmap:pixel_size"
 
-# GeoTIFF tags and keys.
-_TAG_PIXEL_SCALE = 33550
-_TAG_TIEPOINT = 33922
-_TAG_TRANSFORMATION = 34264
-_TAG_GEOKEYS = 34735
-_TAG_GEODOUBLES = 34736
-_TAG_GEOASCII = 34737
-_TAG_GDAL_METADATA = 42112
-_TAG_GDAL_NODATA = 42113
-_KEY_MODEL_TYPE = 1024
-_KEY_RASTER_TYPE = 1025
-_KEY_ANGULAR_UNITS = 2054
-_KEY_SEMI_MAJOR = 2057
-_KEY_SEMI_MINOR = 2058
-_KEY_INV_FLATTENING = 2059
-_KEY_LINEAR_UNITS = 3076
-_MODEL_PROJECTED, _MODEL_GEOGRAPHIC = 1, 2
-_RASTER_PIXEL_IS_POINT = 2
-_LINEAR_UNITS_M = {9001: 1.0, 9002: 0.3048, 9003: 1200.0 / 3937.0, 9030: 1852.0, 9036: 1000.0}
-_ANGULAR_UNITS_DEG = {9101: 180.0 / math.pi, 9102: 1.0, 9103: 1.0 / 60.0, 9104: 1.0 / 3600.0, 9105: 0.9}
+#: Options of raw samples read through a GDAL raw VRT.
+RAW_OPTIONS: tuple[str, ...] = ("shape", "dtype", "byteorder", "header_bytes")
+#: Options of RGB-packed heightmap PNG tiles.
+PNG_OPTIONS: tuple[str, ...] = ("offset", "zero_is_nodata")
 
 
 # --------------------------------------------------------------------------- helpers
@@ -170,9 +153,16 @@ def _load_npy(path: Path, what: str) -> np.ndarray:
 
 
 def save_map(grid: GridMap, path) -> None:
-    """Write a map as ``.png`` (8-bit RGB rendering) or ``.npy`` (uint8 classes), atomically."""
+    """Write a map atomically: ``.png`` (8-bit RGB rendering), ``.npy`` (uint8 classes),
+    ``.tif`` (georeferenced class GeoTIFF) or ``.yaml`` (ROS map_server YAML + PGM)."""
     path = Path(path)
     suffix = _suffix(path, MAP_SUFFIXES, "map")
+    if suffix in (".tif", ".tiff"):
+        write_class_geotiff(grid, path)
+        return
+    if suffix in (".yaml", ".yml"):
+        write_ros_map(grid, path)
+        return
     buf = io.BytesIO()
     if suffix == ".png":
         from PIL import Image
@@ -270,14 +260,20 @@ def _read_npy_map(path: Path) -> tuple[np.ndarray, dict]:
 
 
 def load_map(path, *, pixel_size: float | None = None) -> GridMap:
-    """Read a traversability map from ``.png`` or ``.npy`` (see the module docstring).
+    """Read a traversability map from ``.png``, ``.npy``, ``.tif`` or ROS ``.yaml`` (see the
+    module docstring).
 
-    ``pixel_size`` (metres) defaults to the value stored by :func:`save_map` in a PNG,
-    else 1.0.
+    ``pixel_size`` (metres) defaults to the value stored in the file, else 1.0.
     """
     path = Path(path)
     suffix = _suffix(path, MAP_SUFFIXES, "map")
     _check_exists(path)
+    if suffix in (".tif", ".tiff", ".yaml", ".yml"):
+        grid = read_class_geotiff(path) if suffix in (".tif", ".tiff") else read_ros_map(path)
+        if pixel_size is not None:
+            grid = GridMap(grid.classes, float(pixel_size), grid.source, {**grid.meta, "pixel_size_from": "argument"},
+                           transform=grid.transform, crs=grid.crs)
+        return grid
     stored_px = None
     if suffix == ".png":
         classes, meta, stored_px = _read_png_map(path)
@@ -298,167 +294,69 @@ def load_map(path, *, pixel_size: float | None = None) -> GridMap:
 # --------------------------------------------------------------------------- DEMs
 
 
-def _parse_geokeys(tags) -> dict[int, object]:
-    """GeoKeyDirectoryTag -> {key id: value} (ints, floats, tuples or strings)."""
-    directory = tags.get(_TAG_GEOKEYS)
-    if directory is None:
-        return {}
-    d = [int(v) for v in np.asarray(directory).ravel()]
-    doubles_raw, ascii_raw = tags.get(_TAG_GEODOUBLES), tags.get(_TAG_GEOASCII)
-    doubles = [float(v) for v in np.asarray(doubles_raw).ravel()] if doubles_raw is not None else []
-    ascii_ = str(ascii_raw) if ascii_raw is not None else ""
-    keys: dict[int, object] = {}
-    if len(d) < 4:
-        return keys
-    for k in range(d[3]):
-        entry = d[4 + 4 * k: 8 + 4 * k]
-        if len(entry) < 4:
-            break
-        key, location, count, offset = entry
-        if location == 0:
-            keys[key] = offset
-        elif location == _TAG_GEODOUBLES and offset + count <= len(doubles):
-            vals = doubles[offset:offset + count]
-            keys[key] = vals[0] if count == 1 else tuple(vals)
-        elif location == _TAG_GEOASCII:
-            keys[key] = ascii_[offset:offset + count].rstrip("|\x00")
-        elif location == _TAG_GEOKEYS and offset + count <= len(d):
-            ints = d[offset:offset + count]
-            keys[key] = ints[0] if count == 1 else tuple(ints)
-    return keys
+_GDAL_TYPES = {"int8": "Int8", "uint8": "Byte", "int16": "Int16", "uint16": "UInt16", "int32": "Int32",
+               "uint32": "UInt32", "int64": "Int64", "uint64": "UInt64", "float32": "Float32", "float64": "Float64"}
+_BYTEORDERS = {"big": "MSB", "little": "LSB", ">": "MSB", "<": "LSB"}
 
 
-def _tag_floats(tags, code: int) -> list[float] | None:
-    value = tags.get(code)
-    if value is None:
-        return None
-    return [float(v) for v in np.asarray(value, dtype=np.float64).ravel()]
-
-
-def _geotiff_pixel_size(tags, shape: tuple[int, int], path: Path) -> dict | None:
-    """Ground spacing (dx, dy) in metres from the GeoTIFF tags, or None without georeferencing."""
-    scale = _tag_floats(tags, _TAG_PIXEL_SCALE)
-    transform = _tag_floats(tags, _TAG_TRANSFORMATION)
-    tie = _tag_floats(tags, _TAG_TIEPOINT)
-    keys = _parse_geokeys(tags)
-    if scale is not None and len(scale) >= 2:
-        sx, sy = abs(scale[0]), abs(scale[1])
-        origin = (tie[0], tie[1], tie[3], tie[4]) if tie is not None and len(tie) >= 6 else None
-        y_step = -scale[1]  # model y per row (north-up: y decreases downwards)
-    elif transform is not None and len(transform) >= 16:
-        m = transform
-        sx, sy = math.hypot(m[0], m[4]), math.hypot(m[1], m[5])
-        origin = (0.0, 0.0, m[3], m[7])
-        y_step = m[5]
-    else:
-        return None
-    if not (np.isfinite([sx, sy]).all() and sx > 0 and sy > 0):
-        raise FedmapError(f"DEM {path} has an unusable pixel scale ({sx}, {sy}); pass pixel_size")
-
-    model = keys.get(_KEY_MODEL_TYPE)
-    info: dict = {}
-    if model == _MODEL_GEOGRAPHIC:
-        unit = keys.get(_KEY_ANGULAR_UNITS, 9102)
-        if unit not in _ANGULAR_UNITS_DEG:
-            raise FedmapError(f"DEM {path} uses angular unit code {unit}, which fedmap does not know; pass pixel_size")
-        to_deg = _ANGULAR_UNITS_DEG[unit]
-        if origin is None:
-            raise FedmapError(f"geographic DEM {path} has no tiepoint, so its latitude is unknown; pass pixel_size")
-        i0, j0, _x0, lat0 = origin
-        centre_row = shape[0] / 2.0 - (0.5 if keys.get(_KEY_RASTER_TYPE) == _RASTER_PIXEL_IS_POINT else 0.0)
-        lat_c = (lat0 + (centre_row - j0) * y_step) * to_deg
-        if not -90.0 <= lat_c <= 90.0:
-            raise FedmapError(f"geographic DEM {path} has centre latitude {lat_c:.3f} deg; pass pixel_size")
-        a = keys.get(_KEY_SEMI_MAJOR)
-        if isinstance(a, (int, float)) and a > 0:
-            b = keys.get(_KEY_SEMI_MINOR)
-            if not (isinstance(b, (int, float)) and b > 0):
-                inv_f = keys.get(_KEY_INV_FLATTENING)
-                b = a * (1.0 - 1.0 / inv_f) if isinstance(inv_f, (int, float)) and inv_f > 0 else a
-            radius, radius_from = (2.0 * a + b) / 3.0, "geotiff ellipsoid"
-        else:
-            radius, radius_from = EARTH_RADIUS_M, "earth default"
-        m_per_deg = math.radians(1.0) * radius
-        dx = sx * to_deg * m_per_deg * math.cos(math.radians(lat_c))
-        dy = sy * to_deg * m_per_deg
-        info.update(crs="geographic", centre_lat_deg=float(lat_c), radius_m=float(radius), radius_from=radius_from)
-    elif model in (None, _MODEL_PROJECTED):
-        unit = keys.get(_KEY_LINEAR_UNITS, 9001)
-        if unit not in _LINEAR_UNITS_M:
-            raise FedmapError(f"DEM {path} uses linear unit code {unit}, which fedmap does not know; pass pixel_size")
-        dx, dy = sx * _LINEAR_UNITS_M[unit], sy * _LINEAR_UNITS_M[unit]
-        info["crs"] = "projected" if model == _MODEL_PROJECTED else "unknown (assumed metres)"
-    else:
-        raise FedmapError(f"DEM {path} has GeoTIFF model type {model} (not projected or geographic); pass pixel_size")
-    if not (dx > 0 and dy > 0 and math.isfinite(dx) and math.isfinite(dy)):
-        raise FedmapError(f"DEM {path} gives an unusable ground spacing ({dx}, {dy}) m; pass pixel_size")
-    info.update(pixel_size_x_m=float(dx), pixel_size_y_m=float(dy))
-    return info
-
-
-def _gdal_scale_offset(tags) -> tuple[float, float]:
-    value = tags.get(_TAG_GDAL_METADATA)
-    if value is None:
-        return 1.0, 0.0
-    scale, offset = 1.0, 0.0
+def _raw_vrt(path: Path, shape=None, dtype=None, byteorder=None, header_bytes=None) -> str:
+    """A GDAL VRT (XML text) that lays raw samples out as a raster: GDAL reads them."""
+    if shape is None:
+        raise FedmapError(f"cannot read raw DEM {path}: pass shape=(rows, cols) with dtype, byteorder, header_bytes")
     try:
-        root = ET.fromstring(str(value))
-    except ET.ParseError:
-        return 1.0, 0.0
-    for item in root.iter("Item"):
-        if item.get("sample", "0") != "0":
-            continue
-        role = (item.get("role") or "").lower()
-        try:
-            if role == "scale":
-                scale = float(item.text or "1")
-            elif role == "offset":
-                offset = float(item.text or "0")
-        except ValueError:
-            continue
-    return scale, offset
+        rows, cols = (int(v) for v in shape)
+        dt = np.dtype(dtype or "int16")
+    except (TypeError, ValueError) as exc:
+        raise FedmapError(f"cannot read raw DEM {path}: bad shape/dtype ({_one_line(exc)})") from exc
+    order = _BYTEORDERS.get(str(byteorder or "big").lower())
+    if order is None:
+        raise FedmapError(f"byteorder must be 'big' or 'little', got {byteorder!r}")
+    if rows <= 0 or cols <= 0 or dt.name not in _GDAL_TYPES:
+        raise FedmapError(f"cannot read raw DEM {path}: need a positive shape and an integer or float dtype, "
+                          f"got {rows}x{cols} {dt}")
+    offset = int(header_bytes or 0)
+    need = offset + rows * cols * dt.itemsize
+    size = path.stat().st_size
+    if size != need:
+        raise FedmapError(f"raw DEM {path} is {size:,} bytes but {offset} header + {rows} x {cols} x "
+                          f"{dt.itemsize} B ({dt.name}) = {need:,} bytes: wrong shape, dtype or header_bytes?")
+    src = str(path.resolve()).replace("&", "&amp;").replace("<", "&lt;")
+    return (f'<VRTDataset rasterXSize="{cols}" rasterYSize="{rows}"><VRTRasterBand dataType="{_GDAL_TYPES[dt.name]}" '
+            f'band="1" subClass="VRTRawRasterBand"><SourceFilename relativeToVRT="0">{src}</SourceFilename>'
+            f"<ImageOffset>{offset}</ImageOffset><PixelOffset>{dt.itemsize}</PixelOffset>"
+            f"<LineOffset>{cols * dt.itemsize}</LineOffset><ByteOrder>{order}</ByteOrder></VRTRasterBand></VRTDataset>")
 
 
-class _DropGdalNodataNotes(logging.Filter):
-    """tifffile logs a spurious warning for e.g. GDAL_NODATA 32767 on int16; we parse it ourselves."""
+def _read_gdal(path: Path, band: int, raw: dict):
+    """Stored values, GDAL's validity mask, scale/offset, transform, CRS and meta of one band."""
+    import rasterio
+    from rasterio._err import CPLE_BaseError  # GDAL errors that rasterio re-raises as they are
+    from rasterio.errors import NotGeoreferencedWarning, RasterioError
 
-    def filter(self, record: logging.LogRecord) -> bool:
-        return "GDAL_NODATA" not in record.getMessage()
-
-
-def _read_tiff(path: Path):
-    import tifffile
-
-    errors = (tifffile.TiffFileError, ValueError, OSError, EOFError, struct.error, zlib.error, KeyError,
-              IndexError, NotImplementedError, RuntimeError, MemoryError)
-    log = logging.getLogger("tifffile")
-    filt = _DropGdalNodataNotes()
-    log.addFilter(filt)
+    target = _raw_vrt(path, **raw) if raw else str(path)
     try:
-        with tifffile.TiffFile(path) as tf:
-            if not tf.pages:
-                raise FedmapError(f"cannot read DEM {path}: the TIFF holds no image")
-            page = tf.pages.first  # always a TiffPage (tf.pages[0] is typed TiffPage | TiffFrame)
-            arr = page.asarray()
-            axes = getattr(page, "axes", "")
-            # Tag values are read lazily: copy them while the file is open.
-            tags = {t.code: t.value for t in page.tags.values()}
-    except errors as exc:
-        if "imagecodecs" in str(exc):
-            raise FedmapError(
-                f"cannot read DEM {path}: its compression needs the 'imagecodecs' package "
-                f"(pip install imagecodecs) ({_one_line(exc)})"
-            ) from exc
-        raise FedmapError(f"cannot read DEM {path}: not a valid TIFF ({_one_line(exc)})") from exc
-    finally:
-        log.removeFilter(filt)
-    if "S" in axes and arr.ndim == len(axes):
-        arr = np.take(arr, 0, axis=axes.index("S"))  # first band
-    arr = np.squeeze(arr) if arr.ndim > 2 and sum(n > 1 for n in arr.shape) <= 2 else arr
-    return arr, tags
+        with warnings.catch_warnings():
+            # a file without georeferencing is fine: its pixel size is the default or the argument
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(target) as src:
+                if not 1 <= band <= src.count:
+                    raise FedmapError(f"DEM {path} has {src.count} band(s); band {band} does not exist")
+                values = src.read(band)
+                valid = src.read_masks(band) != 0
+                scale, offset = src.scales[band - 1], src.offsets[band - 1]
+                georef = not (src.transform.is_identity and src.crs is None)
+                transform = src.transform if georef else None
+                crs = src.crs.to_wkt() if src.crs else None
+                meta = {"format": "raw" if raw else src.driver.lower(), "driver": src.driver,
+                        "bands": src.count, "file_nodata": src.nodatavals[band - 1]}
+    except (RasterioError, CPLE_BaseError) as exc:
+        hint = "; raw samples without a label need shape=(rows, cols)" if "not recognized" in str(exc) else ""
+        raise FedmapError(f"cannot read DEM {path}: {_one_line(exc)}{hint}") from exc
+    return values, valid, (float(scale or 1.0), float(offset or 0.0)), transform, crs, meta
 
 
 def _nodata_mask(arr: np.ndarray, nodata: float) -> np.ndarray:
+    """Cells of ``arr`` equal to ``nodata`` (robust to float32 rounding of the lowest float)."""
     if math.isnan(nodata):
         return np.zeros(arr.shape, dtype=bool)  # NaN cells are caught as non-finite
     if np.issubdtype(arr.dtype, np.integer):
@@ -470,18 +368,17 @@ def _nodata_mask(arr: np.ndarray, nodata: float) -> np.ndarray:
         return np.zeros(arr.shape, dtype=bool)
     finfo = np.finfo(arr.dtype)
     if abs(nodata) >= float(finfo.max) * (1.0 - 1e-6):
-        # e.g. -3.4028234663852886e+38 written for float32's lowest value; rounding may
-        # push it just past the type's range.
+        # e.g. -3.4028234663852886e+38 written for float32's lowest value
         return (np.sign(arr) == np.sign(nodata)) & (np.abs(arr) >= finfo.max * (1.0 - 1e-6))
     with np.errstate(over="ignore"):
         return arr == arr.dtype.type(nodata)
 
 
 def _resample_axis(z: np.ndarray, axis: int, old_step: float, new_step: float) -> np.ndarray:
-    """Linear resampling along one axis to a finer cell size, cell centres aligned at the edge."""
+    """Linear resampling along one axis to a finer cell size over the same extent."""
     n_old = z.shape[axis]
     n_new = max(1, int(round(n_old * old_step / new_step)))
-    x = (np.arange(n_new) + 0.5) * (new_step / old_step) - 0.5
+    x = (np.arange(n_new) + 0.5) * (n_old / n_new) - 0.5  # new cell centres in old cell units
     x = np.clip(x, 0.0, n_old - 1.0)
     i0 = np.minimum(np.floor(x).astype(np.intp), max(n_old - 2, 0))
     i1 = np.minimum(i0 + 1, n_old - 1)
@@ -495,88 +392,103 @@ def _resample_axis(z: np.ndarray, axis: int, old_step: float, new_step: float) -
     return out.astype(np.float32)
 
 
-def _read_dem_values(path: Path, suffix: str, options: dict, pixel_size: float | None):
-    """Stored values, file nodata, scale/offset, (dx, dy) spacing or None, and meta, per format."""
-    if suffix in (".npy", ".tif", ".tiff"):
-        if options:
-            raise FedmapError(f"unknown option(s) {', '.join(sorted(options))} for {suffix} DEMs "
-                              f"(only pixel_size and nodata apply)")
-        if suffix == ".npy":
-            return _load_npy(path, "DEM"), None, (1.0, 0.0), None, {"format": "npy"}
-        arr, tags = _read_tiff(path)
-        file_nodata = None
-        if _TAG_GDAL_NODATA in tags:
-            raw = str(tags[_TAG_GDAL_NODATA]).strip().rstrip("\x00").replace(",", ".")
-            try:
-                file_nodata = float(raw)
-            except ValueError as exc:
-                raise FedmapError(f"DEM {path} has an unreadable GDAL_NODATA tag {raw!r}; pass nodata") from exc
-        meta: dict = {"format": "geotiff"}
-        # The georeferencing is only interpreted when it is needed, so that pixel_size can
-        # stand in for tags fedmap cannot use.
-        geo = _geotiff_pixel_size(tags, arr.shape, path) if tags and pixel_size is None else None
-        if geo is not None:
-            meta.update(geo)
-        spacing = (geo["pixel_size_x_m"], geo["pixel_size_y_m"]) if geo is not None else None
-        scale_offset = _gdal_scale_offset(tags) if tags else (1.0, 0.0)
-        return arr, file_nodata, scale_offset, spacing, meta
-
-    reader, accepted = READERS[suffix]
-    unknown = sorted(set(options) - set(accepted))
-    if unknown:
-        raise FedmapError(f"unknown option(s) {', '.join(unknown)} for {suffix} DEMs; "
-                          f"accepted: pixel_size, nodata, {', '.join(accepted)}")
-    if pixel_size is not None and suffix == ".asc":
-        options = {"geographic": False, **options}  # the grid's unit does not matter then
-    try:
-        raster = reader(path, **options)
-    except OSError as exc:
-        raise FedmapError(f"cannot read DEM {path}: {_one_line(exc)}") from exc
-    spacing = raster.spacing if pixel_size is None else None
-    return raster.values, raster.nodata, (raster.scale, raster.offset), spacing, raster.meta
+def _looks_like_degrees(transform: Affine, shape: tuple[int, int]) -> bool:
+    x0, y0 = transform.c, transform.f + transform.e * shape[0]
+    return max(abs(transform.a), abs(transform.e)) < 0.01 and -180 <= x0 <= 360 and -90 <= y0 <= 90
 
 
-def load_dem(path, *, pixel_size: float | None = None, nodata: float | None = None, **options) -> Dem:
-    """Read a DEM; the format follows the suffix (see the module docstring).
+def load_dem(path, *, pixel_size: float | None = None, nodata: float | None = None, band: int = 1, crs=None,
+             shape=None, dtype=None, byteorder=None, header_bytes=None, offset: float | None = None,
+             zero_is_nodata: bool | None = None) -> Dem:
+    """Read a DEM: any format GDAL reads, an RGB-packed heightmap ``.png`` or a ``.npy``
+    (see the module docstring).
 
-    ``pixel_size`` (metres) overrides the file's georeferencing; ``nodata`` overrides
-    the file's own nodata value. Nodata and non-finite cells become NaN. ``options`` are
-    format-specific (``.asc``: ``geographic``, ``radius_m``; ``.img``/``.raw``:
-    ``shape``, ``dtype``, ``byteorder``, ``header_bytes``; ``.png``: ``offset``,
-    ``zero_is_nodata``); an option the format does not take is an error.
+    Parameters
+    ----------
+    path : str or Path
+        The file (for PDS4, the ``.xml`` label).
+    pixel_size : float, optional
+        Metres per cell; overrides the file's georeferencing.
+    nodata : float, optional
+        Replaces the file's nodata value (compared with the stored values).
+    band : int
+        1-based band of a multi-band file.
+    crs : optional
+        A CRS (``"EPSG:4326"``, ``"IAU_2015:30100"``, WKT, PROJ) for a file that has none.
+    shape, dtype, byteorder, header_bytes
+        Layout of raw samples without a label (read through a GDAL raw VRT).
+    offset, zero_is_nodata
+        Heightmap ``.png`` packing: ``metres = R + 256 G + 65536 B - offset``; raw 0 is a gap.
     """
     path = Path(path)
-    suffix = _suffix(path, DEM_SUFFIXES, "DEM")
     _check_exists(path)
-    arr, file_nodata, (scale, offset), spacing, meta = _read_dem_values(path, suffix, options, pixel_size)
+    suffix = path.suffix.lower()
+    raw = {k: v for k, v in (("shape", shape), ("dtype", dtype), ("byteorder", byteorder),
+                             ("header_bytes", header_bytes)) if v is not None}
+    png = {k: v for k, v in (("offset", offset), ("zero_is_nodata", zero_is_nodata)) if v is not None}
+    if png and suffix != ".png":
+        raise FedmapError(f"option(s) {', '.join(png)} apply to heightmap .png tiles only, not {path}")
+    if raw and suffix in (".png", ".npy"):
+        raise FedmapError(f"option(s) {', '.join(raw)} apply to raw sample files only, not {path}")
+    transform: Affine | None = None
+    file_crs: str | None = None
+    if suffix == ".npy":
+        arr = _load_npy(path, "DEM")
+        valid, (scale, add) = None, (1.0, 0.0)
+        meta: dict = {"format": "npy", "file_nodata": None}
+    elif suffix == ".png":
+        arr = read_heightmap_png(path, offset=float(png.get("offset", HEIGHTMAP_OFFSET_M)),
+                                 zero_is_nodata=bool(png.get("zero_is_nodata", True)))
+        valid, (scale, add) = None, (1.0, 0.0)
+        meta = {"format": "heightmap-png", "file_nodata": None, **png}
+    else:
+        arr, valid, (scale, add), transform, file_crs, meta = _read_gdal(path, int(band), raw)
     if arr.ndim != 2:
         raise FedmapError(f"DEM {path} must be a 2-D grid, got shape {arr.shape}")
     if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)) or arr.dtype == bool:
         raise FedmapError(f"DEM {path} must hold integer or float elevations, got dtype {arr.dtype}")
 
-    # nodata (compared with the stored values, before scale/offset)
+    # nodata: the argument, else GDAL's mask (nodata value, mask band, format special values)
+    nodata_from: str | None
     if nodata is not None:
-        nd, nodata_from = float(nodata), "argument"
-    elif file_nodata is not None:
-        nd, nodata_from = float(file_nodata), meta["format"]
+        mask, nodata_from = _nodata_mask(arr, float(nodata)), "argument"
     else:
-        nd, nodata_from = None, None
-    mask = _nodata_mask(arr, nd) if nd is not None else np.zeros(arr.shape, dtype=bool)
-    elev = arr.astype(np.float64 if arr.dtype == np.float64 else np.float32)
-    elev[mask] = np.nan
-    elev[~np.isfinite(elev)] = np.nan
-    meta.update(nodata=nd, nodata_from=nodata_from, nodata_cells=int(np.isnan(elev).sum()))
+        mask = np.zeros(arr.shape, dtype=bool) if valid is None else ~valid
+        nodata_from = str(meta["format"]) if mask.any() else None
+    elev: np.ndarray = arr.astype(np.float64 if arr.dtype == np.float64 else np.float32)
+    elev[mask | ~np.isfinite(elev)] = np.nan
+    meta.update(nodata=float(nodata) if nodata is not None else meta.pop("file_nodata"), nodata_from=nodata_from,
+                nodata_cells=int(np.isnan(elev).sum()))
+    meta.pop("file_nodata", None)
+    if (scale, add) != (1.0, 0.0):
+        elev = elev * float(scale) + float(add)
+        meta.update(scale=scale, offset=add)
 
-    if (scale, offset) != (1.0, 0.0):
-        elev = elev * scale + offset
-        meta.update(scale=scale, offset=offset)
-
-    # pixel size
+    # georeferencing: north-up grid, the CRS (the argument assigns one), pixel size in metres
+    the_crs = crs_wkt(crs) if crs is not None else file_crs
+    meta["crs_from"] = "argument" if crs is not None else ("file" if file_crs else None)
+    if transform is not None:
+        elev, transform, flipped = north_up(elev, transform, f"DEM {path}")
+        if flipped:
+            meta["flipped"] = flipped
     if pixel_size is not None:
         px, meta["pixel_size_from"] = float(pixel_size), "argument"
-    elif spacing is not None:
-        dx, dy = spacing
-        meta["pixel_size_from"] = meta["format"]
+    elif transform is None:
+        if the_crs is not None:
+            raise FedmapError(f"DEM {path} has a CRS but no geotransform; pass pixel_size")
+        px, meta["pixel_size_from"] = 1.0, "default"
+    else:
+        if the_crs is not None:
+            dx, dy, info = cell_size_m(the_crs, transform, elev.shape)
+            meta.update(info)
+            meta["pixel_size_from"] = "crs"
+        else:
+            if _looks_like_degrees(transform, elev.shape):
+                raise FedmapError(
+                    f"DEM {path} has cell size {abs(transform.a):g} with corner ({transform.c:g}, {transform.f:g}) "
+                    f"and no CRS, which looks like degrees; pass crs (e.g. 'EPSG:4326' or the body's CRS) or pixel_size")
+            dx, dy = abs(transform.a), abs(transform.e)
+            meta["pixel_size_from"] = "transform (assumed metres)"
         if abs(dx - dy) <= SQUARE_TOLERANCE * min(dx, dy):
             px = math.sqrt(dx * dy)
         else:
@@ -584,22 +496,20 @@ def load_dem(path, *, pixel_size: float | None = None, nodata: float | None = No
             axis = 0 if dy > dx else 1
             before = elev.shape
             elev = _resample_axis(elev, axis, max(dx, dy), px)
-            meta["resampled"] = {
-                "axis": "rows" if axis == 0 else "columns",
-                "from_shape": [int(before[0]), int(before[1])],
-                "to_shape": [int(elev.shape[0]), int(elev.shape[1])],
-                "reason": "non-square cells",
-            }
-    else:
-        px, meta["pixel_size_from"] = 1.0, "default"
+            transform = transform @ Affine.scale(before[1] / elev.shape[1], before[0] / elev.shape[0])
+            meta["resampled"] = {"axis": "rows" if axis == 0 else "columns", "from_shape": [int(v) for v in before],
+                                 "to_shape": [int(v) for v in elev.shape], "reason": "non-square cells"}
     meta["pixel_size"] = float(px)
-    return Dem(elev.astype(np.float32), px, str(path), meta)
+    return Dem(elev.astype(np.float32), px, str(path), meta, transform=transform, crs=the_crs)
 
 
 # --------------------------------------------------------------------------- mosaics
 
 #: Ground size of a GLD100 256p tile pixel: 1 degree of a 1737.4 km sphere / 256.
 GLD100_PIXEL_SIZE_M: float = math.radians(1.0) * 1_737_400.0 / 256
+
+#: The CRS of GLD100 tiles: longitude/latitude on the IAU 2015 Moon sphere (1737.4 km).
+GLD100_CRS = "IAU_2015:30100"
 
 
 def mosaic_tiles(paths, *, pixel_size: float | None = None, **options) -> Dem:
@@ -629,7 +539,9 @@ def mosaic_tiles(paths, *, pixel_size: float | None = None, **options) -> Dem:
     elev = np.block([[d.elevation for d in r] for r in dems])
     meta = {"format": "mosaic", "tiles": [[d.source for d in r] for r in dems], "tile_shape": list(first.shape),
             "pixel_size": first.pixel_size, "pixel_size_from": first.meta.get("pixel_size_from")}
-    return Dem(elev, first.pixel_size, f"mosaic of {len(rows)}x{len(rows[0])} tiles, north-west {first.source}", meta)
+    # the north-west tile's transform places the whole mosaic (the tiles are adjacent)
+    return Dem(elev, first.pixel_size, f"mosaic of {len(rows)}x{len(rows[0])} tiles, north-west {first.source}", meta,
+               transform=first.transform, crs=first.crs)
 
 
 def gld100_tile_path(folder, lon: int, lat: int) -> Path:
@@ -645,7 +557,7 @@ def mosaic_heightmap_tiles(folder, *, lon: int, lat: int, n=1, pixel_size: float
     Tile ``256p+{lon}+{lat}.png`` covers longitudes ``lon..lon+1`` east and latitudes
     ``lat..lat+1`` north, north at the top, so tile (lon, lat + 1) lies above tile
     (lon, lat) and (lon + 1, lat) to its right. ``pixel_size`` defaults to the GLD100
-    256p spacing (118.45 m).
+    256p spacing (118.45 m). The mosaic is georeferenced in :data:`GLD100_CRS`.
     """
     if np.isscalar(n):
         nr = nc = int(cast(SupportsInt, n))  # isscalar's TypeGuard also admits complex, which int() refuses
@@ -654,4 +566,8 @@ def mosaic_heightmap_tiles(folder, *, lon: int, lat: int, n=1, pixel_size: float
     if nr < 1 or nc < 1:
         raise FedmapError(f"mosaic needs at least 1x1 tiles, got {nr}x{nc}")
     grid = [[gld100_tile_path(folder, lon + j, lat + nr - 1 - i) for j in range(nc)] for i in range(nr)]
-    return mosaic_tiles(grid, pixel_size=pixel_size, offset=offset, zero_is_nodata=zero_is_nodata)
+    dem = mosaic_tiles(grid, pixel_size=pixel_size, offset=offset, zero_is_nodata=zero_is_nodata)
+    side = dem.shape[1] / nc  # cells per degree
+    dem.transform = Affine(1.0 / side, 0.0, float(lon), 0.0, -1.0 / side, float(lat + nr))
+    dem.crs = crs_wkt(GLD100_CRS)
+    return dem

@@ -3,6 +3,8 @@
 :func:`resample_dem` keeps the ground extent (the pixel size changes with the cell
 count) and propagates nodata: a target cell is nodata when more than half of what it is
 made from is nodata. :func:`crop_dem` and :func:`centre_crop` cut a window in cells.
+All three keep the DEM's CRS and move its affine transform with the grid, so a cell
+centre stays on the same ground coordinate (:mod:`fedmap.maps.georef`).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from scipy import ndimage
 
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
+from fedmap.maps.georef import crop_transform, scale_transform
 
 RESAMPLE_METHODS = ("area", "bilinear")
 
@@ -80,7 +83,8 @@ def resample_dem(dem: Dem, shape, *, method: str = "area") -> Dem:
         elev = np.where(weight >= 0.5 - 1e-9, total / weight, np.nan)
     px = dem.pixel_size * np.sqrt((dem.shape[0] / h) * (dem.shape[1] / w))
     meta = {**dem.meta, "resampled_to": [h, w], "resample_method": method, "pixel_size": float(px)}
-    return Dem(elev.astype(np.float32), float(px), dem.source, meta)
+    return Dem(elev.astype(np.float32), float(px), dem.source, meta,
+               transform=scale_transform(dem.transform, dem.shape, (h, w)), crs=dem.crs)
 
 
 def crop_dem(dem: Dem, rows, cols) -> Dem:
@@ -100,7 +104,8 @@ def crop_dem(dem: Dem, rows, cols) -> Dem:
         bounds.append((start, stop))
     (r0, r1), (c0, c1) = bounds
     meta = {**dem.meta, "crop": {"rows": [r0, r1], "cols": [c0, c1]}}
-    return Dem(dem.elevation[r0:r1, c0:c1], dem.pixel_size, dem.source, meta)
+    return Dem(dem.elevation[r0:r1, c0:c1], dem.pixel_size, dem.source, meta,
+               transform=crop_transform(dem.transform, r0, c0), crs=dem.crs)
 
 
 def centre_crop(dem: Dem, size=None) -> Dem:

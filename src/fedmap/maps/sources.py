@@ -22,6 +22,7 @@ import numpy as np
 from fedmap._util import check_keys
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
+from fedmap.maps.georef import crop_transform, scale_transform
 from fedmap.maps.grid import GridMap
 from fedmap.maps.io import crop_dem, load_dem, load_map, mosaic_heightmap_tiles, resample_dem
 from fedmap.maps.regrid import RESAMPLE_METHODS
@@ -32,7 +33,7 @@ SOURCE_KINDS: tuple[str, ...] = ("builtin", "dem", "map", "tiles")
 
 #: Options that :func:`fedmap.maps.io.load_dem` (and ``load_map``: pixel_size) accepts.
 READER_OPTIONS: dict[str, tuple[type, ...]] = {
-    "pixel_size": (float, int), "nodata": (float, int), "geographic": (bool,), "radius_m": (float, int),
+    "pixel_size": (float, int), "nodata": (float, int), "band": (int,), "crs": (str,),
     "shape": (list,), "dtype": (str,), "byteorder": (str,), "header_bytes": (int,), "offset": (float, int),
     "zero_is_nodata": (bool,),
 }
@@ -48,8 +49,9 @@ class TerrainSource:
     Parameters
     ----------
     kind : str
-        ``builtin`` (seeded synthetic terrain), ``dem`` (a DEM file: .tif, .asc, .img,
-        .raw, .png, .npy), ``map`` (a class map: .png or .npy) or ``tiles`` (RGB-packed
+        ``builtin`` (seeded synthetic terrain), ``dem`` (a DEM file: anything GDAL reads,
+        e.g. .tif, .cub, .img, .xml (PDS4), .asc; a .png heightmap; .npy), ``map`` (a class
+        map: .png, .npy, .tif, ROS .yaml) or ``tiles`` (RGB-packed
         GLD100-named tiles ``256p+{lon}+{lat}.png`` in the folder ``path``).
     path : str, optional
         The file (dem, map) or the tile folder (tiles).
@@ -65,8 +67,8 @@ class TerrainSource:
     resample : str
         ``area`` or ``bilinear`` for DEMs (class maps always use nearest).
     options : dict
-        Reader options (``pixel_size``, ``nodata``, ``shape``, ``dtype``, ``byteorder``,
-        ``header_bytes``, ``geographic``, ``radius_m``, ``offset``, ``zero_is_nodata``).
+        Reader options (``pixel_size``, ``nodata``, ``band``, ``crs``, ``shape``, ``dtype``,
+        ``byteorder``, ``header_bytes``, ``offset``, ``zero_is_nodata``).
     thresholds : TraversabilityThresholds
         Rover limits for DEM -> traversability.
     """
@@ -208,9 +210,12 @@ def load_truth(source: TerrainSource, *, seed: int = 0) -> GridMap:
         grid = load_map(source.path, pixel_size=source.options.get("pixel_size"))
         (r0, r1), (c0, c1) = _square_box(grid.shape, source.crop)
         classes, px = grid.classes[r0:r1, c0:c1], grid.pixel_size
+        transform = crop_transform(grid.transform, r0, c0)
         if source.size is not None and source.size != classes.shape[0]:
             px = px * classes.shape[0] / source.size
+            transform = scale_transform(transform, classes.shape, (source.size, source.size))
             classes = _nearest_classes(classes, source.size)
-        return GridMap(classes, px, grid.source, {**grid.meta, "crop": [r0, r1, c0, c1]})
+        return GridMap(classes, px, grid.source, {**grid.meta, "crop": [r0, r1, c0, c1]}, transform=transform,
+                       crs=grid.crs)
     dem = load_source_dem(source, seed=seed)
     return dem_to_traversability(dem, source.thresholds)
