@@ -133,7 +133,9 @@ def test_missing_and_failed_rovers_are_recorded(tmp_path, blob_map):
     assert from_record(arrays) == Encoder("fp32").encode(strategy.held)
 
 
-def test_rover_lost_in_a_later_round_is_dropped_by_name(tmp_path, blob_map):
+def test_rover_lost_in_a_later_round_is_missing_by_name(tmp_path, blob_map):
+    """A rover that delivers nothing is *missing* (with Flower's reason) whether it stayed
+    silent or Flower reported its node gone; *dropped* is for replies that were not used."""
     run = {**RUN, "rounds": 2}
     _, nodes = _team(tmp_path, blob_map)
     strategy = FedmapStrategy(RunSettings.from_run_config(run))
@@ -141,8 +143,8 @@ def test_rover_lost_in_a_later_round_is_dropped_by_name(tmp_path, blob_map):
     arrays, _ = _round(strategy, grid, contexts, to_record(b""), 1)
     _round(strategy, grid, contexts, arrays, 2, fail={101})
     rec = strategy.history[1]
-    assert list(rec["dropped"]) == [1] and "Node Unavailable" in rec["dropped"][1]
-    assert rec["missing"] == [] and sorted(rec["weights"]) == [0, 2, 3]
+    assert rec["missing"] == [1] and "Node Unavailable" in rec["missing_why"][1]
+    assert rec["dropped"] == {} and sorted(rec["weights"]) == [0, 2, 3]
 
 
 def test_too_few_rovers_end_the_run(tmp_path, blob_map):
@@ -303,3 +305,74 @@ def test_app_pyproject_declares_every_run_config_key():
     assert app["config"] == RUN_DEFAULTS
     assert app["components"] == {"serverapp": "fedmap.flower.server_app:app",
                                  "clientapp": "fedmap.flower.client_app:app"}
+
+
+@pytest.mark.parametrize("event", ["missed", "restarted"])
+def test_rejoin_with_an_update_downlink_equals_the_in_process_runner(tmp_path, blob_map, event):
+    """update-int4+zstd downlink, 4 rounds. ``missed``: rover 1 misses round 2 (its node gets
+    no message). ``restarted``: rover 1 comes back before round 3 as a new node with its state
+    gone. Either way it gets a keyframe, the base uses every update, the ledger names it by
+    partition id, and the global model equals run_federation with the same participation."""
+    run = {**RUN, "rounds": 4, "uplink": "update-int8", "downlink": "update-int4+zstd"}
+    maps, nodes = _team(tmp_path, blob_map)
+    settings = RunSettings.from_run_config(run)
+    strategy = FedmapStrategy(settings)
+    grid, contexts = FakeGrid(nodes), _contexts(nodes, run)
+    arrays = to_record(b"")
+    for r in (1, 2, 3, 4):
+        if event == "restarted" and r == 3:  # same rover, new SuperNode: new node id, empty state
+            grid.node_ids = [100, 201, 102, 103]
+            contexts[201] = _contexts({201: nodes[101]}, run)[201]
+        skip = {101} if event == "missed" and r == 2 else set()
+        arrays, _ = _round(strategy, grid, contexts, arrays, r, skip=skip)
+    net = preset("small", blob_map.shape[0])
+    kw = {"absent": {2: [1]}} if event == "missed" else {"restarted": {3: [1]}}
+    ref = run_federation(get_weights(build_model(net, seed=4)), net, maps, settings.federation, **kw)
+    for k in ref.weights:
+        np.testing.assert_allclose(strategy.held[k], ref.weights[k], atol=1e-6)
+    assert all(rec["dropped"] == {} for rec in strategy.history)
+    # round 2's model reached rover 1 as a keyframe (it held round 0's or nothing)
+    assert strategy.history[1]["keyframes"] == [1] == ref.history[1]["keyframes"]
+    for got, want in zip(strategy.history[:3], ref.history[:3]):
+        assert got["downlink_bytes"] == want["downlink_bytes"]  # keyed by partition id, never node-…
+        assert got["missing"] == want["missing"]
+
+
+def test_a_stale_rover_refuses_a_broadcast_it_cannot_decode(tmp_path, blob_map):
+    """If the base believed a rover held the broadcast's reference but it does not (its state
+    is gone under the same node id), the rover refuses instead of training on a wrong model."""
+    run = {**RUN, "rounds": 2, "downlink": "update-int8"}
+    _, nodes = _team(tmp_path, blob_map)
+    strategy = FedmapStrategy(RunSettings.from_run_config(run))
+    grid, contexts = FakeGrid(nodes), _contexts(nodes, run)
+    arrays, _ = _round(strategy, grid, contexts, to_record(b""), 1)
+    _round(strategy, grid, contexts, arrays, 2)  # round 2's broadcast is relative to round 1's model
+    contexts[102] = _contexts({102: nodes[102]}, run)[102]  # rover 2 lost its state, same node
+    strategy.settings = RunSettings.from_run_config({**run, "rounds": 3})
+    _round(strategy, grid, contexts, arrays, 3)
+    rec = strategy.history[2]
+    assert "stale model" in rec["dropped"][2] and sorted(rec["weights"]) == [0, 1, 3]
+    _round(strategy, grid, contexts, arrays, 4)  # it reported what it holds: now it gets a keyframe
+    assert strategy.history[2]["keyframes"] == [2] and sorted(strategy.history[3]["weights"]) == [0, 1, 2, 3]
+
+
+def test_the_team_map_size_is_the_majority_not_the_first_reply(tmp_path, blob_map):
+    from fedmap.maps.grid import GridMap
+
+    run = {**RUN, "rounds": 1}
+    _, nodes = _team(tmp_path, blob_map)
+    big = GridMap(np.zeros((32, 32), np.uint8), 1.0, "other team")
+    save_map(big, tmp_path / "big.npy")
+    nodes[99] = {"partition-id": 0, "map": str(tmp_path / "big.npy")}  # replies first, wrong size
+    del nodes[100]
+    strategy = FedmapStrategy(RunSettings.from_run_config(run))
+    _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1)
+    rec = strategy.history[0]
+    assert rec["dropped"] == {0: "rover 0: its map is 32x32, the team's is 24x24"}
+    assert sorted(rec["weights"]) == [1, 2, 3] and strategy.shape == (24, 24)
+    # with a ground truth the base knows the size before any reply: the 24x24 rovers are wrong
+    save_map(big, tmp_path / "truth.npy")
+    strategy = FedmapStrategy(RunSettings.from_run_config({**run, "truth": str(tmp_path / "truth.npy"),
+                                                           "min-rovers": 1}))
+    _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1)
+    assert sorted(strategy.history[0]["dropped"]) == [1, 2, 3] and list(strategy.history[0]["weights"]) == [0]

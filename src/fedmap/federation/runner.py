@@ -13,16 +13,27 @@ delivers and byte counts are ``len()`` of what it carries.
   rovers render.
 * **Uplink.** Each rover has its own encoder (error-feedback residual and momentum stay
   on the rover) and sends its trained weights relative to the model it started from.
-* **Dropouts.** An agent whose training diverges, whose update is not finite, or whose
-  payload does not decode is dropped for that round (recorded with the reason); the
-  round aggregates the survivors.
+* **Versions and keyframes.** Every model a rover can hold has a version, its content
+  hash (:func:`model_version`). A rover reports the version it trained from with every
+  update, and the base keeps the version each rover holds (:class:`Broadcaster`): a rover
+  that holds the model the last broadcast is relative to gets that broadcast; any other
+  (it missed a round, restarted, or is unknown) gets a dense **keyframe**
+  (:data:`KEYFRAME` codec, exact) of the current global model. A rover refuses a broadcast
+  relative to a model it does not hold (:func:`apply_downlink`), and the base never
+  aggregates an update whose reported version is not the model it holds (:func:`base_step`
+  with ``versions``): an update is only ever decoded against the reference it was made from.
+* **Dropouts.** An agent whose training diverges, whose update is not finite, whose
+  payload does not decode, or whose update is relative to a stale model is *dropped* for
+  that round (recorded with the reason); an agent that delivers nothing (absent, no reply,
+  its process died) is *missing*. The round aggregates the survivors.
 * **Ledger.** One row per (round, agent, direction) with the codec and the bytes.
 """
 
 from __future__ import annotations
 
+import hashlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -75,8 +86,9 @@ class FederationResult:
         for r in self.history:
             for direction in ("downlink", "uplink"):
                 for agent, n in r[f"{direction}_bytes"].items():
+                    keyframe = direction == "downlink" and agent in r.get("keyframes", ())
                     rows.append({"round": r["round"], "agent": agent, "direction": direction,
-                                 "codec": r["codecs"][direction], "bytes": n})
+                                 "codec": f"{KEYFRAME} keyframe" if keyframe else r["codecs"][direction], "bytes": n})
         return rows
 
     def total_bytes(self) -> dict:
@@ -89,6 +101,98 @@ class FederationResult:
 def agent_seed(seed: int, round_idx: int, agent: int) -> int:
     """Independent, reproducible seed per (run, round, agent)."""
     return int(np.random.SeedSequence([seed, round_idx, agent]).generate_state(1)[0])
+
+
+#: The codec of a keyframe: the dense global model, exact, decodable without a reference.
+KEYFRAME = "fp32"
+
+
+def model_version(weights: Weights) -> str:
+    """The version of a model: a content hash of its tensors (names, dtypes, shapes, bytes).
+
+    Two models have the same version exactly when they are bit-identical, so a rover and the
+    base agree on what a rover holds without sending the model. 16 hex digits (64 bits).
+    """
+    h = hashlib.sha256()
+    for name in sorted(weights):
+        a = np.ascontiguousarray(weights[name])
+        h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class Downlink:
+    """What the base sends one rover before a round.
+
+    ``kind`` is ``"none"`` (the rover already holds the current model, or round 1 where every
+    rover rebuilds the initial model), ``"broadcast"`` (the round's payload, relative to the
+    model of version ``reference``) or ``"keyframe"`` (the dense current model).
+    """
+
+    kind: str
+    payload: bytes
+    reference: str = ""
+
+
+class Broadcaster:
+    """The base station's downlink: the current global model, the last broadcast and what it
+    is relative to, and the dense keyframe for rovers that hold anything else.
+
+    Parameters
+    ----------
+    held : Weights or None
+        The model every rover starts from (None when the base does not know it yet: then
+        round 1 sends nothing and the rovers' reported versions are checked once it is known).
+    """
+
+    def __init__(self, held: Weights | None) -> None:
+        self.held: Weights | None = None
+        self.version = ""
+        self.last: bytes | None = None  # the last broadcast payload ...
+        self.last_reference = ""  # ... and the version it decodes against
+        self._keyframe: bytes | None = None
+        if held is not None:
+            self.reset(held)
+
+    def reset(self, held: Weights) -> None:
+        """Hold ``held`` with no broadcast to build on (start, or resume from a checkpoint):
+        every rover that does not hold exactly ``held`` gets a keyframe."""
+        self.held, self.version = held, model_version(held)
+        self.last, self.last_reference, self._keyframe = None, "", None
+
+    def advance(self, held: Weights, payload: bytes) -> None:
+        """The round's broadcast ``payload`` (relative to the model held so far) decodes to ``held``."""
+        self.last, self.last_reference = payload, self.version
+        self.held, self.version, self._keyframe = held, model_version(held), None
+
+    def for_rover(self, version: str | None) -> Downlink:
+        """What a rover that holds model ``version`` (None: unknown) must be sent."""
+        if self.held is None or version == self.version:
+            return Downlink("none", b"")
+        if self.last is not None and version == self.last_reference:
+            return Downlink("broadcast", self.last, self.last_reference)
+        if self._keyframe is None:
+            self._keyframe = Encoder(KEYFRAME).encode(self.held)
+        return Downlink("keyframe", self._keyframe)
+
+
+def apply_downlink(held: Weights, kind: str, payload: bytes, reference: str = "") -> Weights:
+    """The rover's side of :class:`Downlink`: the model it holds once ``payload`` arrived.
+
+    Raises :class:`~fedmap.errors.RejectedUpdate` when a broadcast is relative to a model this
+    rover does not hold (decoding it would silently give a wrong model).
+    """
+    if kind == "none":
+        return held
+    if kind == "keyframe":
+        return decode(payload)
+    if kind != "broadcast":
+        raise RejectedUpdate(f"unknown downlink kind {kind!r}")
+    have = model_version(held)
+    if have != reference:
+        raise RejectedUpdate(f"stale model: this rover holds version {have}, the broadcast is relative to {reference}")
+    return decode(payload, reference=held)
 
 
 def total_local_steps(local_maps: list[GridMap], config: FederationConfig) -> int:
@@ -142,18 +246,26 @@ def base_step(
     *,
     dropped: dict[int, str] | None = None,
     round_label: int | None = None,
+    versions: Mapping[int, str] | None = None,
 ) -> BaseStep:
     """The base station's part of a round: decode, aggregate, encode and decode the broadcast.
 
     The one implementation of the base side (in-process runner and Flower ServerApp).
     ``payloads`` and ``counts`` are keyed by agent id, aggregated in ascending agent
     order; a payload that does not decode is dropped with its reason. ``dropped`` holds
-    agents already lost earlier in the round (they are kept in the result). Raises
-    :class:`FedmapError` when no update is left.
+    agents already lost earlier in the round (they are kept in the result). ``versions``
+    (agent -> :func:`model_version` of the model it trained from, as the rover reports it):
+    an update made from any model but ``held`` is dropped, never decoded against ``held``.
+    Raises :class:`FedmapError` when no update is left.
     """
     dropped = dict(dropped or {})
     updates, used = [], {}
+    current = model_version(held) if versions is not None else ""
     for k in sorted(payloads):
+        if versions is not None and versions.get(k) != current:
+            dropped[k] = (f"stale reference: its update is relative to model version {versions.get(k) or 'unknown'}, "
+                          f"the base holds {current}")
+            continue
         try:
             update = decode(payloads[k], reference=held)
             _check_fits(update, held)
@@ -189,6 +301,8 @@ def run_federation(
     on_step: Callable[[int, float], None] | None = None,
     on_round: Callable[[dict, Weights], None] | None = None,
     one_shot_cache: dict | None = None,
+    absent: Mapping[int, Collection[int]] | None = None,
+    restarted: Mapping[int, Collection[int]] | None = None,
 ) -> FederationResult:
     """Run ``config.rounds`` rounds of federated fitting of ``local_maps``.
 
@@ -200,50 +314,97 @@ def run_federation(
     later one-round runs with the same initial weights, maps, local training, seed and
     uplink codec reuse them instead of training again (e.g. FedAvg vs FedAdam vs FedYogi
     in the paper's Table II). Runs of more than one round ignore it.
+
+    ``absent`` simulates rovers that miss rounds (round number, 1-based -> agents): they
+    neither receive that round's downlink nor train, and keep their state. ``restarted``
+    (round -> agents) makes rovers lose their state (model, uplink residual) before that
+    round. Each rover holds its own model; the downlink each gets is
+    :meth:`Broadcaster.for_rover`, so a rover that missed a broadcast gets a keyframe.
     """
+    absent, restarted = absent or {}, restarted or {}
     check_same_frame(local_maps)
     aggregator = config.make_aggregator()
     up_spec, down_spec = CodecSpec.parse(config.uplink), CodecSpec.parse(config.downlink)
-    held = {k: np.asarray(v, dtype=np.float32) for k, v in init_weights.items()}  # the initial model is known to all
+    held = init_held(init_weights)  # the initial model is known to all
     down_enc = Encoder(down_spec)
+    bc = Broadcaster(held)
+    rover_held = [held for _ in local_maps]  # what each rover holds
     up_encs = [Encoder(up_spec) for _ in local_maps]  # residuals live on the rovers
     model = build_model(net_config)
     history: list[dict] = []
     cache_key = None
     if one_shot_cache is not None and config.rounds == 1:
         cache_key = (config.uplink, config.local, config.seed, tuple(m.classes.tobytes() for m in local_maps),
-                     tuple((k, v.tobytes()) for k, v in sorted(held.items())))
+                     tuple((k, v.tobytes()) for k, v in sorted(held.items())), tuple(sorted(absent.get(1, ()))))
     for r in range(config.rounds):
         t0 = time.perf_counter()
+        for k in restarted.get(r + 1, ()):
+            rover_held[k], up_encs[k] = init_held(init_weights), Encoder(up_spec)
+        present = [k for k in range(len(local_maps)) if k not in set(absent.get(r + 1, ()))]
+        if history:  # the last round's broadcast (or a keyframe) reaches the rovers present now
+            _deliver(bc, rover_held, present, history[-1])
         payloads, losses, dropped = {}, {}, {}
         if cache_key is not None and one_shot_cache is not None and cache_key in one_shot_cache:
             payloads, losses, dropped = (dict(x) for x in one_shot_cache[cache_key])
         else:
-            for k, local in enumerate(local_maps):
+            for k in present:
                 try:
-                    payloads[k], losses[k] = rover_step(model, local, held, up_encs[k], config, round_idx=r, agent=k,
-                                                        on_step=on_step)
+                    payloads[k], losses[k] = rover_step(model, local_maps[k], rover_held[k], up_encs[k], config,
+                                                        round_idx=r, agent=k, on_step=on_step)
                 except RejectedUpdate as e:
                     dropped[k] = str(e)
             if cache_key is not None and one_shot_cache is not None:
                 one_shot_cache[cache_key] = (dict(payloads), dict(losses), dict(dropped))
         counts: dict[int, float] = {k: local_maps[k].n_known for k in payloads}
-        step = base_step(aggregator, held, payloads, counts, down_enc, dropped=dropped, round_label=r + 1)
-        held = step.held  # rovers and base continue from the decoded broadcast
-        rec = round_record(r + 1, step, losses, {k: len(p) for k, p in payloads.items()},
-                           {k: len(step.downlink) for k in range(len(local_maps))}, up_spec, down_spec,
-                           time.perf_counter() - t0)
+        versions = {k: model_version(rover_held[k]) for k in payloads}
+        step = base_step(aggregator, held, payloads, counts, down_enc, dropped=dropped, round_label=r + 1,
+                         versions=versions)
+        held = step.held  # the base continues from the decoded broadcast, as the rovers will
+        bc.advance(held, step.downlink)
+        rec = round_record(r + 1, step, losses, {k: len(p) for k, p in payloads.items()}, {}, up_spec, down_spec,
+                           time.perf_counter() - t0,
+                           missing=sorted(set(range(len(local_maps))) - set(present)))
         history.append(rec)
         if on_round is not None:
             on_round(rec, held)
+    if history:  # the final broadcast goes to the rovers that took part in the last round
+        _deliver(bc, rover_held, sorted(history[-1]["weights"]), history[-1])
     return FederationResult(held, history, {"name": config.aggregator, **aggregator.hyperparameters()})
 
 
+def init_held(init_weights: Weights) -> Weights:
+    """The initial model as every rover rebuilds it (float32)."""
+    return {k: np.asarray(v, dtype=np.float32) for k, v in init_weights.items()}
+
+
+def _deliver(bc: Broadcaster, rover_held: list[Weights], rovers: list[int], rec: dict) -> None:
+    """In process: send ``rovers`` what :meth:`Broadcaster.for_rover` says, book it in ``rec``."""
+    for k in rovers:
+        d = bc.for_rover(model_version(rover_held[k]))
+        rover_held[k] = apply_downlink(rover_held[k], d.kind, d.payload, d.reference)
+        book_downlink(rec, k, d)
+
+
+def book_downlink(rec: dict, agent, d: Downlink) -> None:
+    """Count the downlink ``d`` sent to ``agent`` in the round record whose model it carries."""
+    if d.kind == "none":
+        return
+    rec["downlink_bytes"][agent] = len(d.payload)
+    if d.kind == "keyframe":
+        rec.setdefault("keyframes", []).append(agent)
+
+
 def round_record(round_no: int, step: BaseStep, losses: dict, up_bytes: dict, down_bytes: dict,
-                 up_spec: CodecSpec, down_spec: CodecSpec, seconds: float) -> dict:
-    """One round's entry of ``FederationResult.history`` (the same layout for every runner)."""
+                 up_spec: CodecSpec, down_spec: CodecSpec, seconds: float, *, missing: list | None = None) -> dict:
+    """One round's entry of ``FederationResult.history`` (the same layout for every runner).
+
+    ``dropped``: agents that replied but whose update was not used, with the reason;
+    ``missing``: agents that delivered nothing this round; ``keyframes`` (added when the
+    round's model is sent): agents that got it as a dense keyframe instead of the broadcast.
+    """
     return {
         "round": round_no, "final_loss": {k: losses.get(k) for k in step.counts}, "weights": dict(step.counts),
-        "dropped": step.dropped, "codecs": {"uplink": up_spec.label(), "downlink": down_spec.label()},
-        "uplink_bytes": up_bytes, "downlink_bytes": down_bytes, "seconds": seconds,
+        "dropped": step.dropped, "missing": list(missing or []),
+        "codecs": {"uplink": up_spec.label(), "downlink": down_spec.label()},
+        "uplink_bytes": up_bytes, "downlink_bytes": down_bytes, "keyframes": [], "seconds": seconds,
     }

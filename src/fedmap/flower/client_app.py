@@ -37,9 +37,10 @@ from flwr.clientapp import ClientApp
 
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.federation.codecs import Encoder
+from fedmap.federation.runner import model_version
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.settings import RunSettings
-from fedmap.flower.task import load_local_map, receive, save_received, train_round
+from fedmap.flower.task import load_local_map, receive, rover_state, save_received, train_round
 from fedmap.nets.model import Weights
 
 app = ClientApp()
@@ -65,11 +66,28 @@ def _store(context: Context, held: Weights, encoder: Encoder) -> None:
     context.state[_ENCODER] = ConfigRecord({"pickle": pickle.dumps(encoder)})
 
 
-def _error_reply(msg: Message, metrics: dict, e: FedmapError) -> Message:
+def _downlink(msg: Message) -> tuple[bytes, str, str]:
+    """The downlink payload, its kind and the model version it is relative to."""
+    config = msg.content["config"]
+    return (from_record(msg.content.array_records.get("downlink")), str(config.get("downlink-kind", "none")),
+            str(config.get("reference-version", "")))
+
+
+def _reply(msg: Message, content: dict[str, ArrayRecord | MetricRecord | ConfigRecord], held: Weights) -> Message:
+    """A reply that reports the version of the model this rover holds (what it trained from)."""
+    content["state"] = ConfigRecord({"held-version": model_version(held)})
+    return Message(RecordDict(content), reply_to=msg)
+
+
+def _error_reply(msg: Message, metrics: dict, e: FedmapError, held: Weights | None = None) -> Message:
     """Reported, not raised: the base drops this rover for the round (a rejected update)
     or stops the run with this line (any other error)."""
     error: dict[str, ConfigRecordValues] = {"reason": str(e), "fatal": not isinstance(e, RejectedUpdate)}
-    return Message(RecordDict({"metrics": MetricRecord(metrics), "error": ConfigRecord(error)}), reply_to=msg)
+    content: dict[str, ArrayRecord | MetricRecord | ConfigRecord] = {"metrics": MetricRecord(metrics),
+                                                                     "error": ConfigRecord(error)}
+    if held is None:
+        return Message(RecordDict(content), reply_to=msg)
+    return _reply(msg, content, held)
 
 
 @app.train()
@@ -77,39 +95,41 @@ def train(msg: Message, context: Context) -> Message:
     try:  # a bad run or node config is a mistake: reported as fatal, the base stops the run
         settings = RunSettings.from_run_config(dict(context.run_config))
         pid, local = load_local_map(dict(context.node_config))
+        held, encoder = rover_state(settings, local, *_restore(context))
     except FedmapError as e:
         return _error_reply(msg, {}, e)
     server_round = int(cast(int, msg.content["config"]["server-round"]))  # the base sends an int
-    down = from_record(msg.content.array_records.get("downlink"))
+    down, kind, reference = _downlink(msg)
     metrics: dict[str, MetricRecordValues] = {"partition-id": pid, "known-cells": local.n_known,
                                               "height": local.shape[0], "width": local.shape[1],
                                               "downlink-bytes": len(down)}
     try:
-        held, encoder = receive(settings, local, *_restore(context), down)
-    except FedmapError as e:
-        return _error_reply(msg, metrics, e)
+        held = receive(held, down, kind, reference)
+    except FedmapError as e:  # e.g. a broadcast relative to a model it does not hold: keep what it has
+        return _error_reply(msg, metrics, e, held)
+    _store(context, held, encoder)
     try:
         payload, loss = train_round(settings, local, pid, server_round, held, encoder)
     except FedmapError as e:
         _store(context, held, encoder)
-        return _error_reply(msg, metrics, e)
+        return _error_reply(msg, metrics, e, held)
     _store(context, held, encoder)
     metrics["uplink-bytes"] = len(payload)
     if loss is not None:
         metrics["loss"] = float(loss)
-    return Message(RecordDict({"uplink": to_record(payload), "metrics": MetricRecord(metrics)}), reply_to=msg)
+    return _reply(msg, {"uplink": to_record(payload), "metrics": MetricRecord(metrics)}, held)
 
 
 @app.evaluate()
-def receive_global(msg: Message, context: Context) -> Message:
+def evaluate(msg: Message, context: Context) -> Message:
     """The final broadcast: decode it, keep it, optionally save it (node config ``out``)."""
     settings = RunSettings.from_run_config(dict(context.run_config))
     pid, local = load_local_map(dict(context.node_config))
-    down = from_record(msg.content.array_records.get("downlink"))
-    held, encoder = receive(settings, local, *_restore(context), down)
+    held, encoder = rover_state(settings, local, *_restore(context))
+    down, kind, reference = _downlink(msg)
+    held = receive(held, down, kind, reference)
     _store(context, held, encoder)
     out = context.node_config.get("out")
     if out:
         save_received(settings, local, held, Path(str(out)))
-    return Message(RecordDict({"metrics": MetricRecord({"partition-id": pid, "downlink-bytes": len(down)})}),
-                   reply_to=msg)
+    return _reply(msg, {"metrics": MetricRecord({"partition-id": pid, "downlink-bytes": len(down)})}, held)

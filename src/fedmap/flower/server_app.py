@@ -15,8 +15,10 @@ checkpoints move into ``<out>/`` beside the demo's outputs.
 from __future__ import annotations
 
 import time
+from collections import Counter
 from logging import INFO
 from pathlib import Path
+from typing import Any
 
 from flwr.app import ArrayRecord, ConfigRecord, Context, Message, MessageType, MetricRecord, RecordDict
 from flwr.serverapp import Grid, ServerApp
@@ -25,10 +27,10 @@ from flwr.supercore import log
 
 from fedmap.errors import FedmapError
 from fedmap.federation.codecs import CodecSpec, Encoder
-from fedmap.federation.runner import FederationResult, base_step, round_record
+from fedmap.federation.runner import Broadcaster, Downlink, FederationResult, base_step, book_downlink, round_record
 from fedmap.flower.records import check_flower_count, from_record, to_record
 from fedmap.flower.settings import RunSettings
-from fedmap.flower.task import initial_weights, save_checkpoint, write_base_outputs, write_status
+from fedmap.flower.task import initial_weights, save_checkpoint, truth_shape, write_base_outputs, write_status
 from fedmap.nets.model import Weights
 
 app = ServerApp()
@@ -36,6 +38,16 @@ app = ServerApp()
 
 class FedmapStrategy(Strategy):
     """fedmap's rounds on Flower: payloads in, ``base_step`` aggregation, broadcast out.
+
+    What each rover is sent comes from :class:`~fedmap.federation.runner.Broadcaster`: the
+    round's broadcast to a rover that holds the model it is relative to, a dense keyframe to
+    any other (it missed a round, restarted, or its node is new). Every reply reports the
+    version of the model the rover holds; an update made from another model than the base's
+    is dropped, never decoded against the wrong reference.
+
+    The team's map size is the ground truth's (``truth`` / ``terrain``) when the base has
+    one, else the size most rovers report in the first round (a tie goes to the larger
+    map); a rover with another size is dropped with its size in the reason.
 
     Parameters
     ----------
@@ -51,13 +63,16 @@ class FedmapStrategy(Strategy):
         self.aggregator = fed.make_aggregator()
         self.up_spec, self.down_spec = CodecSpec.parse(fed.uplink), CodecSpec.parse(fed.downlink)
         self.down_encoder = Encoder(self.down_spec)
-        self.held: Weights | None = None  # what every rover holds; the initial model until round 1 ends
-        self.shape: tuple[int, int] | None = None
+        self.held: Weights | None = None  # what the base holds; the initial model until round 1 ends
+        self.broadcaster = Broadcaster(None)  # the initial model is built once the team's size is known
+        self.shape: tuple[int, int] | None = truth_shape(settings)
         self.history: list[dict] = []
         self.node_partition: dict[int, int] = {}  # Flower node id -> rover index
+        self.node_version: dict[int, str] = {}  # Flower node id -> version of the model it holds
         self._sleep = sleep
         self._t0 = 0.0
         self._sent: dict[str, int] = {}  # message id -> node id of the last messages sent
+        self._down: dict[int, tuple[Downlink, int]] = {}  # node id -> what it was sent, Flower's byte count
 
     # -- helpers ---------------------------------------------------------------------------
 
@@ -72,22 +87,38 @@ class FedmapStrategy(Strategy):
                               f"fewer than min-rovers={s.min_rovers}; start more rovers or lower min-rovers")
         return nodes
 
-    def _messages(self, nodes: list[int], arrays: ArrayRecord, kind: str, server_round: int) -> list[Message]:
-        payload = from_record(arrays)
-        if self.history:  # the previous round's broadcast goes out now: book it per rover
-            flower = check_flower_count(arrays, len(payload))
-            rec = self.history[-1]
-            for n in nodes:
-                who = self.node_partition.get(n, f"node-{n}")
-                rec["downlink_bytes"][who] = len(payload)
-                rec["flower_downlink_bytes"][who] = flower
-        content = RecordDict({"downlink": arrays, "config": ConfigRecord({"server-round": server_round})})
-        msgs = [Message(content, dst_node_id=n, message_type=kind) for n in nodes]
+    def _messages(self, nodes: list[int], kind: str, server_round: int) -> list[Message]:
+        msgs, self._down = [], {}
+        for n in nodes:
+            d = self.broadcaster.for_rover(self.node_version.get(n))
+            arrays = to_record(d.payload)
+            self._down[n] = (d, check_flower_count(arrays, len(d.payload)))
+            config = ConfigRecord({"server-round": server_round, "downlink-kind": d.kind,
+                                   "reference-version": d.reference})
+            msgs.append(Message(RecordDict({"downlink": arrays, "config": config}), dst_node_id=n, message_type=kind))
         # Flower's message id is the object id (set when pushed); error replies made by the
         # SuperLink (e.g. "node unavailable") come from the SuperLink's own node id, so the
         # rover they concern is found through the message they reply to
         self._sent = {m.object_id: n for m, n in zip(msgs, nodes)}
         return msgs
+
+    def _delivered(self, node: int, pid: int) -> None:
+        """``node`` (rover ``pid``) replied: it got what it was sent; book it in the record of
+        the model it carries (the previous round's), under the rover's partition id."""
+        if not self.history or node not in self._down:
+            return
+        d, flower = self._down[node]
+        rec = self.history[-1]
+        book_downlink(rec, pid, d)
+        if d.kind != "none":
+            rec["flower_downlink_bytes"][pid] = flower
+
+    def _team_shape(self, shapes: dict[int, tuple[int, int]]) -> tuple[int, int]:
+        """The team's map size: the ground truth's, else the first round's majority (tie: larger)."""
+        if self.shape is None:
+            votes = Counter(shapes.values())
+            self.shape = max(votes, key=lambda sh: (votes[sh], sh))
+        return self.shape
 
     # -- Strategy --------------------------------------------------------------------------
 
@@ -97,32 +128,42 @@ class FedmapStrategy(Strategy):
         log(INFO, "fedmap: round %d: sending to %d rover(s)", server_round, len(nodes))
         write_status(s.out, "running", round=server_round, nodes=len(nodes))
         self._t0 = time.perf_counter()
-        return self._messages(nodes, arrays, MessageType.TRAIN, server_round)
+        return self._messages(nodes, MessageType.TRAIN, server_round)
 
     def aggregate_train(self, server_round: int, replies) -> tuple[ArrayRecord | None, MetricRecord | None]:
         s = self.settings
         payloads, counts, losses, dropped, flower_up, node_errors = {}, {}, {}, {}, {}, {}
+        missing_why: dict[int, str] = {}
+        versions: dict[int, str] = {}
+        good: list[tuple[int, int, Message]] = []
         for msg in replies:
             node = self._sent.get(msg.metadata.reply_to_message_id, msg.metadata.src_node_id)
-            if msg.has_error():  # the ClientApp crashed or the node went away
+            if msg.has_error():  # the ClientApp crashed or the node went away: nothing delivered
                 pid = self.node_partition.get(node)
                 reason = f"Flower error {msg.error.code}: {msg.error.reason}".splitlines()[0]
                 if pid is None:
                     node_errors[str(node)] = reason
                 else:
-                    dropped[pid] = reason
+                    missing_why[pid] = reason
                 continue
             met = msg.content["metrics"]
             if "partition-id" not in met:  # the rover could not even read its settings or map
-                error = msg.content["error"]
+                error: Any = msg.content["error"]
                 raise FedmapError(f"a rover (node {node}) failed before training: {error['reason']}")
             pid = int(met["partition-id"])
             self.node_partition[node] = pid
-            shape = (int(met["height"]), int(met["width"]))
-            if self.shape is None:
-                self.shape = shape
-            elif shape != self.shape:
-                dropped[pid] = f"its map is {shape[0]}x{shape[1]}, the team's is {self.shape[0]}x{self.shape[1]}"
+            if "state" in msg.content.config_records:
+                self.node_version[node] = str(msg.content["state"]["held-version"])
+            self._delivered(node, pid)
+            good.append((node, pid, msg))
+        shapes = {pid: (int(_metrics(m)["height"]), int(_metrics(m)["width"])) for _, pid, m in good}
+        team = self._team_shape(shapes) if shapes else self.shape
+        for node, pid, msg in good:
+            met = _metrics(msg)
+            if shapes[pid] != team:
+                assert team is not None
+                dropped[pid] = (f"rover {pid}: its map is {shapes[pid][0]}x{shapes[pid][1]}, "
+                                f"the team's is {team[0]}x{team[1]}")
                 continue
             if "error" in msg.content.config_records:
                 error = msg.content["error"]
@@ -130,26 +171,31 @@ class FedmapStrategy(Strategy):
                     raise FedmapError(f"rover {pid}: {error['reason']}")
                 dropped[pid] = str(error["reason"])
                 continue
-            record = msg.content["uplink"]
+            record = msg.content.array_records["uplink"]
             payloads[pid] = from_record(record)
             flower_up[pid] = check_flower_count(record, len(payloads[pid]))
             counts[pid] = float(met["known-cells"])
             losses[pid] = float(met["loss"]) if "loss" in met else None
-        missing = sorted(set(range(s.rovers)) - set(payloads) - set(dropped))
+            versions[pid] = self.node_version.get(node, "")
+        for pid in set(range(s.rovers)) - set(payloads) - set(dropped) - set(missing_why):
+            missing_why[pid] = "no reply before the round's deadline"
+        missing = sorted(missing_why)
         if len(payloads) < s.min_rovers:
             raise FedmapError(
                 f"round {server_round}: {len(payloads)} rover(s) delivered an update, fewer than min-rovers="
                 f"{s.min_rovers} (missing: {missing or 'none'}; dropped: {dropped or 'none'})")
-        assert self.shape is not None  # set by the first rover's reply; at least min-rovers >= 1 replied
+        assert self.shape is not None  # set by the first replies; at least min-rovers >= 1 replied
         if self.held is None:
             self.held = initial_weights(s, self.shape[0])
+            self.broadcaster.reset(self.held)
         step = base_step(self.aggregator, self.held, payloads, counts, self.down_encoder, dropped=dropped,
-                         round_label=server_round)
+                         round_label=server_round, versions=versions)
         self.held = step.held
+        self.broadcaster.advance(step.held, step.downlink)
         rec = round_record(server_round, step, losses, {k: len(p) for k, p in sorted(payloads.items())}, {},
-                           self.up_spec, self.down_spec, time.perf_counter() - self._t0)
-        rec.update(missing=missing, node_errors=node_errors, flower_uplink_bytes=dict(sorted(flower_up.items())),
-                   flower_downlink_bytes={})
+                           self.up_spec, self.down_spec, time.perf_counter() - self._t0, missing=missing)
+        rec.update(missing_why=dict(sorted(missing_why.items())), node_errors=node_errors,
+                   flower_uplink_bytes=dict(sorted(flower_up.items())), flower_downlink_bytes={})
         self.history.append(rec)
         log(INFO, "fedmap: round %d aggregated %d rover(s); missing %s; dropped %s", server_round,
             len(step.counts), missing, list(step.dropped))
@@ -163,10 +209,18 @@ class FedmapStrategy(Strategy):
         # died may still be listed as connected, and waiting for it would cost a deadline
         last = set(self.history[-1]["weights"]) if self.history else set()
         nodes = sorted(n for n in grid.get_node_ids() if self.node_partition.get(n) in last)
-        return self._messages(nodes, arrays, MessageType.EVALUATE, server_round)
+        return self._messages(nodes, MessageType.EVALUATE, server_round)
 
     def aggregate_evaluate(self, server_round: int, replies) -> MetricRecord | None:
-        acked = sorted(int(m.content["metrics"]["partition-id"]) for m in replies if not m.has_error())
+        acked = []
+        for m in replies:
+            if m.has_error() or "partition-id" not in m.content["metrics"]:
+                continue
+            node = self._sent.get(m.metadata.reply_to_message_id, m.metadata.src_node_id)
+            pid = int(m.content["metrics"]["partition-id"])
+            self._delivered(node, pid)
+            acked.append(pid)
+        acked.sort()
         if self.history:
             self.history[-1]["final_broadcast_received_by"] = acked
         return None
@@ -191,6 +245,11 @@ class FedmapStrategy(Strategy):
         assert self.held is not None, "no round was aggregated"
         return FederationResult(self.held, self.history, {"name": self.settings.federation.aggregator,
                                                           **self.aggregator.hyperparameters()})
+
+
+def _metrics(msg: Message) -> Any:
+    """A reply's metrics (the ClientApp writes numbers only)."""
+    return msg.content["metrics"]
 
 
 def run_base_station(grid: Grid, settings: RunSettings) -> Path:

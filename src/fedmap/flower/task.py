@@ -20,8 +20,8 @@ from fedmap._util import AtomicDir, atomic_write_bytes, to_json
 from fedmap.config import method_config
 from fedmap.errors import FedmapError
 from fedmap.explore import explore
-from fedmap.federation.codecs import Encoder, decode
-from fedmap.federation.runner import FederationResult, rover_step
+from fedmap.federation.codecs import Encoder
+from fedmap.federation.runner import FederationResult, apply_downlink, rover_step
 from fedmap.flower.settings import RunSettings
 from fedmap.maps.grid import GridMap, classes_from_rgb
 from fedmap.maps.io import load_map, save_map
@@ -68,16 +68,19 @@ def initial_weights(settings: RunSettings, height: int) -> Weights:
                                      init_weights=p.init_weights))
 
 
-def receive(settings: RunSettings, local: GridMap, held: Weights | None, encoder: Encoder | None,
-            downlink: bytes) -> tuple[Weights, Encoder]:
-    """What a rover holds once the broadcast arrived: ``held`` / ``encoder`` are what it
-    kept from its last round (None in round 1: it rebuilds the initial model); an empty
-    ``downlink`` (round 1) leaves the model as it is."""
+def rover_state(settings: RunSettings, local: GridMap, held: Weights | None,
+                encoder: Encoder | None) -> tuple[Weights, Encoder]:
+    """What a rover holds before a message: what it kept from its last round, or (first
+    message, or its state is gone after a restart) the initial model and a fresh encoder."""
     if held is None or encoder is None:
-        held, encoder = initial_weights(settings, local.shape[0]), Encoder(settings.federation.uplink)
-    if downlink:  # the previous round's broadcast, relative to what this rover holds
-        held = decode(downlink, reference=held)
+        return initial_weights(settings, local.shape[0]), Encoder(settings.federation.uplink)
     return held, encoder
+
+
+def receive(held: Weights, downlink: bytes, kind: str, reference: str) -> Weights:
+    """What a rover holds once the downlink arrived (:func:`~fedmap.federation.runner.apply_downlink`):
+    raises :class:`~fedmap.errors.RejectedUpdate` for a broadcast relative to a model it does not hold."""
+    return apply_downlink(held, kind, downlink, reference)
 
 
 def train_round(settings: RunSettings, local: GridMap, pid: int, server_round: int, held: Weights,
@@ -123,6 +126,16 @@ def save_checkpoint(settings: RunSettings, held: Weights, height: int, server_ro
     save_model(model, run_dir(settings.out) / f"global_model_round{server_round}.safetensors",
                extra={"round": server_round})
     write_status(settings.out, "running", round=server_round, saved=True)
+
+
+def truth_shape(settings: RunSettings) -> tuple[int, int] | None:
+    """The team's map size when the base has a ground truth (its file's, or the built-in
+    terrain's side), else None."""
+    if settings.truth:
+        return base_truth(settings).shape  # type: ignore[union-attr]
+    if settings.terrain:
+        return (settings.pipeline.size, settings.pipeline.size)
+    return None
 
 
 def base_truth(settings: RunSettings) -> GridMap | None:
