@@ -96,6 +96,7 @@ class PipelineResult:
     central_scores: MapScores | None = None
     central_steps: int | None = None
     timings: dict = field(default_factory=dict)
+    central_classes: np.ndarray | None = None  # the centralised bound's class map
 
     @property
     def metrics(self) -> dict:
@@ -154,7 +155,7 @@ def run_pipeline(
     elif config.init == "meta":
         stage("meta-init weights", 0)
     init_model = initial_model(net_config, init=config.init, seed=config.seed, prior_steps=config.prior_steps,
-                               init_weights=config.init_weights)
+                               init_weights=config.init_weights, precision=config.federation.local.precision)
     timings["init_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -171,7 +172,7 @@ def run_pipeline(
     global_scores, refined_scores = config.score(truth, global_classes), config.score(truth, refined)
     agent_scores = [config.score(truth, m.classes) for m in local_maps]
     timings["evaluate_s"] = time.perf_counter() - t
-    central_scores, steps = None, None
+    central_scores, steps, central_classes = None, None, None
     if config.central:
         t = time.perf_counter()
         steps = config.federation.rounds * config.federation.local.epochs
@@ -180,7 +181,8 @@ def run_pipeline(
         set_weights(central, get_weights(init_model))
         fit(central, union_map(local_maps), replace(config.federation.local, epochs=steps), seed=config.seed,
             on_step=on_step)
-        central_scores = config.score(truth, classes_from_rgb(render(central, h, w)))
+        central_classes = classes_from_rgb(render(central, h, w))
+        central_scores = config.score(truth, central_classes)
         timings["central_s"] = time.perf_counter() - t
     return PipelineResult(config, truth, local_maps, model, global_rgb, global_classes, refined, fed, global_scores,
-                          refined_scores, agent_scores, central_scores, steps, timings)
+                          refined_scores, agent_scores, central_scores, steps, timings, central_classes)

@@ -235,6 +235,19 @@ def scores_table(result: PipelineResult) -> Table:
     return fit(t)
 
 
+def comparison_table(rows: list[dict]) -> Table:
+    """Methods side by side (:func:`fedmap.outputs.comparison_rows`): map quality and bytes."""
+    t = Table(title="methods side by side, same rovers", header_style="bold")
+    for col in ("method", "PSNR", "SSIM", "acc.", "F1", "refined\nPSNR", "refined\nF1", "central\nPSNR",
+                "B/rover", "seconds"):
+        t.add_column(col, justify="right" if col != "method" else "left", no_wrap=True)
+    for r in rows:
+        t.add_row(r["method"], fmt(r["psnr"]), fmt(r["ssim"], 3), fmt(r["accuracy"], 3), fmt(r["f1"]),
+                  fmt(r["refined_psnr"]), fmt(r["refined_f1"]), fmt(r["central_psnr"]),
+                  f"{r['uplink_bytes_per_rover_round']:,.0f}", f"{r['seconds']:.1f}")
+    return fit(t)
+
+
 def fit(table: Table) -> Table:
     """Drop the cell padding of a table wider than the console (80 columns when piped), so
     that narrow consoles show every number whole rather than cut."""

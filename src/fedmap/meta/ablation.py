@@ -57,11 +57,12 @@ def psnr_from_mse(mse: float) -> float:
 
 
 def psnr_curve(weights: Weights, net_config: NetConfig, grid: GridMap, *, steps: int, lr: float,
-               seed: int = 0) -> list[float]:
+               seed: int = 0, precision: str = "auto") -> list[float]:
     """PSNR (dB) of the network's output after 0, 1, ..., ``steps`` Adam steps from ``weights``."""
     model = build_model(net_config)
     set_weights(model, weights)
-    losses = fit(model, grid, TrainConfig(epochs=steps + 1, lr=lr), seed=seed)  # last step's update is unused
+    # the last step's update is unused: its loss is the PSNR after `steps` steps
+    losses = fit(model, grid, TrainConfig(epochs=steps + 1, lr=lr, precision=precision), seed=seed)
     return [psnr_from_mse(x) for x in losses]
 
 

@@ -32,7 +32,7 @@ from fedmap.meta.ablation import psnr_curve
 from fedmap.meta.collections import MapCollection
 from fedmap.nets.init import empty_prior
 from fedmap.nets.model import NetConfig, Weights, build_model, get_weights, load_model, save_model, set_weights
-from fedmap.nets.training import TrainConfig, fit
+from fedmap.nets.training import TrainConfig, fit, resolve_precision
 
 
 @dataclass(frozen=True)
@@ -49,8 +49,10 @@ class MetaConfig:
     val_steps: int = 2
     val_lr: float = 1e-4
     seed: int = 0
+    precision: str = "auto"  # training precision of every inner fit (resolved: bf16 or fp32)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "precision", resolve_precision(self.precision))
         for name in ("iterations", "inner_steps", "meta_batch", "val_every", "val_steps"):
             if getattr(self, name) < 1:
                 raise FedmapError(f"{name.replace('_', ' ')} must be at least 1, got {getattr(self, name)}")
@@ -90,9 +92,10 @@ class MetaResult:
 
 
 def validation_psnr(weights: Weights, net_config: NetConfig, maps: list[GridMap], *, steps: int, lr: float,
-                    seed: int = 0) -> float:
+                    seed: int = 0, precision: str = "auto") -> float:
     """Mean PSNR (dB, raw RGB output) over ``maps`` after ``steps`` Adam steps from ``weights``."""
-    return float(np.mean([psnr_curve(weights, net_config, m, steps=steps, lr=lr, seed=seed)[-1] for m in maps]))
+    return float(np.mean([psnr_curve(weights, net_config, m, steps=steps, lr=lr, seed=seed, precision=precision)[-1]
+                          for m in maps]))
 
 
 def read_checkpoint_info(path: str | Path) -> dict:
@@ -145,7 +148,8 @@ def meta_train(
         theta = get_weights(loaded)
         history, start = list(saved["history"]), int(saved["iteration"])
     elif config.prior_steps > 0:
-        theta = get_weights(empty_prior(net_config, steps=config.prior_steps, seed=config.seed))
+        theta = get_weights(empty_prior(net_config, steps=config.prior_steps, seed=config.seed,
+                                        precision=config.precision))
     else:
         theta = get_weights(model)
 
@@ -158,11 +162,11 @@ def meta_train(
 
     def validate() -> float:
         return validation_psnr(theta, net_config, list(val_maps), steps=config.val_steps, lr=config.val_lr,
-                               seed=config.seed)
+                               seed=config.seed, precision=config.precision)
 
     if val_maps and start == 0:
         history.append({"iteration": 0, "val_psnr": validate(), "epsilon": None})  # theta_0
-    inner = TrainConfig(epochs=config.inner_steps, lr=config.inner_lr)
+    inner = TrainConfig(epochs=config.inner_steps, lr=config.inner_lr, precision=config.precision)
     for it in range(start, config.iterations):
         rng = np.random.default_rng([config.seed, it])
         phis = []

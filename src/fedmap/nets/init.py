@@ -39,15 +39,17 @@ def check_init(init: str, net: str) -> None:
         raise FedmapError("init 'meta' is for the Fourier networks (paper, small); a grid network starts at zero")
 
 
-def empty_prior(net_config: NetConfig, *, steps: int, seed: int, size: int = 64, lr: float = 1e-3) -> CoordNet | GridNet:
+def empty_prior(net_config: NetConfig, *, steps: int, seed: int, size: int = 64, lr: float = 1e-3,
+                precision: str = "auto") -> CoordNet | GridNet:
     """The network fitted for ``steps`` full-grid Adam steps to an all-UNKNOWN map.
 
     Fitted on a ``size x size`` grid; the network is a function of continuous
-    coordinates, so it renders grey at any resolution.
+    coordinates, so it renders grey at any resolution. ``precision``: see
+    :class:`~fedmap.nets.training.TrainConfig`.
     """
     model = build_model(net_config, seed=seed)
     blank = GridMap(np.full((size, size), UNKNOWN, dtype=np.uint8), source="empty-map")
-    fit(model, blank, TrainConfig(epochs=steps, lr=lr), seed=seed)
+    fit(model, blank, TrainConfig(epochs=steps, lr=lr, precision=precision), seed=seed)
     return model
 
 
@@ -68,12 +70,15 @@ def load_init_weights(net_config: NetConfig, path: str | Path | None = None) -> 
 
 
 def initial_model(net_config: NetConfig, *, init: str, seed: int, prior_steps: int,
-                  init_weights: str | Path | None = None) -> CoordNet | GridNet:
-    """The model every rover starts round 1 from (see the module docstring)."""
+                  init_weights: str | Path | None = None, precision: str = "auto") -> CoordNet | GridNet:
+    """The model every rover starts round 1 from (see the module docstring).
+
+    ``precision`` is the training precision of the empty-map prior (``init="empty"``).
+    """
     if init not in INITS:
         raise FedmapError(f"unknown init {init!r}; choose one of {', '.join(INITS)}")
     if init == "empty":
-        return empty_prior(net_config, steps=prior_steps, seed=seed)
+        return empty_prior(net_config, steps=prior_steps, seed=seed, precision=precision)
     model = build_model(net_config, seed=seed)
     if init == "meta":
         set_weights(model, load_init_weights(net_config, init_weights))

@@ -152,7 +152,7 @@ class CoordNet(nn.Module):
         Training caches ``features(coords)`` once per map (B is fixed), which saves the
         cos/sin of every pixel at every step.
         """
-        return torch.sigmoid(self.mlp(feats))
+        return torch.sigmoid(self.mlp(feats).float())  # fp32 sigmoid, also under bf16 autocast
 
 
 class GridNet(nn.Module):

@@ -6,6 +6,7 @@ the Flower apps both call :func:`fit`.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 
@@ -26,14 +27,21 @@ class TrainConfig:
     permutation of all pixels cut into batches of ``batch_pixels``.
     ``masked=False`` trains on every cell, UNKNOWN ones towards grey (the paper);
     ``masked=True`` puts the loss on known cells only.
+    ``precision`` is the arithmetic of the training step (:data:`PRECISIONS`): ``fp32``
+    everywhere, or ``bf16`` matrix products (bfloat16 autocast; weights, optimiser state,
+    loss and rendering stay fp32). ``auto`` becomes ``bf16`` where the CPU multiplies
+    bfloat16 natively (AVX-512 BF16 or AMX) and ``fp32`` elsewhere; the config always
+    holds the resolved value, so ``config.json`` and checkpoints record what ran.
     """
 
     epochs: int = 100
     lr: float = 1e-3
     batch_pixels: int | None = None
     masked: bool = False
+    precision: str = "auto"
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "precision", resolve_precision(self.precision))
         if self.epochs < 0:
             raise FedmapError(f"local epochs must be >= 0, got {self.epochs}")
         if not self.lr > 0:
@@ -43,6 +51,29 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+#: Training precisions: ``auto`` resolves to ``bf16`` or ``fp32`` (:func:`resolve_precision`).
+PRECISIONS = ("auto", "bf16", "fp32")
+
+
+def native_bf16() -> bool:
+    """True when this CPU multiplies bfloat16 natively (AVX-512 BF16 or AMX tiles).
+
+    Elsewhere bf16 is emulated and slower than fp32, so ``auto`` keeps fp32 there.
+    """
+    cpu = torch.cpu
+    return bool(getattr(cpu, "_is_avx512_bf16_supported", lambda: False)()
+                or getattr(cpu, "_is_amx_tile_supported", lambda: False)())
+
+
+def resolve_precision(name: str) -> str:
+    """``auto`` -> ``bf16`` on a CPU with native bf16, else ``fp32``; other names are checked."""
+    if name not in PRECISIONS:
+        raise FedmapError(f"unknown precision {name!r}; choose one of {', '.join(PRECISIONS)}")
+    if name == "auto":
+        return "bf16" if native_bf16() else "fp32"
+    return name
 
 
 def map_targets(grid: GridMap, *, masked: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -77,13 +108,22 @@ def fit(
     """Train ``model`` in place on ``grid``; returns the loss of every step.
 
     ``on_step(step, loss)`` is called after each optimiser step (progress bars hook here).
+
+    With ``config.precision == "bf16"`` the Fourier MLP's matrix products run in bfloat16
+    (autocast) on features cached once in bfloat16; the sigmoid, the loss, the gradients'
+    accumulation into fp32 weights and Adam stay fp32. A :class:`GridNet` always trains in
+    fp32: its step is bilinear sampling, not matrix products, and bf16 does not pay there.
     """
     coords, target, weight = map_targets(grid, masked=config.masked)
     if config.masked and not weight.any():
         raise RejectedUpdate(f"map {grid.source!r} has no known cell to train on")
+    bf16 = False
     if getattr(model, "cacheable_features", False):
+        bf16 = config.precision == "bf16"
         with torch.no_grad():
             feats = model.features(coords)  # (N, 2*mapping): fixed, so computed once
+            if bf16:
+                feats = feats.to(torch.bfloat16)  # cast once, not at every step
         head = model.head
     else:
         feats, head = coords, model  # features are trained (grid encodings)
@@ -104,7 +144,9 @@ def fit(
         for idx in batches:
             x, y, wt = (feats, target, weight) if idx is None else (feats[idx], target[idx], weight[idx])
             opt.zero_grad(set_to_none=True)
-            loss = _loss(head(x), y, wt)
+            with torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
+                pred = head(x)
+            loss = _loss(pred.float(), y, wt)
             loss.backward()
             opt.step()
             losses.append(loss.item())
