@@ -267,3 +267,126 @@ def test_thresholds_defaults_and_meta():
 def test_thresholds_validation(kwargs):
     with pytest.raises(FedmapError):
         TraversabilityThresholds(**kwargs)
+
+
+# ----------------------------------------------------------------------------- windows, profiles, percentiles
+
+
+def brute_roughness(z: np.ndarray, size: int) -> np.ndarray:
+    """Std of the residual of a least-squares plane (np.linalg.lstsq) over each window, edges replicated."""
+    r = size // 2
+    zp = np.pad(z, r, mode="edge")
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    a = np.column_stack([np.ones(size * size), xx.ravel(), yy.ravel()])
+    out = np.empty(z.shape)
+    for i in range(z.shape[0]):
+        for j in range(z.shape[1]):
+            win = zp[i:i + size, j:j + size].ravel()
+            coef = np.linalg.lstsq(a, win, rcond=None)[0]
+            out[i, j] = np.sqrt(np.mean((win - a @ coef) ** 2))
+    return out
+
+
+@pytest.mark.parametrize("size", [3, 5, 7])
+def test_roughness_window_matches_lstsq_plane_fit(size):
+    z = np.random.default_rng(size).normal(size=(9, 11)) + plane((9, 11), 1.0, deg_x=20.0)
+    np.testing.assert_allclose(roughness(z, size), brute_roughness(z, size), atol=1e-9)
+
+
+def test_footprint_tilt_of_a_plane_is_exact():
+    from fedmap.maps.traversability import footprint_tilt
+
+    hand = math.degrees(math.atan(math.hypot(math.tan(math.radians(10)), math.tan(math.radians(20)))))
+    z = plane((15, 15), 0.5, deg_x=10.0, deg_y=20.0)
+    np.testing.assert_allclose(footprint_tilt(z, 0.5, 5)[2:-2, 2:-2], hand, atol=1e-9)
+
+
+def test_window_steps_match_brute_force():
+    from fedmap.maps.traversability import window_steps
+
+    rng = np.random.default_rng(5)
+    z = rng.uniform(0, 0.5, size=(8, 9))
+    px, step, deg, size = 0.1, 0.2, 30.0, 5
+    got = window_steps(z, px, size, step, deg)
+    zp = np.pad(z, 2, mode="edge")
+    want = np.zeros_like(got)
+    for i in range(8):
+        for j in range(9):
+            for dr in range(-2, 3):
+                for dc in range(-2, 3):
+                    rise = abs(zp[i + 2 + dr, j + 2 + dc] - z[i, j])
+                    if (dr or dc) and rise > step and rise > math.tan(math.radians(deg)) * px * math.hypot(dr, dc):
+                        want[i, j] = True
+    np.testing.assert_array_equal(got, want)
+
+
+def test_window_cells():
+    from fedmap.maps.traversability import window_cells
+
+    assert window_cells(None, 1.0) == 3
+    assert window_cells(0.5, 1.0) == 3  # never below 3x3
+    assert window_cells(0.5, 0.1) == 5 and window_cells(0.6, 0.1) == 7  # odd, about the metres asked
+    assert window_cells(100.0, 0.1) == 255 and window_cells(100.0, 0.1, cap=31) == 31  # capped
+
+
+def rock_dem(height: float, pixel_size: float = 0.05, n: int = 40) -> Dem:
+    """Flat ground with one square rock of ``height`` metres, 4x4 cells, in the middle."""
+    z = np.zeros((n, n))
+    z[n // 2 - 2:n // 2 + 2, n // 2 - 2:n // 2 + 2] = height
+    return Dem(z, pixel_size, f"rock {height} m")
+
+
+def test_rover_profiles_a_rock_stops_the_small_rover_not_curiosity():
+    from fedmap.maps.traversability import ROVER_PROFILES, rover_profile
+
+    assert set(ROVER_PROFILES) == {"cadre", "mer", "msl"}
+    for name, t in ROVER_PROFILES.items():
+        assert t.rover == name and t.step_window_m and t.footprint_m
+        assert t.max_roughness_m == pytest.approx(t.max_step_m / 3)
+    # published figures: MER 26 cm wheels and 30 deg; MSL 50 cm wheels, 65 cm obstacles, 30 deg
+    assert (ROVER_PROFILES["mer"].step_window_m, ROVER_PROFILES["mer"].max_slope_deg) == (0.26, 30.0)
+    assert (ROVER_PROFILES["msl"].step_window_m, ROVER_PROFILES["msl"].max_step_m) == (0.50, 0.65)
+    rock = rock_dem(0.3)
+    impassable = {name: int((dem_to_traversability(rock, rover_profile(name)).classes == IMPASSABLE).sum())
+                  for name in ROVER_PROFILES}
+    assert impassable["cadre"] > 0 and impassable["mer"] > 0  # 0.3 m is above their 0.05 / 0.20 m steps
+    assert impassable["msl"] == 0  # Curiosity rolls over 0.3 m (65 cm limit); its footprint smooths the rock
+    with pytest.raises(FedmapError, match="unknown rover 'vikram'; choose one of cadre, mer, msl"):
+        rover_profile("vikram")
+
+
+def test_slope_percentile_and_parse():
+    from fedmap.maps.terrain import generate_dem
+    from fedmap.maps.traversability import parse_slope_limit
+
+    assert parse_slope_limit("p75") == {"max_slope_percentile": 75.0}
+    assert parse_slope_limit(" 25 ") == {"max_slope_deg": 25.0}
+    with pytest.raises(FedmapError, match="p75"):
+        parse_slope_limit("steep")
+    dem = generate_dem("moon", 64, seed=1, pixel_size=100.0)  # coarse: only the slope test runs
+    t = TraversabilityThresholds(max_slope_percentile=75)
+    g = dem_to_traversability(dem, t)
+    want = float(np.percentile(slope_degrees(dem.elevation, 100.0), 75))
+    assert g.meta["slope_limit_deg"] == pytest.approx(want)
+    assert (g.classes == IMPASSABLE).mean() == pytest.approx(0.25, abs=1 / 64**2)
+    with pytest.raises(FedmapError, match="max_slope_percentile"):
+        TraversabilityThresholds(max_slope_percentile=0)
+
+
+def test_one_class_maps_warn_in_one_line():
+    flat = dem_to_traversability(Dem(np.zeros((10, 10)), 118.45, "flat"))
+    w = flat.meta["warning"]
+    assert "100.0% free at 118 m pixels" in w and "slope 15 deg" in w and "\n" not in w
+    steep = dem_to_traversability(Dem(plane((10, 10), 1.0, deg_x=40.0), 1.0, "wall"))
+    assert "100.0% impassable at 1 m pixels" in steep.meta["warning"]
+    z = plane((10, 10), 1.0, deg_x=10.0)
+    z[:, 5:] = plane((10, 5), 1.0, deg_x=40.0) + z[0, 5]
+    assert "warning" not in dem_to_traversability(Dem(z, 1.0, "half")).meta
+
+
+def test_classes_keep_the_dem_georeferencing():
+    from affine import Affine
+
+    t = Affine(2.0, 0, 100.0, 0, -2.0, 500.0)
+    g = dem_to_traversability(Dem(np.zeros((6, 6)), 2.0, "geo", transform=t, crs="EPSG:32612"))
+    assert g.transform == t and g.crs == "EPSG:32612"

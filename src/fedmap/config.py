@@ -12,7 +12,7 @@ config classes)::
     crop = 320                # centred square side, or [row0, row1, col0, col1]
     size = 128                # resample to size x size cells
     [terrain.options]         # reader options, e.g. pixel_size, nodata, shape, byteorder
-    [thresholds]              # TraversabilityThresholds: max_slope_deg, max_step_m, ...
+    [thresholds]              # TraversabilityThresholds: max_slope_deg, max_step_m, ..., rover (a profile)
     [explore]                 # agents, mode, overlap, sensor_radius
     [model]                   # net, init (random | empty | meta), init_weights, prior_steps
     [train]                   # epochs, lr, masked, batch (cells per batch; 0 = full grid)
@@ -44,7 +44,7 @@ from fedmap.errors import FedmapError
 from fedmap.federation.runner import FederationConfig
 from fedmap.maps.grid import GridMap
 from fedmap.maps.sources import DEFAULT_BUILTIN_SIZE, READER_OPTIONS, TerrainSource, load_truth
-from fedmap.maps.traversability import TraversabilityThresholds
+from fedmap.maps.traversability import TraversabilityThresholds, rover_profile
 from fedmap.nets.training import TrainConfig
 from fedmap.pipeline import PipelineConfig
 from fedmap.refine import RefineConfig
@@ -55,7 +55,8 @@ _NUM = (int, float)
 SCHEMA: dict[str, dict[str, tuple[type, ...]]] = {
     "terrain": {"kind": (str,), "path": (str,), "terrain": (str,), "lon": (int,), "lat": (int,), "tiles": (int,),
                 "crop": (int, list), "size": (int,), "resample": (str,), "options": (dict,)},
-    "thresholds": {"max_slope_deg": _NUM, "max_step_m": _NUM, "max_roughness_m": _NUM, "rover_scale_max_px": _NUM},
+    "thresholds": {"max_slope_deg": _NUM, "max_step_m": _NUM, "max_roughness_m": _NUM, "rover_scale_max_px": _NUM,
+                   "step_window_m": _NUM, "footprint_m": _NUM, "max_slope_percentile": _NUM, "rover": (str,)},
     "explore": {"agents": (int,), "mode": (str,), "overlap": (int,), "sensor_radius": _NUM},
     "model": {"net": (str,), "init": (str,), "init_weights": (str,), "prior_steps": (int,)},
     "train": {"epochs": (int,), "lr": _NUM, "masked": (bool,), "batch": (int,)},
@@ -213,6 +214,14 @@ def resolve(config_path=None, overrides: list[dict] | None = None, *, terrain: d
     for o in overrides:
         resolved = merge(resolved, o)
     resolved["method"] = method
+    rover = resolved["thresholds"].get("rover")
+    if rover:
+        # a rover profile replaces the default limits; limits set in the preset, file or
+        # options still win over it
+        explicit: dict = {}
+        for layer in (load_preset(method), file_data, *overrides):
+            explicit.update(layer.get("thresholds", {}))
+        resolved["thresholds"] = {**rover_profile(rover).to_dict(), **explicit}
     model = resolved["model"]
     if not any("init" in layer.get("model", {}) for layer in (file_data, *overrides)):
         # a weights file given without an init is a meta-init from that file; otherwise the
@@ -263,6 +272,7 @@ KEYWORDS: dict[str, tuple[str | None, str]] = {
     "terrain": ("terrain", "terrain"), "size": ("terrain", "size"),
     "max_slope_deg": ("thresholds", "max_slope_deg"), "max_step_m": ("thresholds", "max_step_m"),
     "max_roughness_m": ("thresholds", "max_roughness_m"),
+    "max_slope_percentile": ("thresholds", "max_slope_percentile"), "rover": ("thresholds", "rover"),
     "agents": ("explore", "agents"), "explore": ("explore", "mode"), "overlap": ("explore", "overlap"),
     "sensor_radius": ("explore", "sensor_radius"),
     "net": ("model", "net"), "init": ("model", "init"), "init_weights": ("model", "init_weights"),

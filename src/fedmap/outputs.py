@@ -13,6 +13,7 @@ import numpy as np
 
 from fedmap._util import AtomicDir, to_json
 from fedmap.evaluation.scores import MapScores
+from fedmap.maps.export import check_formats, export_maps
 from fedmap.maps.grid import GridMap, render_classes
 from fedmap.maps.io import save_map
 from fedmap.nets.model import save_model
@@ -58,11 +59,13 @@ def panel_scores(global_scores: MapScores, refined_scores: MapScores) -> dict[st
 
 
 def write_outputs(result: PipelineResult, out_dir: str | Path, *, extra: dict[str, str] | None = None,
-                  extra_metrics: dict | None = None) -> Path:
+                  extra_metrics: dict | None = None, export=None) -> Path:
     """Write metrics.json, config.json, the global model, maps and the Fig. 4 panel, atomically.
 
     ``extra`` maps further file names to text written into the same folder (e.g. the
-    resolved run config); ``extra_metrics`` adds entries to ``metrics.json``.
+    resolved run config); ``extra_metrics`` adds entries to ``metrics.json``. ``export``
+    (formats of :data:`fedmap.maps.export.EXPORT_FORMATS`: geotiff, ros, png, npy) also
+    writes every map in those formats, georeferenced like the truth (``truth.tif``, ...).
     """
     out = Path(out_dir)
     with AtomicDir(out) as tmp:
@@ -77,6 +80,12 @@ def write_outputs(result: PipelineResult, out_dir: str | Path, *, extra: dict[st
         save_map(result.truth.with_classes(result.refined, "refined global map"), tmp / "refined_map.png")
         for k, m in enumerate(result.local_maps):
             save_map(m, tmp / f"agent{k + 1}_local.png")
+        if export:
+            maps = {"truth": result.truth,
+                    "global_map": result.truth.with_classes(result.global_classes, "federated global map"),
+                    "refined_map": result.truth.with_classes(result.refined, "refined global map"),
+                    **{f"agent{k + 1}_local": m for k, m in enumerate(result.local_maps)}}
+            export_maps(maps, tmp, check_formats(export), frame=result.truth)
         c = result.config
         init = "zero grids (empty-map prior)" if c.net == "grid" else f"init {c.init}"
         title = (f"{c.label or c.terrain} {c.size}x{c.size}, {c.agents} agents ({c.explore}), {c.net} net, {init}, "

@@ -1,6 +1,7 @@
 """``fedmap`` command line: the only typer/rich code; it wires the library's boxes together.
 
 One module per group of commands: :mod:`~fedmap.cli.run` (demo, run, terrain, evaluate),
+:mod:`~fedmap.cli.export` (export),
 :mod:`~fedmap.cli.experiments` (reproduce, bandwidth), :mod:`~fedmap.cli.meta`
 (meta-train, ablate-init) and :mod:`~fedmap.cli.flower` (base-station, rover, certs);
 :mod:`~fedmap.cli.ui` holds the console, progress bars and tables.
@@ -19,7 +20,7 @@ import sys
 import click
 import typer
 
-from fedmap.cli import experiments, flower, meta, run, ui
+from fedmap.cli import experiments, export, flower, meta, run, ui
 from fedmap.errors import FedmapError
 
 app = typer.Typer(
@@ -49,6 +50,7 @@ app.command()(experiments.reproduce)
 app.command()(experiments.bandwidth)
 app.command()(run.terrain)
 app.command()(run.evaluate)
+app.command()(export.export)
 app.command("base-station")(flower.base_station)
 app.command()(flower.rover)
 app.command()(flower.certs)

@@ -15,7 +15,7 @@ import typer
 
 from fedmap.cli.ui import console, progress_bar
 from fedmap.config import overrides_from, resolve
-from fedmap.flower.launch import make_certs, rover_node_config, run_base_station, run_rover
+from fedmap.flower.launch import ROVER_MAX_WAIT, make_certs, rover_node_config, run_base_station, run_rover
 from fedmap.flower.settings import run_config_from
 
 
@@ -79,12 +79,17 @@ def base_station(
                       f"missing {r['missing'] or 'none'}; dropped {r['dropped'] or 'none'}; "
                       f"uplink {sum(r['uplink_bytes'].values()):,} B")
     if "global" in m:
-        console.print(f"global map: PSNR {m['global']['psnr']:.2f} dB, path F1 {m['global']['path']['f1']:.2f}")
+        console.print(f"global map: PSNR {_db(m['global']['psnr'])}, path F1 {m['global']['path']['f1']:.2f}")
     b = m["bytes"]
     console.print(f"link: {b['uplink']:,} B uplink, {b['downlink']:,} B downlink; "
                   f"{b['uplink_per_agent_round']:,.0f} B per rover per round uplink")
     console.print(f"outputs: {out}/  (metrics.json, global_model*.safetensors, maps); "
                   f"wall time {time.perf_counter() - t0:.1f} s")
+
+def _db(psnr: float | None) -> str:
+    """PSNR as metrics.json stores it: an exact map's infinite PSNR is ``null``."""
+    return "inf dB (exact)" if psnr is None else f"{psnr:.2f} dB"
+
 
 def rover(
     superlink: str = typer.Option(..., help="The base station's SuperLink as HOST:PORT."),
@@ -99,14 +104,18 @@ def rover(
     auth_key: Optional[Path] = typer.Option(None, "--auth-key", help="SuperNode authentication: this rover's private key."),
     port: int = typer.Option(0, help="Local port of the SuperNode's own API (0: any free port)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Save the final global model and map here."),
+    max_wait: float = typer.Option(ROVER_MAX_WAIT, "--max-wait",
+                                   help="Seconds to keep trying to reach the SuperLink before giving up."),
 ) -> None:
-    """Rover: run a Flower SuperNode that trains on this rover's local map."""
+    """Rover: run a Flower SuperNode that trains on this rover's local map; exits when its run ends."""
     cfg = rover_node_config(partition_id=partition_id, map_path=map_path, terrain=terrain, size=size,
                             agents=agents, explore=explore, seed=seed, out=out)
     if root_cert is None:
         console.print("warning: no --root-cert, connecting without TLS (fine on a trusted local network only)")
     console.print(f"rover {partition_id}: connecting to {superlink}")
-    code = run_rover(cfg, superlink=superlink, root_cert=root_cert, auth_key=auth_key, port=port)
+    code = run_rover(cfg, superlink=superlink, root_cert=root_cert, auth_key=auth_key, port=port, max_wait=max_wait)
+    console.print(f"rover {partition_id}: run finished, final global model received"
+                  + (f"; saved in {out}/" if out else ""))
     raise typer.Exit(code)
 
 def certs(

@@ -21,25 +21,30 @@ from fedmap.cli.ui import F1_CAPTION, console, progress_bar, scores_table, stage
 from fedmap.config import dumps_toml, load_run, overrides_from, parse_set, terrain_table
 from fedmap.errors import FedmapError
 from fedmap.evaluation.scores import score_map
+from fedmap.maps.export import EXPORT_FORMATS, check_formats
 from fedmap.maps.io import load_map, save_map
 from fedmap.maps.terrain import generate_dem
-from fedmap.maps.traversability import dem_to_traversability
+from fedmap.maps.traversability import dem_to_traversability, parse_slope_limit
 from fedmap.outputs import write_outputs
 from fedmap.pipeline import run_pipeline
 
 
-def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | None = None,
+def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | None = None, export: list[str] | None = None,
             terrain: dict | None = None, out: Path) -> None:
     """Resolve, load, run, write and report one run (``demo`` and ``run``)."""
+    export = list(check_formats(export))  # a bad format stops the run before it starts
     t0 = time.perf_counter()
     overrides = [parse_set(s) for s in set_ or []] + [overrides_from(settings)]
     with progress_bar() as progress:
         on_stage, on_step = stage_callbacks(progress)
         on_stage("load terrain", 0)
         resolved, source, truth, pconfig = load_run(config, overrides, terrain=terrain)
+        if truth.meta.get("warning"):
+            console.print(f"warning: {truth.meta['warning']}")
         result = run_pipeline(pconfig, truth=truth, on_stage=on_stage, on_step=on_step)
         on_stage("write outputs", 0)
-        write_outputs(result, out, extra={"config.toml": dumps_toml(resolved), "run_config.json": to_json(resolved)})
+        write_outputs(result, out, extra={"config.toml": dumps_toml(resolved), "run_config.json": to_json(resolved)},
+                      export=export)
         on_stage(None, 0)
     f = truth.fractions()
     fed = pconfig.federation
@@ -99,7 +104,8 @@ def run(
     pixel_size: Optional[float] = typer.Option(None, "--pixel-size", help="Metres per cell of the file (overrides it)."),
     crop: Optional[int] = typer.Option(None, help="Centred square crop of the terrain, in cells, before resampling."),
     size: Optional[int] = typer.Option(None, help="Resample the terrain to size x size cells (64..2048)."),
-    max_slope: Optional[float] = typer.Option(None, "--max-slope", help="Traversability: max slope in degrees."),
+    max_slope: Optional[str] = typer.Option(None, "--max-slope", help="Traversability: max slope in degrees (25), or a percentile of the map's slopes (p75) for coarse DEMs."),
+    rover: Optional[str] = typer.Option(None, "--rover", help="Traversability limits of a rover: cadre, mer or msl (options above override them)."),
     max_step: Optional[float] = typer.Option(None, "--max-step", help="Traversability: max step height in metres."),
     max_roughness: Optional[float] = typer.Option(None, "--max-roughness", help="Traversability: max roughness (m)."),
     method: Optional[str] = typer.Option(None, help="Preset: paper or fedmap (defaults below it)."),
@@ -126,20 +132,23 @@ def run(
     seed: Optional[int] = typer.Option(None, help="Seed for terrain, exploration, training and evaluation."),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="Any config key: section.key=value (TOML value), repeatable."),
     out: Path = typer.Option(Path("fedmap-out/run"), "--out", "-o", help="Output folder (replaced atomically)."),
+    export: Optional[list[str]] = typer.Option(None, "--export", help=f"Also write every map as {', '.join(EXPORT_FORMATS)} (geotiff: georeferenced like the DEM; ros: map_server YAML + PGM); repeatable."),
 ) -> None:
     """Map any terrain (DEM, class map, tiles or built-in) with a federated team; config from TOML + options."""
-    settings = dict(method=method, seed=seed, size=size, max_slope_deg=max_slope, max_step_m=max_step,
+    settings = dict(method=method, seed=seed, size=size, rover=rover, max_step_m=max_step,
                     max_roughness_m=max_roughness, agents=agents, explore=explore, overlap=overlap, net=net,
                     init=init, init_weights=None if init_weights is None else str(init_weights.resolve()),
                     epochs=local_epochs, lr=lr, masked=masked, rounds=rounds, aggregator=aggregator, eta=eta,
                     beta1=beta1, beta2=beta2, tau=tau, uplink=uplink, downlink=downlink, min_size=min_size,
                     pairs=pairs, central=central)
     table = terrain_table(dem=dem, map_path=map_, builtin=terrain)
+    if max_slope is not None:
+        settings.update(parse_slope_limit(max_slope))
     if pixel_size is not None:
         set_ = [*(set_ or []), f"terrain.options.pixel_size={pixel_size!r}"]
     if crop is not None:  # a file's crop: not a method_config keyword (built-in terrain has none)
         set_ = [*(set_ or []), f"terrain.crop={crop}"]
-    execute(config, settings, set_=set_, terrain=table, out=out)
+    execute(config, settings, set_=set_, terrain=table, out=out, export=export)
 
 
 def terrain(

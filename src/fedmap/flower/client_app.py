@@ -12,7 +12,8 @@ the base drops this rover for the round; any other error is reported as ``fatal`
 stops the run.
 
 The final ``evaluate`` message delivers the last global model; with ``out=<dir>`` in the
-node config the rover saves it there with its rendering.
+node config the rover saves it there with its rendering, and with ``done-file=<path>`` it
+writes that file (``fedmap rover`` then stops its SuperNode: the run is over).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from flwr.app import (
 )
 from flwr.clientapp import ClientApp
 
+from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.federation.codecs import Encoder
 from fedmap.federation.runner import model_version
@@ -132,4 +134,7 @@ def evaluate(msg: Message, context: Context) -> Message:
     out = context.node_config.get("out")
     if out:
         save_received(settings, local, held, Path(str(out)))
+    done = context.node_config.get("done-file")
+    if done:  # `fedmap rover` waits for this file to stop its SuperNode: the run is over for this rover
+        atomic_write_bytes(Path(str(done)), str(context.run_id).encode())
     return _reply(msg, {"metrics": MetricRecord({"partition-id": pid, "downlink-bytes": len(down)})}, held)

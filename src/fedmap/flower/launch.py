@@ -25,7 +25,7 @@ from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.flower import require_flwr
 from fedmap.flower.settings import RunSettings
-from fedmap.flower.task import load_local_map, run_dir, run_status_path
+from fedmap.flower.task import load_local_map, run_dir, run_status_path, truth_shape, write_status
 
 CONNECTION = "fedmap"  # the connection name written to $FLWR_HOME/config.toml
 
@@ -45,10 +45,37 @@ def flower_executable(name: str) -> str:
     return found
 
 
+#: Executables Flower's processes start by name (found on ``PATH``), per side.
+SUPERLINK_EXES = ("flower-superlink", "flower-superexec", "flwr-serverapp", "flwr")
+SUPERNODE_EXES = ("flower-supernode", "flower-superexec", "flwr-clientapp")
+
+
+def require_executables(names: tuple[str, ...]) -> None:
+    """One line naming every Flower executable missing beside this Python (and on PATH)."""
+    require_flwr()
+    missing = [n for n in names if not (Path(sys.executable).parent / n).exists() and not shutil.which(n)]
+    if missing:
+        raise FedmapError(f"Flower executable(s) {', '.join(missing)} not found beside {sys.executable} or on PATH; "
+                          "run: pip install 'fedmap[flower]'")
+
+
 def flower_env(flwr_home: Path) -> dict[str, str]:
-    """The environment for Flower's processes: own ``FLWR_HOME``, no update check or telemetry."""
-    return {**os.environ, "FLWR_HOME": str(flwr_home), "FLWR_DISABLE_UPDATE_CHECK": "1",
+    """The environment for Flower's processes: own ``FLWR_HOME``, no update check or telemetry,
+    and this interpreter's ``bin/`` first on ``PATH``: Flower starts its helpers
+    (``flower-superexec``, ``flwr-clientapp``, ...) by name, so they must resolve to the
+    environment fedmap runs in even when that environment is not activated."""
+    path = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", os.defpath)])
+    return {**os.environ, "PATH": path, "FLWR_HOME": str(flwr_home), "FLWR_DISABLE_UPDATE_CHECK": "1",
             "FLWR_TELEMETRY_ENABLED": "0"}
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """Linux: the child gets SIGKILL when the process that started it dies (even by ``kill -9``),
+    so a killed base station never leaves a SuperLink listening on its port."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -72,6 +99,13 @@ def key_values(d: dict) -> str:
     return " ".join(f"{k}={toml_value(v)}" for k, v in d.items())
 
 
+def _pgid(pid: int) -> int:
+    try:
+        return os.getpgid(pid)
+    except ProcessLookupError:
+        return -1
+
+
 class Processes:
     """Processes started in their own sessions and stopped by PID (process group)."""
 
@@ -79,18 +113,34 @@ class Processes:
         self.procs: dict[str, subprocess.Popen] = {}
         self.logs: dict[str, Path] = {}
 
-    def start(self, name: str, argv: list[str], *, env: dict, log: Path) -> subprocess.Popen:
+    def start(self, name: str, argv: list[str], *, env: dict, log: Path, new_session: bool = True,
+              die_with_parent: bool = False) -> subprocess.Popen:
+        """Start ``argv`` logging to ``log``; in its own session (process group) unless
+        ``new_session`` is False (then it shares ours: a signal to our group reaches it);
+        ``die_with_parent``: killed when this process dies, even by SIGKILL (Linux)."""
         log.parent.mkdir(parents=True, exist_ok=True)
         with open(log, "ab") as fh:
             p = subprocess.Popen(argv, env=env, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                 start_new_session=True)
+                                 start_new_session=new_session,
+                                 preexec_fn=_die_with_parent if die_with_parent else None)
         self.procs[name], self.logs[name] = p, log
         return p
 
     def stop(self, name: str, *, grace: float = 10.0, sig: int = signal.SIGTERM) -> None:
-        """Signal the process group of ``name`` (pgid = its PID), then SIGKILL after ``grace`` s."""
+        """Signal the process group of ``name`` (pgid = its PID), then SIGKILL after ``grace`` s
+        (a process sharing our group is signalled alone)."""
         p = self.procs.get(name)
         if p is None:
+            return
+        if os.getpgid(0) == _pgid(p.pid):
+            for s in (sig, signal.SIGKILL):
+                if p.poll() is None:
+                    p.send_signal(s)
+                try:
+                    p.wait(timeout=grace)
+                    return
+                except subprocess.TimeoutExpired:
+                    continue
             return
         for s in (sig, signal.SIGKILL):
             try:
@@ -317,6 +367,8 @@ def run_base_station(run_config: dict, *, host: str = "0.0.0.0", port: int = 909
     """
     run_config = {**run_config, "out": str(Path(run_config.get("out", "fedmap-out/flower")).resolve())}
     settings = RunSettings.from_run_config(run_config)  # bad options fail here, before any process starts
+    truth_shape(settings)  # so does a missing or unreadable --truth: read it now, not after the run
+    require_executables(SUPERLINK_EXES)
     tls = Tls.from_dir(certs) if certs is not None else None
     keys = sorted(Path(auth_keys).resolve().glob("*.pub")) if auth_keys is not None else []
     if auth_keys is not None and not keys:
@@ -325,21 +377,37 @@ def run_base_station(run_config: dict, *, host: str = "0.0.0.0", port: int = 909
     flwr_home = work / "flwr-home"
     env = flower_env(flwr_home)
     run_status_path(settings.out).unlink(missing_ok=True)
-    with Processes() as procs, _sigterm_as_interrupt():
-        procs.start("superlink", superlink_argv(host=host, port=port, tls=tls, auth=auth_keys is not None),
-                    env=env, log=work / "superlink.log")
-        alive = lambda: procs.check_alive("superlink")  # noqa: E731
-        local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
-        wait_for_port(local, port, timeout=60, alive=alive)
-        write_connection(flwr_home, address=f"{local}:{port}", root_cert=tls.ca if tls else None)
-        for pub in keys:
-            flwr_cli(["supernode", "register", str(pub), CONNECTION], env=env, timeout=60)
-        since = time.time() - 1
-        submit_run(flwr_home, run_config, env=env)
-        if on_ready is not None:
-            on_ready()
-        budget = settings.connect_timeout + settings.federation.rounds * (settings.deadline + settings.connect_timeout) + 600
-        return wait_for_result(settings.out, since=since, timeout=budget, alive=alive, on_status=on_status)
+    try:
+        with Processes() as procs, _sigterm_as_interrupt():
+            return _serve(procs, settings, run_config, host=host, port=port, tls=tls, keys=keys,
+                          auth=auth_keys is not None, env=env, on_status=on_status, on_ready=on_ready)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: our processes are stopped (Processes.__exit__)
+        st = read_status(settings.out) or {}
+        where = f"during round {st['round']}" if st.get("round") else "before round 1"
+        write_status(settings.out, "interrupted", round=st.get("round", 0), message=f"interrupted {where}")
+        raise FedmapError(f"base station interrupted {where}; the SuperLink is stopped; "
+                          f"checkpoints so far are in {run_dir(settings.out)}") from None
+
+
+def _serve(procs: Processes, settings: RunSettings, run_config: dict, *, host: str, port: int, tls: Tls | None,
+           keys: list[Path], auth: bool, env: dict, on_status, on_ready) -> dict:
+    """The base station's processes: SuperLink up, rover keys registered, run submitted, waited for."""
+    work = run_dir(settings.out)
+    flwr_home = Path(env["FLWR_HOME"])
+    procs.start("superlink", superlink_argv(host=host, port=port, tls=tls, auth=auth),
+                env=env, log=work / "superlink.log", die_with_parent=True)
+    alive = lambda: procs.check_alive("superlink")  # noqa: E731
+    local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
+    wait_for_port(local, port, timeout=60, alive=alive)
+    write_connection(flwr_home, address=f"{local}:{port}", root_cert=tls.ca if tls else None)
+    for pub in keys:
+        flwr_cli(["supernode", "register", str(pub), CONNECTION], env=env, timeout=60)
+    since = time.time() - 1
+    submit_run(flwr_home, run_config, env=env)
+    if on_ready is not None:
+        on_ready()
+    budget = settings.connect_timeout + settings.federation.rounds * (settings.deadline + settings.connect_timeout) + 600
+    return wait_for_result(settings.out, since=since, timeout=budget, alive=alive, on_status=on_status)
 
 
 class _sigterm_as_interrupt:
@@ -373,28 +441,87 @@ def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str 
         cfg.update(terrain=terrain, size=size, agents=agents, explore=explore, seed=seed)
     if out is not None:
         cfg["out"] = str(Path(out).resolve())
-    load_local_map(cfg)
+    try:
+        load_local_map(cfg)
+    except FedmapError as e:  # a missing or corrupt map: say which rover, before connecting
+        raise FedmapError(f"rover {partition_id}: {e}") from None
     return cfg
 
 
+#: Seconds a rover keeps trying to reach its SuperLink before it gives up (``fedmap rover --max-wait``).
+ROVER_MAX_WAIT = 120.0
+#: Seconds a finished rover leaves its SuperNode running so the final reply reaches the base.
+DONE_GRACE = 5.0
+
+
 def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = None, auth_key: Path | None = None,
-          port: int = 0, flwr_home: Path | None = None, log: Path | None = None) -> int:
-    """Run one SuperNode for this rover: in the foreground (``log=None``) this process becomes
-    the SuperNode (``exec``); with ``log`` it runs as a child until it exits."""
+              port: int = 0, flwr_home: Path | None = None, log: Path | None = None,
+              max_wait: float = ROVER_MAX_WAIT) -> int:
+    """Run one SuperNode for this rover until its run ends; returns 0.
+
+    The SuperNode is a child in this process's group (a signal to the rover reaches it; it
+    dies with the rover even on SIGKILL). The rover returns as soon as its ClientApp has
+    received the run's final model (it writes the node config's ``done-file``). Flower gives
+    up after ``max_wait`` seconds without a SuperLink (wrong address or port, base gone, run
+    over); that and every other SuperNode failure (TLS, refused authentication) is a one-line
+    :class:`FedmapError` naming the rover. Flower's log goes to ``log`` (default: a temporary
+    folder, removed with ``flwr_home``'s default when the rover exits).
+    """
     import tempfile
 
+    pid = node_config.get("partition-id", "?")
     if root_cert is not None and not Path(root_cert).is_file():
-        raise FedmapError(f"no such CA certificate: {root_cert}")
+        raise FedmapError(f"rover {pid}: no such CA certificate: {root_cert}")
     if auth_key is not None and not Path(auth_key).is_file():
-        raise FedmapError(f"no such SuperNode private key: {auth_key}")
+        raise FedmapError(f"rover {pid}: no such SuperNode private key: {auth_key}")
+    if not max_wait > 0:
+        raise FedmapError(f"rover {pid}: --max-wait must be positive, got {max_wait}")
+    require_executables(SUPERNODE_EXES)
     root_cert = Path(root_cert).resolve() if root_cert is not None else None
     auth_key = Path(auth_key).resolve() if auth_key is not None else None
-    home = Path(flwr_home) if flwr_home else Path(tempfile.mkdtemp(prefix="fedmap-rover-flwr-"))
-    argv = supernode_argv(superlink=superlink, port=port or free_port(), node_config=node_config,
-                          root_cert=root_cert, auth_key=auth_key)
-    env = flower_env(home)
-    if log is None:  # become the SuperNode: same PID, Flower's own signal handling and log
-        os.execve(argv[0], argv, env)
-    with Processes() as procs:
-        p = procs.start("supernode", argv, env=env, log=log)
-        return p.wait()
+    with tempfile.TemporaryDirectory(prefix="fedmap-rover-flwr-") as tmp, Processes() as procs, \
+            _sigterm_as_interrupt():
+        done = Path(tmp) / "done"
+        argv = supernode_argv(superlink=superlink, port=port or free_port(), node_config={**node_config,
+                              "done-file": str(done)}, root_cert=root_cert, auth_key=auth_key, max_wait=max_wait)
+        log = Path(log) if log is not None else Path(tmp) / "supernode.log"
+        p = procs.start("supernode", argv, env=flower_env(Path(flwr_home) if flwr_home else Path(tmp) / "flwr-home"),
+                        log=log, new_session=False, die_with_parent=True)
+        while p.poll() is None:  # bounded: Flower gives up after max_wait s without a SuperLink
+            if done.exists():  # the ClientApp has the final model; its reply is still on its way
+                try:
+                    p.wait(timeout=DONE_GRACE)
+                except subprocess.TimeoutExpired:
+                    pass
+                return 0
+            time.sleep(0.3)
+        if done.exists():
+            return 0
+        raise FedmapError(rover_failure(pid, superlink, log.read_text(errors="replace") if log.exists() else "",
+                                        max_wait=max_wait, code=p.returncode))
+    return 0  # pragma: no cover - the with block returns or raises
+
+
+def rover_failure(pid, superlink: str, log: str, *, max_wait: float, code: int | None) -> str:
+    """One line saying why a rover's SuperNode stopped, from Flower's log."""
+    low = log.lower()
+    if "certificate" in low or "ssl" in low or "handshake" in low:
+        line = next((ln.strip() for ln in log.splitlines() if "certificate" in ln.lower() or "ssl" in ln.lower()),
+                    "TLS handshake failed")
+        return f"rover {pid}: TLS certificate problem with {superlink} (wrong --root-cert?): {_clean(line)}"
+    if "unauthenticated" in low or "public key" in low or "not authorized" in low or "permission" in low:
+        return (f"rover {pid}: the SuperLink at {superlink} refused this rover's key (not registered with "
+                f"--auth-keys, or no --auth-key given)")
+    if "giving up reconnection" in low or "could not establish a connection" in low:
+        return (f"rover {pid}: no SuperLink answered at {superlink} for {max_wait:g} s; gave up "
+                f"(wrong address or port, the base station is down, or its run is over)")
+    tail = [ln for ln in log.splitlines() if "ERROR" in ln or "Error" in ln][-1:] or log.strip().splitlines()[-1:]
+    return f"rover {pid}: the Flower SuperNode exited with code {code}" + (f": {_clean(tail[0])}" if tail else "")
+
+
+def _clean(line: str) -> str:
+    """A Flower log line without its colour codes and level prefix."""
+    import re
+
+    line = re.sub(r"\x1b\[[0-9;]*m", "", line).strip()
+    return re.sub(r"^(INFO|WARNING|ERROR|DEBUG)\s*:\s*", "", line)

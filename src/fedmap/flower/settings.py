@@ -96,6 +96,8 @@ class RunSettings:
         label = Path(values["truth"]).name if values["truth"] else ""
         s = cls(to_pipeline_config(resolved, label=label), values["rovers"], values["min-rovers"], values["deadline"],
                 values["connect-timeout"], Path(values["out"]), values["truth"], terrain)
+        if s.rovers < 1:
+            raise FedmapError(f"rovers must be >= 1 (the team is partition ids 0..rovers-1), got {s.rovers}")
         if not 1 <= s.min_rovers <= s.rovers:
             raise FedmapError(f"need 1 <= min-rovers <= rovers, got min-rovers={s.min_rovers}, rovers={s.rovers}")
         if not (s.deadline > 0 and s.connect_timeout > 0):

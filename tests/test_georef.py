@@ -1,0 +1,116 @@
+"""Georeferencing carried through: crop and resample keep cell centres on the same ground
+coordinates, and class GeoTIFFs hold classes, colour table, CRS and transform (read back
+with rasterio, GDAL's own reader)."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import rasterio
+from affine import Affine
+
+from fedmap.errors import FedmapError
+from fedmap.maps.dem import Dem
+from fedmap.maps.georef import body_radii, cell_centre, cell_size_m, crs_wkt
+from fedmap.maps.geotiff import CLASS_COLORMAP
+from fedmap.maps.grid import GridMap
+from fedmap.maps.io import load_map, save_map
+from fedmap.maps.regrid import centre_crop, crop_dem, resample_dem
+from fedmap.maps.sources import TerrainSource, load_truth
+
+UTM = "EPSG:32612"
+
+
+def geo_dem(h=40, w=40, px=2.0) -> Dem:
+    z = np.random.default_rng(1).normal(size=(h, w)).astype(np.float32)
+    return Dem(z, px, "geo", transform=Affine(px, 0, 500_000.0, 0, -px, 4_000_000.0), crs=crs_wkt(UTM))
+
+
+def test_crop_keeps_ground_coordinates():
+    dem = geo_dem()
+    c = crop_dem(dem, (5, 25), (7, 33))
+    for r, col in ((0, 0), (3, 11), (19, 25)):
+        assert cell_centre(c.transform, r, col) == cell_centre(dem.transform, r + 5, col + 7)
+    np.testing.assert_array_equal(c.elevation[3, 11], dem.elevation[8, 18])
+    cc = centre_crop(dem, 10)
+    assert cell_centre(cc.transform, 0, 0) == cell_centre(dem.transform, 15, 15) and cc.crs == dem.crs
+
+
+def test_resample_keeps_extent_and_maps_centres_to_the_same_ground():
+    dem = geo_dem()
+    half = resample_dem(dem, 20)  # 2x2 blocks: new cell (i, j) covers old cells 2i..2i+1
+    # the centre of new cell (i, j) is the shared corner of old cells (2i, 2j) .. (2i+1, 2j+1)
+    for i, j in ((0, 0), (7, 12), (19, 19)):
+        x, y = cell_centre(half.transform, i, j)
+        assert (x, y) == pytest.approx(dem.transform @ (2 * j + 1, 2 * i + 1))
+    # extent kept: the far corner is the same
+    assert half.transform @ (20, 20) == pytest.approx(dem.transform @ (40, 40))
+    assert half.pixel_size == pytest.approx(4.0) and abs(half.transform.a) == pytest.approx(4.0)
+    up = resample_dem(dem, 80, method="bilinear")
+    assert up.transform @ (80, 80) == pytest.approx(dem.transform @ (40, 40))
+    # crop then resample: a cell centre is where the source puts it
+    cr = resample_dem(crop_dem(dem, (10, 30), (4, 24)), 10)
+    assert cell_centre(cr.transform, 2, 3) == pytest.approx(dem.transform @ (4 + 2 * 3 + 1, 10 + 2 * 2 + 1))
+
+
+def test_class_map_source_crop_and_resize_keep_the_transform(tmp_path):
+    grid = GridMap(np.random.default_rng(2).integers(0, 3, (30, 40)).astype(np.uint8), 2.0, "g",
+                   transform=Affine(2.0, 0, 1000.0, 0, -2.0, 9000.0), crs=crs_wkt(UTM))
+    save_map(grid, tmp_path / "g.tif")
+    truth = load_truth(TerrainSource(kind="map", path=str(tmp_path / "g.tif"), size=15))
+    # centred 30x30 square from column 5, then 30 -> 15 cells
+    assert truth.pixel_size == pytest.approx(4.0)
+    assert truth.transform @ (0, 0) == pytest.approx(grid.transform @ (5, 0))
+    assert truth.transform @ (15, 15) == pytest.approx(grid.transform @ (35, 30))
+    assert truth.crs == grid.crs
+
+
+def test_class_geotiff_round_trip_with_gdal():
+    grid = GridMap(np.random.default_rng(3).integers(0, 3, (17, 23)).astype(np.uint8), 2.0, "g",
+                   transform=Affine(2.0, 0, 500_000.0, 0, -2.0, 4_000_000.0), crs=crs_wkt(UTM))
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "map.tif"
+        save_map(grid, path)
+        with rasterio.open(path) as src:  # what QGIS sees
+            assert src.dtypes == ("uint8",) and src.count == 1 and src.crs.to_epsg() == 32612
+            assert src.transform == grid.transform
+            np.testing.assert_array_equal(src.read(1), grid.classes)
+            cmap = src.colormap(1)
+            assert all(cmap[c] == CLASS_COLORMAP[c] for c in (0, 1, 2))
+            assert cmap[0] == (0, 255, 0, 255) and cmap[1] == (255, 0, 0, 255)  # free green, impassable red
+        back = load_map(path)
+        np.testing.assert_array_equal(back.classes, grid.classes)
+        assert back.pixel_size == 2.0 and back.transform == grid.transform and back.crs == grid.crs
+        # same map, same bytes
+        save_map(grid, Path(d) / "again.tif")
+        assert (Path(d) / "again.tif").read_bytes() == path.read_bytes()
+
+
+def test_geotiff_of_ungeoreferenced_map_is_a_local_metric_frame(tmp_path):
+    grid = GridMap(np.zeros((4, 6), np.uint8), 0.5, "gen")
+    save_map(grid, tmp_path / "m.tif")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = load_map(tmp_path / "m.tif")
+    assert back.crs is None and back.pixel_size == 0.5
+    assert back.transform @ (0, 4) == (0.0, 0.0)  # lower-left corner at the origin
+
+
+def test_body_radii_sphere_and_wgs84_by_hand():
+    m, n = body_radii("IAU_2015:30100", 45.0)
+    assert m == n == pytest.approx(1_737_400.0)
+    a, f = 6378137.0, 1 / 298.257223563
+    e2 = f * (2 - f)
+    m, n = body_radii("EPSG:4326", 0.0)
+    assert n == pytest.approx(a) and m == pytest.approx(a * (1 - e2))
+    dx, dy, info = cell_size_m("IAU_2015:30100", Affine(1 / 256, 0, 0, 0, -1 / 256, 1.0), (256, 256))
+    assert dy == pytest.approx(math.radians(1 / 256) * 1_737_400.0)  # the GLD100 118.45 m
+    assert dx == pytest.approx(dy * math.cos(math.radians(0.5)))
+    with pytest.raises(FedmapError, match="not a coordinate reference system"):
+        crs_wkt("EPSG:999999")
