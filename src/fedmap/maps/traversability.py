@@ -112,8 +112,8 @@ class TraversabilityThresholds:
             got = "" if slope_limit_deg is None else f" = {slope_limit_deg:.3g} deg"
             slope = f"p{self.max_slope_percentile:g} of the map's slopes{got}"
         rover = f"rover {self.rover}: " if self.rover else ""
-        return (f"{rover}slope {slope}, step {self.max_step_m:g} m, roughness {self.max_roughness_m:g} m "
-                f"(step and roughness only at pixels <= {self.rover_scale_max_px:g} m)")
+        return (f"{rover}slope {slope}, step {self.max_step_m:.3g} m, roughness {self.max_roughness_m:.3g} m "
+                f"(step and roughness only at pixels <= {self.rover_scale_max_px:.3g} m)")
 
 
 # Rover profiles. Slope, step and size figures are the rovers' published capabilities
@@ -272,7 +272,7 @@ def class_balance_warning(grid: GridMap, thresholds: TraversabilityThresholds,
         if frac > 0.99:
             return (f"the traversability map is {frac:.1%} {name} at {grid.pixel_size:.3g} m pixels with "
                     f"{thresholds.describe(slope_limit_deg)}: these limits may not suit this pixel size "
-                    f"(try --rover, or --max-slope p75 for a coarse DEM)")
+                    f"(other limits: --rover NAME, --max-slope DEG, or --max-slope p75 for a coarse DEM)")
     return None
 
 
