@@ -54,11 +54,13 @@ def reproduce(
     curve_epochs: Optional[int] = typer.Option(None, "--curve-epochs", help="Local epochs per round in the rounds curve [10]."),
     random_baseline: bool = typer.Option(False, "--random-baseline", help="Table II: also the paper's FedAvg from a random start."),
     seed: int = typer.Option(0),
+    precision: str = typer.Option("auto", help="Training arithmetic: auto (bf16 where the CPU has native bf16, else fp32), bf16 or fp32."),
     out: Path = typer.Option(Path("fedmap-out/reproduce"), "--out", "-o", help="Report folder (replaced atomically)."),
 ) -> None:
     """The paper's experiments: Table II (+ fedmap), Fig. 4 panels, rounds curve, Tables I and III."""
     kw: dict[str, Any] = {k: v for k, v in {"data": data, "size": size, "pairs": pairs, "eta": eta, "seed": seed,
-                            "curve_epochs": curve_epochs, "random_baseline": random_baseline}.items() if v is not None}
+                            "curve_epochs": curve_epochs, "random_baseline": random_baseline,
+                            "precision": precision}.items() if v is not None}
     config = ReproduceConfig.quick(**kw) if quick else ReproduceConfig(**kw)
     t0 = time.perf_counter()
     with progress_bar() as progress:

@@ -73,6 +73,7 @@ def meta_train(
     holdout: int = typer.Option(2, help="Maps per category held out for validation."),
     val_every: int = typer.Option(25, "--val-every", help="Validation PSNR every this many iterations."),
     seed: int = typer.Option(0),
+    precision: str = typer.Option("auto", help="Training arithmetic: auto (bf16 where the CPU has native bf16, else fp32), bf16 or fp32."),
     threads: int = typer.Option(1, help="torch CPU threads (1 is fastest for 64x64 maps on a shared CPU)."),
     out: Path = typer.Option(Path("fedmap-out/meta/meta_init.safetensors"), "--out", "-o",
                              help="Weights file; also the checkpoint (rewritten atomically)."),
@@ -81,7 +82,8 @@ def meta_train(
     """Empty-map prior -> Reptile over a map collection (each category a task) -> meta-init weights."""
     _threads(threads)
     config = MetaConfig(iterations=iterations, inner_steps=inner_steps, inner_lr=inner_lr, meta_batch=meta_batch,
-                        eps_start=eps_start, eps_end=eps_end, prior_steps=prior_steps, val_every=val_every, seed=seed)
+                        eps_start=eps_start, eps_end=eps_end, prior_steps=prior_steps, val_every=val_every, seed=seed,
+                        precision=precision)
     net_config = preset(net)
     if net_config.encoding != "fourier":
         raise FedmapError("meta-training is for the Fourier networks (paper, small)")
@@ -125,12 +127,13 @@ def ablate_init(
     init_weights: Optional[Path] = typer.Option(None, "--init-weights", help="Meta weights (default: the shipped ones)."),
     prior_steps: int = typer.Option(150, "--prior-steps", help="Adam steps of the empty-map prior."),
     seed: int = typer.Option(1, help="Seed for the test maps (builtin), the random init and the prior."),
+    precision: str = typer.Option("auto", help="Training arithmetic: auto (bf16 where the CPU has native bf16, else fp32), bf16 or fp32."),
     threads: int = typer.Option(1, help="torch CPU threads."),
     out: Path = typer.Option(Path("fedmap-out/ablate-init"), "--out", "-o", help="Output folder (replaced atomically)."),
 ) -> None:
     """Table I: PSNR/SSIM after N steps from random, empty-map and meta inits, and steps to reach meta."""
     _threads(threads)
-    config = AblationConfig(n_steps=steps, lr=lr, max_steps=max_steps, seed=seed)
+    config = AblationConfig(n_steps=steps, lr=lr, max_steps=max_steps, seed=seed, precision=precision)
     if maps < 1:
         raise FedmapError(f"need at least one test map, got {maps}")
     coll = _collection(collection, layout=layout, size=size, per_category=maps, categories=categories,
@@ -139,7 +142,7 @@ def ablate_init(
     t0 = time.perf_counter()
     with progress_bar() as progress:
         task = progress.add_task("empty-map prior", total=0, loss="")
-        inits = make_inits(init_weights=init_weights, prior_steps=prior_steps, seed=seed)
+        inits = make_inits(init_weights=init_weights, prior_steps=prior_steps, seed=seed, precision=config.precision)
         progress.update(task, description="fit test maps", total=len(test) * len(inits), completed=0)
         result = run_ablation(test, inits, _net(), config,
                               on_map=lambda i, name: progress.update(task, advance=1, loss=f"map {i + 1} {name}"))

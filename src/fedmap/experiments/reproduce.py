@@ -43,6 +43,7 @@ from fedmap.maps.sources import TerrainSource, load_truth
 from fedmap.meta.ablation import AblationConfig, make_inits, run_ablation, write_ablation
 from fedmap.nets.init import SHIPPED_WEIGHTS
 from fedmap.nets.model import build_model, preset, render, set_weights
+from fedmap.nets.training import resolve_precision
 from fedmap.outputs import fig4_panel, panel_scores
 from fedmap.pipeline import PipelineConfig, run_pipeline
 from fedmap.stages import truth_summary
@@ -103,6 +104,7 @@ class ReproduceConfig:
     bandwidth: bool = True
     ablation_tiles: int = 4  # Table I: 64x64 test tiles per terrain (0: no Table I)
     ablation_max_steps: int = 100
+    precision: str = "auto"  # training precision of every fit (fedmap.nets.training.TrainConfig)
 
     @classmethod
     def quick(cls, **kw) -> ReproduceConfig:
@@ -113,6 +115,7 @@ class ReproduceConfig:
                       "bandwidth": False, "ablation_tiles": 1, "ablation_max_steps": 20, **kw})
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "precision", resolve_precision(self.precision))
         if self.curve_rounds < 1 or self.curve_epochs < 1:
             raise FedmapError("curve rounds and epochs must be >= 1")
         if self.data is not None and not Path(self.data).is_dir():
@@ -157,7 +160,8 @@ def _row_config(row: Row, config: ReproduceConfig, *, central: bool) -> Pipeline
     start from the random init unless the row asks for the meta-init."""
     overrides = {"init": "random", **row.overrides}
     return method_config(row.method, rounds=row.rounds, epochs=row.epochs, seed=config.seed, central=central,
-                         pairs=config.pairs, size=config.size, eta=config.eta, **overrides)
+                         pairs=config.pairs, size=config.size, eta=config.eta, precision=config.precision,
+                         **overrides)
 
 
 def run_table2(name: str, truth: GridMap, config: ReproduceConfig, *, on_stage=None, on_step=None) -> dict:
@@ -232,8 +236,9 @@ def run_table1(maps: dict[str, GridMap], out: Path, config: ReproduceConfig, *, 
     if on_stage:
         on_stage(f"Table I ({len(tiles)} tiles x 3 inits)", 0)
     net = preset("paper")
-    abl = AblationConfig(max_steps=config.ablation_max_steps, seed=config.seed)
-    inits = make_inits(init_weights=None, prior_steps=150, seed=config.seed, net_config=net)
+    abl = AblationConfig(max_steps=config.ablation_max_steps, seed=config.seed, precision=config.precision)
+    inits = make_inits(init_weights=None, prior_steps=150, seed=config.seed, net_config=net,
+                       precision=config.precision)
     result = run_ablation(tiles, inits, net, abl)
     write_ablation(result, tiles[0], inits, abl, out, title=f"{len(tiles)} terrain tiles 64x64", net_config=net)
     return result

@@ -31,7 +31,7 @@ from fedmap.evaluation.metrics import psnr, ssim
 from fedmap.maps.grid import GridMap
 from fedmap.nets.init import empty_prior, load_init_weights
 from fedmap.nets.model import NetConfig, Weights, build_model, get_weights, preset, render, set_weights
-from fedmap.nets.training import TrainConfig, fit
+from fedmap.nets.training import TrainConfig, fit, resolve_precision
 
 
 @dataclass(frozen=True)
@@ -41,8 +41,10 @@ class AblationConfig:
     max_steps: int = 150
     fig_steps: int = 4  # Fig. 3 shows the reconstructions after 0..fig_steps steps
     seed: int = 0
+    precision: str = "auto"  # training precision of every adaptation (resolved: bf16 or fp32)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "precision", resolve_precision(self.precision))
         if self.n_steps < 1 or self.max_steps < self.n_steps:
             raise FedmapError(f"need 1 <= n_steps <= max_steps, got {self.n_steps}, {self.max_steps}")
         if not self.lr > 0:
@@ -67,12 +69,12 @@ def psnr_curve(weights: Weights, net_config: NetConfig, grid: GridMap, *, steps:
 
 
 def adapted_render(weights: Weights, net_config: NetConfig, grid: GridMap, *, steps: int, lr: float,
-                   seed: int = 0) -> np.ndarray:
+                   seed: int = 0, precision: str = "auto") -> np.ndarray:
     """The network's (H, W, 3) output after ``steps`` Adam steps from ``weights``."""
     model = build_model(net_config)
     set_weights(model, weights)
     if steps:
-        fit(model, grid, TrainConfig(epochs=steps, lr=lr), seed=seed)
+        fit(model, grid, TrainConfig(epochs=steps, lr=lr, precision=precision), seed=seed)
     return render(model, *grid.shape)
 
 
@@ -111,8 +113,10 @@ def run_ablation(
     ssims: dict[str, list[float]] = {k: [] for k in inits}
     for i, grid in enumerate(maps):
         for name, w in inits.items():
-            curves[name].append(psnr_curve(w, net_config, grid, steps=config.max_steps, lr=config.lr, seed=config.seed))
-            out = adapted_render(w, net_config, grid, steps=config.n_steps, lr=config.lr, seed=config.seed)
+            curves[name].append(psnr_curve(w, net_config, grid, steps=config.max_steps, lr=config.lr, seed=config.seed,
+                                           precision=config.precision))
+            out = adapted_render(w, net_config, grid, steps=config.n_steps, lr=config.lr, seed=config.seed,
+                                 precision=config.precision)
             ssims[name].append(ssim(grid.to_rgb(), out))
             if on_map is not None:
                 on_map(i, name)
@@ -157,7 +161,8 @@ def fig3(grid: GridMap, inits: dict[str, Weights], net_config: NetConfig, config
     truth = grid.to_rgb()
     for r, (name, w) in enumerate(inits.items()):
         for c, s in enumerate(steps):
-            img = adapted_render(w, net_config, grid, steps=s, lr=config.lr, seed=config.seed)
+            img = adapted_render(w, net_config, grid, steps=s, lr=config.lr, seed=config.seed,
+                                 precision=config.precision)
             axes[r, c].imshow(np.clip(img, 0, 1), interpolation="nearest")
             axes[r, c].set_title(f"{name}, step {s}\n{psnr(truth, img):.2f} dB", fontsize=7)
         axes[r, -1].imshow(truth, interpolation="nearest")
@@ -206,13 +211,13 @@ def pick_maps(all_maps: list, n: int, *, seed: int) -> list:
 
 
 def make_inits(*, init_weights: str | Path | None, prior_steps: int, seed: int,
-               net_config: NetConfig | None = None) -> dict[str, Weights]:
+               net_config: NetConfig | None = None, precision: str = "auto") -> dict[str, Weights]:
     """The three initialisations of Table I: random, empty-map prior, meta (default: shipped)."""
 
     net_config = net_config or preset("paper")
     return {
         "random": get_weights(build_model(net_config, seed=seed)),
-        "empty": get_weights(empty_prior(net_config, steps=prior_steps, seed=seed)),
+        "empty": get_weights(empty_prior(net_config, steps=prior_steps, seed=seed, precision=precision)),
         "meta": load_init_weights(net_config, init_weights),
     }
 
