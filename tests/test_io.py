@@ -477,3 +477,56 @@ def test_corrupt_tiff_is_fedmap_error(tmp_path):
     path2.write_bytes(b"not a tiff at all")
     with pytest.raises(FedmapError, match="cannot read DEM"):
         load_dem(path2)
+
+
+PDS3_LABEL = """PDS_VERSION_ID = PDS3
+RECORD_TYPE = FIXED_LENGTH
+RECORD_BYTES = 16
+FILE_RECORDS = 6
+^IMAGE = ("site.img", 1)
+OBJECT = IMAGE
+  LINES = 6
+  LINE_SAMPLES = 8
+  SAMPLE_TYPE = MSB_INTEGER
+  SAMPLE_BITS = 16
+  MISSING_CONSTANT = -32768
+  SCALING_FACTOR = 0.5
+  OFFSET = 1000.0
+END_OBJECT = IMAGE
+OBJECT = IMAGE_MAP_PROJECTION
+  MAP_PROJECTION_TYPE = "EQUIRECTANGULAR"
+  A_AXIS_RADIUS = 3396.19 <KM>
+  B_AXIS_RADIUS = 3396.19 <KM>
+  C_AXIS_RADIUS = 3396.19 <KM>
+  CENTER_LATITUDE = 0.0 <DEG>
+  CENTER_LONGITUDE = 180.0 <DEG>
+  MAP_SCALE = 0.25 <KM/PIXEL>
+  LINE_PROJECTION_OFFSET = 100.5 <PIXEL>
+  SAMPLE_PROJECTION_OFFSET = -200.5 <PIXEL>
+  POSITIVE_LONGITUDE_DIRECTION = EAST
+END_OBJECT = IMAGE_MAP_PROJECTION
+END
+"""
+
+
+def test_pds3_detached_label_written_from_the_standard(tmp_path):
+    """A PDS3 label by hand (PDS Standards Reference ch. 5: IMAGE and IMAGE_MAP_PROJECTION objects)."""
+    z = (np.arange(48).reshape(6, 8) * 10 - 100).astype(">i2")
+    z[2, 3] = -32768
+    (tmp_path / "site.lbl").write_text(PDS3_LABEL)
+    (tmp_path / "site.img").write_bytes(z.tobytes())
+    dem = load_dem(tmp_path / "site.lbl")
+    assert dem.meta["driver"] == "PDS" and dem.pixel_size == pytest.approx(250.0)  # MAP_SCALE 0.25 km/pixel
+    assert np.isnan(dem.elevation[2, 3]) and np.isnan(dem.elevation).sum() == 1
+    ok = z != -32768
+    np.testing.assert_array_equal(dem.elevation[ok], z[ok] * 0.5 + 1000.0)  # SCALING_FACTOR, OFFSET
+    assert "Mars" in dem.crs or "3396190" in dem.crs
+
+
+def test_cloud_optimized_geotiff(tmp_path):
+    z = plane(64, 64, 5.0, 5.0)
+    src = write_raster(tmp_path / "src.tif", z, transform=Affine(5, 0, 0, 0, -5, 320), crs="EPSG:32612")
+    rio_copy(str(src), str(tmp_path / "cog.tif"), driver="COG")
+    dem = load_dem(tmp_path / "cog.tif")
+    np.testing.assert_array_equal(dem.elevation, z)
+    assert dem.pixel_size == 5.0 and dem.transform == Affine(5, 0, 0, 0, -5, 320)

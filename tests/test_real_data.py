@@ -73,6 +73,9 @@ def test_gld100_hadley_8x8_mosaic():
     assert z.shape == (2048, 2048) and np.isfinite(z).all()
     assert dem.pixel_size == pytest.approx(118.45, abs=0.01)
     assert 3_000 < np.ptp(z) < 10_000  # mare, rille and Apennine massifs
+    # georeferenced on the Moon sphere: the north-west corner is (0 E, 30 N), 256 cells per degree
+    assert dem.transform @ (0, 0) == (0.0, 30.0) and dem.transform @ (2048, 2048) == (8.0, 22.0)
+    assert "Moon" in dem.crs
     # Orientation: across a tile seam neighbouring rows/columns differ as little as inside a
     # tile; a flipped tile would put its far edge at the seam.
     for k in range(1, 8):

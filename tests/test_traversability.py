@@ -390,3 +390,20 @@ def test_classes_keep_the_dem_georeferencing():
     t = Affine(2.0, 0, 100.0, 0, -2.0, 500.0)
     g = dem_to_traversability(Dem(np.zeros((6, 6)), 2.0, "geo", transform=t, crs="EPSG:32612"))
     assert g.transform == t and g.crs == "EPSG:32612"
+
+
+def test_rover_in_the_config_and_explicit_limits_win(tmp_path):
+    from fedmap.config import resolve
+    from fedmap.maps.traversability import ROVER_PROFILES
+
+    cfg = tmp_path / "run.toml"
+    cfg.write_text('[thresholds]\nrover = "mer"\nmax_step_m = 0.1\n')
+    th = resolve(cfg)["thresholds"]
+    assert th == {**ROVER_PROFILES["mer"].to_dict(), "max_step_m": 0.1}
+    th = resolve(cfg, [{"thresholds": {"rover": "msl", "max_slope_percentile": 75}}])["thresholds"]
+    assert th["rover"] == "msl" and th["max_step_m"] == 0.1 and th["footprint_m"] == 3.0
+    assert th["max_slope_percentile"] == 75
+    TraversabilityThresholds(**th)  # what the pipeline builds from it
+    cfg.write_text('[thresholds]\nrover = "rover-x"\n')
+    with pytest.raises(FedmapError, match="unknown rover 'rover-x'"):
+        resolve(cfg)
