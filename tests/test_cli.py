@@ -12,7 +12,7 @@ from fedmap.maps.grid import GridMap, classes_from_rgb
 from fedmap.maps.io import load_map, save_map
 from fedmap.nets.model import load_model, render
 
-TINY = ["demo", "--size", "64", "--local-epochs", "2", "--pairs", "5"]
+TINY = ["demo", "--method", "paper", "--size", "64", "--local-epochs", "2", "--pairs", "5"]
 
 
 def _run(args, capsys):

@@ -9,7 +9,7 @@ import sys
 from fedmap.cli import main
 from fedmap.cli.ui import LogProgress, stage_callbacks
 
-TINY = ["demo", "--size", "64", "--local-epochs", "2", "--pairs", "5", "--no-central"]
+TINY = ["demo", "--method", "paper", "--size", "64", "--local-epochs", "2", "--pairs", "5", "--no-central"]
 LINE = re.compile(r"^\[\d\d:\d\d:\d\d\] stage '")
 
 

@@ -118,13 +118,29 @@ def test_bad_toml_and_earlier_results_kept(tmp_path, capsys):
 
 
 def test_demo_is_run_with_the_demos_defaults(tmp_path, capsys):
-    """`fedmap demo` and `fedmap run --method paper` build one config and give the same map,
-    model bytes and metrics; both start the paper network from the shipped meta-init."""
-    a, b = tmp_path / "demo", tmp_path / "run"
+    """`fedmap demo` runs the paper and fedmap presets side by side on the same rovers. Its
+    paper half and `fedmap run --method paper` build one config and give the same map,
+    model bytes and metrics; both start the paper network from the shipped meta-init. Its
+    fedmap half equals `fedmap run --method fedmap`."""
+    demo, b, c = tmp_path / "demo", tmp_path / "run", tmp_path / "run_fedmap"
     rc, _, err = _run(["--method", "paper", *TINY, "-o", b], capsys)
     assert rc == 0, err
-    rc = main(["demo", *TINY, "-o", str(a)])
-    assert rc == 0, capsys.readouterr().err
+    rc, _, err = _run(["--method", "fedmap", *TINY, "-o", c], capsys)
+    assert rc == 0, err
+    rc = main(["demo", *TINY, "-o", str(demo)])
+    out = capsys.readouterr().out
+    assert rc == 0
+    a = demo / "paper"
+    assert (demo / "fedmap" / "global_model.safetensors").read_bytes() == (c / "global_model.safetensors").read_bytes()
+    rows = json.loads((demo / "metrics.json").read_text())["methods"]
+    assert [r["method"] for r in rows] == ["paper", "fedmap"]
+    for r, run_dir in zip(rows, (b, c)):  # the side-by-side table holds each run's own numbers
+        m = json.loads((run_dir / "metrics.json").read_text())
+        assert r["f1"] == m["global"]["path"]["f1"] and r["psnr"] == m["global"]["psnr"]
+        n_up = sum(len(x["uplink_bytes"]) for x in m["rounds"])
+        assert r["uplink_bytes_per_rover_round"] == sum(sum(x["uplink_bytes"].values()) for x in m["rounds"]) / n_up
+        assert f"{r['uplink_bytes_per_rover_round']:,.0f}" in out
+    assert (demo / "figure.png").stat().st_size > 10_000
     assert (a / "global_model.safetensors").read_bytes() == (b / "global_model.safetensors").read_bytes()
     assert (a / "global_map.png").read_bytes() == (b / "global_map.png").read_bytes()
     ma, mb = (json.loads((p / "metrics.json").read_text()) for p in (a, b))

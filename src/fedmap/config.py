@@ -15,7 +15,7 @@ config classes)::
     [thresholds]              # TraversabilityThresholds: max_slope_deg, max_step_m, ..., rover (a profile)
     [explore]                 # agents, mode, overlap, sensor_radius
     [model]                   # net, init (random | empty | meta), init_weights, prior_steps
-    [train]                   # epochs, lr, masked, batch (cells per batch; 0 = full grid)
+    [train]                   # epochs, lr, masked, batch (cells per batch; 0 = full grid), precision
     [federation]              # rounds, aggregator, eta, beta1, beta2, tau, uplink, downlink
     [refine]                  # window, min_votes, iterations, min_size
     [evaluate]                # pairs, unknown_passable, central
@@ -59,7 +59,7 @@ SCHEMA: dict[str, dict[str, tuple[type, ...]]] = {
                    "step_window_m": _NUM, "footprint_m": _NUM, "max_slope_percentile": _NUM, "rover": (str,)},
     "explore": {"agents": (int,), "mode": (str,), "overlap": (int,), "sensor_radius": _NUM},
     "model": {"net": (str,), "init": (str,), "init_weights": (str,), "prior_steps": (int,)},
-    "train": {"epochs": (int,), "lr": _NUM, "masked": (bool,), "batch": (int,)},
+    "train": {"epochs": (int,), "lr": _NUM, "masked": (bool,), "batch": (int,), "precision": (str,)},
     "federation": {"rounds": (int,), "aggregator": (str,), "eta": _NUM, "beta1": _NUM, "beta2": _NUM, "tau": _NUM,
                    "uplink": (str,), "downlink": (str,)},
     "refine": {"window": (int,), "min_votes": (int,), "iterations": (int,), "min_size": (int,)},
@@ -143,7 +143,8 @@ def base_defaults() -> dict:
         "thresholds": TraversabilityThresholds().to_dict(),
         "explore": {"agents": p.agents, "mode": p.explore, "overlap": p.overlap, "sensor_radius": p.sensor_radius},
         "model": {"net": p.net, "init": p.init, "prior_steps": p.prior_steps},
-        "train": {"epochs": f.local.epochs, "lr": f.local.lr, "masked": f.local.masked, "batch": 0},
+        # precision stays "auto" here (portable config.toml); PipelineConfig holds the resolved value
+        "train": {"epochs": f.local.epochs, "lr": f.local.lr, "masked": f.local.masked, "batch": 0, "precision": "auto"},
         "federation": {"rounds": f.rounds, "aggregator": f.aggregator, "eta": f.eta, "beta1": f.beta1,
                        "beta2": f.beta2, "tau": f.tau, "uplink": f.uplink, "downlink": f.downlink},
         "refine": r.to_dict(),
@@ -248,7 +249,8 @@ def to_pipeline_config(resolved: dict, *, size: int | None = None, label: str = 
     """
     e, m, t, f, ev = (resolved[k] for k in ("explore", "model", "train", "federation", "evaluate"))
     seed = resolved["seed"]
-    local = TrainConfig(epochs=t["epochs"], lr=float(t["lr"]), masked=t["masked"], batch_pixels=t["batch"] or None)
+    local = TrainConfig(epochs=t["epochs"], lr=float(t["lr"]), masked=t["masked"], batch_pixels=t["batch"] or None,
+                        precision=t["precision"])
     fed = FederationConfig(rounds=f["rounds"], aggregator=f["aggregator"], eta=float(f["eta"]), beta1=float(f["beta1"]),
                            beta2=float(f["beta2"]), tau=float(f["tau"]), local=local, seed=seed, uplink=f["uplink"],
                            downlink=f["downlink"])
@@ -278,6 +280,7 @@ KEYWORDS: dict[str, tuple[str | None, str]] = {
     "net": ("model", "net"), "init": ("model", "init"), "init_weights": ("model", "init_weights"),
     "prior_steps": ("model", "prior_steps"),
     "epochs": ("train", "epochs"), "lr": ("train", "lr"), "masked": ("train", "masked"), "batch": ("train", "batch"),
+    "precision": ("train", "precision"),
     "rounds": ("federation", "rounds"), "aggregator": ("federation", "aggregator"), "eta": ("federation", "eta"),
     "beta1": ("federation", "beta1"), "beta2": ("federation", "beta2"), "tau": ("federation", "tau"),
     "uplink": ("federation", "uplink"), "downlink": ("federation", "downlink"),

@@ -2,7 +2,8 @@
 
 :func:`write_outputs` writes a :class:`~fedmap.pipeline.PipelineResult` as one atomic
 folder (:class:`fedmap._util.AtomicDir`): the previous folder stays until the new one is
-complete.
+complete. :func:`write_comparison` writes several methods run on the same rovers (the
+demo's paper-vs-fedmap view): one folder per method plus one figure and one table.
 """
 
 from __future__ import annotations
@@ -92,4 +93,85 @@ def write_outputs(result: PipelineResult, out_dir: str | Path, *, extra: dict[st
                  f"{c.federation.aggregator} x {c.federation.rounds} round(s), {c.federation.local.epochs} local epochs")
         fig4_panel(result.local_maps, result.truth, result.global_classes, result.refined, tmp / "figure.png",
                    title=title, scores=panel_scores(result.global_scores, result.refined_scores))
+    return out
+
+
+def comparison_rows(results: dict[str, PipelineResult]) -> list[dict]:
+    """One row per method: the global and refined map's scores and the bytes each rover sent."""
+    rows = []
+    for name, r in results.items():
+        b = r.federation.total_bytes()
+        rows.append({
+            "method": name, "net": r.config.net, "aggregator": r.config.federation.aggregator,
+            "psnr": r.global_scores.psnr, "ssim": r.global_scores.ssim, "accuracy": r.global_scores.accuracy,
+            "f1": r.global_scores.path.f1, "refined_psnr": r.refined_scores.psnr, "refined_f1": r.refined_scores.path.f1,
+            "central_psnr": None if r.central_scores is None else r.central_scores.psnr,
+            "uplink_bytes_per_rover_round": b["uplink_per_agent_round"], "uplink_bytes": b["uplink"],
+            "downlink_bytes": b["downlink"], "uplink_codec": r.config.federation.uplink,
+            "precision": r.config.federation.local.precision, "seconds": sum(r.timings.values()),
+        })
+    return rows
+
+
+def comparison_panel(results: dict[str, PipelineResult], path: Path, *, title: str = "") -> None:
+    """Top row: the rovers' local maps and the truth (shared by every method). Then one row
+    per method: its federated global map and refined map, with PSNR, F1 and bytes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    first = next(iter(results.values()))
+    top = [(f"rover {k + 1} local map", m.classes) for k, m in enumerate(first.local_maps)]
+    top.append(("ground truth", first.truth.classes))
+    ncols = max(len(top), 2)
+    fig, axes = plt.subplots(1 + len(results), ncols, figsize=(2.3 * ncols, 2.5 * (1 + len(results))), dpi=110,
+                             squeeze=False)
+    for ax in axes.ravel():
+        ax.set_axis_off()
+    for ax, (name, cls) in zip(axes[0], top):
+        ax.imshow(render_classes(cls), interpolation="nearest")
+        ax.set_title(name, fontsize=8)
+    for row, (method, r) in zip(axes[1:], results.items()):
+        per_rover = r.federation.total_bytes()["uplink_per_agent_round"]
+        for ax, (what, cls, sc) in zip(row, (("global map", r.global_classes, r.global_scores),
+                                              ("refined", r.refined, r.refined_scores))):
+            ax.imshow(render_classes(cls), interpolation="nearest")
+            psnr = "inf" if sc.psnr == float("inf") else f"{sc.psnr:.1f}"
+            ax.set_title(f"{method}: {what}\nPSNR {psnr}  F1 {sc.path.f1:.2f}", fontsize=8)
+        col = 2
+        if r.central_classes is not None and r.central_scores is not None and ncols > 3:
+            row[2].imshow(render_classes(r.central_classes), interpolation="nearest")
+            row[2].set_title(f"central bound\nPSNR {r.central_scores.psnr:.1f}  F1 {r.central_scores.path.f1:.2f}",
+                             fontsize=8)
+            col = 3
+        row[col].text(0, 0.5, f"{method}\n{r.config.net} net, {r.config.federation.aggregator}\n"
+                      f"{per_rover:,.0f} B per rover per round\n({r.config.federation.uplink} uplink)",
+                      fontsize=8, va="center", transform=row[col].transAxes)
+    handles = [Patch(color=(0, 1, 0), label="free"), Patch(color=(1, 0, 0), label="impassable"),
+               Patch(color=(0.5, 0.5, 0.5), label="unknown")]
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout(rect=(0, 0.04, 1, 0.96 if title else 1))
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def write_comparison(results: dict[str, PipelineResult], out_dir: str | Path, *,
+                     extra: dict[str, dict[str, str]] | None = None) -> Path:
+    """Several methods on the same rovers, atomically: ``<method>/`` (a full
+    :func:`write_outputs` folder each), ``figure.png`` (:func:`comparison_panel`) and
+    ``metrics.json`` (``methods``: the table rows; ``<method>``: each run's metrics)."""
+    out = Path(out_dir)
+    with AtomicDir(out) as tmp:
+        for name, r in results.items():
+            write_outputs(r, tmp / name, extra=(extra or {}).get(name))
+        first = next(iter(results.values())).config
+        title = (f"{first.label or first.terrain} {first.size}x{first.size}, {first.agents} rovers ({first.explore}): "
+                 f"{' vs '.join(results)}")
+        comparison_panel(results, tmp / "figure.png", title=title)
+        metrics = {"methods": comparison_rows(results), **{k: r.metrics for k, r in results.items()}}
+        (tmp / "metrics.json").write_text(to_json(metrics))
     return out

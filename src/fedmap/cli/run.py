@@ -1,7 +1,8 @@
 """``fedmap demo`` / ``run`` / ``terrain`` / ``evaluate``: map terrain with a federated team.
 
-``demo`` is ``run`` with the demo's defaults (built-in mars, the ``paper`` preset, its
-own output folder). Both build their configuration with :mod:`fedmap.config` and run
+``demo`` is ``run`` with the demo's defaults (built-in mars, its own output folder) over
+two presets on the same rovers, ``paper`` and ``fedmap``, side by side (``--method`` picks
+one). Both build their configuration with :mod:`fedmap.config` and run
 :func:`fedmap.pipeline.run_pipeline`; this module only wires options to them.
 """
 
@@ -17,7 +18,7 @@ import numpy as np
 import typer
 
 from fedmap._util import atomic_write_bytes, clean_json, to_json
-from fedmap.cli.ui import F1_CAPTION, console, progress_bar, scores_table, stage_callbacks
+from fedmap.cli.ui import F1_CAPTION, comparison_table, console, progress_bar, scores_table, stage_callbacks
 from fedmap.config import dumps_toml, load_run, overrides_from, parse_set, terrain_table
 from fedmap.errors import FedmapError
 from fedmap.evaluation.scores import score_map
@@ -25,13 +26,19 @@ from fedmap.maps.export import EXPORT_FORMATS, check_formats
 from fedmap.maps.io import load_map, save_map
 from fedmap.maps.terrain import generate_dem
 from fedmap.maps.traversability import dem_to_traversability, parse_slope_limit
-from fedmap.outputs import write_outputs
+from fedmap.outputs import comparison_rows, write_comparison, write_outputs
 from fedmap.pipeline import run_pipeline
 
 
 def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | None = None, export: list[str] | None = None,
-            terrain: dict | None = None, out: Path) -> None:
-    """Resolve, load, run, write and report one run (``demo`` and ``run``)."""
+            terrain: dict | None = None, out: Path, methods: list[str] | None = None) -> None:
+    """Resolve, load, run, write and report one run (``demo`` and ``run``).
+
+    With several ``methods`` (presets) each runs on the same terrain and rovers, and the
+    outputs are written side by side (:func:`fedmap.outputs.write_comparison`).
+    """
+    if methods and len(methods) > 1:
+        return _execute_many(methods, settings, out=out)
     export = list(check_formats(export))  # a bad format stops the run before it starts
     t0 = time.perf_counter()
     overrides = [parse_set(s) for s in set_ or []] + [overrides_from(settings)]
@@ -62,6 +69,38 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
     console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
 
 
+def _execute_many(methods: list[str], settings: dict[str, Any], *, out: Path) -> None:
+    """Each method on the same built-in terrain and rovers; one table, one figure."""
+    t0 = time.perf_counter()
+    results, resolved_by = {}, {}
+    with progress_bar() as progress:
+        on_stage, on_step = stage_callbacks(progress)
+        for method in methods:
+            def stage(name: str | None, total: int, method: str = method) -> None:
+                on_stage(None if name is None else f"{name} ({method})", total)
+
+            stage("load terrain", 0)
+            resolved, source, truth, pconfig = load_run(None, [overrides_from({**settings, "method": method})])
+            results[method] = run_pipeline(pconfig, truth=truth, on_stage=stage, on_step=on_step)
+            resolved_by[method] = {"config.toml": dumps_toml(resolved), "run_config.json": to_json(resolved)}
+        on_stage("write outputs", 0)
+        write_comparison(results, out, extra=resolved_by)
+        on_stage(None, 0)
+    f = truth.fractions()
+    console.print(f"terrain: {source.label}, {truth.shape[0]}x{truth.shape[1]} cells of {truth.pixel_size:.3g} m; "
+                  f"{f['free']:.1%} free, {f['impassable']:.1%} impassable, {f['unknown']:.1%} unknown; "
+                  f"{pconfig.agents} rovers ({pconfig.explore}), the same for every method")
+    console.print(comparison_table(comparison_rows(results)))
+    console.print(f"PSNR in dB; F1: strict A* path F1 over {pconfig.eval_pairs} start/goal pairs (an identical path "
+                  "is a TP, a different path both an FP and an FN); B/rover: uplink bytes per rover per round, as "
+                  "encoded. paper: the source paper's network and FedAvg from its meta-init; fedmap: feature grids "
+                  "with coverage-aware FedAvg. Each method's full scores are in its metrics.json.")
+    console.print(f"outputs: {out}/  (figure.png, metrics.json; {', '.join(f'{m}/' for m in methods)} with each "
+                  "method's maps, model and config)")
+    console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
+
+
+_PRECISION = "Training arithmetic: auto (bf16 matrix products where the CPU has native bf16, else fp32), bf16 or fp32 [auto]."
 _METHOD = "Preset: paper (Fourier MLP from the shipped meta-init, FedAvg, fp32) or fedmap (feature grids, coverage-aware FedAvg, masked loss, int4/int8 update payloads). Options below override it."  # noqa: E501
 
 
@@ -70,7 +109,7 @@ def demo(
     size: Optional[int] = typer.Option(None, help="Map side in cells (64..2048) [128]."),
     agents: Optional[int] = typer.Option(None, help="Number of rovers [4]."),
     explore: Optional[str] = typer.Option(None, help="Exploration: quadrants, strips, grid or traverse."),
-    method: Optional[str] = typer.Option(None, help=_METHOD + " [paper]"),
+    method: Optional[str] = typer.Option(None, help=_METHOD + " [both, side by side]"),
     rounds: Optional[int] = typer.Option(None, help="Communication rounds R [1]."),
     local_epochs: Optional[int] = typer.Option(None, "--local-epochs", help="Local epochs per round E [100]."),
     lr: Optional[float] = typer.Option(None, help="Local Adam learning rate [paper 1e-3, fedmap 0.05]."),
@@ -86,14 +125,16 @@ def demo(
     min_size: Optional[int] = typer.Option(None, "--min-size", help="Refinement: remove impassable blobs smaller than this many cells (paper: 200; default 0 = off)."),
     pairs: Optional[int] = typer.Option(None, help="Random start/goal pairs for the path F1 [75]."),
     seed: Optional[int] = typer.Option(None, help="Seed for terrain, exploration, initialisation, training and evaluation [0]."),
+    precision: Optional[str] = typer.Option(None, help=_PRECISION),
     out: Path = typer.Option(Path("fedmap-out/demo"), "--out", "-o", help="Output folder (replaced atomically)."),
 ) -> None:
-    """Built-in terrain -> 4 rovers explore -> fit -> federate -> refine -> evaluate: fedmap run with the demo's defaults."""
+    """Built-in terrain -> 4 rovers explore -> fit -> federate -> refine -> evaluate, with the paper's method and fedmap's side by side."""
     settings = dict(method=method, terrain=terrain, size=size, agents=agents, explore=explore, rounds=rounds,
                     epochs=local_epochs, lr=lr, aggregator=aggregator, net=net, central=central, uplink=uplink,
                     downlink=downlink, eta=eta, init=init, init_weights=None if init_weights is None else
-                    str(init_weights.resolve()), masked=masked, min_size=min_size, pairs=pairs, seed=seed)
-    execute(None, settings, out=out)
+                    str(init_weights.resolve()), masked=masked, min_size=min_size, pairs=pairs, seed=seed,
+                    precision=precision)
+    execute(None, settings, out=out, methods=None if method else ["paper", "fedmap"])
 
 
 def run(
@@ -130,6 +171,7 @@ def run(
     pairs: Optional[int] = typer.Option(None, help="Random start/goal pairs for the path F1."),
     central: Optional[bool] = typer.Option(None, help="Also fit the centralised upper bound."),
     seed: Optional[int] = typer.Option(None, help="Seed for terrain, exploration, training and evaluation."),
+    precision: Optional[str] = typer.Option(None, help=_PRECISION),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="Any config key: section.key=value (TOML value), repeatable."),
     out: Path = typer.Option(Path("fedmap-out/run"), "--out", "-o", help="Output folder (replaced atomically)."),
     export: Optional[list[str]] = typer.Option(None, "--export", help=f"Also write every map as {', '.join(EXPORT_FORMATS)} (geotiff: georeferenced like the DEM; ros: map_server YAML + PGM); repeatable."),
@@ -140,7 +182,7 @@ def run(
                     init=init, init_weights=None if init_weights is None else str(init_weights.resolve()),
                     epochs=local_epochs, lr=lr, masked=masked, rounds=rounds, aggregator=aggregator, eta=eta,
                     beta1=beta1, beta2=beta2, tau=tau, uplink=uplink, downlink=downlink, min_size=min_size,
-                    pairs=pairs, central=central)
+                    pairs=pairs, central=central, precision=precision)
     table = terrain_table(dem=dem, map_path=map_, builtin=terrain)
     if max_slope is not None:
         settings.update(parse_slope_limit(max_slope))
