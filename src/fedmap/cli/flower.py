@@ -15,6 +15,7 @@ import typer
 
 from fedmap.cli.ui import console, progress_bar
 from fedmap.config import overrides_from, resolve
+from fedmap.flower.checkpoint import resume_config
 from fedmap.flower.launch import ROVER_MAX_WAIT, make_certs, rover_node_config, run_base_station, run_rover
 from fedmap.flower.settings import run_config_from
 
@@ -46,6 +47,11 @@ def base_station(
     certs: Optional[Path] = typer.Option(None, help="TLS: folder from `fedmap certs` (ca.crt, server.pem, server.key)."),
     auth_keys: Optional[Path] = typer.Option(None, "--auth-keys", help="SuperNode authentication: folder of rover *.pub keys."),
     out: Path = typer.Option(Path("fedmap-out/flower"), "--out", "-o", help="Output folder (replaced atomically)."),
+    keep_checkpoints: Optional[int] = typer.Option(None, "--keep-checkpoints",
+                                                   help="Per-round checkpoints kept in OUT.run/ [3]."),
+    resume: Optional[Path] = typer.Option(None, "--resume", metavar="OUT",
+                                          help="Continue the crashed run that was writing to OUT from its last "
+                                               "complete checkpoint (its settings; the run options are ignored)."),
 ) -> None:
     """Base station: start a SuperLink and run fedmap's ServerApp for R rounds."""
     settings = dict(method=method, rounds=rounds, aggregator=aggregator, eta=eta, epochs=local_epochs, lr=lr,
@@ -54,7 +60,12 @@ def base_station(
     resolved = resolve(None, [overrides_from(settings)])
     cfg = run_config_from(resolved, rovers=rovers, min_rovers=min_rovers, deadline=deadline,
                           connect_timeout=connect_timeout, terrain=terrain, out=str(out),
-                          truth=str(truth.resolve()) if truth else None)
+                          truth=str(truth.resolve()) if truth else None, keep_checkpoints=keep_checkpoints)
+    if resume is not None:
+        cfg, out = resume_config(resume), resume
+        if keep_checkpoints is not None:
+            cfg["keep-checkpoints"] = keep_checkpoints
+        console.print(f"resuming {out} from {Path(cfg['resume']).name}")
     rounds = cfg["rounds"]
     t0 = time.perf_counter()
     with progress_bar() as progress:

@@ -564,6 +564,32 @@ class Encoder:
             return None
         return {k: v.copy() for k, v in self._layout.split(self._residual).items()}
 
+    def state(self) -> Weights | None:
+        """The sender state to checkpoint (float64 ``residual`` and ``momentum``, flat, plus
+        the tensor layout as ``layout/<name>`` shape arrays in payload order), or None when
+        the encoder has none yet. :meth:`restore` puts it back bit for bit."""
+        if self._layout is None or self._residual is None or self._momentum is None:
+            return None
+        out: Weights = {"residual": self._residual.copy(), "momentum": self._momentum.copy()}
+        for i, (name, shape) in enumerate(zip(self._layout.names, self._layout.shapes)):
+            out[f"layout/{i:05d}/{name}"] = np.asarray(shape, dtype=np.int64)
+        return out
+
+    def restore(self, state: Weights | None) -> None:
+        """Continue from :meth:`state` (None: no state, as a new encoder)."""
+        self.reset()
+        if state is None:
+            return
+        keys = sorted(k for k in state if k.startswith("layout/"))
+        names = tuple(k.split("/", 2)[2] for k in keys)
+        shapes = tuple(tuple(int(d) for d in np.asarray(state[k]).reshape(-1)) for k in keys)
+        layout = _Layout(names, shapes)
+        residual = np.asarray(state["residual"], dtype=np.float64).reshape(-1)
+        momentum = np.asarray(state["momentum"], dtype=np.float64).reshape(-1)
+        if residual.size != layout.total or momentum.size != layout.total:
+            raise FedmapError(f"encoder state holds {residual.size} values, its layout {layout.total}")
+        self._layout, self._residual, self._momentum = layout, residual.copy(), momentum.copy()
+
     def encode(self, weights: Weights, reference: Weights | None = None) -> bytes:
         spec = self.spec
         if not spec.update:

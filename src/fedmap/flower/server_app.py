@@ -8,8 +8,10 @@ same seed and settings. ``strategy.start`` drives the rounds; the run config's
 base: the round aggregates the survivors and records who was missing and why.
 
 While the run goes, ``<out>.run/`` holds ``status.json`` (state, round, message) and an
-atomic checkpoint ``global_model_round{r}.safetensors`` after every round; at the end the
-checkpoints move into ``<out>/`` beside the demo's outputs.
+atomic checkpoint ``checkpoint_round{r}/`` after every round (:mod:`fedmap.flower.checkpoint`:
+model, server optimiser moments, downlink residual, ledger; the last ``keep-checkpoints``
+are kept); ``resume=<checkpoint>`` continues a crashed run from one. At the end the kept
+rounds' models are copied into ``<out>/`` as ``global_model_round{r}.safetensors``.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from logging import INFO
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from flwr.app import ArrayRecord, ConfigRecord, Context, Message, MessageType, MetricRecord, RecordDict
 from flwr.serverapp import Grid, ServerApp
 from flwr.serverapp.strategy import Strategy
@@ -28,6 +31,7 @@ from flwr.supercore import log
 from fedmap.errors import FedmapError
 from fedmap.federation.codecs import CodecSpec, Encoder
 from fedmap.federation.runner import Broadcaster, Downlink, FederationResult, base_step, book_downlink, round_record
+from fedmap.flower.checkpoint import BaseState, read_checkpoint
 from fedmap.flower.records import check_flower_count, from_record, to_record
 from fedmap.flower.settings import RunSettings
 from fedmap.flower.task import initial_weights, save_checkpoint, truth_shape, write_base_outputs, write_status
@@ -57,8 +61,10 @@ class FedmapStrategy(Strategy):
         Used while waiting for rovers to connect (tests pass a fake clock).
     """
 
-    def __init__(self, settings: RunSettings, *, sleep=time.sleep) -> None:
+    def __init__(self, settings: RunSettings, *, sleep=time.sleep, run_config: dict | None = None) -> None:
         self.settings = settings
+        self.run_config = dict(run_config or {})  # kept in checkpoints: --resume rebuilds the run from it
+        self.offset = 0  # rounds completed before this Flower run (a resumed run)
         fed = settings.federation
         self.aggregator = fed.make_aggregator()
         self.up_spec, self.down_spec = CodecSpec.parse(fed.uplink), CodecSpec.parse(fed.downlink)
@@ -73,6 +79,8 @@ class FedmapStrategy(Strategy):
         self._t0 = 0.0
         self._sent: dict[str, int] = {}  # message id -> node id of the last messages sent
         self._down: dict[int, tuple[Downlink, int]] = {}  # node id -> what it was sent, Flower's byte count
+        if settings.resume:
+            self.resume(read_checkpoint(Path(settings.resume)))
 
     # -- helpers ---------------------------------------------------------------------------
 
@@ -124,7 +132,9 @@ class FedmapStrategy(Strategy):
 
     def configure_train(self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid) -> list[Message]:
         s = self.settings
-        nodes = self._wait_for_nodes(grid, s.rovers if server_round == 1 else s.min_rovers)
+        first = server_round == 1  # of this Flower run: a resumed run waits for the whole team again
+        server_round += self.offset  # the run's round number (training seeds depend on it)
+        nodes = self._wait_for_nodes(grid, s.rovers if first else s.min_rovers)
         log(INFO, "fedmap: round %d: sending to %d rover(s)", server_round, len(nodes))
         write_status(s.out, "running", round=server_round, nodes=len(nodes))
         self._t0 = time.perf_counter()
@@ -132,6 +142,7 @@ class FedmapStrategy(Strategy):
 
     def aggregate_train(self, server_round: int, replies) -> tuple[ArrayRecord | None, MetricRecord | None]:
         s = self.settings
+        server_round += self.offset
         payloads, counts, losses, dropped, flower_up, node_errors = {}, {}, {}, {}, {}, {}
         missing_why: dict[int, str] = {}
         versions: dict[int, str] = {}
@@ -203,13 +214,13 @@ class FedmapStrategy(Strategy):
                                                        "uplink-bytes": sum(rec["uplink_bytes"].values())})
 
     def configure_evaluate(self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid) -> list[Message]:
-        if server_round < self.settings.federation.rounds:
+        if server_round + self.offset < self.settings.federation.rounds:
             return []  # broadcasts ride on the next round's train messages
         # the final model goes to the rovers that took part in the last round: a rover that
         # died may still be listed as connected, and waiting for it would cost a deadline
         last = set(self.history[-1]["weights"]) if self.history else set()
         nodes = sorted(n for n in grid.get_node_ids() if self.node_partition.get(n) in last)
-        return self._messages(nodes, MessageType.EVALUATE, server_round)
+        return self._messages(nodes, MessageType.EVALUATE, server_round + self.offset)
 
     def aggregate_evaluate(self, server_round: int, replies) -> MetricRecord | None:
         acked = []
@@ -234,12 +245,28 @@ class FedmapStrategy(Strategy):
     # -- per round, on the base ---------------------------------------------------------------
 
     def checkpoint(self, server_round: int, arrays: ArrayRecord) -> MetricRecord | None:
-        """``evaluate_fn`` hook: save the global model after every round, atomically."""
+        """``evaluate_fn`` hook: after every round, save all the base needs to resume, atomically."""
         if server_round == 0 or self.held is None:
             return None
         assert self.shape is not None  # set before the first aggregation, as held is
-        save_checkpoint(self.settings, self.held, self.shape[0], server_round)
+        moments = {w: dict(getattr(self.aggregator, w)) for w in ("m", "v") if getattr(self.aggregator, w, None)}
+        save_checkpoint(self.settings, BaseState(server_round + self.offset, self.held, moments,
+                                                 self.down_encoder.state(), self.history, self.shape,
+                                                 self.run_config))
         return None
+
+    def resume(self, state: BaseState) -> None:
+        """Continue after ``state.round`` rounds: the global model, the server optimiser's
+        moments, the downlink encoder's residual and the ledger as they were. Rovers are
+        new to this run: each gets a keyframe of the global model first."""
+        if self.shape is not None and self.shape != state.shape:
+            raise FedmapError(f"the checkpoint's maps are {state.shape}, this run's ground truth is {self.shape}")
+        self.offset, self.held, self.shape = state.round, state.held, state.shape
+        self.history = state.history
+        self.broadcaster.reset(state.held)
+        for w, weights in state.moments.items():
+            setattr(self.aggregator, w, {k: np.asarray(v, dtype=np.float64) for k, v in weights.items()})
+        self.down_encoder.restore(state.down_encoder)
 
     def result(self) -> FederationResult:
         assert self.held is not None, "no round was aggregated"
@@ -252,11 +279,16 @@ def _metrics(msg: Message) -> Any:
     return msg.content["metrics"]
 
 
-def run_base_station(grid: Grid, settings: RunSettings) -> Path:
-    """R rounds on ``grid``, then render, refine, evaluate and write the outputs."""
+def run_base_station(grid: Grid, settings: RunSettings, run_config: dict | None = None) -> Path:
+    """R rounds on ``grid`` (those left after the ``resume`` checkpoint), then render,
+    refine, evaluate and write the outputs."""
     t0 = time.perf_counter()
-    strategy = FedmapStrategy(settings)
-    strategy.start(grid=grid, initial_arrays=to_record(b""), num_rounds=settings.federation.rounds,
+    strategy = FedmapStrategy(settings, run_config=run_config)
+    left = settings.federation.rounds - strategy.offset
+    if left < 1:
+        raise FedmapError(f"nothing to resume: the checkpoint is after round {strategy.offset} of "
+                          f"{settings.federation.rounds}")
+    strategy.start(grid=grid, initial_arrays=to_record(b""), num_rounds=left,
                    timeout=settings.deadline, evaluate_fn=strategy.checkpoint)
     fed = strategy.result()
     flower = {
@@ -273,7 +305,7 @@ def run_base_station(grid: Grid, settings: RunSettings) -> Path:
 def main(grid: Grid, context: Context) -> None:
     settings = RunSettings.from_run_config(dict(context.run_config))
     try:
-        out = run_base_station(grid, settings)
+        out = run_base_station(grid, settings, dict(context.run_config))
     except Exception as e:  # the base-station command waits on this file: never leave it "running"
         msg = str(e) if isinstance(e, FedmapError) else f"{type(e).__name__}: {e}".splitlines()[0]
         write_status(settings.out, "failed", message=msg)

@@ -30,10 +30,11 @@ RUN_KEYS: dict[str, tuple[str | None, str]] = {
     "size": ("terrain", "size"), "pairs": ("evaluate", "pairs"), "min-size": ("refine", "min_size"),
 }
 
-#: The base station's own keys with their defaults (``terrain`` / ``truth``: "" = none).
+#: The base station's own keys with their defaults (``terrain`` / ``truth``: "" = none;
+#: ``resume``: a checkpoint folder to continue from; ``keep-checkpoints``: rounds kept).
 BASE_DEFAULTS: dict[str, Any] = {
     "rovers": 4, "min-rovers": 1, "deadline": 600.0, "connect-timeout": 120.0, "out": "fedmap-out/flower",
-    "truth": "", "terrain": "",
+    "truth": "", "terrain": "", "resume": "", "keep-checkpoints": 3,
 }
 
 
@@ -50,7 +51,7 @@ RUN_DEFAULTS: dict[str, Any] = {**flat_run_config(defaults("paper")), **BASE_DEF
 
 _TYPES = {"eta": float, "lr": float, "deadline": float, "connect-timeout": float, "masked": bool,
           "aggregator": str, "uplink": str, "downlink": str, "net": str, "init": str, "out": str, "truth": str,
-          "terrain": str}
+          "terrain": str, "resume": str}
 
 
 def _typed(cfg: dict, key: str) -> Any:
@@ -77,6 +78,8 @@ class RunSettings:
     out: Path
     truth: str  # a ground-truth map file, or ""
     terrain: str  # a built-in terrain generated as ground truth, or ""
+    resume: str = ""  # a checkpoint folder this run continues from, or ""
+    keep_checkpoints: int = 3  # per-round checkpoints kept in <out>.run/
 
     @property
     def federation(self) -> FederationConfig:
@@ -95,7 +98,10 @@ class RunSettings:
         resolved = resolve(None, [run])
         label = Path(values["truth"]).name if values["truth"] else ""
         s = cls(to_pipeline_config(resolved, label=label), values["rovers"], values["min-rovers"], values["deadline"],
-                values["connect-timeout"], Path(values["out"]), values["truth"], terrain)
+                values["connect-timeout"], Path(values["out"]), values["truth"], terrain, values["resume"],
+                values["keep-checkpoints"])
+        if s.keep_checkpoints < 1:
+            raise FedmapError(f"keep-checkpoints must be >= 1, got {s.keep_checkpoints}")
         if s.rovers < 1:
             raise FedmapError(f"rovers must be >= 1 (the team is partition ids 0..rovers-1), got {s.rovers}")
         if not 1 <= s.min_rovers <= s.rovers:
@@ -110,7 +116,7 @@ class RunSettings:
         """The base station's settings as ``metrics.json`` records them."""
         return {"rovers": self.rovers, "min_rovers": self.min_rovers, "deadline": self.deadline,
                 "connect_timeout": self.connect_timeout, "out": str(self.out), "truth": self.truth,
-                "terrain": self.terrain}
+                "terrain": self.terrain, "resume": self.resume, "keep_checkpoints": self.keep_checkpoints}
 
 
 def run_config_from(resolved: dict, **base: Any) -> dict[str, Any]:

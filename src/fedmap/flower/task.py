@@ -11,7 +11,6 @@ imports ``flwr``.
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ from fedmap.errors import FedmapError
 from fedmap.explore import explore
 from fedmap.federation.codecs import Encoder
 from fedmap.federation.runner import FederationResult, apply_downlink, rover_step
+from fedmap.flower.checkpoint import BaseState, checkpoints, prune, write_checkpoint
 from fedmap.flower.settings import RunSettings
 from fedmap.maps.grid import GridMap, classes_from_rgb
 from fedmap.maps.io import load_map, save_map
@@ -119,13 +119,19 @@ def write_status(out_dir: Path, state: str, **fields: Any) -> None:
     atomic_write_bytes(run_status_path(out_dir), json.dumps({"state": state, **fields}).encode())
 
 
-def save_checkpoint(settings: RunSettings, held: Weights, height: int, server_round: int) -> None:
-    """The global model after ``server_round``, atomically, in ``<out>.run/``."""
-    model = build_model(preset(settings.pipeline.net, height))
-    set_weights(model, held)
-    save_model(model, run_dir(settings.out) / f"global_model_round{server_round}.safetensors",
-               extra={"round": server_round})
-    write_status(settings.out, "running", round=server_round, saved=True)
+def save_checkpoint(settings: RunSettings, state: BaseState) -> None:
+    """The base station after ``state.round`` rounds, atomically, in ``<out>.run/``
+    (:mod:`fedmap.flower.checkpoint`); only the last ``keep-checkpoints`` are kept."""
+    model = build_model(preset(settings.pipeline.net, state.shape[0]))
+    set_weights(model, state.held)
+    tmp = run_dir(settings.out) / f".model-round{state.round}.safetensors"
+    save_model(model, tmp, extra={"round": state.round})
+    try:
+        write_checkpoint(run_dir(settings.out), state, model_bytes=tmp.read_bytes())
+    finally:
+        tmp.unlink(missing_ok=True)
+    prune(run_dir(settings.out), settings.keep_checkpoints)
+    write_status(settings.out, "running", round=state.round, saved=True)
 
 
 def truth_shape(settings: RunSettings) -> tuple[int, int] | None:
@@ -174,7 +180,8 @@ def write_base_outputs(fed: FederationResult, shape: tuple[int, int], settings: 
             save_model(model, tmp / "global_model.safetensors", extra={"flower": flower["settings"]})
             save_map(frame, tmp / "global_map.png")
             save_map(frame.with_classes(refined, "refined global map"), tmp / "refined_map.png")
-    for ckpt in sorted(run_dir(out).glob("global_model_round*.safetensors")):
-        os.replace(ckpt, out / ckpt.name)  # same filesystem: each move is atomic
+    for r, ckpt in checkpoints(run_dir(out)):  # the kept rounds' models go beside the outputs
+        if (ckpt / "global_model.safetensors").is_file():
+            atomic_write_bytes(out / f"global_model_round{r}.safetensors", (ckpt / "global_model.safetensors").read_bytes())
     write_status(out, "done", rounds=len(fed.history), out=str(out))
     return out
