@@ -73,3 +73,14 @@ def test_run_with_rover_percentile_and_exports_overlays_the_dem(tmp_path, capsys
     # a bad format stops before the run
     assert main(["run", "--dem", str(dem_path), *TINY, "--export", "kml", "-o", str(tmp_path / "x")]) == 2
     assert "unknown export format 'kml'" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+def test_demo_export_writes_local_frame_geotiffs(tmp_path, capsys):
+    out = tmp_path / "demo"
+    rc = main(["demo", "--method", "fedmap", "--size", "64", "--local-epochs", "2", "--pairs", "5", "--no-central",
+               "--export", "geotiff", "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    truth = load_map(out / "truth.tif")  # built-in terrain: a local metric frame, lower-left corner at (0, 0)
+    assert truth.crs is None and truth.transform @ (0, 64) == (0.0, 0.0)
+    np.testing.assert_array_equal(truth.classes, load_map(out / "truth.png").classes)
+    assert load_map(out / "refined_map.tif").transform == truth.transform

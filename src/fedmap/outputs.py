@@ -160,14 +160,14 @@ def comparison_panel(results: dict[str, PipelineResult], path: Path, *, title: s
 
 
 def write_comparison(results: dict[str, PipelineResult], out_dir: str | Path, *,
-                     extra: dict[str, dict[str, str]] | None = None) -> Path:
+                     extra: dict[str, dict[str, str]] | None = None, export=None) -> Path:
     """Several methods on the same rovers, atomically: ``<method>/`` (a full
     :func:`write_outputs` folder each), ``figure.png`` (:func:`comparison_panel`) and
     ``metrics.json`` (``methods``: the table rows; ``<method>``: each run's metrics)."""
     out = Path(out_dir)
     with AtomicDir(out) as tmp:
         for name, r in results.items():
-            write_outputs(r, tmp / name, extra=(extra or {}).get(name))
+            write_outputs(r, tmp / name, extra=(extra or {}).get(name), export=export)
         first = next(iter(results.values())).config
         title = (f"{first.label or first.terrain} {first.size}x{first.size}, {first.agents} rovers ({first.explore}): "
                  f"{' vs '.join(results)}")

@@ -38,7 +38,7 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
     outputs are written side by side (:func:`fedmap.outputs.write_comparison`).
     """
     if methods and len(methods) > 1:
-        return _execute_many(methods, settings, out=out)
+        return _execute_many(methods, settings, out=out, export=export)
     export = list(check_formats(export))  # a bad format stops the run before it starts
     t0 = time.perf_counter()
     overrides = [parse_set(s) for s in set_ or []] + [overrides_from(settings)]
@@ -69,8 +69,9 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
     console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
 
 
-def _execute_many(methods: list[str], settings: dict[str, Any], *, out: Path) -> None:
+def _execute_many(methods: list[str], settings: dict[str, Any], *, out: Path, export: list[str] | None = None) -> None:
     """Each method on the same built-in terrain and rovers; one table, one figure."""
+    export = list(check_formats(export))  # a bad format stops the run before it starts
     t0 = time.perf_counter()
     results, resolved_by = {}, {}
     with progress_bar() as progress:
@@ -84,7 +85,7 @@ def _execute_many(methods: list[str], settings: dict[str, Any], *, out: Path) ->
             results[method] = run_pipeline(pconfig, truth=truth, on_stage=stage, on_step=on_step)
             resolved_by[method] = {"config.toml": dumps_toml(resolved), "run_config.json": to_json(resolved)}
         on_stage("write outputs", 0)
-        write_comparison(results, out, extra=resolved_by)
+        write_comparison(results, out, extra=resolved_by, export=export)
         on_stage(None, 0)
     f = truth.fractions()
     console.print(f"terrain: {source.label}, {truth.shape[0]}x{truth.shape[1]} cells of {truth.pixel_size:.3g} m; "
@@ -127,6 +128,7 @@ def demo(
     seed: Optional[int] = typer.Option(None, help="Seed for terrain, exploration, initialisation, training and evaluation [0]."),
     precision: Optional[str] = typer.Option(None, help=_PRECISION),
     out: Path = typer.Option(Path("fedmap-out/demo"), "--out", "-o", help="Output folder (replaced atomically)."),
+    export: Optional[list[str]] = typer.Option(None, "--export", help=f"Also write every map as {', '.join(EXPORT_FORMATS)}; repeatable."),
 ) -> None:
     """Built-in terrain -> 4 rovers explore -> fit -> federate -> refine -> evaluate, with the paper's method and fedmap's side by side."""
     settings = dict(method=method, terrain=terrain, size=size, agents=agents, explore=explore, rounds=rounds,
@@ -134,7 +136,7 @@ def demo(
                     downlink=downlink, eta=eta, init=init, init_weights=None if init_weights is None else
                     str(init_weights.resolve()), masked=masked, min_size=min_size, pairs=pairs, seed=seed,
                     precision=precision)
-    execute(None, settings, out=out, methods=None if method else ["paper", "fedmap"])
+    execute(None, settings, out=out, methods=None if method else ["paper", "fedmap"], export=export)
 
 
 def run(
