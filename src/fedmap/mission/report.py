@@ -1,0 +1,260 @@
+"""A mission's outputs, in one atomic folder.
+
+* ``metrics.json``: the mission and link settings, and per strategy its summary, its
+  time series and its ledger (one row per message);
+* ``report.md``: the strategies side by side (:func:`side_by_side`);
+* ``coverage.png`` (coverage vs step), ``f1.png`` (the base's global map and the best
+  rover belief, strict path F1 vs step), ``accuracy_bytes.png`` (mean belief accuracy
+  vs cumulative bytes per rover, both directions);
+* ``mission_<strategy>.gif`` (and ``.mp4`` when ``ffmpeg`` is on the PATH): the truth,
+  every rover's belief with its path, position and sensor footprint, and the global map.
+"""
+
+from __future__ import annotations
+
+import io
+import shutil
+import subprocess
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from PIL import Image  # noqa: E402
+
+from fedmap._util import AtomicDir, atomic_write_bytes, to_json  # noqa: E402
+from fedmap.maps.grid import PALETTE  # noqa: E402
+from fedmap.mission.sensing import disk_offsets  # noqa: E402
+from fedmap.mission.sim import COVERAGE_LEVELS, F1_GOAL, MissionResult  # noqa: E402
+
+
+def metrics(result: MissionResult, *, settings: dict | None = None) -> dict:
+    """The ``metrics.json`` of a mission."""
+    h, w = result.truth.shape
+    return {
+        "settings": settings or {"mission": result.config.to_dict()},
+        "truth": {"shape": [h, w], "pixel_size_m": result.truth.pixel_size, "source": result.truth.source,
+                  **result.truth.fractions()},
+        "starts": [list(s) for s in result.starts], "base": list(result.base),
+        "seconds": result.seconds,
+        "strategies": {name: {"summary": run.summary, "seconds": run.seconds, "series": run.series,
+                              "ledger": [m.to_dict() for m in run.ledger], **run.extra}
+                       for name, run in result.runs.items()},
+    }
+
+
+def _fmt(v, nd: int = 2) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return "inf" if v == float("inf") else f"{v:.{nd}f}"
+    return f"{v:,}" if isinstance(v, int) else str(v)
+
+
+#: The side-by-side columns: header -> how to read it from a summary.
+COLUMNS: dict[str, tuple] = {
+    **{f"steps to {int(lv * 100)} %": (lambda s, lv=lv: s["coverage_steps"][f"{int(lv * 100)}%"], 0)
+       for lv in COVERAGE_LEVELS},
+    f"belief F1≥{F1_GOAL} at": (lambda s: s["first_belief_f1_step"], 0),
+    "coverage": (lambda s: s["final"]["coverage"], 3),
+    "redundant": (lambda s: s["final"]["redundant"], 3),
+    "belief acc.": (lambda s: s["final"]["belief_accuracy_mean"], 3),
+    "belief F1": (lambda s: s["final"]["belief_f1_mean"], 2),
+    "global PSNR": (lambda s: s["final"]["global_psnr"], 2),
+    "global SSIM": (lambda s: s["final"]["global_ssim"], 3),
+    "global F1": (lambda s: s["final"]["global_f1"], 2),
+    "global tol.F1": (lambda s: s["final"]["global_f1_tolerant"], 2),
+    "bytes up": (lambda s: s["bytes"]["up"], 0),
+    "bytes down": (lambda s: s["bytes"]["down"], 0),
+}
+
+
+def table_rows(result: MissionResult) -> tuple[list[str], list[list[str]]]:
+    """Header and one row per strategy of the side-by-side table (final values)."""
+    header = ["strategy", *COLUMNS]
+    rows = []
+    for name, run in result.runs.items():
+        rows.append([name, *(_fmt(get(run.summary), nd) for get, nd in COLUMNS.values())])
+    return header, rows
+
+
+def side_by_side(result: MissionResult) -> str:
+    """The strategies side by side, as a Markdown table."""
+    header, rows = table_rows(result)
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def report_md(result: MissionResult, *, title: str) -> str:
+    c, link = result.config, result.config.link
+    h, w = result.truth.shape
+    budget = lambda b: "unlimited" if b is None else f"{b:,} B"  # noqa: E731
+    lines = [
+        f"# Mission: {title}", "",
+        f"{h}x{w} cells of {result.truth.pixel_size:.3g} m; {c.rovers} rovers from {[list(s) for s in result.starts]}, "
+        f"base station at {list(result.base)}; {c.steps} steps at {c.speed} cell(s) per step, sensor radius "
+        f"{c.sensor_radius:g} cells{' (line of sight)' if c.line_of_sight else ''}, {c.mode} exploration; "
+        f"a sync every {c.sync_every} steps ({len(c.sync_steps)} rounds).", "",
+        f"Link (seed {link.seed}): uplink {budget(link.uplink_bytes)} and downlink {budget(link.downlink_bytes)} per "
+        f"rover per round, loss {link.loss:g}, latency {link.latency} step(s), range "
+        f"{'unlimited' if link.max_range is None else f'{link.max_range:g} cells'}.", "",
+        "Final values at the last step; *steps to* and *at* columns are the first step a level was reached "
+        f"(`-`: never). Path F1 is strict (A*, {c.eval_pairs} seeded start/goal pairs, UNKNOWN impassable), "
+        "scored at every sync and at the last step; belief columns average the rovers.", "",
+        side_by_side(result),
+        f"Wall time: {result.seconds:.1f} s ("
+        + ", ".join(f"{n} {r.seconds:.1f} s" for n, r in result.runs.items()) + ").", "",
+        "Plots: `coverage.png`, `f1.png`, `accuracy_bytes.png`; animations: "
+        + ", ".join(f"`mission_{n}.gif`" for n in result.runs) + ".", "",
+    ]
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def plot_coverage(result: MissionResult) -> bytes:
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for name, run in result.runs.items():
+        ax.plot(run.series["step"], run.series["coverage"], label=name)
+    for t in result.config.sync_steps:
+        ax.axvline(t, color="0.9", lw=0.6, zorder=0)
+    ax.set(xlabel="step", ylabel="team coverage", ylim=(0, 1), title="Coverage (grey lines: syncs)")
+    ax.legend()
+    return _png(fig)
+
+
+def plot_f1(result: MissionResult) -> bytes:
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
+    for name, run in result.runs.items():
+        ev = run.series["eval"]
+        axes[0].plot(ev["step"], ev["f1"], marker=".", label=name)
+        axes[1].plot(ev["step"], [max(f) for f in ev["belief_f1"]], marker=".", label=name)
+    axes[0].set(xlabel="step", ylabel="strict path F1", ylim=(0, 1.02), title="Base's global map")
+    axes[1].set(xlabel="step", title="Best rover belief")
+    axes[1].axhline(F1_GOAL, color="0.6", ls="--", lw=0.8)
+    axes[0].legend()
+    return _png(fig)
+
+
+def plot_accuracy_bytes(result: MissionResult) -> bytes:
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for name, run in result.runs.items():
+        s = run.series
+        n = result.config.rovers
+        x = [(sum(u) + sum(d)) / n for u, d in zip(s["bytes_up"], s["bytes_down"])]
+        y = [float(np.mean(a)) for a in s["accuracy"]]
+        if max(x) > 0:
+            ax.plot(x, y, label=name)
+        else:  # no bytes: one point at the end (the bound it reaches for free or alone)
+            ax.scatter([0.0], [y[-1]], label=f"{name} (0 B, final)", zorder=3)
+    ax.set(xlabel="cumulative bytes per rover (up + down)", ylabel="mean belief accuracy", ylim=(0, 1),
+           title="Map accuracy vs bytes")
+    ax.set_xscale("symlog", linthresh=100)
+    ax.legend()
+    return _png(fig)
+
+
+# --------------------------------------------------------------------------- animation
+
+_COLOURS = np.array([[0.1, 0.4, 1.0], [1.0, 0.6, 0.0], [0.8, 0.0, 0.8], [0.0, 0.8, 0.8], [1.0, 1.0, 0.0],
+                     [0.5, 0.25, 0.0]], dtype=np.float32)
+
+
+def _panel(classes: np.ndarray) -> np.ndarray:
+    return PALETTE[np.asarray(classes, dtype=np.intp)].copy()
+
+
+def _mark(img: np.ndarray, cells, colour, alpha: float = 1.0) -> None:
+    if len(cells) == 0:
+        return
+    cells = np.asarray(cells)
+    r, c = cells[:, 0], cells[:, 1]
+    img[r, c] = (1 - alpha) * img[r, c] + alpha * np.asarray(colour)
+
+
+def frames_rgb(result: MissionResult, name: str, *, scale: int = 2) -> list[np.ndarray]:
+    """The animation frames of one strategy: truth | each rover's belief | global map."""
+    run = result.runs[name]
+    h, w = result.truth.shape
+    ring = disk_offsets(result.config.sensor_radius)
+    d2 = (ring ** 2).sum(axis=1)
+    edge = ring[d2 > (result.config.sensor_radius - 1) ** 2]
+    out = []
+    gap = np.ones((h, 2, 3), dtype=np.float32)
+    for f in run.frames:
+        panels = [_panel(result.truth.classes)]
+        for k, (belief, pos, n) in enumerate(zip(f["beliefs"], f["pos"], f["trail_len"])):
+            img = _panel(belief)
+            colour = _COLOURS[k % len(_COLOURS)]
+            _mark(img, run.trails[k][:n], colour, 0.6)
+            fp = edge + np.asarray(pos)
+            fp = fp[(fp[:, 0] >= 0) & (fp[:, 0] < h) & (fp[:, 1] >= 0) & (fp[:, 1] < w)]
+            _mark(img, fp, (1.0, 1.0, 1.0), 0.8)
+            _mark(img, [pos], (0.0, 0.0, 0.0))
+            panels.append(img)
+        g = _panel(f["global"])
+        for k, pos in enumerate(f["pos"]):
+            _mark(g, [pos], _COLOURS[k % len(_COLOURS)])
+        _mark(g, [result.base], (0.0, 0.0, 0.0))
+        panels.append(g)
+        row = np.concatenate([x for p in panels for x in (p, gap)][:-1], axis=1)
+        frame = (np.clip(row, 0, 1) * 255).astype(np.uint8)
+        out.append(np.repeat(np.repeat(frame, scale, axis=0), scale, axis=1))
+    return out
+
+
+def gif_bytes(frames: list[np.ndarray], *, ms: int = 120) -> bytes:
+    images = [Image.fromarray(f) for f in frames]
+    buf = io.BytesIO()
+    images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=ms, loop=0, optimize=False)
+    return buf.getvalue()
+
+
+def mp4_bytes(frames: list[np.ndarray], *, fps: int = 8) -> bytes | None:
+    """H.264 MP4 through ``ffmpeg`` when it is on the PATH (None otherwise or on failure)."""
+    exe = shutil.which("ffmpeg")
+    if exe is None or not frames:
+        return None
+    h, w, _ = frames[0].shape
+    h2, w2 = h - h % 2, w - w % 2  # yuv420p needs even sides
+    raw = b"".join(np.ascontiguousarray(f[:h2, :w2]).tobytes() for f in frames)
+    cmd = [exe, "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{w2}x{h2}", "-r", str(fps),
+           "-i", "-", "-pix_fmt", "yuv420p", "-vcodec", "libx264", "-f", "mp4", "-movflags", "frag_keyframe", "-"]
+    try:
+        done = subprocess.run(cmd, input=raw, capture_output=True, check=True, timeout=300)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout or None
+
+
+def write_mission(result: MissionResult, out_dir: str | Path, *, title: str, settings: dict | None = None,
+                  animation: bool = True, extra: dict[str, str] | None = None) -> Path:
+    """Write a mission's outputs as one atomic folder (see the module docstring)."""
+    out_dir = Path(out_dir)
+    with AtomicDir(out_dir) as tmp:
+        atomic_write_bytes(tmp / "metrics.json", to_json(metrics(result, settings=settings)).encode())
+        atomic_write_bytes(tmp / "report.md", report_md(result, title=title).encode())
+        atomic_write_bytes(tmp / "coverage.png", plot_coverage(result))
+        atomic_write_bytes(tmp / "f1.png", plot_f1(result))
+        atomic_write_bytes(tmp / "accuracy_bytes.png", plot_accuracy_bytes(result))
+        for name, text in (extra or {}).items():
+            atomic_write_bytes(tmp / name, text.encode())
+        if animation:
+            for name in result.runs:
+                frames = frames_rgb(result, name)
+                atomic_write_bytes(tmp / f"mission_{name}.gif", gif_bytes(frames))
+                mp4 = mp4_bytes(frames)
+                if mp4 is not None:
+                    atomic_write_bytes(tmp / f"mission_{name}.mp4", mp4)
+    return out_dir

@@ -1,0 +1,294 @@
+"""What a mission is: :class:`MissionConfig` (team, time, sensing, planning, strategies) and
+:class:`LinkConfig` (the seeded radio link), and the TOML file that sets them.
+
+TOML layout (every key optional)::
+
+    seed = 0
+    [terrain]      # exactly as `fedmap run` (builtin | dem | map | tiles), see fedmap.config
+    [thresholds]   # exactly as `fedmap run`
+    [mission]      # MissionConfig: rovers, steps, sync_every, speed, sensor_radius, ...
+    [link]         # LinkConfig: uplink_bytes, downlink_bytes, loss, latency, max_range, seed
+    [strategies.fedmap]   # method_config keywords for a model strategy, e.g. epochs = 30
+    [strategies.paper]
+
+The terrain sections go through :mod:`fedmap.config` (the one builder), so a mission
+reads the same terrain sources, with the same checks, as ``fedmap run``.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import asdict, dataclass, field, fields, replace
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from fedmap._util import check_keys, suggest
+from fedmap.config import KEYWORDS, base_defaults, merge, terrain_source, validate
+from fedmap.errors import FedmapError
+from fedmap.maps.sources import TerrainSource
+
+#: Every sharing strategy, from the lower bound to the upper bound.
+STRATEGIES: tuple[str, ...] = ("none", "raw", "paper", "fedmap", "central")
+#: The strategies a mission runs unless told otherwise (``paper`` is slow: an option).
+DEFAULT_STRATEGIES: tuple[str, ...] = ("none", "raw", "fedmap", "central")
+#: The strategies that train a network and share it with the rovers' step of ``fedmap run``.
+MODEL_STRATEGIES: tuple[str, ...] = ("paper", "fedmap")
+MODES: tuple[str, ...] = ("frontier", "waypoints")
+
+
+def check_strategies(names) -> tuple[str, ...]:
+    """``names`` as a tuple of known strategies (one-line error with a suggestion otherwise)."""
+    names = tuple(names)
+    if not names:
+        raise FedmapError("a mission needs at least one strategy")
+    for s in names:
+        if s not in STRATEGIES:
+            raise FedmapError(f"unknown strategy {s!r}{suggest(s, STRATEGIES)}; choose from {', '.join(STRATEGIES)}")
+    if len(set(names)) != len(names):
+        raise FedmapError(f"a strategy is listed twice: {', '.join(names)}")
+    return names
+
+
+def _cell(value, what: str) -> tuple[int, int]:
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) for v in value)):
+        raise FedmapError(f"{what} must be a [row, col] pair of integers, got {value!r}")
+    return int(value[0]), int(value[1])
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """The radio link between each rover and the base station, seeded.
+
+    Parameters
+    ----------
+    uplink_bytes, downlink_bytes : int or None
+        Budget per rover per sync round (None: unlimited). A payload over budget is not
+        sent (see :mod:`fedmap.mission.strategies` for what each strategy does instead).
+    loss : float
+        Probability that a message is lost, drawn independently per (round, rover,
+        direction) from ``seed`` (:meth:`fedmap.mission.link.Link.lost`).
+    latency : int
+        Steps between sending and arrival, both ways.
+    max_range : float or None
+        Cells (Euclidean) from the base station beyond which a rover has no link.
+    seed : int
+        The link's own seed (the loss draws).
+    """
+
+    uplink_bytes: int | None = None
+    downlink_bytes: int | None = None
+    loss: float = 0.0
+    latency: int = 0
+    max_range: float | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("uplink_bytes", "downlink_bytes"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 0):
+                raise FedmapError(f"link {name} must be a non-negative number of bytes (or unset), got {v!r}")
+        if not (isinstance(self.loss, (int, float)) and 0.0 <= self.loss <= 1.0):
+            raise FedmapError(f"link loss must be a probability in [0, 1], got {self.loss!r}")
+        if isinstance(self.latency, bool) or not isinstance(self.latency, int) or self.latency < 0:
+            raise FedmapError(f"link latency must be a non-negative number of steps, got {self.latency!r}")
+        if self.max_range is not None and not (math.isfinite(self.max_range) and self.max_range > 0):
+            raise FedmapError(f"link max_range must be a positive number of cells (or unset), got {self.max_range!r}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class MissionConfig:
+    """One mission: the team, the clock, sensing, planning, the link and the strategies.
+
+    Parameters
+    ----------
+    rovers : int
+        Team size.
+    steps : int
+        Mission length in steps; every rover moves and senses once per step.
+    sync_every : int
+        A sync round at every step that is a multiple of it (not step 0).
+    speed : int
+        Cells driven per step (each cell entered is sensed from).
+    sensor_radius : float
+        Cells (Euclidean, centre to centre) a rover observes around itself.
+    line_of_sight : bool
+        Observe only cells visible over the DEM from ``sensor_height_m`` above the ground.
+    lander : [row, col] or None
+        Where the team starts: every rover starts on the free cell nearest to it (default:
+        the map centre). ``starts`` overrides it with one cell per rover.
+    base : [row, col] or None
+        The base station (default: the lander).
+    mode : str
+        ``frontier`` (coordinated frontier exploration) or ``waypoints`` (a fixed traverse:
+        ``waypoints`` per rover, or seeded random ones).
+    stay_in_range : bool
+        Pick only targets within the link's ``max_range`` of the base.
+    unknown_cost : float
+        Cost of one unknown cell relative to a known free one when rating targets.
+    strategies : tuple of str
+        Which of :data:`STRATEGIES` to run, on the same terrain, starts, seeds and link.
+    eval_pairs : int
+        Start/goal pairs of the path F1 (scored at every sync and at the last step).
+    methods : dict
+        Per model strategy, :func:`fedmap.config.method_config` keywords laid over its
+        preset (e.g. ``{"fedmap": {"epochs": 30}}``).
+    """
+
+    rovers: int = 4
+    steps: int = 120
+    sync_every: int = 10
+    speed: int = 1
+    sensor_radius: float = 6.0
+    line_of_sight: bool = False
+    sensor_height_m: float = 1.5
+    lander: tuple[int, int] | None = None
+    starts: tuple[tuple[int, int], ...] | None = None
+    base: tuple[int, int] | None = None
+    mode: str = "frontier"
+    waypoints: tuple[tuple[tuple[int, int], ...], ...] | None = None
+    n_waypoints: int = 6
+    stay_in_range: bool = False
+    unknown_cost: float = 1.5
+    strategies: tuple[str, ...] = DEFAULT_STRATEGIES
+    eval_pairs: int = 40
+    link: LinkConfig = field(default_factory=LinkConfig)
+    methods: dict = field(default_factory=dict)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        def whole(name: str, low: int) -> None:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise FedmapError(f"{name} must be an integer >= {low}, got {v!r}")
+
+        whole("rovers", 1)
+        whole("steps", 1)
+        whole("sync_every", 1)
+        whole("speed", 1)
+        whole("eval_pairs", 1)
+        whole("n_waypoints", 1)
+        if not (math.isfinite(self.sensor_radius) and self.sensor_radius >= 1.5):
+            raise FedmapError(f"sensor_radius must be >= 1.5 cells (a rover must see its neighbours), "
+                              f"got {self.sensor_radius!r}")
+        if not (math.isfinite(self.unknown_cost) and self.unknown_cost >= 1):
+            raise FedmapError(f"unknown_cost must be >= 1, got {self.unknown_cost!r}")
+        if self.mode not in MODES:
+            raise FedmapError(f"unknown mode {self.mode!r}{suggest(self.mode, MODES)}")
+        object.__setattr__(self, "strategies", check_strategies(self.strategies))
+        if self.lander is not None:
+            object.__setattr__(self, "lander", _cell(self.lander, "lander"))
+        if self.base is not None:
+            object.__setattr__(self, "base", _cell(self.base, "base"))
+        if self.starts is not None:
+            starts = tuple(_cell(s, f"start {i}") for i, s in enumerate(self.starts))
+            if len(starts) != self.rovers:
+                raise FedmapError(f"starts gives {len(starts)} cells for {self.rovers} rovers")
+            object.__setattr__(self, "starts", starts)
+        if self.waypoints is not None:
+            wps = tuple(tuple(_cell(c, f"waypoint of rover {k}") for c in w) for k, w in enumerate(self.waypoints))
+            if len(wps) != self.rovers:
+                raise FedmapError(f"waypoints gives {len(wps)} lists for {self.rovers} rovers")
+            object.__setattr__(self, "waypoints", wps)
+        for name, kw in self.methods.items():
+            if name not in MODEL_STRATEGIES:
+                raise FedmapError(f"[strategies.{name}]: only {', '.join(MODEL_STRATEGIES)} take settings")
+            check_keys(kw, KEYWORDS, f"[strategies.{name}]")
+
+    @property
+    def sync_steps(self) -> list[int]:
+        return [t for t in range(1, self.steps + 1) if t % self.sync_every == 0]
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+#: [mission] keys -> accepted types.
+_MISSION_KEYS = {f.name: f for f in fields(MissionConfig) if f.name not in ("link", "methods", "seed")}
+_LINK_KEYS = {f.name for f in fields(LinkConfig)}
+
+
+def _read_toml(path: Path) -> dict:
+    if not path.is_file():
+        raise FedmapError(f"no such mission file: {path}")
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise FedmapError(f"cannot read mission {path}: {' '.join(str(exc).split())}") from exc
+
+
+def preset_names() -> tuple[str, ...]:
+    """Mission presets shipped in ``fedmap/presets/mission-<name>.toml`` (e.g. ``cadre``)."""
+    files = resources.files("fedmap.presets").iterdir()
+    return tuple(sorted(f.name.removeprefix("mission-").removesuffix(".toml") for f in files
+                        if f.name.startswith("mission-") and f.name.endswith(".toml")))
+
+
+def _preset_data(name: str) -> dict:
+    names = preset_names()
+    if name not in names:
+        raise FedmapError(f"unknown mission preset {name!r}{suggest(name, names)}")
+    return tomllib.loads(resources.files("fedmap.presets").joinpath(f"mission-{name}.toml").read_text("utf-8"))
+
+
+def load_mission(path: str | Path | None = None, *, preset: str | None = None, mission: dict | None = None,
+                 link: dict | None = None, terrain: dict | None = None,
+                 seed: int | None = None) -> tuple[MissionConfig, TerrainSource, dict]:
+    """Preset < TOML file < options -> ``(mission config, terrain source, resolved dict)``.
+
+    ``mission`` and ``link`` are ``[mission]`` / ``[link]`` keys from options (None values
+    left out); ``terrain`` replaces the file's terrain source (like ``fedmap run --dem``),
+    keeping its ``crop``, ``size`` and ``resample``.
+    """
+    data: dict = _preset_data(preset) if preset is not None else {}
+    if path is not None:
+        path = Path(path)
+        file_data = _read_toml(path)
+        t = file_data.get("terrain", {})
+        if isinstance(t, dict) and "path" in t and isinstance(t["path"], str) and not Path(t["path"]).is_absolute():
+            t["path"] = str((path.parent / t["path"]).resolve())
+        data = merge(data, file_data)
+    where = Path(path).name if path is not None else "the mission settings"
+    for key in data:
+        if key not in ("seed", "terrain", "thresholds", "mission", "link", "strategies"):
+            raise FedmapError(f"unknown key {key!r} in {where}"
+                              f"{suggest(key, ['seed', 'terrain', 'thresholds', 'mission', 'link', 'strategies'])}")
+    if terrain is not None:
+        kept = {k: v for k, v in data.get("terrain", {}).items() if k in ("crop", "size", "resample")}
+        data["terrain"] = {**kept, **terrain}
+    run_part = {k: data[k] for k in ("seed", "terrain", "thresholds") if k in data}
+    validate(run_part, where)
+    if seed is not None:
+        run_part["seed"] = seed
+    resolved = merge(base_defaults(), run_part)
+    source = terrain_source(resolved)
+    m = dict(data.get("mission", {}))
+    m.update({k: v for k, v in (mission or {}).items() if v is not None})
+    check_keys(m, _MISSION_KEYS, f"[mission] of {where}")
+    lk = dict(data.get("link", {}))
+    lk.update({k: v for k, v in (link or {}).items() if v is not None})
+    check_keys(lk, _LINK_KEYS, f"[link] of {where}")
+    methods = data.get("strategies", {})
+    if not isinstance(methods, dict) or not all(isinstance(v, dict) for v in methods.values()):
+        raise FedmapError(f"[strategies] of {where} must hold tables like [strategies.fedmap]")
+    if "strategies" in m and isinstance(m["strategies"], str):
+        m["strategies"] = [s.strip() for s in m["strategies"].split(",") if s.strip()]
+    try:
+        config = MissionConfig(**{**m, "link": LinkConfig(**lk), "methods": methods, "seed": resolved["seed"]})
+    except TypeError as exc:  # a wrong type reaching a comparison
+        raise FedmapError(f"bad mission setting: {exc}") from exc
+    out = {"seed": resolved["seed"], "terrain": {k: v for k, v in source.to_dict().items() if k != "thresholds"},
+           "thresholds": resolved["thresholds"], "mission": {k: v for k, v in asdict(config).items()
+                                                            if k not in ("link", "methods", "seed")},
+           "link": config.link.to_dict(), "strategies": methods}
+    return config, source, out
+
+
+def with_settings(config: MissionConfig, **changes: Any) -> MissionConfig:
+    """``config`` with some fields replaced (checked again)."""
+    return replace(config, **changes)

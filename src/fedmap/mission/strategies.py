@@ -1,0 +1,394 @@
+"""The ways of sharing maps, each with the same four hooks the mission loop calls.
+
+Every sharing payload starts with a small header (real bytes, counted): the sender's
+model version, position and target (uplink), or the versions and every rover's last
+reported position and target (downlink); rovers coordinate their targets with it.
+
+* ``none``: nothing is sent. A rover's belief is its own observations.
+* ``raw``: a rover sends the cells it observed since its last *delivered* sync, as a
+  class map (other cells UNKNOWN) coded with fedmap's lossless ``context`` codec
+  (:mod:`fedmap.federation.mapcodec`). **Over budget**, it sends the newest cells that
+  fit (every cell first observed at or after a cut-off step, the earliest cut-off that
+  fits) and keeps the rest for the next sync; lost cells are sent again. The base
+  overlays every delivered map on its global map (observations are truth, so they never
+  conflict) and sends each rover the global map coded *against the last global map that
+  rover acknowledged* (unchanged cells cost almost nothing); over budget it sends the
+  cells it merged most recently that fit.
+* ``paper`` / ``fedmap``: the preset's network (:func:`fedmap.config.method_config`),
+  trained and aggregated by the same :func:`~fedmap.federation.runner.rover_step` and
+  :func:`~fedmap.federation.runner.base_step` as ``fedmap run``. A rover trains from the
+  model it holds on its whole local map. **Over budget** the update is not sent; the
+  rover trains again at the next sync on its grown map. Update codecs are relative to
+  the model both ends hold, so the base aggregates only updates relative to its current
+  version (others are dropped as ``stale``) and sends a rover that missed a broadcast a
+  *keyframe*: the whole model, ``fp32+zstd`` (exact), instead of the update.
+* ``central``: an oracle; every rover and the base see every observation at once, free.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fedmap.config import method_config
+from fedmap.errors import FedmapError, RejectedUpdate
+from fedmap.federation.codecs import CodecSpec, Encoder, decode
+from fedmap.federation.mapcodec import decode_map, encode_map
+from fedmap.federation.runner import base_step, rover_step
+from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb
+from fedmap.nets.init import initial_model
+from fedmap.nets.model import Weights, build_model, get_weights, preset, render, set_weights
+
+_UP = struct.Struct("<Ihhhh")  # model version, row, col, target row, target col
+_DOWN = struct.Struct("<IIB")  # reference version (KEYFRAME: none), new version, rovers reported
+_REPORT = struct.Struct("<Bhhhh")  # rover, row, col, target row, target col
+KEYFRAME = 0xFFFFFFFF
+KEYFRAME_CODEC = "fp32+zstd"
+Cell = tuple[int, int]
+
+
+def pack_up(version: int, pos: Cell, target: Cell | None, body: bytes) -> bytes:
+    t = target if target is not None else (-1, -1)
+    return _UP.pack(version, pos[0], pos[1], t[0], t[1]) + body
+
+
+def unpack_up(payload: bytes) -> tuple[int, Cell, Cell | None, bytes]:
+    v, r, c, tr, tc = _UP.unpack_from(payload)
+    return v, (r, c), (None if tr < 0 else (tr, tc)), payload[_UP.size:]
+
+
+def pack_down(ref: int, new: int, reports: dict[int, tuple[Cell, Cell | None]], body: bytes) -> bytes:
+    head = _DOWN.pack(ref, new, len(reports))
+    for k, (p, t) in sorted(reports.items()):
+        t = t if t is not None else (-1, -1)
+        head += _REPORT.pack(k, p[0], p[1], t[0], t[1])
+    return head + body
+
+
+def unpack_down(payload: bytes) -> tuple[int, int, dict[int, tuple[Cell, Cell | None]], bytes]:
+    ref, new, n = _DOWN.unpack_from(payload)
+    reports, off = {}, _DOWN.size
+    for _ in range(n):
+        k, r, c, tr, tc = _REPORT.unpack_from(payload, off)
+        reports[k] = ((r, c), None if tr < 0 else (tr, tc))
+        off += _REPORT.size
+    return ref, new, reports, payload[off:]
+
+
+@dataclass
+class Outgoing:
+    """A payload a strategy wants to send (``payload=None``: nothing fits the budget)."""
+
+    payload: bytes | None
+    kind: str
+    ctx: dict = field(default_factory=dict)
+
+
+class Strategy:
+    """Base: no sharing. ``team`` is the mission's rover list (positions, local maps)."""
+
+    name = "none"
+    shares = False
+
+    def __init__(self, truth: GridMap, team: list, budget: dict[str, int | None]) -> None:
+        self.truth = truth
+        self.team = team
+        self.budget = budget
+        self.shape = truth.shape
+        starts = {k: (r.pos, None) for k, r in enumerate(team)}
+        self.known_reports: list[dict[int, tuple[Cell, Cell | None]]] = [dict(starts) for _ in team]
+        self.base_reports: dict[int, tuple[Cell, Cell | None]] = dict(starts)
+
+    # -- what rovers and base hold
+    def held(self, k: int) -> np.ndarray:
+        """The latest global map rover ``k`` holds (classes)."""
+        return np.full(self.shape, UNKNOWN, dtype=np.uint8)
+
+    def belief(self, k: int) -> np.ndarray:
+        """Rover ``k``'s own observations laid over the global map it holds."""
+        local = self.team[k].local
+        return np.where(local != UNKNOWN, local, self.held(k)).astype(np.uint8)
+
+    def global_map(self) -> np.ndarray:
+        """The base station's global map (classes)."""
+        return np.full(self.shape, UNKNOWN, dtype=np.uint8)
+
+    def others(self, k: int) -> list[Cell]:
+        """Other rovers' positions and targets as rover ``k`` last heard of them."""
+        out = []
+        for j, (p, t) in self.known_reports[k].items():
+            if j != k:
+                out.append(p)
+                if t is not None:
+                    out.append(t)
+        return out
+
+    # -- the link's hooks
+    def uplink(self, k: int, round_no: int) -> Outgoing | None:
+        return None
+
+    def receive_uplink(self, k: int, payload: bytes, ctx: dict, round_no: int) -> None:
+        pass
+
+    def uplink_acked(self, k: int, ctx: dict) -> None:
+        pass
+
+    def base_round(self, round_no: int) -> dict[int, Outgoing]:
+        return {}
+
+    def receive_downlink(self, k: int, payload: bytes, ctx: dict) -> bool:
+        """Apply a delivered downlink; False when it could not be used (stale)."""
+        return False
+
+    def _report(self, k: int) -> tuple[Cell, Cell | None]:
+        r = self.team[k]
+        return r.pos, r.target
+
+
+class Central(Strategy):
+    """The oracle: everything everyone observed, instantly, for free."""
+
+    name = "central"
+
+    def held(self, k: int) -> np.ndarray:
+        return self.global_map()
+
+    def global_map(self) -> np.ndarray:
+        out = np.full(self.shape, UNKNOWN, dtype=np.uint8)
+        for r in self.team:
+            out = np.where(r.local != UNKNOWN, r.local, out)
+        return out
+
+    def others(self, k: int) -> list[Cell]:
+        out = []
+        for j, r in enumerate(self.team):
+            if j != k:
+                out.append(r.pos)
+                if r.target is not None:
+                    out.append(r.target)
+        return out
+
+
+def _cut_to_budget(make, stamps: np.ndarray, candidates: np.ndarray, budget: int | None) -> tuple[bytes | None,
+                                                                                                   np.ndarray]:
+    """The payload of the most candidate cells that fits: every candidate cell stamped at or
+    after a cut-off, the earliest cut-off that fits (binary search). ``make(mask)`` builds
+    the payload of a cell mask. Returns ``(payload or None, mask sent)``."""
+    full = make(candidates)
+    if budget is None or len(full) <= budget:
+        return full, candidates
+    cuts = np.unique(stamps[candidates])  # ascending: an earlier cut sends more
+    lo, hi, best = 0, len(cuts) - 1, None
+    while lo <= hi:  # the smallest index whose payload fits
+        mid = (lo + hi) // 2
+        mask = candidates & (stamps >= cuts[mid])
+        p = make(mask)
+        if len(p) <= budget:
+            best, hi = (p, mask), mid - 1
+        else:
+            lo = mid + 1
+    if best is None:
+        return None, np.zeros_like(candidates)
+    return best
+
+
+class Raw(Strategy):
+    """Lossless map merging with the ``context`` codec (see the module docstring)."""
+
+    name = "raw"
+    shares = True
+
+    def __init__(self, truth: GridMap, team: list, budget: dict[str, int | None]) -> None:
+        super().__init__(truth, team, budget)
+        empty = np.full(self.shape, UNKNOWN, dtype=np.uint8)
+        self.delivered = [np.zeros(self.shape, dtype=bool) for _ in team]  # cells the base has from each rover
+        self._held = [empty.copy() for _ in team]
+        self.base = empty.copy()
+        self.base_stamp = np.full(self.shape, -1, dtype=np.int64)  # round each base cell was merged
+        self.acked = [empty.copy() for _ in team]  # what the base knows each rover holds
+        self.received: list[tuple[int, int, bytes]] = []  # (round, rover, payload) merged, in order
+
+    def held(self, k: int) -> np.ndarray:
+        return self._held[k]
+
+    def global_map(self) -> np.ndarray:
+        return self.base
+
+    def uplink(self, k: int, round_no: int) -> Outgoing | None:
+        r = self.team[k]
+        pending = (r.local != UNKNOWN) & ~self.delivered[k]
+
+        def make(mask: np.ndarray) -> bytes:
+            return pack_up(0, r.pos, r.target, encode_map(np.where(mask, r.local, UNKNOWN).astype(np.uint8)))
+
+        budget = self.budget["up"]
+        payload, sent = _cut_to_budget(make, r.obs_step, pending, budget)
+        return Outgoing(payload, "cells", {"sent": sent})
+
+    def uplink_acked(self, k: int, ctx: dict) -> None:
+        self.delivered[k] |= ctx["sent"]
+
+    def receive_uplink(self, k: int, payload: bytes, ctx: dict, round_no: int) -> None:
+        _, pos, target, body = unpack_up(payload)
+        cells = decode_map(body, expected_shape=self.shape)
+        self.received.append((round_no, k, payload))
+        new = (cells != UNKNOWN) & (self.base == UNKNOWN)
+        self.base = np.where(cells != UNKNOWN, cells, self.base).astype(np.uint8)
+        self.base_stamp[new] = round_no
+        self.base_reports[k] = (pos, target)
+
+    def base_round(self, round_no: int) -> dict[int, Outgoing]:
+        out = {}
+        for k in range(len(self.team)):
+            ref = self.acked[k]  # always sent: even without new cells it carries the team's positions
+
+            def make(mask: np.ndarray, ref: np.ndarray = ref) -> bytes:
+                m = np.where(mask | (ref != UNKNOWN), self.base, UNKNOWN).astype(np.uint8)
+                return pack_down(0, round_no, self.base_reports, encode_map(m, reference=ref))
+
+            candidates = (self.base != UNKNOWN) & (ref == UNKNOWN)
+            payload, sent = _cut_to_budget(make, self.base_stamp, candidates, self.budget["down"])
+            full = np.where(sent | (ref != UNKNOWN), self.base, UNKNOWN).astype(np.uint8)
+            out[k] = Outgoing(payload, "map", {"map": full})
+        return out
+
+    def receive_downlink(self, k: int, payload: bytes, ctx: dict) -> bool:
+        _, _, reports, body = unpack_down(payload)
+        try:
+            m = decode_map(body, reference=self._held[k], expected_shape=self.shape)
+        except RejectedUpdate:  # coded against a map this rover no longer holds
+            return False
+        self._held[k] = m
+        self.acked[k] = ctx["map"]
+        self.known_reports[k].update(reports)
+        return True
+
+
+class Model(Strategy):
+    """A network shared with fedmap's rover and base steps (``paper`` or ``fedmap``)."""
+
+    shares = True
+
+    def __init__(self, truth: GridMap, team: list, budget: dict[str, int | None], *, method: str,
+                 settings: dict, seed: int) -> None:
+        super().__init__(truth, team, budget)
+        self.name = method
+        pc = method_config(method, **{**settings, "seed": seed})
+        self.fed = pc.federation
+        self.net_config = preset(pc.net, self.shape[0])
+        init = get_weights(initial_model(self.net_config, init=pc.init, seed=seed, prior_steps=pc.prior_steps,
+                                         init_weights=pc.init_weights))
+        self.model = build_model(self.net_config)
+        self.aggregator = self.fed.make_aggregator()
+        self.up_update = CodecSpec.parse(self.fed.uplink).update
+        self.down_update = CodecSpec.parse(self.fed.downlink).update
+        self.up_encs = [Encoder(self.fed.uplink) for _ in team]  # residuals live on the rovers
+        self.down_enc = Encoder(self.fed.downlink)
+        self.base_held: Weights = {k: np.asarray(v, dtype=np.float32) for k, v in init.items()}
+        self.base_version = 0
+        self.versions: dict[int, np.ndarray] = {}  # version -> rendered classes (cache)
+        self.rover_held: list[Weights] = [self.base_held for _ in team]
+        self.rover_version = [0 for _ in team]
+        self.acked_version = [0 for _ in team]  # what the base knows each rover holds
+        self.inbox: dict[int, tuple[int, bytes, float]] = {}
+        self.dropped: list[dict] = []  # (round, rover, why) of delivered updates not used
+        self.losses: list[dict] = []
+        self._render(0, self.base_held)
+
+    def _render(self, version: int, w: Weights) -> np.ndarray:
+        if version not in self.versions:
+            set_weights(self.model, w)
+            self.versions[version] = classes_from_rgb(render(self.model, *self.shape))
+        return self.versions[version]
+
+    def held(self, k: int) -> np.ndarray:
+        return self._render(self.rover_version[k], self.rover_held[k])
+
+    def global_map(self) -> np.ndarray:
+        return self._render(self.base_version, self.base_held)
+
+    def uplink(self, k: int, round_no: int) -> Outgoing | None:
+        r = self.team[k]
+        local = self.truth.with_classes(r.local, f"rover {k}")
+        try:
+            body, loss = rover_step(self.model, local, self.rover_held[k], self.up_encs[k], self.fed,
+                                    round_idx=round_no - 1, agent=k)
+        except RejectedUpdate as e:
+            self.dropped.append({"round": round_no, "rover": k, "why": str(e)})
+            return None
+        self.losses.append({"round": round_no, "rover": k, "loss": loss})
+        payload = pack_up(self.rover_version[k], r.pos, r.target, body)
+        b = self.budget["up"]
+        return Outgoing(payload if b is None or len(payload) <= b else None, "update" if self.up_update else "model",
+                        {"known": local.n_known})
+
+    def receive_uplink(self, k: int, payload: bytes, ctx: dict, round_no: int) -> None:
+        version, pos, target, body = unpack_up(payload)
+        self.base_reports[k] = (pos, target)
+        self.acked_version[k] = version
+        self.inbox[k] = (version, body, float(ctx["known"]))
+
+    def base_round(self, round_no: int) -> dict[int, Outgoing]:
+        fresh, counts = {}, {}
+        for k, (version, body, known) in sorted(self.inbox.items()):
+            if self.up_update and version != self.base_version:
+                self.dropped.append({"round": round_no, "rover": k,
+                                     "why": f"stale: relative to version {version}, base holds {self.base_version}"})
+                continue
+            fresh[k], counts[k] = body, known
+        self.inbox = {}
+        prev = self.base_version
+        broadcast = None
+        if fresh:
+            try:
+                step = base_step(self.aggregator, self.base_held, fresh, counts, self.down_enc, round_label=round_no)
+            except FedmapError as e:  # every update was dropped: no new version this round
+                self.dropped.append({"round": round_no, "rover": -1, "why": str(e)})
+            else:
+                for k, why in step.dropped.items():
+                    self.dropped.append({"round": round_no, "rover": k, "why": why})
+                self.base_held, self.base_version = step.held, prev + 1
+                broadcast = step.downlink
+        out = {}
+        keyframe: bytes | None = None
+        for k in range(len(self.team)):
+            if self.acked_version[k] == self.base_version:
+                continue  # nothing new for this rover
+            if broadcast is not None and (self.acked_version[k] == prev or not self.down_update):
+                body, kind, ref = broadcast, "update" if self.down_update else "model", prev
+            else:
+                if keyframe is None:
+                    keyframe = Encoder(KEYFRAME_CODEC).encode(self.base_held)
+                body, kind, ref = keyframe, "keyframe", KEYFRAME
+            payload = pack_down(ref, self.base_version, self.base_reports, body)
+            b = self.budget["down"]
+            out[k] = Outgoing(payload if b is None or len(payload) <= b else None, kind,
+                              {"version": self.base_version, "weights": self.base_held})
+        return out
+
+    def receive_downlink(self, k: int, payload: bytes, ctx: dict) -> bool:
+        ref, new, reports, body = unpack_down(payload)
+        if new <= self.rover_version[k]:
+            return False
+        if ref != KEYFRAME and self.down_update and ref != self.rover_version[k]:
+            return False  # an update against a model this rover does not hold
+        held = self.rover_held[k]
+        w = decode(body, reference=held if ref != KEYFRAME else None)
+        self.rover_held[k], self.rover_version[k] = w, new
+        self.acked_version[k] = new
+        self.known_reports[k].update(reports)
+        return True
+
+
+def make_strategy(name: str, truth: GridMap, team: list, budget: dict[str, int | None], *, methods: dict,
+                  seed: int) -> Strategy:
+    """A fresh strategy of ``name`` for one run."""
+    if name == "none":
+        return Strategy(truth, team, budget)
+    if name == "central":
+        return Central(truth, team, budget)
+    if name == "raw":
+        return Raw(truth, team, budget)
+    return Model(truth, team, budget, method=name, settings=dict(methods.get(name, {})), seed=seed)

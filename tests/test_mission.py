@@ -1,0 +1,265 @@
+"""Missions: sensing, frontiers, planning contract, coverage, raw merging, link, seeds, errors."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from fedmap.errors import FedmapError
+from fedmap.federation.mapcodec import decode_map
+from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
+from fedmap.mission import LinkConfig, MissionConfig, run_mission
+from fedmap.mission.frontiers import frontier_mask, gain_map
+from fedmap.mission.link import Link
+from fedmap.mission.sensing import footprint
+from fedmap.mission.settings import load_mission
+from fedmap.mission.strategies import unpack_up
+
+
+def _maze(n: int = 40, seed: int = 3) -> GridMap:
+    """A free map with a few seeded walls and blocks (every free cell reachable is not needed)."""
+    rng = np.random.default_rng(seed)
+    c = np.zeros((n, n), dtype=np.uint8)
+    for _ in range(12):
+        r0, c0 = rng.integers(0, n - 6, size=2)
+        c[r0:r0 + rng.integers(1, 6), c0:c0 + rng.integers(1, 6)] = IMPASSABLE
+    c[n // 2 - 2:n // 2 + 3, n // 2 - 2:n // 2 + 3] = FREE  # the lander's pad
+    return GridMap(c, 1.0, "test maze")
+
+
+# ---------------------------------------------------------------- sensing
+
+
+def test_footprint_is_the_disk_by_brute_force():
+    shape, pos, radius = (20, 23), (3, 18), 4.5
+    got = footprint(pos, shape, radius)
+    want = np.zeros(shape, dtype=bool)
+    for r in range(shape[0]):
+        for c in range(shape[1]):
+            want[r, c] = (r - pos[0]) ** 2 + (c - pos[1]) ** 2 <= radius**2
+    assert np.array_equal(got, want)
+
+
+def test_line_of_sight_stops_at_a_constructed_wall():
+    z = np.zeros((21, 21))
+    z[:, 12] = 10.0  # a 10 m wall along column 12
+    pos, radius = (10, 8), 8.0
+    seen = footprint(pos, z.shape, radius, elevation=z, height_m=1.5)
+    flat = footprint(pos, z.shape, radius)
+    assert seen[9:12, 12].all()  # the face of the wall in front of the rover is seen
+    assert not seen[10, 13:].any() and not seen[7:14, 14:].any()  # nothing behind it
+    assert np.array_equal(seen[:, :12], flat[:, :12])  # in front of it: the whole disk
+    # without the wall, line of sight over flat ground is the disk
+    assert np.array_equal(footprint(pos, z.shape, radius, elevation=np.zeros_like(z)), flat)
+    # a rover on top of the wall sees over it
+    assert footprint((10, 12), z.shape, radius, elevation=z)[10, 18]
+
+
+# ---------------------------------------------------------------- frontiers
+
+
+def test_frontier_on_a_constructed_map():
+    b = np.full((6, 7), UNKNOWN, dtype=np.uint8)
+    b[1:4, 1:4] = FREE
+    b[2, 2] = IMPASSABLE
+    b[3, 3] = FREE
+    got = frontier_mask(b)
+    want = np.zeros_like(got)
+    for r in range(6):
+        for c in range(7):
+            if b[r, c] != FREE:
+                continue
+            nbrs = [(r + dr, c + dc) for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1))]
+            want[r, c] = any(0 <= i < 6 and 0 <= j < 7 and b[i, j] == UNKNOWN for i, j in nbrs)
+    assert np.array_equal(got, want)
+    assert not got[2, 2] and got[1, 1]  # the obstacle is no frontier; corners of the free block are
+    # gain = unknown cells within the radius, counted by hand for one cell
+    g = gain_map(b, 1.5)
+    r, c = 1, 1
+    assert g[r, c] == sum(b[i, j] == UNKNOWN for i in range(0, 3) for j in range(0, 3))
+
+
+# ---------------------------------------------------------------- missions
+
+
+def _small(**kw) -> MissionConfig:
+    base = dict(rovers=3, steps=36, sync_every=6, speed=2, sensor_radius=4.0, eval_pairs=12,
+                strategies=("none", "raw", "central"), link=LinkConfig(loss=0.3, seed=5))
+    base.update(kw)
+    return MissionConfig(**base)
+
+
+@pytest.fixture(scope="module")
+def mission():
+    truth = _maze()
+    return truth, run_mission(_small(), truth)
+
+
+def test_rovers_never_enter_impassable_cells_and_move_legally(mission):
+    truth, result = mission
+    for run in result.runs.values():
+        for trail in run.trails:
+            assert len(trail) > 5  # they do drive
+            for (r0, c0), (r1, c1) in zip(trail, trail[1:]):
+                assert max(abs(r1 - r0), abs(c1 - c0)) == 1
+            assert all(truth.classes[cell] != IMPASSABLE for cell in trail)
+
+
+def test_coverage_equals_a_brute_force_count(mission):
+    truth, result = mission
+    c = result.config
+    run = result.runs["none"]
+    # replay each rover's trail: every cell within the radius of a visited cell is observed
+    seen = np.zeros(truth.shape, dtype=bool)
+    for trail in run.trails:
+        for pr, pc in trail:
+            for r in range(truth.shape[0]):
+                for col in range(truth.shape[1]):
+                    if (r - pr) ** 2 + (col - pc) ** 2 <= c.sensor_radius**2:
+                        seen[r, col] = True
+    assert run.series["coverage"][-1] == pytest.approx(seen.mean())
+    assert 0 < run.series["coverage"][-1] <= 1
+
+
+def test_raw_global_map_is_exactly_the_union_of_delivered_observations(mission):
+    truth, result = mission
+    run = result.runs["raw"]
+    union = np.full(truth.shape, UNKNOWN, dtype=np.uint8)
+    delivered = [m for m in run.ledger if m.direction == "up" and m.status == "delivered"]
+    assert delivered and any(m.status == "lost" for m in run.ledger)
+    # the global map is the union of what the delivered uplinks carried: decode them again
+    received = run.strategy.received  # (round, rover, payload) as the base got them
+    assert len(received) == len(delivered)
+    for _, _, payload in received:
+        cells = decode_map(unpack_up(payload)[3], expected_shape=truth.shape)
+        assert np.all((cells == UNKNOWN) | (cells == truth.classes))  # observations are truth
+        union = np.where(cells != UNKNOWN, cells, union)
+    assert np.array_equal(run.frames[-1]["global"], union)
+    # and it is strictly less than what the rovers observed (messages were lost) or equal
+    assert (union != UNKNOWN).mean() <= run.series["coverage"][-1]
+
+
+def test_link_drops_exactly_the_seeded_messages(mission):
+    _, result = mission
+    run = result.runs["raw"]
+    for m in run.ledger:
+        d = 0 if m.direction == "up" else 1
+        rng = np.random.default_rng(np.random.SeedSequence([5, m.round, m.rover, d]))
+        assert (m.status == "lost") == (rng.random() < 0.3)
+    # every strategy sees the same link: lost (round, rover, direction) are a property of the seed
+    link = Link(LinkConfig(loss=0.3, seed=5), (0, 0))
+    draws = [link.lost(r, k, "up") for r in range(1, 200) for k in range(3)]
+    assert 0.2 < np.mean(draws) < 0.4
+    assert not any(Link(LinkConfig(loss=0.0), (0, 0)).lost(r, 0, "up") for r in range(50))
+    assert all(Link(LinkConfig(loss=1.0), (0, 0)).lost(r, 0, "down") for r in range(50))
+
+
+def test_same_seed_same_series_and_bytes(mission):
+    truth, result = mission
+    again = run_mission(_small(strategies=("raw",)), truth)
+    a, b = result.runs["raw"], again.runs["raw"]
+    assert a.series == b.series
+    assert [m.to_dict() for m in a.ledger] == [m.to_dict() for m in b.ledger]
+    assert a.strategy.received == b.strategy.received
+
+
+def test_budget_and_range_are_enforced():
+    truth = _maze()
+    cfg = _small(strategies=("raw",), steps=24, link=LinkConfig(uplink_bytes=60, downlink_bytes=80, max_range=8.0))
+    run = run_mission(cfg, truth).runs["raw"]
+    statuses = {m.status for m in run.ledger}
+    assert "out of range" in statuses or "over budget" in statuses
+    for m in run.ledger:
+        assert m.bytes <= (60 if m.direction == "up" else 80)
+        if m.status in ("out of range", "over budget"):
+            assert m.bytes == 0
+
+
+def test_central_covers_at_least_as_fast_as_none(mission):
+    _, result = mission
+    assert result.runs["central"].series["redundant"][-1] <= result.runs["none"].series["redundant"][-1]
+    assert result.runs["central"].summary["final"]["belief_accuracy_mean"] >= \
+        result.runs["none"].summary["final"]["belief_accuracy_mean"]
+
+
+# ---------------------------------------------------------------- errors
+
+
+@pytest.mark.parametrize("kw, message", [
+    ({"strategies": ("none", "fedmapp")}, "unknown strategy 'fedmapp' (did you mean 'fedmap'?)"),
+    ({"sync_every": 0}, "sync_every must be an integer >= 1"),
+    ({"link": {"uplink_bytes": -1}}, "uplink_bytes must be a non-negative"),
+])
+def test_bad_settings_are_one_line_errors(kw, message):
+    with pytest.raises(FedmapError, match=re.escape(message)) as e:
+        link = kw.pop("link", None)
+        MissionConfig(**kw, link=LinkConfig(**link) if link else LinkConfig())
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("kw, message", [
+    ({"starts": ((0, 0), (0, 1), (-1, 5))}, r"start of rover 2 \[-1, 5\] is outside the 40x40 map"),
+    ({"starts": ((0, 0), (0, 1), (5, 5))}, r"start of rover 2 \[5, 5\] is impassable"),
+    ({"lander": (99, 0)}, "lander"),
+])
+def test_bad_starts_are_one_line_errors(kw, message):
+    truth = _maze()
+    truth.classes[5, 5] = IMPASSABLE
+    truth.classes[0, :2] = FREE
+    with pytest.raises(FedmapError, match=message) as e:
+        run_mission(_small(**kw), truth)
+    assert "\n" not in str(e.value)
+
+
+def test_more_rovers_than_free_start_cells():
+    c = np.full((12, 12), IMPASSABLE, dtype=np.uint8)
+    c[5:7, 5] = FREE
+    with pytest.raises(FedmapError, match="3 rovers but only 2 free start cells"):
+        run_mission(_small(), GridMap(c))
+
+
+def test_mission_toml_errors(tmp_path):
+    p = tmp_path / "m.toml"
+    p.write_text('[mission]\nstrategies = ["raw", "centrl"]\n')
+    with pytest.raises(FedmapError, match="did you mean 'central'"):
+        load_mission(p)
+    p.write_text("[mission]\nsync_every = -2\n")
+    with pytest.raises(FedmapError, match="sync_every"):
+        load_mission(p)
+    p.write_text("[link]\ndownlink_bytes = -5\n")
+    with pytest.raises(FedmapError, match="downlink_bytes must be a non-negative"):
+        load_mission(p)
+    p.write_text("[mision]\nsteps = 3\n")
+    with pytest.raises(FedmapError, match="did you mean 'mission'"):
+        load_mission(p)
+
+
+# ---------------------------------------------------------------- one implementation of the math
+
+
+def test_fedmap_strategy_is_one_round_of_fedmap_run():
+    """One sync with a perfect link: the base's model equals run_federation (the rover and
+    base steps of `fedmap run`) on the rovers' local maps at that sync."""
+    from fedmap.config import method_config
+    from fedmap.federation.runner import run_federation
+    from fedmap.nets.init import initial_model
+    from fedmap.nets.model import get_weights, preset
+
+    truth = _maze(32)
+    cfg = _small(rovers=2, steps=6, sync_every=6, strategies=("fedmap",), link=LinkConfig(),
+                 methods={"fedmap": {"epochs": 15}})
+    run = run_mission(cfg, truth).runs["fedmap"]
+    strat = run.strategy
+    assert strat.base_version == 1
+    pc = method_config("fedmap", epochs=15, seed=cfg.seed)
+    init = get_weights(initial_model(preset(pc.net, 32), init=pc.init, seed=cfg.seed, prior_steps=pc.prior_steps))
+    locals_ = [truth.with_classes(r.local, f"rover {k}") for k, r in enumerate(strat.team)]
+    fed = run_federation(init, preset(pc.net, 32), locals_, pc.federation)
+    for name, w in fed.weights.items():
+        np.testing.assert_array_equal(strat.base_held[name], w)
+        for k in range(2):  # and every rover decoded the same broadcast
+            np.testing.assert_array_equal(strat.rover_held[k][name], w)
+    up = [m.bytes for m in run.ledger if m.direction == "up"]
+    assert sorted(up) == sorted(b + 12 for b in fed.history[0]["uplink_bytes"].values())  # + the 12-byte header
