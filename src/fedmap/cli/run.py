@@ -141,8 +141,8 @@ def demo(
 
 def run(
     config: Optional[Path] = typer.Argument(None, help="Run config (TOML); options below override it."),
-    dem: Optional[Path] = typer.Option(None, "--dem", help="DEM file (.tif, .asc, .img/.raw, .png heightmap, .npy)."),
-    map_: Optional[Path] = typer.Option(None, "--map", help="Traversability class map (.png or .npy)."),
+    dem: Optional[Path] = typer.Option(None, "--dem", help="DEM file: any raster GDAL reads (GeoTIFF, ISIS3 .cub, PDS3 .lbl, PDS4 .xml, .asc, ...), a .png heightmap or .npy."),
+    map_: Optional[Path] = typer.Option(None, "--map", help="Traversability class map (.png, .npy, .tif GeoTIFF or ROS .yaml)."),
     terrain: Optional[str] = typer.Option(None, "--terrain", help="Built-in terrain: mars, moon or ice."),
     pixel_size: Optional[float] = typer.Option(None, "--pixel-size", help="Metres per cell of the file (overrides it)."),
     crop: Optional[int] = typer.Option(None, help="Centred square crop of the terrain, in cells, before resampling."),
@@ -197,7 +197,7 @@ def run(
 
 def terrain(
     kind: str = typer.Argument(..., help="mars, moon or ice."),
-    out: Path = typer.Argument(..., help="Output map (.png or .npy)."),
+    out: Path = typer.Argument(..., help="Output map (.png, .npy, .tif GeoTIFF or ROS .yaml)."),
     size: int = typer.Option(256, help="Map side in cells (64..2048)."),
     seed: int = typer.Option(0),
     dem_out: Optional[Path] = typer.Option(None, "--dem", help="Also save the DEM as .npy."),
@@ -216,8 +216,8 @@ def terrain(
 
 
 def evaluate(
-    learned: Path = typer.Argument(..., help="Learned map (.png or .npy)."),
-    truth: Path = typer.Argument(..., help="Ground-truth map (.png or .npy)."),
+    learned: Path = typer.Argument(..., help="Learned map (.png, .npy, .tif or ROS .yaml)."),
+    truth: Path = typer.Argument(..., help="Ground-truth map (.png, .npy, .tif or ROS .yaml)."),
     pairs: int = typer.Option(75, help="Random start/goal pairs."),
     seed: int = typer.Option(0),
     unknown_passable: bool = typer.Option(False, help="Let the planner cross UNKNOWN cells."),
