@@ -84,3 +84,13 @@ def test_demo_export_writes_local_frame_geotiffs(tmp_path, capsys):
     assert truth.crs is None and truth.transform @ (0, 64) == (0.0, 0.0)
     np.testing.assert_array_equal(truth.classes, load_map(out / "truth.png").classes)
     assert load_map(out / "refined_map.tif").transform == truth.transform
+
+
+def test_one_class_warning_is_one_printed_line(tmp_path, capsys):
+    z = np.zeros((64, 64), np.float32)  # flat: 100% free at any limits
+    np.save(tmp_path / "flat.npy", z)
+    rc = main(["run", "--dem", str(tmp_path / "flat.npy"), "--pixel-size", "118.45", *TINY, "-o", str(tmp_path / "o")])
+    out = capsys.readouterr().out
+    assert rc == 0
+    lines = [ln for ln in out.splitlines() if ln.startswith("warning:")]
+    assert len(lines) == 1 and "100.0% free at 118 m pixels" in lines[0] and lines[0].endswith("coarse DEM)")

@@ -33,4 +33,5 @@ def export(
     georef = "no georeferencing (a local metric frame)" if grid.transform is None else (
         "georeferenced" + ("" if grid.crs else ", no CRS"))
     console.print(f"{', '.join(str(p) for p in written)}: {grid.shape[0]}x{grid.shape[1]} cells of {grid.pixel_size:.4g} m, "
-                  f"{georef}; {f['free']:.1%} free, {f['impassable']:.1%} impassable, {f['unknown']:.1%} unknown")
+                  f"{georef}; {f['free']:.1%} free, {f['impassable']:.1%} impassable, {f['unknown']:.1%} unknown",
+                  soft_wrap=True)

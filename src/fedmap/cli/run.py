@@ -47,7 +47,7 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
         on_stage("load terrain", 0)
         resolved, source, truth, pconfig = load_run(config, overrides, terrain=terrain)
         if truth.meta.get("warning"):
-            console.print(f"warning: {truth.meta['warning']}")
+            console.print(f"warning: {truth.meta['warning']}", soft_wrap=True)  # one line, however wide
         result = run_pipeline(pconfig, truth=truth, on_stage=on_stage, on_step=on_step)
         on_stage("write outputs", 0)
         write_outputs(result, out, extra={"config.toml": dumps_toml(resolved), "run_config.json": to_json(resolved)},
