@@ -248,7 +248,7 @@ def test_fedmap_strategy_is_one_round_of_fedmap_run():
     from fedmap.nets.model import get_weights, preset
 
     truth = _maze(32)
-    cfg = _small(rovers=2, steps=6, sync_every=6, strategies=("fedmap",), link=LinkConfig(),
+    cfg = _small(rovers=2, steps=6, sync_every=6, strategies=("fedmap",), link=LinkConfig(loss=0.0),
                  methods={"fedmap": {"epochs": 15}})
     run = run_mission(cfg, truth).runs["fedmap"]
     strat = run.strategy

@@ -20,7 +20,7 @@ import sys
 import click
 import typer
 
-from fedmap.cli import experiments, export, flower, meta, run, ui
+from fedmap.cli import experiments, export, flower, meta, mission, run, ui
 from fedmap.errors import FedmapError
 
 app = typer.Typer(
@@ -56,6 +56,7 @@ app.command()(flower.rover)
 app.command()(flower.certs)
 app.command("meta-train")(meta.meta_train)
 app.command("ablate-init")(meta.ablate_init)
+app.command()(mission.mission)
 
 
 _GLOBAL_FLAGS = ("--quiet", "-q", "--log-json")

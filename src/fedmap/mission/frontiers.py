@@ -64,13 +64,16 @@ def travel_costs(belief: np.ndarray, start: tuple[int, int], unknown_cost: float
 
 def choose_target(belief: np.ndarray, pos: tuple[int, int], *, radius: float, unknown_cost: float,
                   others: list[tuple[int, int]], allowed: np.ndarray | None = None,
-                  excluded: set[tuple[int, int]] | frozenset = frozenset()) -> tuple[int, int] | None:
+                  excluded: set[tuple[int, int]] | frozenset = frozenset(),
+                  heading: tuple[float, float, float] | None = None) -> tuple[int, int] | None:
     """The frontier cell this rover should head for, or None when none is left.
 
     Score (lower is better): travel cost, minus the gain scaled to at most ``2 radius``,
     plus ``4 radius`` if the cell is within ``2 radius`` of a cell in ``others`` (other
     rovers' last known positions and targets). Ties go to the lowest flat index.
-    ``allowed`` restricts the targets (e.g. within radio range of the base).
+    ``allowed`` restricts the targets (e.g. within radio range of the base). ``heading``
+    ``(origin row, origin col, angle)`` subtracts ``radius * cos`` of the angle between the
+    heading and the direction from the origin to the cell.
     """
     b = np.asarray(belief)
     front = frontier_mask(b)
@@ -89,8 +92,13 @@ def choose_target(belief: np.ndarray, pos: tuple[int, int], *, radius: float, un
     if not front.any():
         return None
     score = cost - 2 * radius * gain / len(disk_offsets(radius))
+    rows, cols = np.indices(b.shape)
+    if heading is not None:
+        r0, c0, angle = heading
+        dr, dc = rows - r0, cols - c0
+        norm = np.maximum(np.hypot(dr, dc), 1e-9)
+        score = score - radius * (dr * np.sin(angle) + dc * np.cos(angle)) / norm
     if others:
-        rows, cols = np.indices(b.shape)
         crowd = np.zeros(b.shape, dtype=bool)
         for r, c in others:
             crowd |= (rows - r) ** 2 + (cols - c) ** 2 <= (2 * radius) ** 2

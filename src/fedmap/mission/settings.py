@@ -80,7 +80,7 @@ class LinkConfig:
 
     uplink_bytes: int | None = None
     downlink_bytes: int | None = None
-    loss: float = 0.0
+    loss: float = 0.1
     latency: int = 0
     max_range: float | None = None
     seed: int = 0
@@ -141,10 +141,10 @@ class MissionConfig:
     """
 
     rovers: int = 4
-    steps: int = 120
+    steps: int = 150
     sync_every: int = 10
-    speed: int = 1
-    sensor_radius: float = 6.0
+    speed: int = 2
+    sensor_radius: float = 8.0
     line_of_sight: bool = False
     sensor_height_m: float = 1.5
     lander: tuple[int, int] | None = None
@@ -223,17 +223,16 @@ def _read_toml(path: Path) -> dict:
 
 
 def preset_names() -> tuple[str, ...]:
-    """Mission presets shipped in ``fedmap/presets/mission-<name>.toml`` (e.g. ``cadre``)."""
-    files = resources.files("fedmap.presets").iterdir()
-    return tuple(sorted(f.name.removeprefix("mission-").removesuffix(".toml") for f in files
-                        if f.name.startswith("mission-") and f.name.endswith(".toml")))
+    """Mission presets shipped in ``fedmap/mission/presets/<name>.toml`` (e.g. ``cadre``)."""
+    files = resources.files("fedmap.mission").joinpath("presets").iterdir()
+    return tuple(sorted(f.name.removesuffix(".toml") for f in files if f.name.endswith(".toml")))
 
 
 def _preset_data(name: str) -> dict:
     names = preset_names()
     if name not in names:
         raise FedmapError(f"unknown mission preset {name!r}{suggest(name, names)}")
-    return tomllib.loads(resources.files("fedmap.presets").joinpath(f"mission-{name}.toml").read_text("utf-8"))
+    return tomllib.loads(resources.files("fedmap.mission").joinpath("presets", f"{name}.toml").read_text("utf-8"))
 
 
 def load_mission(path: str | Path | None = None, *, preset: str | None = None, mission: dict | None = None,

@@ -166,6 +166,7 @@ class _Run:
                            trail=[s], waypoints=list(w) if config.mode == "waypoints" else [])
                      for s, w in zip(starts, waypoints)]
         self.link = Link(config.link, base)
+        self.origin = (float(np.mean([s[0] for s in starts])), float(np.mean([s[1] for s in starts])))
         budget = {"up": config.link.uplink_bytes, "down": config.link.downlink_bytes}
         self.strategy: Strategy = make_strategy(name, truth, self.team, budget, methods=config.methods,
                                                 seed=config.seed)
@@ -210,8 +211,10 @@ class _Run:
                                    or r.waypoints[0] == r.pos):
                 r.waypoints.pop(0)
             return r.waypoints[0] if r.waypoints else None
+        heading = (*self.origin, 2 * math.pi * k / len(self.team))
         return choose_target(belief, r.pos, radius=self.config.sensor_radius, unknown_cost=self.config.unknown_cost,
-                             others=self.strategy.others(k), allowed=self.allowed, excluded=r.excluded)
+                             others=self.strategy.others(k), allowed=self.allowed, excluded=r.excluded,
+                             heading=heading)
 
     def plan(self, k: int, belief: np.ndarray) -> None:
         r = self.team[k]
