@@ -281,6 +281,8 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
         config = MissionConfig(**{**m, "link": LinkConfig(**lk), "methods": methods, "seed": resolved["seed"]})
     except TypeError as exc:  # a wrong type reaching a comparison
         raise FedmapError(f"bad mission setting: {exc}") from exc
+    if config.line_of_sight and source.kind == "map":
+        raise FedmapError("line of sight needs the terrain's elevation (a DEM, tiles or built-in source, not a class map)")
     out = {"seed": resolved["seed"], "terrain": {k: v for k, v in source.to_dict().items() if k != "thresholds"},
            "thresholds": resolved["thresholds"], "mission": {k: v for k, v in asdict(config).items()
                                                             if k not in ("link", "methods", "seed")},

@@ -1,0 +1,97 @@
+"""``fedmap mission`` end to end on a tiny map, its outputs, presets and its bad-input contract."""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fedmap.cli import main
+from fedmap.mission import load_mission
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+TINY = ["--size", "64", "--steps", "12", "--sync-every", "4", "--rovers", "2", "--sensor-radius", "4"]
+
+
+def _run(args, capsys):
+    rc = main(["mission", *map(str, args)])
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def test_mission_cli_writes_every_output(tmp_path, capsys):
+    out = tmp_path / "m"
+    rc, stdout, err = _run([*TINY, "--strategies", "none,raw,central", "--loss", "0.5", "-o", out], capsys)
+    assert rc == 0, err
+    assert "wall time" in stdout and "raw" in stdout
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert list(metrics["strategies"]) == ["none", "raw", "central"]
+    raw = metrics["strategies"]["raw"]
+    assert len(raw["series"]["step"]) == 13 and raw["series"]["eval"]["step"] == [4, 8, 12]
+    # the ledger and the cumulative bytes agree
+    up = [0, 0]
+    for m in raw["ledger"]:
+        if m["direction"] == "up":
+            up[m["rover"]] += m["bytes"]
+    assert raw["series"]["bytes_up"][-1] == up and sum(up) == raw["summary"]["bytes"]["up"]
+    report = (out / "report.md").read_text()
+    for name in ("none", "raw", "central"):
+        assert f"| {name} |" in report
+    for png in ("coverage.png", "f1.png", "accuracy_bytes.png"):
+        with Image.open(out / png) as im:
+            assert im.size[0] > 100
+    with Image.open(out / "mission_raw.gif") as gif:
+        assert gif.n_frames == 13  # one frame per step (12 steps + the start)
+        # truth | 2 beliefs | global, each 64 wide, 2-cell gaps, upscaled x2
+        assert gif.size == (2 * (4 * 64 + 3 * 2), 2 * 64)
+    resolved = tomllib.loads((out / "mission.toml").read_text())
+    assert resolved["mission"]["steps"] == 12 and resolved["link"]["loss"] == 0.5
+
+
+def test_mission_without_animation_and_with_a_class_map(tmp_path, capsys):
+    from fedmap.maps.grid import FREE, IMPASSABLE, GridMap
+    from fedmap.maps.io import save_map
+
+    c = np.full((64, 64), FREE, dtype=np.uint8)
+    c[20:24, 10:50] = IMPASSABLE
+    save_map(GridMap(c), tmp_path / "map.png")
+    out = tmp_path / "m"
+    rc, _, err = _run([*TINY, "--map", tmp_path / "map.png", "--strategies", "raw", "--no-animation", "-o", out],
+                      capsys)
+    assert rc == 0, err
+    assert not list(out.glob("*.gif"))
+    rc, _, err = _run([*TINY, "--map", tmp_path / "map.png", "--line-of-sight", "-o", out], capsys)
+    assert rc == 2 and "line of sight needs the terrain's elevation" in err
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--strategies", "raw,centrl"], "unknown strategy 'centrl' (did you mean 'central'?)"),
+    (["--sync-every", "0"], "sync_every must be an integer >= 1"),
+    (["--uplink-bytes", "-3"], "uplink_bytes must be a non-negative number of bytes"),
+    (["--loss", "1.5"], "loss must be a probability"),
+    (["--rovers", "5000"], "5000 rovers but only"),
+    (["--preset", "cadr"], "unknown mission preset 'cadr' (did you mean 'cadre'?)"),
+])
+def test_mission_cli_bad_input_is_one_line(args, message, tmp_path, capsys):
+    rc, stdout, err = _run([*TINY, *args, "-o", tmp_path / "x"], capsys)
+    assert rc == 2
+    assert err.strip().startswith("error: ") and message in err and err.strip().count("\n") == 0
+    assert not (tmp_path / "x").exists()
+
+
+def test_cadre_preset_and_examples_resolve():
+    cfg, source, _ = load_mission(preset="cadre")
+    assert cfg.rovers == 3 and cfg.sensor_radius <= 5 and cfg.sync_every <= 5 and cfg.stay_in_range
+    assert cfg.link.uplink_bytes is not None and cfg.link.uplink_bytes <= 2000 and cfg.link.max_range is not None
+    assert source.terrain == "moon"
+    # a file laid over the preset wins
+    cfg2, _, _ = load_mission(preset="cadre", mission={"steps": 7})
+    assert cfg2.steps == 7 and cfg2.rovers == 3
+    for name in ("gale", "hadley", "glacier"):
+        cfg, source, _ = load_mission(EXAMPLES / f"mission_{name}.toml")
+        assert source.kind in ("dem", "tiles") and Path(source.path).name in (
+            "missionDEM_gale_1m.tif", "gld100_256p", "test-files_columbia_dem_Columbia.tif")
