@@ -244,6 +244,7 @@ def test_fedmap_strategy_is_one_round_of_fedmap_run():
     base steps of `fedmap run`) on the rovers' local maps at that sync."""
     from fedmap.config import method_config
     from fedmap.federation.runner import run_federation
+    from fedmap.mission.strategies import torch_threads
     from fedmap.nets.init import initial_model
     from fedmap.nets.model import get_weights, preset
 
@@ -256,7 +257,8 @@ def test_fedmap_strategy_is_one_round_of_fedmap_run():
     pc = method_config("fedmap", epochs=15, seed=cfg.seed)
     init = get_weights(initial_model(preset(pc.net, 32), init=pc.init, seed=cfg.seed, prior_steps=pc.prior_steps))
     locals_ = [truth.with_classes(r.local, f"rover {k}") for k, r in enumerate(strat.team)]
-    fed = run_federation(init, preset(pc.net, 32), locals_, pc.federation)
+    with torch_threads():  # the mission's thread setting: the same float order
+        fed = run_federation(init, preset(pc.net, 32), locals_, pc.federation)
     for name, w in fed.weights.items():
         np.testing.assert_array_equal(strat.base_held[name], w)
         for k in range(2):  # and every rover decoded the same broadcast

@@ -28,9 +28,12 @@ reported position and target (downlink); rovers coordinate their targets with it
 from __future__ import annotations
 
 import struct
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 
 from fedmap.config import method_config
 from fedmap.errors import FedmapError, RejectedUpdate
@@ -46,6 +49,22 @@ _DOWN = struct.Struct("<IIB")  # reference version (KEYFRAME: none), new version
 _REPORT = struct.Struct("<Bhhhh")  # rover, row, col, target row, target col
 KEYFRAME = 0xFFFFFFFF
 KEYFRAME_CODEC = "fp32+zstd"
+#: Torch threads while a mission trains or renders. The models are small and trained one
+#: after another; on a shared 2-core machine two OpenMP threads per process spin against
+#: other processes and made one GridNet fit 20x slower than one thread (measured: 17-23 s
+#: vs 0.8 s for 20 epochs at 128² under load).
+TORCH_THREADS = 1
+
+
+@contextmanager
+def torch_threads(n: int = TORCH_THREADS) -> Iterator[None]:
+    """Run the block with ``n`` torch threads, then restore the previous setting."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 Cell = tuple[int, int]
 
 
@@ -300,7 +319,8 @@ class Model(Strategy):
     def _render(self, version: int, w: Weights) -> np.ndarray:
         if version not in self.versions:
             set_weights(self.model, w)
-            self.versions[version] = classes_from_rgb(render(self.model, *self.shape))
+            with torch_threads():
+                self.versions[version] = classes_from_rgb(render(self.model, *self.shape))
         return self.versions[version]
 
     def held(self, k: int) -> np.ndarray:
@@ -313,8 +333,9 @@ class Model(Strategy):
         r = self.team[k]
         local = self.truth.with_classes(r.local, f"rover {k}")
         try:
-            body, loss = rover_step(self.model, local, self.rover_held[k], self.up_encs[k], self.fed,
-                                    round_idx=round_no - 1, agent=k)
+            with torch_threads():
+                body, loss = rover_step(self.model, local, self.rover_held[k], self.up_encs[k], self.fed,
+                                        round_idx=round_no - 1, agent=k)
         except RejectedUpdate as e:
             self.dropped.append({"round": round_no, "rover": k, "why": str(e)})
             return None
@@ -343,7 +364,9 @@ class Model(Strategy):
         broadcast = None
         if fresh:
             try:
-                step = base_step(self.aggregator, self.base_held, fresh, counts, self.down_enc, round_label=round_no)
+                with torch_threads():
+                    step = base_step(self.aggregator, self.base_held, fresh, counts, self.down_enc,
+                                     round_label=round_no)
             except FedmapError as e:  # every update was dropped: no new version this round
                 self.dropped.append({"round": round_no, "rover": -1, "why": str(e)})
             else:
