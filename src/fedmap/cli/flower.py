@@ -117,14 +117,19 @@ def rover(
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Save the final global model and map here."),
     max_wait: float = typer.Option(ROVER_MAX_WAIT, "--max-wait",
                                    help="Seconds to keep trying to reach the SuperLink before giving up."),
+    fault: Optional[str] = typer.Option(None, hidden=True, help="Testing: inject a fault (bitflip@R, nan@R)."),
+    warm: bool = typer.Option(True, "--warm/--cold",
+                              help="Fork each message's ClientApp from one process that imported torch and "
+                                   "fedmap once (--cold: a fresh process per message, Flower's default)."),
 ) -> None:
     """Rover: run a Flower SuperNode that trains on this rover's local map; exits when its run ends."""
     cfg = rover_node_config(partition_id=partition_id, map_path=map_path, terrain=terrain, size=size,
-                            agents=agents, explore=explore, seed=seed, out=out)
+                            agents=agents, explore=explore, seed=seed, out=out, fault=fault)
     if root_cert is None:
         console.print("warning: no --root-cert, connecting without TLS (fine on a trusted local network only)")
     console.print(f"rover {partition_id}: connecting to {superlink}")
-    code = run_rover(cfg, superlink=superlink, root_cert=root_cert, auth_key=auth_key, port=port, max_wait=max_wait)
+    code = run_rover(cfg, superlink=superlink, root_cert=root_cert, auth_key=auth_key, port=port, max_wait=max_wait,
+                     warm=warm)
     console.print(f"rover {partition_id}: run finished, final global model received"
                   + (f"; saved in {out}/" if out else ""))
     raise typer.Exit(code)

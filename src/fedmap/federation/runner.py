@@ -283,13 +283,18 @@ def base_step(
 
 
 def _check_fits(update: Weights, held: Weights) -> None:
-    """A decoded update must have the tensors of the model the base holds."""
+    """A decoded update must have the tensors of the model the base holds, all finite."""
     if set(update) != set(held):
         raise RejectedUpdate(f"malformed payload: its tensors {sorted(set(update) ^ set(held))} do not match the model's")
     for name, value in held.items():
         if np.shape(update[name]) != np.shape(value):
             raise RejectedUpdate(f"malformed payload: tensor {name!r} has shape {np.shape(update[name])}, "
                                  f"the model's is {np.shape(value)}")
+    # a rover checks its own update (rover_step), but a faulty or tampered one may not have:
+    # one NaN would poison the global model of every rover
+    for name, value in update.items():
+        if not np.isfinite(value).all():
+            raise RejectedUpdate(f"update holds NaN or infinite weights (tensor {name!r})")
 
 
 def run_federation(
@@ -367,8 +372,8 @@ def run_federation(
         history.append(rec)
         if on_round is not None:
             on_round(rec, held)
-    if history:  # the final broadcast goes to the rovers that took part in the last round
-        _deliver(bc, rover_held, sorted(history[-1]["weights"]), history[-1])
+    if history:  # the final broadcast goes to the rovers that replied in the last round
+        _deliver(bc, rover_held, sorted(set(history[-1]["weights"]) | set(history[-1]["dropped"])), history[-1])
     return FederationResult(held, history, {"name": config.aggregator, **aggregator.hyperparameters()})
 
 

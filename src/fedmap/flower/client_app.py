@@ -40,6 +40,7 @@ from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.federation.codecs import Encoder
 from fedmap.federation.runner import model_version
+from fedmap.flower.faults import inject
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.settings import RunSettings
 from fedmap.flower.task import load_local_map, receive, rover_state, save_received, train_round
@@ -116,6 +117,8 @@ def train(msg: Message, context: Context) -> Message:
         _store(context, held, encoder)
         return _error_reply(msg, metrics, e, held)
     _store(context, held, encoder)
+    if "fault" in context.node_config:  # fault-injection tests only (fedmap rover --fault)
+        payload = inject(str(context.node_config["fault"]), payload, server_round)
     metrics["uplink-bytes"] = len(payload)
     if loss is not None:
         metrics["loss"] = float(loss)
@@ -138,3 +141,14 @@ def evaluate(msg: Message, context: Context) -> Message:
     if done:  # `fedmap rover` waits for this file to stop its SuperNode: the run is over for this rover
         atomic_write_bytes(Path(str(done)), str(context.run_id).encode())
     return _reply(msg, {"metrics": MetricRecord({"partition-id": pid, "downlink-bytes": len(down)})}, held)
+
+
+def flwr_clientapp_main(argv: list[str]) -> None:
+    """Flower's ``flwr-clientapp`` command with ``argv``, in this process (the warm
+    ClientApp server's forked children, :mod:`fedmap.flower.warm`); exits like the command."""
+    import sys
+
+    from flwr.supernode.cli.flwr_clientapp import flwr_clientapp
+
+    sys.argv = ["flwr-clientapp", *argv]
+    flwr_clientapp()

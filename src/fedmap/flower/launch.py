@@ -24,6 +24,7 @@ from pathlib import Path
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.flower import require_flwr
+from fedmap.flower.faults import parse_fault
 from fedmap.flower.settings import RunSettings
 from fedmap.flower.task import load_local_map, run_dir, run_status_path, truth_shape, write_status
 
@@ -430,9 +431,13 @@ class _sigterm_as_interrupt:
 
 
 def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str | None, size: int, agents: int,
-                      explore: str, seed: int, out: Path | None) -> dict:
-    """The SuperNode's node config for one rover (checked by loading the map once)."""
+                      explore: str, seed: int, out: Path | None, fault: str | None = None) -> dict:
+    """The SuperNode's node config for one rover (checked by loading the map once);
+    ``fault``: see :mod:`fedmap.flower.faults` (tests only)."""
     cfg: dict = {"partition-id": partition_id}
+    if fault:
+        parse_fault(fault)
+        cfg["fault"] = fault
     if (map_path is None) == (terrain is None):
         raise FedmapError("give exactly one of --map (the rover's local map) or --terrain (the built-in generator)")
     if map_path is not None:
@@ -448,6 +453,35 @@ def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str 
     return cfg
 
 
+#: The stand-in ``flwr-clientapp`` script (``{python}`` and ``{socket}`` filled in): stdlib
+#: only, so it starts in milliseconds; it waits for the server for at most 300 s.
+WARM_SHIM = """#!{python} -I
+import json, socket, sys, time
+t_end = time.monotonic() + 300
+while True:
+    try:
+        s = socket.socket(socket.AF_UNIX)
+        s.connect({socket!r})
+        break
+    except OSError:
+        s.close()
+        if time.monotonic() > t_end:
+            sys.exit("flwr-clientapp: the rover's warm ClientApp server did not answer")
+        time.sleep(0.2)
+s.sendall(json.dumps(sys.argv[1:]).encode() + b"\\n")
+reply = s.makefile().readline().strip()
+sys.exit(int(reply) if reply.lstrip("-").isdigit() else 1)
+"""
+
+
+def write_shim(bin_dir, sock: str) -> None:
+    """Write the stand-in ``flwr-clientapp`` into ``bin_dir`` (put it first on the SuperNode's PATH)."""
+    path = Path(bin_dir) / "flwr-clientapp"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(WARM_SHIM.format(python=sys.executable, socket=sock))
+    path.chmod(0o755)
+
+
 #: Seconds a rover keeps trying to reach its SuperLink before it gives up (``fedmap rover --max-wait``).
 ROVER_MAX_WAIT = 120.0
 #: Seconds a finished rover leaves its SuperNode running so the final reply reaches the base.
@@ -456,7 +490,7 @@ DONE_GRACE = 5.0
 
 def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = None, auth_key: Path | None = None,
               port: int = 0, flwr_home: Path | None = None, log: Path | None = None,
-              max_wait: float = ROVER_MAX_WAIT) -> int:
+              max_wait: float = ROVER_MAX_WAIT, warm: bool = True) -> int:
     """Run one SuperNode for this rover until its run ends; returns 0.
 
     The SuperNode is a child in this process's group (a signal to the rover reaches it; it
@@ -465,7 +499,9 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
     up after ``max_wait`` seconds without a SuperLink (wrong address or port, base gone, run
     over); that and every other SuperNode failure (TLS, refused authentication) is a one-line
     :class:`FedmapError` naming the rover. Flower's log goes to ``log`` (default: a temporary
-    folder, removed with ``flwr_home``'s default when the rover exits).
+    folder, removed with ``flwr_home``'s default when the rover exits). ``warm``: Flower's
+    per-message ClientApp processes are forked from one process that imported torch and
+    fedmap and read the map once (:mod:`fedmap.flower.warm`) instead of starting cold.
     """
     import tempfile
 
@@ -485,8 +521,14 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
         argv = supernode_argv(superlink=superlink, port=port or free_port(), node_config={**node_config,
                               "done-file": str(done)}, root_cert=root_cert, auth_key=auth_key, max_wait=max_wait)
         log = Path(log) if log is not None else Path(tmp) / "supernode.log"
-        p = procs.start("supernode", argv, env=flower_env(Path(flwr_home) if flwr_home else Path(tmp) / "flwr-home"),
-                        log=log, new_session=False, die_with_parent=True)
+        env = flower_env(Path(flwr_home) if flwr_home else Path(tmp) / "flwr-home")
+        if warm:  # one process imports torch and fedmap once and forks a ClientApp per message
+            sock = str(Path(tmp) / "clientapp.sock")
+            write_shim(Path(tmp) / "bin", sock)
+            env["PATH"] = os.pathsep.join([str(Path(tmp) / "bin"), env["PATH"]])
+            procs.start("warm", [sys.executable, "-m", "fedmap.flower.warm", sock, json.dumps(node_config)],
+                        env=env, log=log, new_session=False, die_with_parent=True)
+        p = procs.start("supernode", argv, env=env, log=log, new_session=False, die_with_parent=True)
         while p.poll() is None:  # bounded: Flower gives up after max_wait s without a SuperLink
             if done.exists():  # the ClientApp has the final model; its reply is still on its way
                 try:

@@ -216,9 +216,9 @@ class FedmapStrategy(Strategy):
     def configure_evaluate(self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid) -> list[Message]:
         if server_round + self.offset < self.settings.federation.rounds:
             return []  # broadcasts ride on the next round's train messages
-        # the final model goes to the rovers that took part in the last round: a rover that
-        # died may still be listed as connected, and waiting for it would cost a deadline
-        last = set(self.history[-1]["weights"]) if self.history else set()
+        # the final model goes to the rovers that replied in the last round (used or dropped):
+        # a rover that died may still be listed as connected, and waiting for it would cost a deadline
+        last = set(self.history[-1]["weights"]) | set(self.history[-1]["dropped"]) if self.history else set()
         nodes = sorted(n for n in grid.get_node_ids() if self.node_partition.get(n) in last)
         return self._messages(nodes, MessageType.EVALUATE, server_round + self.offset)
 

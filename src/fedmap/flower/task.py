@@ -35,13 +35,26 @@ from fedmap.stages import global_map
 # --------------------------------------------------------------------------- the rover
 
 
+_MAPS: dict[str, tuple[int, GridMap]] = {}  # node config -> its map, read once per process
+
+
 def load_local_map(node_config: dict) -> tuple[int, GridMap]:
     """``(partition_id, local map)`` of one rover from its node config.
 
     ``partition-id`` is required. The map is ``map=<path to a PNG/npy map>``, or the
     built-in generator: ``terrain``, ``size``, ``agents``, ``explore``, ``seed`` give the
     same local maps as ``fedmap demo`` (rover ``partition-id`` takes the k-th of them).
+    A process reads a given node config's map once (the warm ClientApp server,
+    :mod:`fedmap.flower.warm`, reads it before forking the per-message processes).
     """
+    key = json.dumps({k: v for k, v in node_config.items() if k not in ("out", "done-file")}, sort_keys=True,
+                     default=str)
+    if key not in _MAPS:
+        _MAPS[key] = _read_local_map(node_config)
+    return _MAPS[key]
+
+
+def _read_local_map(node_config: dict) -> tuple[int, GridMap]:
     if "partition-id" not in node_config:
         raise FedmapError("node config needs partition-id=<rover index>")
     pid = node_config["partition-id"]

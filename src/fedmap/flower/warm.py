@@ -1,0 +1,81 @@
+"""A warm ClientApp for one rover: import torch and fedmap once, fork per message.
+
+Flower 1.41's SuperNode runs every message in a new ``flwr-clientapp`` process, which
+imports flwr, torch and fedmap and reads the rover's map again: seconds per message before
+any training. ``fedmap rover`` therefore starts this module's *server* once: it imports
+the ClientApp, reads the rover's map, and listens on a Unix socket. The SuperNode is given
+a stand-in ``flwr-clientapp`` (:data:`fedmap.flower.launch.WARM_SHIM`, first on its ``PATH``) that passes its
+arguments to the server and waits; the server forks a child that runs Flower's own
+``flwr-clientapp`` entry point with those arguments (already imported: nothing to load),
+and reports the child's exit code back to the stand-in.
+
+Each message still runs in its own process, as Flower expects (its state travels in the
+message's context); what is saved is the start-up. The server runs no torch operation
+before forking, so the children start from a clean torch state.
+
+Run as ``python -m fedmap.flower.warm SOCKET NODE_CONFIG_JSON``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import sys
+import threading
+
+
+def _run_task(argv: list[str]) -> None:  # pragma: no cover - runs in a forked child
+    """Flower's own ``flwr-clientapp`` entry point with ``argv``, in this (forked) process."""
+    from fedmap.flower.client_app import flwr_clientapp_main
+
+    code = 0
+    try:
+        flwr_clientapp_main(argv)
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else 1
+    except BaseException:  # noqa: BLE001 - report any failure as an exit code, like a process would
+        code = 1
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
+def _answer(conn: socket.socket, pid: int) -> None:
+    """Wait for the child ``pid`` and send its exit code to the stand-in."""
+    _, status = os.waitpid(pid, 0)
+    try:
+        conn.sendall(f"{os.waitstatus_to_exitcode(status)}\n".encode())
+    except OSError:
+        pass
+    finally:
+        conn.close()
+
+
+def serve(sock: str, node_config: dict) -> None:  # pragma: no cover - a long-lived process
+    """Import once, then fork a ClientApp process per request until killed."""
+    import fedmap.flower.client_app  # noqa: F401 - the import the children no longer pay
+    from fedmap.flower.task import load_local_map
+
+    load_local_map(node_config)  # cached: the children inherit the rover's map
+    srv = socket.socket(socket.AF_UNIX)
+    srv.bind(sock)
+    srv.listen(16)
+    while True:
+        conn, _ = srv.accept()
+        line = conn.makefile().readline()
+        try:
+            argv = [str(a) for a in json.loads(line)]
+        except ValueError:
+            conn.close()
+            continue
+        pid = os.fork()
+        if pid == 0:
+            srv.close()
+            conn.close()
+            _run_task(argv)
+        threading.Thread(target=_answer, args=(conn, pid), daemon=True).start()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    serve(sys.argv[1], json.loads(sys.argv[2]))
