@@ -265,3 +265,36 @@ def test_fedmap_strategy_is_one_round_of_fedmap_run():
             np.testing.assert_array_equal(strat.rover_held[k][name], w)
     up = [m.bytes for m in run.ledger if m.direction == "up"]
     assert sorted(up) == sorted(b + 12 for b in fed.history[0]["uplink_bytes"].values())  # + the 12-byte header
+
+
+def test_lost_broadcasts_cost_keyframes_and_rovers_stay_in_step_with_the_base():
+    truth = _maze(32)
+    cfg = _small(rovers=2, steps=16, sync_every=2, strategies=("fedmap",), link=LinkConfig(loss=0.4, seed=1),
+                 methods={"fedmap": {"epochs": 5}})
+    run = run_mission(cfg, truth).runs["fedmap"]
+    strat = run.strategy
+    kinds = {(m.kind, m.status) for m in run.ledger if m.direction == "down"}
+    assert ("keyframe", "delivered") in kinds and ("update", "lost") in kinds
+    for k in range(2):
+        if strat.rover_version[k] == strat.base_version:  # the same version is the same weights
+            for name, w in strat.base_held.items():
+                np.testing.assert_array_equal(strat.rover_held[k][name], w)
+    assert strat.base_version >= 1
+
+
+def test_latency_delays_every_delivery_and_waypoints_are_followed():
+    truth = _maze()
+    wps = (((5, 5), (30, 30)), ((34, 4), (4, 34)), ((20, 35), (20, 4)))
+    for r, c in (w for ws in wps for w in ws):
+        truth.classes[r, c] = FREE
+    cfg = _small(strategies=("raw",), link=LinkConfig(loss=0.0, latency=3), mode="waypoints", waypoints=wps)
+    run = run_mission(cfg, truth).runs["raw"]
+    delivered = [m for m in run.ledger if m.status == "delivered"]
+    assert delivered and all(m.arrival == m.step + 3 for m in delivered)
+    # downlinks leave when the uplinks of their round arrive: latency after the sync
+    assert all(m.step % cfg.sync_every == 3 for m in delivered if m.direction == "down")
+    # each rover heads for its first waypoint: its trail gets closer to it than it started
+    for k, trail in enumerate(run.trails):
+        goal = np.array(wps[k][0])
+        d = [np.hypot(*(np.array(p) - goal)) for p in trail]
+        assert min(d) < d[0]
