@@ -125,8 +125,8 @@ def _png(fig) -> bytes:
 
 def plot_coverage(result: MissionResult) -> bytes:
     fig, ax = plt.subplots(figsize=(6, 3.6))
-    for name, run in result.runs.items():
-        ax.plot(run.series["step"], run.series["coverage"], label=name)
+    for i, (name, run) in enumerate(result.runs.items()):
+        ax.plot(run.series["step"], run.series["coverage"], label=name, color=f"C{i}")
     for t in result.config.sync_steps:
         ax.axvline(t, color="0.9", lw=0.6, zorder=0)
     ax.set(xlabel="step", ylabel="team coverage", ylim=(0, 1), title="Coverage (grey lines: syncs)")
@@ -136,10 +136,10 @@ def plot_coverage(result: MissionResult) -> bytes:
 
 def plot_f1(result: MissionResult) -> bytes:
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
-    for name, run in result.runs.items():
+    for i, (name, run) in enumerate(result.runs.items()):
         ev = run.series["eval"]
-        axes[0].plot(ev["step"], ev["f1"], marker=".", label=name)
-        axes[1].plot(ev["step"], [max(f) for f in ev["belief_f1"]], marker=".", label=name)
+        axes[0].plot(ev["step"], ev["f1"], marker=".", label=name, color=f"C{i}")
+        axes[1].plot(ev["step"], [max(f) for f in ev["belief_f1"]], marker=".", label=name, color=f"C{i}")
     axes[0].set(xlabel="step", ylabel="strict path F1", ylim=(0, 1.02), title="Base's global map")
     axes[1].set(xlabel="step", title="Best rover belief")
     axes[1].axhline(F1_GOAL, color="0.6", ls="--", lw=0.8)
@@ -149,18 +149,19 @@ def plot_f1(result: MissionResult) -> bytes:
 
 def plot_accuracy_bytes(result: MissionResult) -> bytes:
     fig, ax = plt.subplots(figsize=(6, 3.6))
-    for name, run in result.runs.items():
+    for i, (name, run) in enumerate(result.runs.items()):
         s = run.series
         n = result.config.rovers
         x = [(sum(u) + sum(d)) / n for u, d in zip(s["bytes_up"], s["bytes_down"])]
         y = [float(np.mean(a)) for a in s["accuracy"]]
         if max(x) > 0:
-            ax.plot(x, y, label=name)
+            ax.plot(x, y, label=name, color=f"C{i}")
         else:  # no bytes: one point at the end (the bound it reaches for free or alone)
-            ax.scatter([0.0], [y[-1]], label=f"{name} (0 B, final)", zorder=3)
+            ax.scatter([0.0], [y[-1]], label=f"{name} (0 B, final)", zorder=3, color=f"C{i}")
     ax.set(xlabel="cumulative bytes per rover (up + down)", ylabel="mean belief accuracy", ylim=(0, 1),
            title="Map accuracy vs bytes")
     ax.set_xscale("symlog", linthresh=100)
+    ax.set_xlim(left=0)
     ax.legend()
     return _png(fig)
 
