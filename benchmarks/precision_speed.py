@@ -5,9 +5,11 @@
 Prints, in one run:
 - this machine's fp32 and bf16 matrix-multiply throughput (2048^3 products, best of 10);
 - the paper network's full-grid Adam step (``fedmap.nets.training.fit``, the code every
-  command runs) at each size for each implementation: ``fp32`` (today's arithmetic) and
-  ``bf16`` (autocast matrix products, fp32 weights, loss and Adam); with ``--compile``
-  also ``torch.compile`` of the bf16 step, with its one-off compile time;
+  command runs) at each size for each implementation, each in a fresh process: ``fp32``
+  and ``bf16`` (autocast matrix products, fp32 weights, loss and Adam), each with glibc's
+  default allocator behaviour (``FEDMAP_MALLOC_TUNING=0``: the step before this change)
+  and with fedmap's allocator setting (:func:`fedmap.nets.training.keep_freed_memory`);
+  with ``--compile`` also ``torch.compile`` of the bf16 step, with its one-off compile time;
 - achieved GFLOP/s of each step and its ratio to the matching matmul peak.
 
 FLOPs of one step: forward 2*N*P_lin, backward 4*N*P_lin minus the first layer's input
@@ -19,8 +21,13 @@ they are memory passes, which is exactly what the ratio to the peak exposes.
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import statistics
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -91,6 +98,20 @@ def compiled_step_seconds(grid: GridMap, steps: int) -> tuple[float, float]:
     return first, statistics.median(ts)
 
 
+def in_fresh_process(size: int, precision: str, steps: int, threads: int, tuned: bool) -> float:
+    """:func:`fit_step_seconds` in a new interpreter, so allocator state never carries over."""
+    env = {**os.environ, "FEDMAP_MALLOC_TUNING": "1" if tuned else "0"}
+    here = str(Path(__file__).parent)
+    code = (f"import json, sys, torch; torch.set_num_threads({threads}); sys.path.insert(0, {here!r}); "
+            f"from precision_speed import _one; print(json.dumps(_one({size}, {precision!r}, {steps})))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    return float(json.loads(out.splitlines()[-1]))
+
+
+def _one(size: int, precision: str, steps: int) -> float:
+    return fit_step_seconds(dem_to_traversability(generate_dem("mars", size, seed=0)), precision, steps)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=2)
@@ -102,18 +123,20 @@ def main() -> None:
     peaks = {"fp32": matmul_peak(torch.float32), "bf16": matmul_peak(torch.bfloat16)}
     print(f"torch {torch.__version__}, {args.threads} threads, native bf16: {native_bf16()}")
     print(f"matmul peak: fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} GFLOP/s")
-    print(f"{'size':>6} {'implementation':>16} {'ms/step':>8} {'GFLOP/s':>8} {'of peak':>8} {'vs fp32':>8}")
+    print(f"{'size':>6} {'implementation':>26} {'ms/step':>8} {'GFLOP/s':>8} {'of peak':>8} {'vs fp32':>8}")
     for n in args.sizes:
         grid = dem_to_traversability(generate_dem("mars", n, seed=0))
         flops = step_flops(build_model(), n * n)
-        rows = [(p, fit_step_seconds(grid, p, args.steps), p) for p in ("fp32", "bf16")]
+        rows = [(f"{p}{'' if tuned else ' (glibc default malloc)'}",
+                 in_fresh_process(n, p, args.steps, args.threads, tuned), p)
+                for p in ("fp32", "bf16") for tuned in (False, True)]
         if args.compile:
             compile_s, t = compiled_step_seconds(grid, args.steps)
             rows.append((f"bf16+compile ({compile_s:.0f} s compile)", t, "bf16"))
-        base = rows[0][1]
+        base = rows[0][1]  # fp32 with the default allocator: the step before this change
         for name, t, peak in rows:
             gf = flops / t / 1e9
-            print(f"{n:>4}^2 {name:>16} {t * 1e3:>8.0f} {gf:>8.0f} {gf / peaks[peak]:>7.0%} {base / t:>7.2f}x",
+            print(f"{n:>4}^2 {name:>26} {t * 1e3:>8.0f} {gf:>8.0f} {gf / peaks[peak]:>7.0%} {base / t:>7.2f}x",
                   flush=True)
 
 
