@@ -2,6 +2,10 @@
 within bf16 rounding, ``auto`` follows the CPU, and the precision is recorded."""
 
 import json
+import os
+import platform
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -78,3 +82,14 @@ def test_the_config_records_the_resolved_precision(tmp_path):
     assert json.loads(json.dumps(d))["federation"]["local"]["precision"] == "bf16"
     with pytest.raises(FedmapError, match="unknown precision"):
         method_config("paper", precision="half")
+
+
+@pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc only")
+def test_allocator_setting_is_applied_once_and_can_be_turned_off():
+    code = ("from fedmap.nets.training import keep_freed_memory as k; import ctypes, sys; "
+            "sys.stdout.write(str(k()))")
+    on = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                        env={**os.environ, "FEDMAP_MALLOC_TUNING": "1"}).stdout
+    off = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "FEDMAP_MALLOC_TUNING": "0"}).stdout
+    assert (on, off) == ("True", "False")
