@@ -107,8 +107,19 @@ Failed to initialize the connection to the SuperLink.
 def test_rover_failures_name_the_rover_and_the_problem():
     line = rover_failure(3, "10.0.0.2:9092", SUPERNODE_305, max_wait=5, code=1)
     assert line.startswith("rover 3: no SuperLink answered at 10.0.0.2:9092 for 5 s; gave up")
-    tls = "ERROR : ssl_transport_security.cc:1659] Handshake failed with error SSL_ERROR_SSL: CERTIFICATE_VERIFY_FAILED"
-    assert rover_failure(1, "h:1", tls, max_wait=5, code=1).startswith("rover 1: TLS certificate problem with h:1")
+    # what flower-supernode 1.41 logs for a CA that did not sign the SuperLink's certificate ...
+    tls = ("\x1b[91mERROR \x1b[0m:     SSL/TLS handshake error detected.\n\x1b[91mERROR \x1b[0m:     Exit Code: 305\n"
+           "Failed to initialize the connection to the SuperLink.\n[SSL: CERTIFICATE_VERIFY_FAILED] certificate "
+           "verify failed: certificate signature failure (_ssl.c:1006)\n")
+    assert rover_failure(1, "h:1", tls, max_wait=5, code=1) == (
+        "rover 1: TLS certificate problem with h:1 (wrong --root-cert?): [SSL: CERTIFICATE_VERIFY_FAILED] "
+        "certificate verify failed: certificate signature failure (_ssl.c:1006)")
+    # ... and for a key the SuperLink has not registered
+    refused = ("\x1b[91mERROR \x1b[0m:     Exit Code: 305\nFailed to initialize the connection to the SuperLink.\n"
+               "[code: 2004] Failed to activate SuperNode.\nThe SuperNode could not establish a connection to the "
+               "SuperLink.\n")
+    assert rover_failure(4, "h:1", refused, max_wait=5, code=1).startswith("rover 4: the SuperLink at h:1 refused "
+                                                                            "this rover's key")
     other = "INFO : starting\n\x1b[91mERROR \x1b[0m:     something odd\n"
     assert rover_failure(0, "h:1", other, max_wait=5, code=7) == ("rover 0: the Flower SuperNode exited with code 7: "
                                                                   "something odd")

@@ -547,13 +547,15 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
 def rover_failure(pid, superlink: str, log: str, *, max_wait: float, code: int | None) -> str:
     """One line saying why a rover's SuperNode stopped, from Flower's log."""
     low = log.lower()
+    lines = [_clean(ln) for ln in log.splitlines() if ln.strip()]
     if "certificate" in low or "ssl" in low or "handshake" in low:
-        line = next((ln.strip() for ln in log.splitlines() if "certificate" in ln.lower() or "ssl" in ln.lower()),
-                    "TLS handshake failed")
-        return f"rover {pid}: TLS certificate problem with {superlink} (wrong --root-cert?): {_clean(line)}"
-    if "unauthenticated" in low or "public key" in low or "not authorized" in low or "permission" in low:
+        why = next((ln for ln in lines if "certificate verify failed" in ln.lower()), None) or next(
+            (ln for ln in lines if "certificate" in ln.lower() or "ssl" in ln.lower()), "TLS handshake failed")
+        return f"rover {pid}: TLS certificate problem with {superlink} (wrong --root-cert?): {why}"
+    if "failed to activate supernode" in low or "unauthenticated" in low or "public key" in low:
+        # Flower 1.41 answers an unregistered key with "[code: 2004] Failed to activate SuperNode."
         return (f"rover {pid}: the SuperLink at {superlink} refused this rover's key (not registered with "
-                f"--auth-keys, or no --auth-key given)")
+                f"--auth-keys on the base station, or no --auth-key given)")
     if "giving up reconnection" in low or "could not establish a connection" in low:
         return (f"rover {pid}: no SuperLink answered at {superlink} for {max_wait:g} s; gave up "
                 f"(wrong address or port, the base station is down, or its run is over)")

@@ -1,0 +1,222 @@
+"""Fault injection: corrupted and NaN payloads (fast, on real payload bytes), then one run on
+loopback with every fault at once (slow): TLS and SuperNode authentication, a TCP proxy
+between the rovers and the SuperLink that delays traffic, drops every connection and cuts
+the link for a few seconds, a rover whose payload has a flipped bit, a rover that sends a
+NaN update, a rover with an unregistered key and one with the wrong CA.
+"""
+
+import json
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from fedmap.errors import FedmapError, RejectedUpdate
+from fedmap.federation.aggregate import FedAvg
+from fedmap.federation.codecs import Encoder, decode
+from fedmap.federation.runner import base_step
+
+HELD = {"w": np.arange(12, dtype=np.float32).reshape(3, 4), "b": np.ones(4, np.float32)}
+
+
+def test_a_flipped_bit_is_caught_by_the_crc():
+    from fedmap.flower.faults import inject
+
+    p = Encoder("update-int8").encode({k: v + 1 for k, v in HELD.items()}, reference=HELD)
+    bad = inject("bitflip@2", p, 2)
+    assert inject("bitflip@2", p, 1) == p and sum(bin(a ^ b).count("1") for a, b in zip(p, bad)) == 1
+    with pytest.raises(RejectedUpdate, match="CRC mismatch"):
+        decode(bad, reference=HELD)
+
+
+def test_a_well_formed_nan_update_is_dropped_by_the_base():
+    """A payload that decodes (its CRC is right) but holds a NaN: the base's own check drops
+    it; before, one such rover made the global model NaN for everyone."""
+    from fedmap.flower.faults import inject
+
+    good = Encoder("fp32").encode({k: v + 1 for k, v in HELD.items()})
+    nan = inject("nan@1", good, 1)
+    assert np.isnan(decode(nan)["b"][-1]) and np.isfinite(decode(nan)["w"]).all()  # it decodes
+    step = base_step(FedAvg(), HELD, {0: good, 1: nan}, {0: 1.0, 1: 1.0}, Encoder("fp32"))
+    assert list(step.counts) == [0] and "NaN" in step.dropped[1]
+    np.testing.assert_array_equal(step.held["w"], HELD["w"] + 1)
+    with pytest.raises(FedmapError, match="fault must be"):
+        inject("nan", good, 1)
+    with pytest.raises(FedmapError, match="needs the fp32 uplink codec"):
+        inject("nan@1", Encoder("int8").encode(HELD), 1)
+
+
+class Proxy:
+    """A TCP proxy on loopback: forwards to ``target``, can delay every chunk, drop every
+    open connection, or refuse the link for a while. Counts what it did."""
+
+    def __init__(self, target_port: int, *, delay: float = 0.0) -> None:
+        self.target, self.delay = target_port, delay
+        self.srv = socket.create_server(("127.0.0.1", 0))
+        self.port = self.srv.getsockname()[1]
+        self.down_until = 0.0
+        self.conns: list[socket.socket] = []
+        self.counts = {"connections": 0, "refused": 0, "dropped": 0, "delayed_chunks": 0}
+        self.lock = threading.Lock()
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                c, _ = self.srv.accept()
+            except OSError:
+                return  # closed
+            if time.monotonic() < self.down_until:
+                self.counts["refused"] += 1
+                c.close()
+                continue
+            try:
+                u = socket.create_connection(("127.0.0.1", self.target), timeout=5)
+            except OSError:
+                c.close()
+                continue
+            with self.lock:
+                self.counts["connections"] += 1
+                self.conns += [c, u]
+            for a, b in ((c, u), (u, c)):
+                threading.Thread(target=self._pipe, args=(a, b), daemon=True).start()
+
+    def _pipe(self, a: socket.socket, b: socket.socket) -> None:
+        try:
+            while data := a.recv(65536):
+                if self.delay:
+                    time.sleep(self.delay)
+                    self.counts["delayed_chunks"] += 1
+                b.sendall(data)
+        except OSError:
+            pass
+        finally:
+            for s in (a, b):
+                try:
+                    s.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+
+    def drop_all(self) -> None:
+        """Reset every open connection (as a radio link that goes away)."""
+        with self.lock:
+            conns, self.conns = self.conns, []
+        self.counts["dropped"] += len(conns) // 2
+        for s in conns:
+            try:
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\x00\x00\x00\x00\x00\x00\x00")
+                s.close()
+            except OSError:
+                pass
+
+    def cut(self, seconds: float) -> None:
+        """Drop every connection and refuse new ones for ``seconds``."""
+        self.down_until = time.monotonic() + seconds
+        self.drop_all()
+
+    def close(self) -> None:
+        self.srv.close()
+        self.drop_all()
+
+
+def _rover_argv(port, k, tmp_path, certs, *, root_cert=None, key=None, fault=None, max_wait=60):
+    argv = [sys.executable, "-m", "fedmap", "rover", "--superlink", f"127.0.0.1:{port}", "--partition-id", str(k),
+            "--map", str(tmp_path / f"local{k}.npy"), "--root-cert", str(root_cert or certs / "ca.crt"),
+            "--auth-key", str(key or certs / f"rover{k}"), "--max-wait", str(max_wait)]
+    return argv + (["--fault", fault] if fault else [])
+
+
+@pytest.mark.slow
+def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
+    """2 rounds, 4 rovers over TLS with registered keys, all through the proxy (20 ms per
+    chunk; as round 2 goes out every connection is dropped and the link is down for 3 s). Rover 2's
+    round-1 payload has a flipped bit, rover 3 sends a NaN update in round 2: each is dropped
+    for that round with the reason, and the global model equals the in-process runner with
+    the same survivors. A rover with an unregistered key is refused and one with the wrong CA
+    fails, each with one line, while the base serves the others; every rover exits."""
+    pytest.importorskip("flwr")
+    from fedmap.explore import explore
+    from fedmap.federation.runner import run_federation
+    from fedmap.flower.launch import Processes, flower_env, free_port, make_certs, run_base_station
+    from fedmap.flower.settings import RunSettings
+    from fedmap.maps.io import save_map
+    from fedmap.maps.sources import TerrainSource, load_truth
+    from fedmap.nets.model import build_model, get_weights, load_model, preset
+    from fedmap.pipeline import PipelineConfig
+
+    monkeypatch.setenv("FLWR_HOME", str(tmp_path / "flwr-home"))
+    truth = load_truth(TerrainSource(terrain="mars", size=64), seed=1)
+    maps = explore(truth, 4, "quadrants", seed=1, sensor_radius=PipelineConfig().sensor_radius)
+    for k, m in enumerate(maps):
+        save_map(m, tmp_path / f"local{k}.npy")
+    save_map(truth, tmp_path / "truth.npy")
+    certs, other = tmp_path / "certs", tmp_path / "other-ca"
+    make_certs(certs, hosts=["127.0.0.1", "localhost"], rovers=5)
+    make_certs(other, hosts=["127.0.0.1"], rovers=0)  # a CA that did not sign the SuperLink's certificate
+    keys = tmp_path / "registered"
+    keys.mkdir()
+    for k in range(4):  # rover4's key is never registered
+        (keys / f"rover{k}.pub").write_bytes((certs / f"rover{k}.pub").read_bytes())
+    run = {"net": "small", "init": "random", "epochs": 3, "lr": 1e-2, "seed": 1, "rovers": 4, "min-rovers": 2,
+           "rounds": 2, "connect-timeout": 240.0, "deadline": 240.0, "pairs": 5}
+    port, out = free_port(), tmp_path / "out"
+    proxy = Proxy(port, delay=0.02)
+    bad: dict[str, subprocess.Popen] = {}
+    cut: list[bool] = []
+
+    def start(rovers: Processes) -> None:
+        faults = {2: "bitflip@1", 3: "nan@2"}
+        for k in range(4):
+            rovers.start(f"rover{k}", _rover_argv(proxy.port, k, tmp_path, certs, fault=faults.get(k)),
+                         env=flower_env(tmp_path / f"home{k}"), log=tmp_path / f"rover{k}.log")
+        for name, argv in (("unregistered", _rover_argv(proxy.port, 0, tmp_path, certs, key=certs / "rover4",
+                                                        max_wait=10)),
+                           ("wrong-ca", _rover_argv(proxy.port, 1, tmp_path, certs, root_cert=other / "ca.crt",
+                                                    max_wait=10))):
+            bad[name] = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                         env=flower_env(tmp_path / f"home-{name}"))
+
+    def on_status(st: dict, rovers: Processes) -> None:
+        if st.get("round", 0) >= 2 and not cut:
+            proxy.cut(3.0)  # as round 2 goes out: every rover loses its connection for 3 s
+            cut.append(True)
+
+    try:
+        with Processes() as rovers:
+            status = run_base_station({**run, "out": str(out), "truth": str(tmp_path / "truth.npy")},
+                                      host="127.0.0.1", port=port, certs=certs, auth_keys=keys,
+                                      on_ready=lambda: start(rovers), on_status=lambda st: on_status(st, rovers))
+            codes = {k: rovers.procs[f"rover{k}"].wait(timeout=120) for k in range(4)}
+            errs = {name: p.communicate(timeout=120)[1] for name, p in bad.items()}
+    finally:
+        proxy.close()
+        for p in bad.values():
+            if p.poll() is None:
+                p.kill()
+    assert status["state"] == "done" and cut
+    m = json.loads((out / "metrics.json").read_text())
+    r1, r2 = m["rounds"]
+    assert sorted(r1["weights"]) == ["0", "1", "3"] and "CRC mismatch" in r1["dropped"]["2"]
+    assert sorted(r2["weights"]) == ["0", "1", "2"] and "NaN" in r2["dropped"]["3"]
+    assert r1["missing"] == r2["missing"] == []
+    assert proxy.counts["dropped"] >= 1 and proxy.counts["delayed_chunks"] > 0
+    print("proxy:", proxy.counts)  # the README's fault table quotes these counts
+    # the same survivors in process: rover 2 sits out round 1, rover 3 round 2
+    net = preset("small", 64)
+    ref = run_federation(get_weights(build_model(net, seed=1)), net, maps, RunSettings.from_run_config(run).federation,
+                         absent={1: [2], 2: [3]})
+    got = get_weights(load_model(out / "global_model.safetensors"))
+    for k in ref.weights:
+        np.testing.assert_allclose(got[k], ref.weights[k], atol=1e-5)
+    assert [p.name for p in sorted(out.glob("global_model_round*.safetensors"))] == [
+        "global_model_round1.safetensors", "global_model_round2.safetensors"]  # no checkpoint lost
+    assert codes == {0: 0, 1: 0, 2: 0, 3: 0}  # every rover ended by itself
+    for name, err in errs.items():
+        assert bad[name].returncode == 2, (name, err[-2000:])
+        assert len([ln for ln in err.splitlines() if ln.startswith("error:")]) == 1, err[-2000:]
+    assert "refused this rover's key" in errs["unregistered"], errs["unregistered"][-2000:]
+    assert "TLS certificate problem" in errs["wrong-ca"], errs["wrong-ca"][-2000:]
