@@ -17,7 +17,8 @@ reported position and target (downlink); rovers coordinate their targets with it
 * ``paper`` / ``fedmap``: the preset's network (:func:`fedmap.config.method_config`),
   trained and aggregated by the same :func:`~fedmap.federation.runner.rover_step` and
   :func:`~fedmap.federation.runner.base_step` as ``fedmap run``. A rover trains from the
-  model it holds on its whole local map. **Over budget** the update is not sent; the
+  model it holds on its whole local map, 50 local epochs per sync
+  (:data:`MISSION_DEFAULTS`). **Over budget** the update is not sent; the
   rover trains again at the next sync on its grown map. Update codecs are relative to
   the model both ends hold, so the base aggregates only updates relative to its current
   version (others are dropped as ``stale``) and sends a rover that missed a broadcast a
@@ -49,6 +50,11 @@ _DOWN = struct.Struct("<IIB")  # reference version (KEYFRAME: none), new version
 _REPORT = struct.Struct("<Bhhhh")  # rover, row, col, target row, target col
 KEYFRAME = 0xFFFFFFFF
 KEYFRAME_CODEC = "fp32+zstd"
+#: Settings a mission lays over a model strategy's preset (``[strategies.<name>]`` wins).
+#: The presets' 100 local epochs fit a map from scratch in one round; at a sync a rover
+#: starts from the global model and has observed ``sync_every`` more steps, so both model
+#: strategies train 50 epochs per sync (the same compute for both).
+MISSION_DEFAULTS: dict[str, dict] = {"paper": {"epochs": 50}, "fedmap": {"epochs": 50}}
 #: Torch threads while a mission trains or renders. The models are small and trained one
 #: after another; on a shared 2-core machine two OpenMP threads per process spin against
 #: other processes and made one GridNet fit 20x slower than one thread (measured: 17-23 s
@@ -294,7 +300,7 @@ class Model(Strategy):
                  settings: dict, seed: int) -> None:
         super().__init__(truth, team, budget)
         self.name = method
-        pc = method_config(method, **{**settings, "seed": seed})
+        pc = method_config(method, **{**MISSION_DEFAULTS.get(method, {}), **settings, "seed": seed})
         self.fed = pc.federation
         self.net_config = preset(pc.net, self.shape[0])
         init = get_weights(initial_model(self.net_config, init=pc.init, seed=seed, prior_steps=pc.prior_steps,
