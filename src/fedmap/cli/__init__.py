@@ -2,6 +2,7 @@
 
 One module per group of commands: :mod:`~fedmap.cli.run` (demo, run, terrain, evaluate),
 :mod:`~fedmap.cli.export` (export),
+:mod:`~fedmap.cli.mission` (mission),
 :mod:`~fedmap.cli.experiments` (reproduce, bandwidth), :mod:`~fedmap.cli.meta`
 (meta-train, ablate-init) and :mod:`~fedmap.cli.flower` (base-station, rover, certs);
 :mod:`~fedmap.cli.ui` holds the console, progress bars and tables.
