@@ -117,3 +117,7 @@ def _flower(run: dict, truth, maps, mode: str, size: int) -> tuple[dict, float, 
         flower_s = time.perf_counter() - t
         m = json.loads((out / "metrics.json").read_text())
     return m, flower_s, (started[0] - t) if started else float("nan")
+
+
+if __name__ == "__main__":
+    main()
