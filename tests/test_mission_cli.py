@@ -89,9 +89,10 @@ def test_cadre_preset_and_examples_resolve():
     assert cfg.link.uplink_bytes is not None and cfg.link.uplink_bytes <= 2000 and cfg.link.max_range is not None
     assert source.terrain == "moon"
     # a file laid over the preset wins
-    cfg2, _, _ = load_mission(preset="cadre", mission={"steps": 7})
-    assert cfg2.steps == 7 and cfg2.rovers == 3
+    cfg2, src2, _ = load_mission(preset="cadre", mission={"steps": 7}, size=64)
+    assert cfg2.steps == 7 and cfg2.rovers == 3 and src2.terrain == "moon" and src2.size == 64
     for name in ("gale", "hadley", "glacier"):
-        cfg, source, _ = load_mission(EXAMPLES / f"mission_{name}.toml")
+        cfg, source, _ = load_mission(EXAMPLES / f"mission_{name}.toml", size=96)  # --size keeps the file's source
+        assert source.size == 96
         assert source.kind in ("dem", "tiles") and Path(source.path).name in (
             "missionDEM_gale_1m.tif", "gld100_256p", "test-files_columbia_dem_Columbia.tif")

@@ -46,13 +46,12 @@ def mission(
     """Run one mission with every sharing strategy; write metrics.json, report.md, plots and animations."""
     t0 = time.perf_counter()
     table = terrain_table(dem=dem, map_path=map_path, builtin=terrain)
-    if size is not None:
-        table = {**(table or {}), "size": size}
     m = {"strategies": strategies, "steps": steps, "sync_every": sync_every, "rovers": rovers, "speed": speed,
          "sensor_radius": sensor_radius, "line_of_sight": line_of_sight, "mode": mode, "stay_in_range": stay_in_range}
     link = {"uplink_bytes": uplink_bytes, "downlink_bytes": downlink_bytes, "loss": loss, "latency": latency,
             "max_range": max_range}
-    cfg, source, resolved = load_mission(config, preset=preset, mission=m, link=link, terrain=table, seed=seed)
+    cfg, source, resolved = load_mission(config, preset=preset, mission=m, link=link, terrain=table, size=size,
+                                         seed=seed)
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
         truth = load_truth(source, seed=cfg.seed)

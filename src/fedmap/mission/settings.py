@@ -236,13 +236,13 @@ def _preset_data(name: str) -> dict:
 
 
 def load_mission(path: str | Path | None = None, *, preset: str | None = None, mission: dict | None = None,
-                 link: dict | None = None, terrain: dict | None = None,
+                 link: dict | None = None, terrain: dict | None = None, size: int | None = None,
                  seed: int | None = None) -> tuple[MissionConfig, TerrainSource, dict]:
     """Preset < TOML file < options -> ``(mission config, terrain source, resolved dict)``.
 
     ``mission`` and ``link`` are ``[mission]`` / ``[link]`` keys from options (None values
     left out); ``terrain`` replaces the file's terrain source (like ``fedmap run --dem``),
-    keeping its ``crop``, ``size`` and ``resample``.
+    keeping its ``crop``, ``size`` and ``resample``; ``size`` then resamples the terrain.
     """
     data: dict = _preset_data(preset) if preset is not None else {}
     if path is not None:
@@ -260,6 +260,8 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
     if terrain is not None:
         kept = {k: v for k, v in data.get("terrain", {}).items() if k in ("crop", "size", "resample")}
         data["terrain"] = {**kept, **terrain}
+    if size is not None:
+        data["terrain"] = {**data.get("terrain", {}), "size": size}
     run_part = {k: data[k] for k in ("seed", "terrain", "thresholds") if k in data}
     validate(run_part, where)
     if seed is not None:
