@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import tomllib
 from pathlib import Path
 
@@ -96,3 +97,12 @@ def test_cadre_preset_and_examples_resolve():
         assert source.size == 96
         assert source.kind in ("dem", "tiles") and Path(source.path).name in (
             "missionDEM_gale_1m.tif", "gld100_256p", "test-files_columbia_dem_Columbia.tif")
+
+
+@pytest.mark.skipif(shutil.which("ffmpeg") is None, reason="ffmpeg is not on the PATH")
+def test_mp4_when_ffmpeg_is_present(tmp_path):
+    from fedmap.mission.report import mp4_bytes
+
+    frames = [np.full((16, 20, 3), 40 * i, dtype=np.uint8) for i in range(5)]
+    data = mp4_bytes(frames)
+    assert data is not None and b"ftyp" in data[:64]
