@@ -176,3 +176,14 @@ def test_sigterm_stops_the_base_station_in_one_line_and_records_it(tmp_path):
     with socket.socket() as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         s.bind(("127.0.0.1", port))  # nobody listens there any more
+
+
+def test_base_station_starts_from_the_meta_init_like_the_demo():
+    from typer.testing import CliRunner
+
+    from fedmap.cli import app
+    from fedmap.config import method_config
+
+    assert RunSettings.from_run_config({}).pipeline.init == method_config("paper").init == "meta"
+    help_text = CliRunner().invoke(app, ["base-station", "--help"], env={"COLUMNS": "200"}).output
+    assert all(word in help_text for word in ("random", "empty", "meta"))
