@@ -187,3 +187,39 @@ def test_base_station_starts_from_the_meta_init_like_the_demo():
     assert RunSettings.from_run_config({}).pipeline.init == method_config("paper").init == "meta"
     help_text = CliRunner().invoke(app, ["base-station", "--help"], env={"COLUMNS": "200"}).output
     assert all(word in help_text for word in ("random", "empty", "meta"))
+
+
+FAKE_SUPERNODE = """
+import pathlib, sys
+count, done, kicks = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2]), int(sys.argv[3])
+n = int(count.read_text()) if count.exists() else 0
+count.write_text(str(n + 1))
+if n < kicks:  # what Flower's SuperNode logs when a new SuperLink does not know its node
+    print("httpx.HTTPStatusError: Client error '401 Unauthorized' for url '.../send-node-heartbeat'")
+    sys.exit(1)
+if kicks < 0:
+    print("ERROR : Exit Code: 305 ... Giving up reconnection after 5.00 seconds and 5 tries.")
+    sys.exit(1)
+done.write_text("1")  # the ClientApp received the final model
+"""
+
+
+@pytest.mark.parametrize("kicks", [2, -1])
+def test_a_rover_reconnects_when_the_base_station_restarts(tmp_path, monkeypatch, kicks):
+    """A resumed base station is a new SuperLink: the rover's SuperNode is refused (401) and
+    the rover starts a new one, a bounded number of times; a real failure is not retried."""
+    (tmp_path / "fake.py").write_text(FAKE_SUPERNODE)
+    count = tmp_path / "count"
+
+    def fake_argv(**kw):
+        return [sys.executable, str(tmp_path / "fake.py"), str(count), kw["node_config"]["done-file"], str(kicks)]
+
+    monkeypatch.setattr(launch, "supernode_argv", fake_argv)
+    cfg = {"partition-id": 1, "map": "unused"}
+    if kicks > 0:
+        assert launch.run_rover(cfg, superlink="127.0.0.1:1", warm=False, max_wait=5) == 0
+        assert count.read_text() == "3"
+    else:
+        with pytest.raises(FedmapError, match="^rover 1: no SuperLink answered at 127.0.0.1:1 for 5 s"):
+            launch.run_rover(cfg, superlink="127.0.0.1:1", warm=False, max_wait=5)
+        assert count.read_text() == "1"

@@ -396,7 +396,7 @@ def book_downlink(rec: dict, agent, d: Downlink) -> None:
         return
     rec["downlink_bytes"][agent] = len(d.payload)
     if d.kind == "keyframe":
-        rec.setdefault("keyframes", []).append(agent)
+        rec["keyframes"] = sorted({*rec.get("keyframes", []), agent})
 
 
 def round_record(round_no: int, step: BaseStep, losses: dict, up_bytes: dict, down_bytes: dict,

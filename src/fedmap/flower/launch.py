@@ -484,6 +484,8 @@ def write_shim(bin_dir, sock: str) -> None:
 
 #: Seconds a rover keeps trying to reach its SuperLink before it gives up (``fedmap rover --max-wait``).
 ROVER_MAX_WAIT = 120.0
+#: How often a rover starts a new SuperNode when the SuperLink it knew was replaced.
+ROVER_RESTARTS = 10
 #: Seconds a finished rover leaves its SuperNode running so the final reply reaches the base.
 DONE_GRACE = 5.0
 
@@ -498,7 +500,9 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
     received the run's final model (it writes the node config's ``done-file``). Flower gives
     up after ``max_wait`` seconds without a SuperLink (wrong address or port, base gone, run
     over); that and every other SuperNode failure (TLS, refused authentication) is a one-line
-    :class:`FedmapError` naming the rover. Flower's log goes to ``log`` (default: a temporary
+    :class:`FedmapError` naming the rover. When the SuperLink it knew is replaced (the base
+    station restarted, e.g. ``--resume``), the rover starts a new SuperNode, at most
+    :data:`ROVER_RESTARTS` times. Flower's log goes to ``log`` (default: a temporary
     folder, removed with ``flwr_home``'s default when the rover exits). ``warm``: Flower's
     per-message ClientApp processes are forked from one process that imported torch and
     fedmap and read the map once (:mod:`fedmap.flower.warm`) instead of starting cold.
@@ -528,20 +532,32 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
             env["PATH"] = os.pathsep.join([str(Path(tmp) / "bin"), env["PATH"]])
             procs.start("warm", [sys.executable, "-m", "fedmap.flower.warm", sock, json.dumps(node_config)],
                         env=env, log=log, new_session=False, die_with_parent=True)
-        p = procs.start("supernode", argv, env=env, log=log, new_session=False, die_with_parent=True)
-        while p.poll() is None:  # bounded: Flower gives up after max_wait s without a SuperLink
-            if done.exists():  # the ClientApp has the final model; its reply is still on its way
-                try:
-                    p.wait(timeout=DONE_GRACE)
-                except subprocess.TimeoutExpired:
-                    pass
+        for attempt in range(ROVER_RESTARTS + 1):  # bounded: each SuperNode gives up after max_wait s
+            start = log.stat().st_size if log.exists() else 0
+            p = procs.start("supernode", argv, env=env, log=log, new_session=False, die_with_parent=True)
+            while p.poll() is None:
+                if done.exists():  # the ClientApp has the final model; its reply is still on its way
+                    try:
+                        p.wait(timeout=DONE_GRACE)
+                    except subprocess.TimeoutExpired:
+                        pass
+                    return 0
+                time.sleep(0.3)
+            if done.exists():
                 return 0
-            time.sleep(0.3)
-        if done.exists():
-            return 0
-        raise FedmapError(rover_failure(pid, superlink, log.read_text(errors="replace") if log.exists() else "",
-                                        max_wait=max_wait, code=p.returncode))
+            text = log.read_bytes()[start:].decode(errors="replace") if log.exists() else ""
+            if not _superlink_replaced(p.returncode, text) or attempt == ROVER_RESTARTS:
+                raise FedmapError(rover_failure(pid, superlink, text, max_wait=max_wait, code=p.returncode))
+            print(f"rover {pid}: the SuperLink's run changed under this rover (the base station restarted?); "
+                  f"reconnecting ({attempt + 1}/{ROVER_RESTARTS})", file=sys.stderr, flush=True)
     return 0  # pragma: no cover - the with block returns or raises
+
+
+def _superlink_replaced(code: int | None, log: str) -> bool:
+    """A SuperNode that stopped although nothing was wrong with it: the SuperLink it was
+    registered with was replaced (a restarted or resumed base station no longer knows its
+    node: HTTP 401, or Flower's SuperNode stops with code 0). Reconnecting is the cure."""
+    return code == 0 or "401 unauthorized" in log.lower()
 
 
 def rover_failure(pid, superlink: str, log: str, *, max_wait: float, code: int | None) -> str:
