@@ -486,6 +486,8 @@ def write_shim(bin_dir, sock: str) -> None:
 ROVER_MAX_WAIT = 120.0
 #: How often a rover starts a new SuperNode when the SuperLink it knew was replaced.
 ROVER_RESTARTS = 10
+#: Seconds between a rover's own checks that its SuperLink's port still answers.
+PROBE_EVERY = 5.0
 #: Seconds a finished rover leaves its SuperNode running so the final reply reaches the base.
 DONE_GRACE = 5.0
 
@@ -535,6 +537,7 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
         for attempt in range(ROVER_RESTARTS + 1):  # bounded: each SuperNode gives up after max_wait s
             start = log.stat().st_size if log.exists() else 0
             p = procs.start("supernode", argv, env=env, log=log, new_session=False, die_with_parent=True)
+            reachable = probed = time.monotonic()  # last time the SuperLink's port answered / was tried
             while p.poll() is None:
                 if done.exists():  # the ClientApp has the final model; its reply is still on its way
                     try:
@@ -542,6 +545,16 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
                     except subprocess.TimeoutExpired:
                         pass
                     return 0
+                if time.monotonic() - probed > PROBE_EVERY:
+                    probed = time.monotonic()
+                    if _port_open(superlink):
+                        reachable = probed
+                elif time.monotonic() - reachable > max_wait:
+                    # our own bound: Flower's --max-wait-time does not cover every state a
+                    # SuperNode can be in (e.g. after the SuperLink declared it unavailable)
+                    procs.stop("supernode")
+                    raise FedmapError(rover_failure(pid, superlink, "giving up reconnection", max_wait=max_wait,
+                                                    code=None))
                 time.sleep(0.3)
             if done.exists():
                 return 0
@@ -551,6 +564,16 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
             print(f"rover {pid}: the SuperLink's run changed under this rover (the base station restarted?); "
                   f"reconnecting ({attempt + 1}/{ROVER_RESTARTS})", file=sys.stderr, flush=True)
     return 0  # pragma: no cover - the with block returns or raises
+
+
+def _port_open(address: str) -> bool:
+    """Whether something accepts TCP connections at ``HOST:PORT`` right now (1 s timeout)."""
+    host, _, port = address.rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=1.0):
+            return True
+    except (OSError, ValueError):
+        return False
 
 
 def _superlink_replaced(code: int | None, log: str) -> bool:
