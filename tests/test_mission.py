@@ -244,7 +244,7 @@ def test_fedmap_strategy_is_one_round_of_fedmap_run():
     base steps of `fedmap run`) on the rovers' local maps at that sync."""
     from fedmap.config import method_config
     from fedmap.federation.runner import run_federation
-    from fedmap.mission.strategies import torch_threads
+    from fedmap.mission.strategies import UP_HEADER, torch_threads
     from fedmap.nets.init import initial_model
     from fedmap.nets.model import get_weights, preset
 
@@ -253,7 +253,7 @@ def test_fedmap_strategy_is_one_round_of_fedmap_run():
                  methods={"fedmap": {"epochs": 15}})
     run = run_mission(cfg, truth).runs["fedmap"]
     strat = run.strategy
-    assert strat.base_version == 1
+    assert strat.rounds_aggregated == 1
     pc = method_config("fedmap", epochs=15, seed=cfg.seed)
     init = get_weights(initial_model(preset(pc.net, 32), init=pc.init, seed=cfg.seed, prior_steps=pc.prior_steps))
     locals_ = [truth.with_classes(r.local, f"rover {k}") for k, r in enumerate(strat.team)]
@@ -264,7 +264,7 @@ def test_fedmap_strategy_is_one_round_of_fedmap_run():
         for k in range(2):  # and every rover decoded the same broadcast
             np.testing.assert_array_equal(strat.rover_held[k][name], w)
     up = [m.bytes for m in run.ledger if m.direction == "up"]
-    assert sorted(up) == sorted(b + 12 for b in fed.history[0]["uplink_bytes"].values())  # + the 12-byte header
+    assert sorted(up) == sorted(b + UP_HEADER for b in fed.history[0]["uplink_bytes"].values())
 
 
 def test_lost_broadcasts_cost_keyframes_and_rovers_stay_in_step_with_the_base():
@@ -274,12 +274,12 @@ def test_lost_broadcasts_cost_keyframes_and_rovers_stay_in_step_with_the_base():
     run = run_mission(cfg, truth).runs["fedmap"]
     strat = run.strategy
     kinds = {(m.kind, m.status) for m in run.ledger if m.direction == "down"}
-    assert ("keyframe", "delivered") in kinds and ("update", "lost") in kinds
+    assert ("keyframe", "delivered") in kinds and ("broadcast", "lost") in kinds
     for k in range(2):
-        if strat.rover_version[k] == strat.base_version:  # the same version is the same weights
+        if strat.rover_version[k] == strat.bc.version:  # the same version is the same weights
             for name, w in strat.base_held.items():
                 np.testing.assert_array_equal(strat.rover_held[k][name], w)
-    assert strat.base_version >= 1
+    assert strat.rounds_aggregated >= 1
 
 
 def test_latency_delays_every_delivery_and_waypoints_are_followed():

@@ -1,8 +1,10 @@
 """The ways of sharing maps, each with the same four hooks the mission loop calls.
 
-Every sharing payload starts with a small header (real bytes, counted): the sender's
-model version, position and target (uplink), or the versions and every rover's last
-reported position and target (downlink); rovers coordinate their targets with it.
+Every sharing payload starts with a small header (real bytes, counted): the version of
+the model an update is relative to, the sender's position and target (uplink, 16 bytes),
+or what the body is, the model version a broadcast is relative to and every rover's last
+reported position and target (downlink, 10 + 9 per rover bytes); rovers coordinate their
+targets with it.
 
 * ``none``: nothing is sent. A rover's belief is its own observations.
 * ``raw``: a rover sends the cells it observed since its last *delivered* sync, as a
@@ -19,10 +21,11 @@ reported position and target (downlink); rovers coordinate their targets with it
   :func:`~fedmap.federation.runner.base_step` as ``fedmap run``. A rover trains from the
   model it holds on its whole local map, 50 local epochs per sync
   (:data:`MISSION_DEFAULTS`). **Over budget** the update is not sent; the
-  rover trains again at the next sync on its grown map. Update codecs are relative to
-  the model both ends hold, so the base aggregates only updates relative to its current
-  version (others are dropped as ``stale``) and sends a rover that missed a broadcast a
-  *keyframe*: the whole model, ``fp32+zstd`` (exact), instead of the update.
+  rover trains again at the next sync on its grown map. The versions protocol is the
+  runner's (:class:`Model`): update codecs are relative to the model both ends hold, so
+  the base aggregates only updates made from its current model (others are dropped as
+  stale) and sends a rover that holds anything but the previous model a *keyframe*: the
+  whole model, dense fp32 (:data:`fedmap.federation.runner.KEYFRAME`, exact).
 * ``central``: an oracle; every rover and the base see every observation at once, free.
 """
 
@@ -38,18 +41,27 @@ import torch
 
 from fedmap.config import method_config
 from fedmap.errors import FedmapError, RejectedUpdate
-from fedmap.federation.codecs import CodecSpec, Encoder, decode
+from fedmap.federation.codecs import CodecSpec, Encoder
 from fedmap.federation.mapcodec import decode_map, encode_map
-from fedmap.federation.runner import base_step, rover_step
+from fedmap.federation.runner import (
+    Broadcaster,
+    apply_downlink,
+    base_step,
+    init_held,
+    model_version,
+    rover_step,
+)
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb
 from fedmap.nets.init import initial_model
 from fedmap.nets.model import Weights, build_model, get_weights, preset, render, set_weights
 
-_UP = struct.Struct("<Ihhhh")  # model version, row, col, target row, target col
-_DOWN = struct.Struct("<IIB")  # reference version (KEYFRAME: none), new version, rovers reported
+_UP = struct.Struct("<8shhhh")  # model version (8 bytes), row, col, target row, target col
+_DOWN = struct.Struct("<B8sB")  # kind, reference model version (8 bytes), rovers reported
 _REPORT = struct.Struct("<Bhhhh")  # rover, row, col, target row, target col
-KEYFRAME = 0xFFFFFFFF
-KEYFRAME_CODEC = "fp32+zstd"
+_KINDS = ("map", "broadcast", "keyframe")
+#: Bytes of the uplink header (before the payload proper).
+UP_HEADER = _UP.size
+Cell = tuple[int, int]
 #: Settings a mission lays over a model strategy's preset (``[strategies.<name>]`` wins).
 #: The presets' 100 local epochs fit a map from scratch in one round; at a sync a rover
 #: starts from the global model and has observed ``sync_every`` more steps, so both model
@@ -71,35 +83,45 @@ def torch_threads(n: int = TORCH_THREADS) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
-Cell = tuple[int, int]
 
 
-def pack_up(version: int, pos: Cell, target: Cell | None, body: bytes) -> bytes:
+def _v(version: str) -> bytes:
+    return bytes.fromhex(version) if version else bytes(8)
+
+
+def _unv(raw: bytes) -> str:
+    return "" if raw == bytes(8) else raw.hex()
+
+
+def pack_up(version: str, pos: Cell, target: Cell | None, body: bytes) -> bytes:
+    """Uplink: the version of the model the update is relative to ("" for none), position, target."""
     t = target if target is not None else (-1, -1)
-    return _UP.pack(version, pos[0], pos[1], t[0], t[1]) + body
+    return _UP.pack(_v(version), pos[0], pos[1], t[0], t[1]) + body
 
 
-def unpack_up(payload: bytes) -> tuple[int, Cell, Cell | None, bytes]:
+def unpack_up(payload: bytes) -> tuple[str, Cell, Cell | None, bytes]:
     v, r, c, tr, tc = _UP.unpack_from(payload)
-    return v, (r, c), (None if tr < 0 else (tr, tc)), payload[_UP.size:]
+    return _unv(v), (r, c), (None if tr < 0 else (tr, tc)), payload[_UP.size:]
 
 
-def pack_down(ref: int, new: int, reports: dict[int, tuple[Cell, Cell | None]], body: bytes) -> bytes:
-    head = _DOWN.pack(ref, new, len(reports))
+def pack_down(kind: str, reference: str, reports: dict[int, tuple[Cell, Cell | None]], body: bytes) -> bytes:
+    """Downlink: what the body is (map, broadcast, keyframe), the model version a broadcast is
+    relative to, and every rover's last reported position and target."""
+    head = _DOWN.pack(_KINDS.index(kind), _v(reference), len(reports))
     for k, (p, t) in sorted(reports.items()):
         t = t if t is not None else (-1, -1)
         head += _REPORT.pack(k, p[0], p[1], t[0], t[1])
     return head + body
 
 
-def unpack_down(payload: bytes) -> tuple[int, int, dict[int, tuple[Cell, Cell | None]], bytes]:
-    ref, new, n = _DOWN.unpack_from(payload)
+def unpack_down(payload: bytes) -> tuple[str, str, dict[int, tuple[Cell, Cell | None]], bytes]:
+    kind, ref, n = _DOWN.unpack_from(payload)
     reports, off = {}, _DOWN.size
     for _ in range(n):
         k, r, c, tr, tc = _REPORT.unpack_from(payload, off)
         reports[k] = ((r, c), None if tr < 0 else (tr, tc))
         off += _REPORT.size
-    return ref, new, reports, payload[off:]
+    return _KINDS[kind], _unv(ref), reports, payload[off:]
 
 
 @dataclass
@@ -246,7 +268,7 @@ class Raw(Strategy):
         pending = (r.local != UNKNOWN) & ~self.delivered[k]
 
         def make(mask: np.ndarray) -> bytes:
-            return pack_up(0, r.pos, r.target, encode_map(np.where(mask, r.local, UNKNOWN).astype(np.uint8)))
+            return pack_up("", r.pos, r.target, encode_map(np.where(mask, r.local, UNKNOWN).astype(np.uint8)))
 
         budget = self.budget["up"]
         payload, sent = _cut_to_budget(make, r.obs_step, pending, budget)
@@ -271,7 +293,7 @@ class Raw(Strategy):
 
             def make(mask: np.ndarray, ref: np.ndarray = ref) -> bytes:
                 m = np.where(mask | (ref != UNKNOWN), self.base, UNKNOWN).astype(np.uint8)
-                return pack_down(0, round_no, self.base_reports, encode_map(m, reference=ref))
+                return pack_down("map", "", self.base_reports, encode_map(m, reference=ref))
 
             candidates = (self.base != UNKNOWN) & (ref == UNKNOWN)
             payload, sent = _cut_to_budget(make, self.base_stamp, candidates, self.budget["down"])
@@ -292,7 +314,15 @@ class Raw(Strategy):
 
 
 class Model(Strategy):
-    """A network shared with fedmap's rover and base steps (``paper`` or ``fedmap``)."""
+    """A network shared with fedmap's rover and base steps (``paper`` or ``fedmap``).
+
+    The protocol is the runner's: :func:`~fedmap.federation.runner.rover_step` and
+    :func:`~fedmap.federation.runner.base_step` (which drops an update made from any model
+    but the base's), :class:`~fedmap.federation.runner.Broadcaster` (the round's broadcast
+    for a rover that holds the previous model, a keyframe for any other) and
+    :func:`~fedmap.federation.runner.apply_downlink` on the rover. Versions are
+    :func:`~fedmap.federation.runner.model_version` content hashes (8 bytes on the link).
+    """
 
     shares = True
 
@@ -303,26 +333,29 @@ class Model(Strategy):
         pc = method_config(method, **{**MISSION_DEFAULTS.get(method, {}), **settings, "seed": seed})
         self.fed = pc.federation
         self.net_config = preset(pc.net, self.shape[0])
-        init = get_weights(initial_model(self.net_config, init=pc.init, seed=seed, prior_steps=pc.prior_steps,
-                                         init_weights=pc.init_weights))
+        init = init_held(get_weights(initial_model(self.net_config, init=pc.init, seed=seed,
+                                                   prior_steps=pc.prior_steps, init_weights=pc.init_weights)))
         self.model = build_model(self.net_config)
         self.aggregator = self.fed.make_aggregator()
         self.up_update = CodecSpec.parse(self.fed.uplink).update
-        self.down_update = CodecSpec.parse(self.fed.downlink).update
         self.up_encs = [Encoder(self.fed.uplink) for _ in team]  # residuals live on the rovers
         self.down_enc = Encoder(self.fed.downlink)
-        self.base_held: Weights = {k: np.asarray(v, dtype=np.float32) for k, v in init.items()}
-        self.base_version = 0
-        self.versions: dict[int, np.ndarray] = {}  # version -> rendered classes (cache)
-        self.rover_held: list[Weights] = [self.base_held for _ in team]
-        self.rover_version = [0 for _ in team]
-        self.acked_version = [0 for _ in team]  # what the base knows each rover holds
-        self.inbox: dict[int, tuple[int, bytes, float]] = {}
+        self.bc = Broadcaster(init)  # the base's model, its last broadcast and keyframe
+        self.versions: dict[str, np.ndarray] = {}  # model version -> rendered classes (cache)
+        self.rover_held: list[Weights] = [init for _ in team]
+        self.rover_version = [self.bc.version for _ in team]
+        self.acked_version: list[str | None] = [self.bc.version for _ in team]  # what the base knows each rover holds
+        self.inbox: dict[int, tuple[str, bytes, float]] = {}
+        self.rounds_aggregated = 0
         self.dropped: list[dict] = []  # (round, rover, why) of delivered updates not used
         self.losses: list[dict] = []
-        self._render(0, self.base_held)
 
-    def _render(self, version: int, w: Weights) -> np.ndarray:
+    @property
+    def base_held(self) -> Weights:
+        assert self.bc.held is not None
+        return self.bc.held
+
+    def _render(self, version: str, w: Weights) -> np.ndarray:
         if version not in self.versions:
             set_weights(self.model, w)
             with torch_threads():
@@ -333,7 +366,7 @@ class Model(Strategy):
         return self._render(self.rover_version[k], self.rover_held[k])
 
     def global_map(self) -> np.ndarray:
-        return self._render(self.base_version, self.base_held)
+        return self._render(self.bc.version, self.base_held)
 
     def uplink(self, k: int, round_no: int) -> Outgoing | None:
         r = self.team[k]
@@ -358,55 +391,40 @@ class Model(Strategy):
         self.inbox[k] = (version, body, float(ctx["known"]))
 
     def base_round(self, round_no: int) -> dict[int, Outgoing]:
-        fresh, counts = {}, {}
-        for k, (version, body, known) in sorted(self.inbox.items()):
-            if self.up_update and version != self.base_version:
-                self.dropped.append({"round": round_no, "rover": k,
-                                     "why": f"stale: relative to version {version}, base holds {self.base_version}"})
-                continue
-            fresh[k], counts[k] = body, known
+        payloads = {k: body for k, (_, body, _) in self.inbox.items()}
+        counts = {k: known for k, (_, _, known) in self.inbox.items()}
+        versions = {k: v for k, (v, _, _) in self.inbox.items()}
         self.inbox = {}
-        prev = self.base_version
-        broadcast = None
-        if fresh:
+        if payloads:
             try:
                 with torch_threads():
-                    step = base_step(self.aggregator, self.base_held, fresh, counts, self.down_enc,
-                                     round_label=round_no)
-            except FedmapError as e:  # every update was dropped: no new version this round
+                    step = base_step(self.aggregator, self.base_held, payloads, counts, self.down_enc,
+                                     round_label=round_no, versions=versions)
+            except FedmapError as e:  # every update was dropped (e.g. stale): no new model this round
                 self.dropped.append({"round": round_no, "rover": -1, "why": str(e)})
             else:
                 for k, why in step.dropped.items():
                     self.dropped.append({"round": round_no, "rover": k, "why": why})
-                self.base_held, self.base_version = step.held, prev + 1
-                broadcast = step.downlink
+                self.bc.advance(step.held, step.downlink)
+                self.rounds_aggregated += 1
         out = {}
-        keyframe: bytes | None = None
         for k in range(len(self.team)):
-            if self.acked_version[k] == self.base_version:
-                continue  # nothing new for this rover
-            if broadcast is not None and (self.acked_version[k] == prev or not self.down_update):
-                body, kind, ref = broadcast, "update" if self.down_update else "model", prev
-            else:
-                if keyframe is None:
-                    keyframe = Encoder(KEYFRAME_CODEC).encode(self.base_held)
-                body, kind, ref = keyframe, "keyframe", KEYFRAME
-            payload = pack_down(ref, self.base_version, self.base_reports, body)
+            d = self.bc.for_rover(self.acked_version[k])
+            if d.kind == "none":
+                continue  # it holds the current model
+            payload = pack_down(d.kind, d.reference, self.base_reports, d.payload)
             b = self.budget["down"]
-            out[k] = Outgoing(payload if b is None or len(payload) <= b else None, kind,
-                              {"version": self.base_version, "weights": self.base_held})
+            out[k] = Outgoing(payload if b is None or len(payload) <= b else None, d.kind, {})
         return out
 
     def receive_downlink(self, k: int, payload: bytes, ctx: dict) -> bool:
-        ref, new, reports, body = unpack_down(payload)
-        if new <= self.rover_version[k]:
+        kind, reference, reports, body = unpack_down(payload)
+        try:
+            w = apply_downlink(self.rover_held[k], kind, body, reference)
+        except RejectedUpdate:  # relative to a model this rover does not hold
             return False
-        if ref != KEYFRAME and self.down_update and ref != self.rover_version[k]:
-            return False  # an update against a model this rover does not hold
-        held = self.rover_held[k]
-        w = decode(body, reference=held if ref != KEYFRAME else None)
-        self.rover_held[k], self.rover_version[k] = w, new
-        self.acked_version[k] = new
+        self.rover_held[k], self.rover_version[k] = w, model_version(w)
+        self.acked_version[k] = self.rover_version[k]  # the link-level acknowledgement
         self.known_reports[k].update(reports)
         return True
 
