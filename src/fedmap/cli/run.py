@@ -212,7 +212,7 @@ def terrain(
         atomic_write_bytes(dem_out, buf.getvalue())
     f = grid.fractions()
     console.print(f"{out}: {size}x{size} {kind}, {f['free']:.1%} free, {f['impassable']:.1%} impassable, "
-                  f"{f['unknown']:.1%} unknown")
+                  f"{f['unknown']:.1%} unknown", soft_wrap=True)  # one line, whatever the path's length
 
 
 def evaluate(
