@@ -298,3 +298,19 @@ def test_latency_delays_every_delivery_and_waypoints_are_followed():
         goal = np.array(wps[k][0])
         d = [np.hypot(*(np.array(p) - goal)) for p in trail]
         assert min(d) < d[0]
+
+
+def test_a_rover_profile_applies_in_a_mission_as_in_a_run(tmp_path):
+    """`[thresholds] rover = "mer"` gives a mission the same limits it gives `fedmap run`
+    (the profile's, with a limit set beside it winning), not the defaults."""
+    from fedmap.config import resolve
+    from fedmap.maps.traversability import rover_profile
+    from fedmap.mission.settings import load_mission
+
+    toml = tmp_path / "m.toml"
+    toml.write_text('[thresholds]\nrover = "mer"\nmax_slope_deg = 12.0\n')
+    _, _, out = load_mission(toml)
+    run = resolve(None, [{"thresholds": {"rover": "mer", "max_slope_deg": 12.0}}])["thresholds"]
+    assert out["thresholds"] == run
+    mer = rover_profile("mer").to_dict()
+    assert out["thresholds"]["max_step_m"] == mer["max_step_m"] and out["thresholds"]["max_slope_deg"] == 12.0

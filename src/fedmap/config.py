@@ -191,6 +191,18 @@ def parse_set(assignment: str) -> dict:
 GRID_KEYS = ("crop", "size", "resample")
 
 
+def with_rover_profile(thresholds: dict, layers: list[dict]) -> dict:
+    """Resolved ``[thresholds]`` with its ``rover`` profile applied: the profile replaces the
+    default limits, and limits set explicitly in any of ``layers`` (partial configs) win."""
+    rover = thresholds.get("rover")
+    if not rover:
+        return thresholds
+    explicit: dict = {}
+    for layer in layers:
+        explicit.update(layer.get("thresholds", {}))
+    return {**rover_profile(rover).to_dict(), **explicit}
+
+
 def resolve(config_path=None, overrides: list[dict] | None = None, *, terrain: dict | None = None) -> dict:
     """Preset defaults < TOML file < ``overrides`` (each a partial config, applied in order).
 
@@ -215,14 +227,7 @@ def resolve(config_path=None, overrides: list[dict] | None = None, *, terrain: d
     for o in overrides:
         resolved = merge(resolved, o)
     resolved["method"] = method
-    rover = resolved["thresholds"].get("rover")
-    if rover:
-        # a rover profile replaces the default limits; limits set in the preset, file or
-        # options still win over it
-        explicit: dict = {}
-        for layer in (load_preset(method), file_data, *overrides):
-            explicit.update(layer.get("thresholds", {}))
-        resolved["thresholds"] = {**rover_profile(rover).to_dict(), **explicit}
+    resolved["thresholds"] = with_rover_profile(resolved["thresholds"], [load_preset(method), file_data, *overrides])
     model = resolved["model"]
     if not any("init" in layer.get("model", {}) for layer in (file_data, *overrides)):
         # a weights file given without an init is a meta-init from that file; otherwise the

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from fedmap._util import check_keys, suggest
-from fedmap.config import KEYWORDS, base_defaults, merge, terrain_source, validate
+from fedmap.config import KEYWORDS, base_defaults, merge, terrain_source, validate, with_rover_profile
 from fedmap.errors import FedmapError
 from fedmap.maps.sources import TerrainSource
 
@@ -267,6 +267,8 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
     if seed is not None:
         run_part["seed"] = seed
     resolved = merge(base_defaults(), run_part)
+    # a rover profile applies as in `fedmap run` (limits set beside it win)
+    resolved["thresholds"] = with_rover_profile(resolved["thresholds"], [run_part])
     source = terrain_source(resolved)
     m = dict(data.get("mission", {}))
     m.update({k: v for k, v in (mission or {}).items() if v is not None})
