@@ -17,17 +17,24 @@ import shutil
 import subprocess
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from PIL import Image
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from PIL import Image  # noqa: E402
+from fedmap._util import AtomicDir, atomic_write_bytes, to_json
+from fedmap.maps.grid import PALETTE
+from fedmap.mission.sensing import disk_offsets
+from fedmap.mission.sim import COVERAGE_LEVELS, F1_GOAL, MissionResult
 
-from fedmap._util import AtomicDir, atomic_write_bytes, to_json  # noqa: E402
-from fedmap.maps.grid import PALETTE  # noqa: E402
-from fedmap.mission.sensing import disk_offsets  # noqa: E402
-from fedmap.mission.sim import COVERAGE_LEVELS, F1_GOAL, MissionResult  # noqa: E402
+
+def _pyplot():
+    """matplotlib's pyplot on the file-only Agg backend, imported when a plot is drawn
+    (as in fedmap.outputs): not at ``fedmap`` start-up, and no backend switch on import."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def metrics(result: MissionResult, *, settings: dict | None = None) -> dict:
@@ -119,12 +126,12 @@ def report_md(result: MissionResult, *, title: str) -> str:
 def _png(fig) -> bytes:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
+    _pyplot().close(fig)
     return buf.getvalue()
 
 
 def plot_coverage(result: MissionResult) -> bytes:
-    fig, ax = plt.subplots(figsize=(6, 3.6))
+    fig, ax = _pyplot().subplots(figsize=(6, 3.6))
     for i, (name, run) in enumerate(result.runs.items()):
         ax.plot(run.series["step"], run.series["coverage"], label=name, color=f"C{i}")
     for t in result.config.sync_steps:
@@ -135,7 +142,7 @@ def plot_coverage(result: MissionResult) -> bytes:
 
 
 def plot_f1(result: MissionResult) -> bytes:
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
+    fig, axes = _pyplot().subplots(1, 2, figsize=(10, 3.6), sharey=True)
     for i, (name, run) in enumerate(result.runs.items()):
         ev = run.series["eval"]
         axes[0].plot(ev["step"], ev["f1"], marker=".", label=name, color=f"C{i}")
@@ -148,7 +155,7 @@ def plot_f1(result: MissionResult) -> bytes:
 
 
 def plot_accuracy_bytes(result: MissionResult) -> bytes:
-    fig, ax = plt.subplots(figsize=(6, 3.6))
+    fig, ax = _pyplot().subplots(figsize=(6, 3.6))
     for i, (name, run) in enumerate(result.runs.items()):
         s = run.series
         n = result.config.rovers
