@@ -21,6 +21,22 @@ from fedmap.nets.model import save_model
 from fedmap.pipeline import PipelineResult
 
 
+def _finish(fig, path: Path, *, title: str, legend_height: float, title_height: float) -> None:
+    """The class legend (free / impassable / unknown) under the panels, the title above
+    them, then save and close. Heights are fractions of the figure kept for each."""
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    handles = [Patch(color=(0, 1, 0), label="free"), Patch(color=(1, 0, 0), label="impassable"),
+               Patch(color=(0.5, 0.5, 0.5), label="unknown")]
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout(rect=(0, legend_height, 1, 1 - title_height if title else 1))
+    fig.savefig(path)
+    plt.close(fig)
+
+
 def fig4_panel(local_maps: list[GridMap], truth: GridMap, global_classes: np.ndarray, refined: np.ndarray,
                path: Path, *, title: str = "", scores: dict | None = None) -> None:
     """Agents' local maps | ground truth | federated global map | refined map."""
@@ -28,7 +44,6 @@ def fig4_panel(local_maps: list[GridMap], truth: GridMap, global_classes: np.nda
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Patch
 
     panels = [(f"agent {k + 1} local map", m.classes) for k, m in enumerate(local_maps)]
     panels += [("ground truth", truth.classes), ("federated global map", global_classes), ("refined global map", refined)]
@@ -43,14 +58,7 @@ def fig4_panel(local_maps: list[GridMap], truth: GridMap, global_classes: np.nda
         ax.set_title(label, fontsize=8)
         ax.set_xticks([])
         ax.set_yticks([])
-    handles = [Patch(color=(0, 1, 0), label="free"), Patch(color=(1, 0, 0), label="impassable"),
-               Patch(color=(0.5, 0.5, 0.5), label="unknown")]
-    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout(rect=(0, 0.07, 1, 0.95 if title else 1))
-    fig.savefig(path)
-    plt.close(fig)
+    _finish(fig, path, title=title, legend_height=0.07, title_height=0.05)
 
 
 def panel_scores(global_scores: MapScores, refined_scores: MapScores) -> dict[str, dict[str, float]]:
@@ -120,7 +128,6 @@ def comparison_panel(results: dict[str, PipelineResult], path: Path, *, title: s
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Patch
 
     first = next(iter(results.values()))
     top = [(f"rover {k + 1} local map", m.classes) for k, m in enumerate(first.local_maps)]
@@ -138,8 +145,7 @@ def comparison_panel(results: dict[str, PipelineResult], path: Path, *, title: s
         for ax, (what, cls, sc) in zip(row, (("global map", r.global_classes, r.global_scores),
                                               ("refined", r.refined, r.refined_scores))):
             ax.imshow(render_classes(cls), interpolation="nearest")
-            psnr = "inf" if sc.psnr == float("inf") else f"{sc.psnr:.1f}"
-            ax.set_title(f"{method}: {what}\nPSNR {psnr}  F1 {sc.path.f1:.2f}", fontsize=8)
+            ax.set_title(f"{method}: {what}\nPSNR {sc.psnr:.1f}  F1 {sc.path.f1:.2f}", fontsize=8)  # inf: "inf"
         col = 2
         if r.central_classes is not None and r.central_scores is not None and ncols > 3:
             row[2].imshow(render_classes(r.central_classes), interpolation="nearest")
@@ -149,14 +155,7 @@ def comparison_panel(results: dict[str, PipelineResult], path: Path, *, title: s
         row[col].text(0, 0.5, f"{method}\n{r.config.net} net, {r.config.federation.aggregator}\n"
                       f"{per_rover:,.0f} B per rover per round\n({r.config.federation.uplink} uplink)",
                       fontsize=8, va="center", transform=row[col].transAxes)
-    handles = [Patch(color=(0, 1, 0), label="free"), Patch(color=(1, 0, 0), label="impassable"),
-               Patch(color=(0.5, 0.5, 0.5), label="unknown")]
-    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout(rect=(0, 0.04, 1, 0.96 if title else 1))
-    fig.savefig(path)
-    plt.close(fig)
+    _finish(fig, path, title=title, legend_height=0.04, title_height=0.04)
 
 
 def write_comparison(results: dict[str, PipelineResult], out_dir: str | Path, *,
