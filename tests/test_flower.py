@@ -23,8 +23,9 @@ from fedmap.federation.aggregate import weighted_average  # noqa: E402
 from fedmap.federation.codecs import Encoder  # noqa: E402
 from fedmap.federation.runner import agent_seed, run_federation  # noqa: E402
 from fedmap.flower import client_app  # noqa: E402
-from fedmap.flower.launch import key_values, make_certs, rover_node_config  # noqa: E402
+from fedmap.flower.launch import key_values, make_certs  # noqa: E402
 from fedmap.flower.records import check_flower_count, flower_overhead, from_record, to_record  # noqa: E402
+from fedmap.flower.rover import rover_node_config  # noqa: E402
 from fedmap.flower.server_app import FedmapStrategy  # noqa: E402
 from fedmap.flower.settings import RunSettings  # noqa: E402
 from fedmap.flower.task import load_local_map  # noqa: E402

@@ -49,8 +49,8 @@ def _team(tmp_path):
     return maps
 
 
-def _start_rovers(procs: Processes, port: int, tmp_path) -> None:
-    for k in range(4):  # `fedmap rover` becomes the SuperNode (exec): its PID is the SuperNode's
+def _start_rovers(procs: Processes, port: int, tmp_path, rovers=range(4)) -> None:
+    for k in rovers:  # each `fedmap rover` in its own process group, stopped by its PID
         argv = [sys.executable, "-m", "fedmap", "rover", "--superlink", f"127.0.0.1:{port}", "--partition-id", str(k),
                 "--map", str(tmp_path / f"local{k}.npy"), "--port", str(free_port())]
         procs.start(f"rover{k}", argv, env=flower_env(tmp_path / f"rover{k}-home"), log=tmp_path / f"rover{k}.log")
@@ -58,9 +58,13 @@ def _start_rovers(procs: Processes, port: int, tmp_path) -> None:
 
 def _reference(maps):
     """The in-process runner on the same maps, seed and settings."""
+    return _reference_with(maps, RUN)
+
+
+def _reference_with(maps, run, **participation):
     net = preset("small", 64)
     init = get_weights(build_model(net, seed=SEED))
-    return init, run_federation(init, net, maps, RunSettings.from_run_config(RUN).federation)
+    return init, run_federation(init, net, maps, RunSettings.from_run_config(run).federation, **participation)
 
 
 def _run(tmp_path, run: dict, on_status=None):
@@ -70,7 +74,7 @@ def _run(tmp_path, run: dict, on_status=None):
         status = run_base_station({**run, "out": str(out), "truth": str(tmp_path / "truth.npy")}, host="127.0.0.1",
                                   port=port,
                                   on_ready=lambda: _start_rovers(rovers, port, tmp_path),
-                                  on_status=(lambda st: on_status(st, rovers)) if on_status else None)
+                                  on_status=(lambda st: on_status(st, rovers, port)) if on_status else None)
     assert status["state"] == "done"
     return maps, out, json.loads((out / "metrics.json").read_text())
 
@@ -96,7 +100,7 @@ def test_four_rovers_one_round_equal_the_in_process_runner(flower_home):
 def test_a_rover_killed_mid_round_leaves_three(flower_home):
     killed = []
 
-    def kill_rover3(st, rovers):
+    def kill_rover3(st, rovers, port):
         if st["state"] == "running" and st.get("round") == 1 and not st.get("saved") and not killed:
             rovers.stop("rover3", sig=signal.SIGKILL)  # by its PID (process group), while the round runs
             killed.append(True)
@@ -107,6 +111,35 @@ def test_a_rover_killed_mid_round_leaves_three(flower_home):
     assert sorted(rnd["weights"]) == ["0", "1", "2"]
     assert rnd["missing"] == [3] and rnd["dropped"] == {}  # no reply: missing, never "dropped"
     _, ref = _reference(maps[:3])
+    got = get_weights(load_model(out / "global_model.safetensors"))
+    for k in ref.weights:
+        np.testing.assert_allclose(got[k], ref.weights[k], atol=1e-5)
+
+
+def test_a_killed_rover_restarted_rejoins_with_an_update_codec(flower_home):
+    """Real processes: rover 3 is killed (SIGKILL) as round 2 goes out and started again at
+    once, with an ``update-int4+zstd`` downlink. Its state is gone: it misses round 2 (its
+    old node never replies), joins round 3 as a new node, is sent a dense keyframe, and the
+    final model equals the in-process runner with the same participation."""
+    run = {**RUN, "rounds": 3, "downlink": "update-int4+zstd", "deadline": 120.0}
+    events = []
+
+    def kill_and_restart_rover3(st, rovers, port):
+        if st["state"] == "running" and st.get("round") == 2 and not st.get("saved") and not events:
+            rovers.stop("rover3", sig=signal.SIGKILL)
+            _start_rovers(rovers, port, flower_home, rovers=[3])
+            events.append("restarted")
+
+    maps, out, m = _run(flower_home, run, on_status=kill_and_restart_rover3)
+    assert events
+    r1, r2, r3 = m["rounds"]
+    assert sorted(r1["weights"]) == sorted(r3["weights"]) == ["0", "1", "2", "3"]
+    assert sorted(r2["weights"]) == ["0", "1", "2"] and r2["missing"] == [3]
+    # the broadcast of round r's model is booked in round r's record: rovers 0-2 got round 2's
+    # model as an update, the restarted rover (no model) got it as a dense keyframe
+    assert not r1.get("keyframes") and r2["keyframes"] == [3] and not r3.get("keyframes")
+    assert r2["downlink_bytes"]["3"] > 4 * max(r2["downlink_bytes"][str(k)] for k in range(3))
+    init, ref = _reference_with(maps, run, absent={2: [3]}, restarted={3: [3]})
     got = get_weights(load_model(out / "global_model.safetensors"))
     for k in ref.weights:
         np.testing.assert_allclose(got[k], ref.weights[k], atol=1e-5)

@@ -4,6 +4,7 @@ bounded waits, no orphans. Fast checks first; the few real Flower processes are 
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -15,16 +16,15 @@ import pytest
 pytest.importorskip("flwr")
 
 from fedmap.errors import FedmapError  # noqa: E402
-from fedmap.flower import launch  # noqa: E402
+from fedmap.flower import launch, rover  # noqa: E402
 from fedmap.flower.launch import (  # noqa: E402
     Processes,
     flower_env,
     free_port,
     require_executables,
-    rover_failure,
-    rover_node_config,
     run_base_station,
 )
+from fedmap.flower.rover import rover_failure, rover_node_config, superlink_answers  # noqa: E402
 from fedmap.flower.settings import RunSettings  # noqa: E402
 from fedmap.maps.grid import GridMap  # noqa: E402
 from fedmap.maps.io import save_map  # noqa: E402
@@ -190,36 +190,151 @@ def test_base_station_starts_from_the_meta_init_like_the_demo():
 
 
 FAKE_SUPERNODE = """
-import pathlib, sys
-count, done, kicks = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2]), int(sys.argv[3])
+import pathlib, sys, time
+count, done, script = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2]), sys.argv[3].split(";")
 n = int(count.read_text()) if count.exists() else 0
 count.write_text(str(n + 1))
-if n < kicks:  # what Flower's SuperNode logs when a new SuperLink does not know its node
-    print("httpx.HTTPStatusError: Client error '401 Unauthorized' for url '.../send-node-heartbeat'")
-    sys.exit(1)
-if kicks < 0:
-    print("ERROR : Exit Code: 305 ... Giving up reconnection after 5.00 seconds and 5 tries.")
-    sys.exit(1)
-done.write_text("1")  # the ClientApp received the final model
+step = script[min(n, len(script) - 1)]
+if step == "done":  # the ClientApp received the final model
+    done.write_text("1")
+    sys.exit(0)
+print(LOGS[step], flush=True)
+if step.startswith("hang"):  # what Flower 1.41's SuperNode can do after it logged its own end
+    time.sleep(600)
+sys.exit(1)
 """
 
+#: What flower-supernode 1.41 logs, by case (the fake prints one per start, in order).
+FAKE_LOGS = {
+    # a new SuperLink (a resumed base station) does not know this node
+    "kicked": "httpx.HTTPStatusError: Client error '401 Unauthorized' for url '.../send-node-heartbeat'",
+    # nobody answers at the address
+    "gone": "WARNING :   Giving up reconnection after 5.00 seconds and 5 tries.\nERROR :     Exit Code: 305",
+    # the link dropped during a TLS handshake: Flower takes it for a certificate problem, gives up and hangs
+    "hang-eof": ("SuperNode ID: 42\nERROR :     SSL/TLS handshake error detected.\nWARNING :   Giving up reconnection "
+                 "after 0.94 seconds and 3 tries.\nERROR :     [SSL: UNEXPECTED_EOF_WHILE_READING] EOF occurred in "
+                 "violation of protocol (_ssl.c:1006)\nINFO :      SuperNode terminated gracefully."),
+    # silent: e.g. polling a SuperLink whose port went away
+    "hang-silent": "INFO :      Starting Flower SuperNode",
+    "refused": ("ERROR :     Exit Code: 305\nFailed to initialize the connection to the SuperLink.\n[code: 2004] Failed "
+                "to activate SuperNode."),
+    "bad-ca": ("ERROR :     SSL/TLS handshake error detected.\nERROR :     Exit Code: 305\nFailed to initialize the "
+               "connection to the SuperLink.\n[SSL: CERTIFICATE_VERIFY_FAILED] certificate verify failed: "
+               "certificate signature failure (_ssl.c:1006)"),
+}
 
-@pytest.mark.parametrize("kicks", [2, -1])
-def test_a_rover_reconnects_when_the_base_station_restarts(tmp_path, monkeypatch, kicks):
-    """A resumed base station is a new SuperLink: the rover's SuperNode is refused (401) and
-    the rover starts a new one, a bounded number of times; a real failure is not retried."""
-    (tmp_path / "fake.py").write_text(FAKE_SUPERNODE)
+
+def _fake_rover(tmp_path, monkeypatch, script: str, **kw):
+    """run_rover against the fake SuperNode (``script``: its behaviour at each start, ';'-separated)."""
+    (tmp_path / "fake.py").write_text(f"LOGS = {FAKE_LOGS!r}\n" + FAKE_SUPERNODE)
     count = tmp_path / "count"
 
-    def fake_argv(**kw):
-        return [sys.executable, str(tmp_path / "fake.py"), str(count), kw["node_config"]["done-file"], str(kicks)]
+    def fake_argv(**a):
+        return [sys.executable, str(tmp_path / "fake.py"), str(count), a["node_config"]["done-file"], script]
 
-    monkeypatch.setattr(launch, "supernode_argv", fake_argv)
-    cfg = {"partition-id": 1, "map": "unused"}
-    if kicks > 0:
-        assert launch.run_rover(cfg, superlink="127.0.0.1:1", warm=False, max_wait=5) == 0
-        assert count.read_text() == "3"
-    else:
-        with pytest.raises(FedmapError, match="^rover 1: no SuperLink answered at 127.0.0.1:1 for 5 s"):
-            launch.run_rover(cfg, superlink="127.0.0.1:1", warm=False, max_wait=5)
-        assert count.read_text() == "1"
+    monkeypatch.setattr(rover, "supernode_argv", fake_argv)
+    monkeypatch.setattr(rover, "PROBE_EVERY", 0.5)
+    t0 = time.monotonic()
+    try:
+        return rover.run_rover({"partition-id": 1, "map": "unused"}, superlink="127.0.0.1:1", warm=False,
+                               log=tmp_path / "supernode.log", **kw), int(count.read_text()), time.monotonic() - t0
+    except FedmapError as e:
+        return str(e), int(count.read_text()), time.monotonic() - t0
+
+
+def test_a_rover_reconnects_when_the_base_station_restarts(tmp_path, monkeypatch):
+    """A resumed base station is a new SuperLink: the rover's SuperNode is refused (401) and
+    the rover starts a new one."""
+    assert _fake_rover(tmp_path, monkeypatch, "kicked;kicked;done", max_wait=30)[:2] == (0, 3)
+
+
+def test_a_rover_replaces_a_supernode_that_hangs_after_a_dropped_link(tmp_path, monkeypatch, capfd):
+    """Flower's SuperNode gives up on an EOF in the TLS handshake (a link cut) and then hangs:
+    the rover stops it within END_GRACE s of its last line and starts a new one."""
+    code, starts, took = _fake_rover(tmp_path, monkeypatch, "hang-eof;hang-eof;done", max_wait=30)
+    assert (code, starts) == (0, 3) and took < 2 * (rover.END_GRACE + 1) + 3
+    err = capfd.readouterr().err
+    assert err.count("rover 1: the link to 127.0.0.1:1 dropped or its SuperLink restarted; starting a new "
+                     "SuperNode") == 2, err
+
+
+@pytest.mark.parametrize("script", ["gone", "hang-silent", "kicked"])
+def test_a_rover_gives_up_after_max_wait_without_an_answer(tmp_path, monkeypatch, script):
+    """Nobody answers at the address (127.0.0.1:1): however the SuperNode behaves (gives up,
+    hangs silently, is refused over and over), the rover ends in one line after ~max_wait s."""
+    line, starts, took = _fake_rover(tmp_path, monkeypatch, script, max_wait=3)
+    assert line.startswith("rover 1: no SuperLink answered at 127.0.0.1:1 for 3 s; gave up"), line
+    assert 3 <= took < 3 + rover.PROBE_EVERY + rover.END_GRACE + 4
+    assert starts == 1 if script == "hang-silent" else starts >= 2
+
+
+def test_a_certificate_problem_is_not_retried(tmp_path, monkeypatch):
+    line, starts, _ = _fake_rover(tmp_path, monkeypatch, "bad-ca", max_wait=30)
+    assert starts == 1 and line.startswith("rover 1: TLS certificate problem with 127.0.0.1:1 (wrong --root-cert?): "
+                                           "[SSL: CERTIFICATE_VERIFY_FAILED]"), line
+
+
+def test_a_refused_key_is_final_unless_it_was_accepted_before(tmp_path, monkeypatch):
+    """Flower answers 2004 both to an unregistered key and to a second SuperNode for a key
+    whose first SuperNode is still listed online (until its heartbeat lapses, ~60 s): a
+    rover whose key was accepted earlier retries; a rover refused from the start stops."""
+    line, starts, _ = _fake_rover(tmp_path, monkeypatch, "refused", max_wait=30)
+    assert starts == 1 and "refused this rover's key" in line, line
+    (tmp_path / "count").unlink()
+    assert _fake_rover(tmp_path, monkeypatch, "hang-eof;refused;refused;done", max_wait=30)[:2] == (0, 4)
+
+
+def test_the_supernode_retries_a_tls_handshake_cut_short_but_not_a_bad_certificate():
+    """Flower 1.41 gives up at once on any error mentioning SSL; fedmap's SuperNode retries
+    an EOF in the handshake (a dropped link) and still gives up on a certificate problem."""
+    import httpx
+    from flwr.supercore.retry import make_simple_http_retry_invoker
+
+    from fedmap.flower.supernode import retry_invoker
+
+    eof = httpx.ConnectError("[SSL: UNEXPECTED_EOF_WHILE_READING] EOF occurred in violation of protocol (_ssl.c:1006)")
+    bad = httpx.ConnectError("[SSL: CERTIFICATE_VERIFY_FAILED] certificate verify failed: self-signed certificate")
+    refused = httpx.ConnectError("[Errno 111] Connection refused")
+    flower, ours = make_simple_http_retry_invoker().should_giveup, retry_invoker().should_giveup
+    assert flower is not None and ours is not None
+    assert [flower(e) for e in (eof, bad, refused)] == [True, True, False]  # the bug, in the pinned Flower
+    assert [ours(e) for e in (eof, bad, refused)] == [False, True, False]
+
+
+def test_restarts_are_bounded_in_count(tmp_path, monkeypatch):
+    monkeypatch.setattr(rover, "ROVER_RESTARTS", 2)
+    monkeypatch.setattr(rover, "superlink_answers", lambda *a, **k: True)  # the SuperLink answers, the node fails
+    line, starts, _ = _fake_rover(tmp_path, monkeypatch, "kicked", max_wait=30)
+    assert starts == 3 and line.endswith("(after 2 new SuperNodes, 2 in a row)"), line
+
+
+def test_the_probe_needs_an_http_answer_not_just_an_open_port(tmp_path):
+    """A relay whose far end is gone accepts and closes: that is not a SuperLink answering."""
+    import http.server
+    import threading
+
+    class Quiet(http.server.BaseHTTPRequestHandler):
+        def log_message(self, *a):
+            pass
+
+    web = http.server.HTTPServer(("127.0.0.1", 0), Quiet)
+    threading.Thread(target=web.serve_forever, daemon=True).start()
+    relay = socket.create_server(("127.0.0.1", 0))
+
+    def accept_and_close():
+        while True:
+            try:
+                relay.accept()[0].close()
+            except OSError:
+                return
+
+    threading.Thread(target=accept_and_close, daemon=True).start()
+    try:
+        assert superlink_answers(f"127.0.0.1:{web.server_address[1]}", tls=False)
+        assert not superlink_answers(f"127.0.0.1:{relay.getsockname()[1]}", tls=False)
+        assert not superlink_answers(f"127.0.0.1:{relay.getsockname()[1]}", tls=True)
+        assert not superlink_answers(f"127.0.0.1:{free_port()}", tls=False)
+    finally:
+        web.shutdown()
+        web.server_close()
+        relay.close()

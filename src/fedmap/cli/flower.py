@@ -16,7 +16,8 @@ import typer
 from fedmap.cli.ui import console, progress_bar
 from fedmap.config import overrides_from, resolve
 from fedmap.flower.checkpoint import resume_config
-from fedmap.flower.launch import ROVER_MAX_WAIT, make_certs, rover_node_config, run_base_station, run_rover
+from fedmap.flower.launch import make_certs, run_base_station
+from fedmap.flower.rover import ROVER_MAX_WAIT, rover_node_config, run_rover
 from fedmap.flower.settings import run_config_from
 
 
@@ -118,6 +119,9 @@ def rover(
     max_wait: float = typer.Option(ROVER_MAX_WAIT, "--max-wait",
                                    help="Seconds to keep trying to reach the SuperLink before giving up."),
     fault: Optional[str] = typer.Option(None, hidden=True, help="Testing: inject a fault (bitflip@R, nan@R)."),
+    log: Optional[Path] = typer.Option(None, "--log",
+                                       help="Append the Flower SuperNode's log here (default: a temporary file, "
+                                            "removed when the rover exits)."),
     warm: bool = typer.Option(True, "--warm/--cold",
                               help="Fork each message's ClientApp from one process that imported torch and "
                                    "fedmap once (--cold: a fresh process per message, Flower's default)."),
@@ -129,7 +133,7 @@ def rover(
         console.print("warning: no --root-cert, connecting without TLS (fine on a trusted local network only)")
     console.print(f"rover {partition_id}: connecting to {superlink}")
     code = run_rover(cfg, superlink=superlink, root_cert=root_cert, auth_key=auth_key, port=port, max_wait=max_wait,
-                     warm=warm)
+                     warm=warm, log=log)
     console.print(f"rover {partition_id}: run finished, final global model received"
                   + (f"; saved in {out}/" if out else ""))
     raise typer.Exit(code)

@@ -7,7 +7,11 @@ A thin adapter, laid out like Flower's own quickstart apps:
 ``records``     fedmap payload bytes inside Flower records (imports ``flwr``)
 ``task``        what the apps do, Flower-free: rover rounds, ground truth, checkpoints, outputs
 ``settings``    Flower's run / node config -> fedmap settings, through :mod:`fedmap.config`
-``launch``      starting SuperLink / SuperNode / ``flwr run`` processes for the CLI
+``launch``      starting the SuperLink and ``flwr run`` for ``fedmap base-station``; processes, certificates
+``rover``       ``fedmap rover``: its SuperNode, kept connected across link faults, every wait bounded
+``warm``        one process per rover that imports torch once and forks each message's ClientApp
+``checkpoint``  the base station's atomic, checked checkpoints (``--resume``)
+``faults``      faults a rover can inject into its uplink, for fault-injection tests
 
 The math is the code the in-process runner uses (:func:`fedmap.federation.runner.rover_step`
 and :func:`~fedmap.federation.runner.base_step`); what crosses the link is fedmap's own

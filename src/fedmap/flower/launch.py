@@ -1,4 +1,4 @@
-"""Launching Flower's processes for ``fedmap base-station`` / ``rover`` / ``certs``: one line per machine.
+"""Launching Flower's processes for ``fedmap base-station`` and ``certs``, and what ``rover`` shares.
 
 The commands start Flower's own processes (``flower-superlink``, ``flower-supernode``,
 ``flwr run``) with the right flags and wait for them; every process is started in its
@@ -24,9 +24,8 @@ from pathlib import Path
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.flower import require_flwr
-from fedmap.flower.faults import parse_fault
 from fedmap.flower.settings import RunSettings
-from fedmap.flower.task import load_local_map, run_dir, run_status_path, truth_shape, write_status
+from fedmap.flower.task import run_dir, run_status_path, truth_shape, write_status
 
 CONNECTION = "fedmap"  # the connection name written to $FLWR_HOME/config.toml
 
@@ -48,7 +47,7 @@ def flower_executable(name: str) -> str:
 
 #: Executables Flower's processes start by name (found on ``PATH``), per side.
 SUPERLINK_EXES = ("flower-superlink", "flower-superexec", "flwr-serverapp", "flwr")
-SUPERNODE_EXES = ("flower-supernode", "flower-superexec", "flwr-clientapp")
+SUPERNODE_EXES = ("flower-superexec", "flwr-clientapp")  # the SuperNode itself: fedmap.flower.supernode
 
 
 def require_executables(names: tuple[str, ...]) -> None:
@@ -62,12 +61,13 @@ def require_executables(names: tuple[str, ...]) -> None:
 
 def flower_env(flwr_home: Path) -> dict[str, str]:
     """The environment for Flower's processes: own ``FLWR_HOME``, no update check or telemetry,
-    and this interpreter's ``bin/`` first on ``PATH``: Flower starts its helpers
+    unbuffered output (their logs are read while they run: a SuperNode's last lines must not
+    wait in a buffer), and this interpreter's ``bin/`` first on ``PATH``: Flower starts its helpers
     (``flower-superexec``, ``flwr-clientapp``, ...) by name, so they must resolve to the
     environment fedmap runs in even when that environment is not activated."""
     path = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", os.defpath)])
     return {**os.environ, "PATH": path, "FLWR_HOME": str(flwr_home), "FLWR_DISABLE_UPDATE_CHECK": "1",
-            "FLWR_TELEMETRY_ENABLED": "0"}
+            "FLWR_TELEMETRY_ENABLED": "0", "PYTHONUNBUFFERED": "1"}
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
@@ -202,18 +202,6 @@ def superlink_argv(*, host: str, port: int, tls: Tls | None, auth: bool, databas
         argv.append("--enable-supernode-auth")
     if database is not None:
         argv += ["--database", str(database)]
-    return argv
-
-
-def supernode_argv(*, superlink: str, port: int, node_config: dict, root_cert: Path | None,
-                   auth_key: Path | None, max_wait: float | None = None) -> list[str]:
-    argv = [flower_executable("flower-supernode"), "--superlink", superlink, "--port", str(port),
-            "--node-config", key_values(node_config)]
-    argv += ["--root-certificates", str(root_cert)] if root_cert else ["--insecure"]
-    if auth_key:
-        argv += ["--auth-supernode-private-key", str(auth_key)]
-    if max_wait is not None:
-        argv += ["--max-wait-time", str(max_wait)]
     return argv
 
 
@@ -379,7 +367,7 @@ def run_base_station(run_config: dict, *, host: str = "0.0.0.0", port: int = 909
     env = flower_env(flwr_home)
     run_status_path(settings.out).unlink(missing_ok=True)
     try:
-        with Processes() as procs, _sigterm_as_interrupt():
+        with Processes() as procs, sigterm_as_interrupt():
             return _serve(procs, settings, run_config, host=host, port=port, tls=tls, keys=keys,
                           auth=auth_keys is not None, env=env, on_status=on_status, on_ready=on_ready)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: our processes are stopped (Processes.__exit__)
@@ -411,7 +399,7 @@ def _serve(procs: Processes, settings: RunSettings, run_config: dict, *, host: s
     return wait_for_result(settings.out, since=since, timeout=budget, alive=alive, on_status=on_status)
 
 
-class _sigterm_as_interrupt:
+class sigterm_as_interrupt:
     """SIGTERM raises KeyboardInterrupt (main thread only), so ``finally`` blocks stop our processes."""
 
     def __enter__(self) -> None:
@@ -428,183 +416,3 @@ class _sigterm_as_interrupt:
     def __exit__(self, *exc) -> None:
         if self.old is not None:
             signal.signal(signal.SIGTERM, self.old)
-
-
-def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str | None, size: int, agents: int,
-                      explore: str, seed: int, out: Path | None, fault: str | None = None) -> dict:
-    """The SuperNode's node config for one rover (checked by loading the map once);
-    ``fault``: see :mod:`fedmap.flower.faults` (tests only)."""
-    cfg: dict = {"partition-id": partition_id}
-    if fault:
-        parse_fault(fault)
-        cfg["fault"] = fault
-    if (map_path is None) == (terrain is None):
-        raise FedmapError("give exactly one of --map (the rover's local map) or --terrain (the built-in generator)")
-    if map_path is not None:
-        cfg["map"] = str(Path(map_path).resolve())
-    else:
-        cfg.update(terrain=terrain, size=size, agents=agents, explore=explore, seed=seed)
-    if out is not None:
-        cfg["out"] = str(Path(out).resolve())
-    try:
-        load_local_map(cfg)
-    except FedmapError as e:  # a missing or corrupt map: say which rover, before connecting
-        raise FedmapError(f"rover {partition_id}: {e}") from None
-    return cfg
-
-
-#: The stand-in ``flwr-clientapp`` script (``{python}`` and ``{socket}`` filled in): stdlib
-#: only, so it starts in milliseconds; it waits for the server for at most 300 s.
-WARM_SHIM = """#!{python} -I
-import json, socket, sys, time
-t_end = time.monotonic() + 300
-while True:
-    try:
-        s = socket.socket(socket.AF_UNIX)
-        s.connect({socket!r})
-        break
-    except OSError:
-        s.close()
-        if time.monotonic() > t_end:
-            sys.exit("flwr-clientapp: the rover's warm ClientApp server did not answer")
-        time.sleep(0.2)
-s.sendall(json.dumps(sys.argv[1:]).encode() + b"\\n")
-reply = s.makefile().readline().strip()
-sys.exit(int(reply) if reply.lstrip("-").isdigit() else 1)
-"""
-
-
-def write_shim(bin_dir, sock: str) -> None:
-    """Write the stand-in ``flwr-clientapp`` into ``bin_dir`` (put it first on the SuperNode's PATH)."""
-    path = Path(bin_dir) / "flwr-clientapp"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(WARM_SHIM.format(python=sys.executable, socket=sock))
-    path.chmod(0o755)
-
-
-#: Seconds a rover keeps trying to reach its SuperLink before it gives up (``fedmap rover --max-wait``).
-ROVER_MAX_WAIT = 120.0
-#: How often a rover starts a new SuperNode when the SuperLink it knew was replaced.
-ROVER_RESTARTS = 10
-#: Seconds between a rover's own checks that its SuperLink's port still answers.
-PROBE_EVERY = 5.0
-#: Seconds a finished rover leaves its SuperNode running so the final reply reaches the base.
-DONE_GRACE = 5.0
-
-
-def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = None, auth_key: Path | None = None,
-              port: int = 0, flwr_home: Path | None = None, log: Path | None = None,
-              max_wait: float = ROVER_MAX_WAIT, warm: bool = True) -> int:
-    """Run one SuperNode for this rover until its run ends; returns 0.
-
-    The SuperNode is a child in this process's group (a signal to the rover reaches it; it
-    dies with the rover even on SIGKILL). The rover returns as soon as its ClientApp has
-    received the run's final model (it writes the node config's ``done-file``). Flower gives
-    up after ``max_wait`` seconds without a SuperLink (wrong address or port, base gone, run
-    over); that and every other SuperNode failure (TLS, refused authentication) is a one-line
-    :class:`FedmapError` naming the rover. When the SuperLink it knew is replaced (the base
-    station restarted, e.g. ``--resume``), the rover starts a new SuperNode, at most
-    :data:`ROVER_RESTARTS` times. Flower's log goes to ``log`` (default: a temporary
-    folder, removed with ``flwr_home``'s default when the rover exits). ``warm``: Flower's
-    per-message ClientApp processes are forked from one process that imported torch and
-    fedmap and read the map once (:mod:`fedmap.flower.warm`) instead of starting cold.
-    """
-    import tempfile
-
-    pid = node_config.get("partition-id", "?")
-    if root_cert is not None and not Path(root_cert).is_file():
-        raise FedmapError(f"rover {pid}: no such CA certificate: {root_cert}")
-    if auth_key is not None and not Path(auth_key).is_file():
-        raise FedmapError(f"rover {pid}: no such SuperNode private key: {auth_key}")
-    if not max_wait > 0:
-        raise FedmapError(f"rover {pid}: --max-wait must be positive, got {max_wait}")
-    require_executables(SUPERNODE_EXES)
-    root_cert = Path(root_cert).resolve() if root_cert is not None else None
-    auth_key = Path(auth_key).resolve() if auth_key is not None else None
-    with tempfile.TemporaryDirectory(prefix="fedmap-rover-flwr-") as tmp, Processes() as procs, \
-            _sigterm_as_interrupt():
-        done = Path(tmp) / "done"
-        argv = supernode_argv(superlink=superlink, port=port or free_port(), node_config={**node_config,
-                              "done-file": str(done)}, root_cert=root_cert, auth_key=auth_key, max_wait=max_wait)
-        log = Path(log) if log is not None else Path(tmp) / "supernode.log"
-        env = flower_env(Path(flwr_home) if flwr_home else Path(tmp) / "flwr-home")
-        if warm:  # one process imports torch and fedmap once and forks a ClientApp per message
-            sock = str(Path(tmp) / "clientapp.sock")
-            write_shim(Path(tmp) / "bin", sock)
-            env["PATH"] = os.pathsep.join([str(Path(tmp) / "bin"), env["PATH"]])
-            procs.start("warm", [sys.executable, "-m", "fedmap.flower.warm", sock, json.dumps(node_config)],
-                        env=env, log=log, new_session=False, die_with_parent=True)
-        for attempt in range(ROVER_RESTARTS + 1):  # bounded: each SuperNode gives up after max_wait s
-            start = log.stat().st_size if log.exists() else 0
-            p = procs.start("supernode", argv, env=env, log=log, new_session=False, die_with_parent=True)
-            reachable = probed = time.monotonic()  # last time the SuperLink's port answered / was tried
-            while p.poll() is None:
-                if done.exists():  # the ClientApp has the final model; its reply is still on its way
-                    try:
-                        p.wait(timeout=DONE_GRACE)
-                    except subprocess.TimeoutExpired:
-                        pass
-                    return 0
-                if time.monotonic() - probed > PROBE_EVERY:
-                    probed = time.monotonic()
-                    if _port_open(superlink):
-                        reachable = probed
-                elif time.monotonic() - reachable > max_wait:
-                    # our own bound: Flower's --max-wait-time does not cover every state a
-                    # SuperNode can be in (e.g. after the SuperLink declared it unavailable)
-                    procs.stop("supernode")
-                    raise FedmapError(rover_failure(pid, superlink, "giving up reconnection", max_wait=max_wait,
-                                                    code=None))
-                time.sleep(0.3)
-            if done.exists():
-                return 0
-            text = log.read_bytes()[start:].decode(errors="replace") if log.exists() else ""
-            if not _superlink_replaced(p.returncode, text) or attempt == ROVER_RESTARTS:
-                raise FedmapError(rover_failure(pid, superlink, text, max_wait=max_wait, code=p.returncode))
-            print(f"rover {pid}: the SuperLink's run changed under this rover (the base station restarted?); "
-                  f"reconnecting ({attempt + 1}/{ROVER_RESTARTS})", file=sys.stderr, flush=True)
-    return 0  # pragma: no cover - the with block returns or raises
-
-
-def _port_open(address: str) -> bool:
-    """Whether something accepts TCP connections at ``HOST:PORT`` right now (1 s timeout)."""
-    host, _, port = address.rpartition(":")
-    try:
-        with socket.create_connection((host.strip("[]"), int(port)), timeout=1.0):
-            return True
-    except (OSError, ValueError):
-        return False
-
-
-def _superlink_replaced(code: int | None, log: str) -> bool:
-    """A SuperNode that stopped although nothing was wrong with it: the SuperLink it was
-    registered with was replaced (a restarted or resumed base station no longer knows its
-    node: HTTP 401, or Flower's SuperNode stops with code 0). Reconnecting is the cure."""
-    return code == 0 or "401 unauthorized" in log.lower()
-
-
-def rover_failure(pid, superlink: str, log: str, *, max_wait: float, code: int | None) -> str:
-    """One line saying why a rover's SuperNode stopped, from Flower's log."""
-    low = log.lower()
-    lines = [_clean(ln) for ln in log.splitlines() if ln.strip()]
-    if "certificate" in low or "ssl" in low or "handshake" in low:
-        why = next((ln for ln in lines if "certificate verify failed" in ln.lower()), None) or next(
-            (ln for ln in lines if "certificate" in ln.lower() or "ssl" in ln.lower()), "TLS handshake failed")
-        return f"rover {pid}: TLS certificate problem with {superlink} (wrong --root-cert?): {why}"
-    if "failed to activate supernode" in low or "unauthenticated" in low or "public key" in low:
-        # Flower 1.41 answers an unregistered key with "[code: 2004] Failed to activate SuperNode."
-        return (f"rover {pid}: the SuperLink at {superlink} refused this rover's key (not registered with "
-                f"--auth-keys on the base station, or no --auth-key given)")
-    if "giving up reconnection" in low or "could not establish a connection" in low:
-        return (f"rover {pid}: no SuperLink answered at {superlink} for {max_wait:g} s; gave up "
-                f"(wrong address or port, the base station is down, or its run is over)")
-    tail = [ln for ln in log.splitlines() if "ERROR" in ln or "Error" in ln][-1:] or log.strip().splitlines()[-1:]
-    return f"rover {pid}: the Flower SuperNode exited with code {code}" + (f": {_clean(tail[0])}" if tail else "")
-
-
-def _clean(line: str) -> str:
-    """A Flower log line without its colour codes and level prefix."""
-    import re
-
-    line = re.sub(r"\x1b\[[0-9;]*m", "", line).strip()
-    return re.sub(r"^(INFO|WARNING|ERROR|DEBUG)\s*:\s*", "", line)

@@ -4,7 +4,7 @@ Flower 1.41's SuperNode runs every message in a new ``flwr-clientapp`` process, 
 imports flwr, torch and fedmap and reads the rover's map again: seconds per message before
 any training. ``fedmap rover`` therefore starts this module's *server* once: it imports
 the ClientApp, reads the rover's map, and listens on a Unix socket. The SuperNode is given
-a stand-in ``flwr-clientapp`` (:data:`fedmap.flower.launch.WARM_SHIM`, first on its ``PATH``) that passes its
+a stand-in ``flwr-clientapp`` (:data:`fedmap.flower.rover.WARM_SHIM`, first on its ``PATH``) that passes its
 arguments to the server and waits; the server forks a child that runs Flower's own
 ``flwr-clientapp`` entry point with those arguments (already imported: nothing to load),
 and reports the child's exit code back to the stand-in.

@@ -1,0 +1,319 @@
+"""``fedmap rover``: one Flower SuperNode per rover, kept connected across a bad link.
+
+The rover runs Flower's ``flower-supernode`` as a child and watches it. Flower 1.41's
+SuperNode does not survive every link fault by itself:
+
+- a connection cut during a TLS handshake (``UNEXPECTED_EOF``) is taken for a certificate
+  problem: the SuperNode gives up at once instead of retrying (the rover therefore runs it
+  through :mod:`fedmap.flower.supernode`, which retries it);
+- after giving up it logs ``SuperNode terminated gracefully`` and can then hang in its
+  exit handler, so its process never ends;
+- a restarted SuperLink (the base station resumed) no longer knows the node (HTTP 401).
+
+So the rover reads the SuperNode's log: a SuperNode that has stopped, or says it has, is
+stopped and a new one started, unless its log names a problem a retry cannot fix (the
+SuperLink refused the rover's key, the certificate does not verify). Every wait has a bound:
+
+- the rover gives up when its SuperLink has not answered for ``max_wait`` seconds (an
+  HTTP(S) probe every :data:`PROBE_EVERY` s, plus the SuperNode's own log of contact): the
+  base station is gone, the address is wrong, or the run is over;
+- at most :data:`ROVER_RESTARTS` restarts in a row without the SuperNode reaching its
+  SuperLink in between, and :data:`ROVER_RESTARTS_TOTAL` in all.
+
+Each failure is one :class:`~fedmap.errors.FedmapError` line naming the rover. Nothing here
+imports ``flwr``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import socket
+import ssl
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from fedmap.errors import FedmapError
+from fedmap.flower.faults import parse_fault
+from fedmap.flower.launch import (
+    SUPERNODE_EXES,
+    Processes,
+    flower_env,
+    free_port,
+    key_values,
+    require_executables,
+    sigterm_as_interrupt,
+)
+from fedmap.flower.task import load_local_map
+
+#: Seconds a rover keeps trying to reach its SuperLink before it gives up (``fedmap rover --max-wait``).
+ROVER_MAX_WAIT = 120.0
+#: SuperNode restarts in a row (without reaching the SuperLink in between) before the rover gives up:
+#: with backoff, over a minute, as long as a SuperLink takes to see a SuperNode's heartbeat lapse.
+ROVER_RESTARTS = 20
+#: SuperNode restarts over the rover's life, however often it reached its SuperLink in between.
+ROVER_RESTARTS_TOTAL = 100
+#: Seconds between the rover's own probes of its SuperLink.
+PROBE_EVERY = 5.0
+#: Seconds a finished rover leaves its SuperNode running so the final reply reaches the base.
+DONE_GRACE = 5.0
+#: Seconds a SuperNode that logged its own end gets to exit before it is stopped.
+END_GRACE = 3.0
+
+#: Flower SuperNode log lines that show it reached its SuperLink.
+CONTACT = ("SuperNode ID:", "Received successfully", "Sent successfully", "Connection successful after")
+#: ... and that show it has stopped, or is about to: after giving up, Flower's SuperNode tries to
+#: deactivate its node over the link that failed, and can then hang in its exit handler.
+ENDED = ("Giving up reconnection", "SuperNode terminated gracefully", "Exit Code:")
+
+
+def supernode_argv(*, superlink: str, port: int, node_config: dict, root_cert: Path | None,
+                   auth_key: Path | None, max_wait: float | None = None) -> list[str]:
+    """Flower's ``flower-supernode`` through :mod:`fedmap.flower.supernode` (an EOF in a TLS
+    handshake is retried rather than taken for a certificate problem)."""
+    argv = [sys.executable, "-m", "fedmap.flower.supernode", "--superlink", superlink, "--port", str(port),
+            "--node-config", key_values(node_config)]
+    argv += ["--root-certificates", str(root_cert)] if root_cert else ["--insecure"]
+    if auth_key:
+        argv += ["--auth-supernode-private-key", str(auth_key)]
+    if max_wait is not None:
+        argv += ["--max-wait-time", str(max_wait)]
+    return argv
+
+
+def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str | None, size: int, agents: int,
+                      explore: str, seed: int, out: Path | None, fault: str | None = None) -> dict:
+    """The SuperNode's node config for one rover (checked by loading the map once);
+    ``fault``: see :mod:`fedmap.flower.faults` (tests only)."""
+    cfg: dict = {"partition-id": partition_id}
+    if fault:
+        parse_fault(fault)
+        cfg["fault"] = fault
+    if (map_path is None) == (terrain is None):
+        raise FedmapError("give exactly one of --map (the rover's local map) or --terrain (the built-in generator)")
+    if map_path is not None:
+        cfg["map"] = str(Path(map_path).resolve())
+    else:
+        cfg.update(terrain=terrain, size=size, agents=agents, explore=explore, seed=seed)
+    if out is not None:
+        cfg["out"] = str(Path(out).resolve())
+    try:
+        load_local_map(cfg)
+    except FedmapError as e:  # a missing or corrupt map: say which rover, before connecting
+        raise FedmapError(f"rover {partition_id}: {e}") from None
+    return cfg
+
+
+#: The stand-in ``flwr-clientapp`` script (``{python}`` and ``{socket}`` filled in): stdlib
+#: only, so it starts in milliseconds; it waits for the server for at most 300 s.
+WARM_SHIM = """#!{python} -I
+import json, socket, sys, time
+t_end = time.monotonic() + 300
+while True:
+    try:
+        s = socket.socket(socket.AF_UNIX)
+        s.connect({socket!r})
+        break
+    except OSError:
+        s.close()
+        if time.monotonic() > t_end:
+            sys.exit("flwr-clientapp: the rover's warm ClientApp server did not answer")
+        time.sleep(0.2)
+s.sendall(json.dumps(sys.argv[1:]).encode() + b"\\n")
+reply = s.makefile().readline().strip()
+sys.exit(int(reply) if reply.lstrip("-").isdigit() else 1)
+"""
+
+
+def write_shim(bin_dir, sock: str) -> None:
+    """Write the stand-in ``flwr-clientapp`` into ``bin_dir`` (put it first on the SuperNode's PATH)."""
+    path = Path(bin_dir) / "flwr-clientapp"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(WARM_SHIM.format(python=sys.executable, socket=sock))
+    path.chmod(0o755)
+
+
+def superlink_answers(address: str, *, tls: bool, timeout: float = 2.0) -> bool:
+    """Whether an HTTP(S) server answers at ``HOST:PORT`` right now: what Flower's Fleet API
+    is. A port that accepts connections and closes them (a relay whose far end is gone)
+    does not count. The certificate is not checked here: the SuperNode checks it."""
+    host, _, port = address.rpartition(":")
+    host = host.strip("[]")
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout) as raw:
+            conn: socket.socket = raw
+            if tls:
+                ctx = ssl.create_default_context()
+                ctx.check_hostname, ctx.verify_mode = False, ssl.CERT_NONE
+                conn = ctx.wrap_socket(raw, server_hostname=host)
+            conn.sendall(f"HEAD / HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n".encode())
+            return conn.recv(5) == b"HTTP/"
+    except (OSError, ValueError):  # ssl.SSLError is an OSError
+        return False
+
+
+def _marks(text: str, marks: tuple[str, ...]) -> bool:
+    return any(m in text for m in marks)
+
+
+def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = None, auth_key: Path | None = None,
+              port: int = 0, flwr_home: Path | None = None, log: Path | None = None,
+              max_wait: float = ROVER_MAX_WAIT, warm: bool = True) -> int:
+    """Run this rover's SuperNode until its run ends; returns 0.
+
+    The SuperNode is a child in this process's group (a signal to the rover reaches it; it
+    dies with the rover even on SIGKILL). The rover returns as soon as its ClientApp has
+    received the run's final model (it writes the node config's ``done-file``). A
+    SuperNode that stops for a reason a retry can fix (the link dropped, the base station
+    restarted) is replaced, within the bounds in the module's docstring; any other failure
+    (TLS, a refused key) and giving up are one-line :class:`FedmapError`\\ s naming the
+    rover. Flower's log goes to ``log`` (default: a temporary folder, removed with
+    ``flwr_home``'s default when the rover exits). ``warm``: Flower's per-message ClientApp
+    processes are forked from one process that imported torch and fedmap and read the map
+    once (:mod:`fedmap.flower.warm`) instead of starting cold.
+    """
+    pid = node_config.get("partition-id", "?")
+    if root_cert is not None and not Path(root_cert).is_file():
+        raise FedmapError(f"rover {pid}: no such CA certificate: {root_cert}")
+    if auth_key is not None and not Path(auth_key).is_file():
+        raise FedmapError(f"rover {pid}: no such SuperNode private key: {auth_key}")
+    if not max_wait > 0:
+        raise FedmapError(f"rover {pid}: --max-wait must be positive, got {max_wait}")
+    require_executables(SUPERNODE_EXES)
+    root_cert = Path(root_cert).resolve() if root_cert is not None else None
+    auth_key = Path(auth_key).resolve() if auth_key is not None else None
+    with tempfile.TemporaryDirectory(prefix="fedmap-rover-flwr-") as tmp, Processes() as procs, \
+            sigterm_as_interrupt():
+        done = Path(tmp) / "done"
+        argv = supernode_argv(superlink=superlink, port=port or free_port(), node_config={**node_config,
+                              "done-file": str(done)}, root_cert=root_cert, auth_key=auth_key, max_wait=max_wait)
+        log = Path(log) if log is not None else Path(tmp) / "supernode.log"
+        env = flower_env(Path(flwr_home) if flwr_home else Path(tmp) / "flwr-home")
+        if warm:  # one process imports torch and fedmap once and forks a ClientApp per message
+            sock = str(Path(tmp) / "clientapp.sock")
+            write_shim(Path(tmp) / "bin", sock)
+            env["PATH"] = os.pathsep.join([str(Path(tmp) / "bin"), env["PATH"]])
+            procs.start("warm", [sys.executable, "-m", "fedmap.flower.warm", sock, json.dumps(node_config)],
+                        env=env, log=log, new_session=False, die_with_parent=True)
+        watch = _Watch(superlink, tls=root_cert is not None, max_wait=max_wait)
+        restarts = 0  # in a row, without the SuperNode reaching its SuperLink in between
+        for total in range(1, ROVER_RESTARTS_TOTAL + 2):
+            text = watch.run(procs, argv, env=env, log=log, done=done)
+            if done.exists():
+                return 0
+            code = procs.procs["supernode"].returncode
+            if not watch.retry(text):
+                raise FedmapError(_gave_up(pid, superlink, max_wait) if watch.silent() else
+                                  rover_failure(pid, superlink, text, max_wait=max_wait, code=code))
+            restarts = 1 if watch.reached else restarts + 1
+            if restarts > ROVER_RESTARTS or total > ROVER_RESTARTS_TOTAL:
+                raise FedmapError(rover_failure(pid, superlink, text, max_wait=max_wait, code=code)
+                                  + f" (after {total - 1} new SuperNodes, {restarts - 1} in a row)")
+            why = rover_failure(pid, superlink, text, max_wait=max_wait, code=code).split(": ", 1)[-1]
+            print(f"rover {pid}: {why}; starting a new SuperNode ({restarts}/{ROVER_RESTARTS})",
+                  file=sys.stderr, flush=True)
+            time.sleep(min(0.5 * 2 ** (restarts - 1), PROBE_EVERY))
+    return 0  # pragma: no cover - the with block returns or raises
+
+
+class _Watch:
+    """One SuperNode at a time: started, watched until it stops (or says it has), then judged."""
+
+    def __init__(self, superlink: str, *, tls: bool, max_wait: float) -> None:
+        self.superlink, self.tls, self.max_wait = superlink, tls, max_wait
+        self.contact = time.monotonic()  # last time the SuperLink answered (the rover's start counts)
+        self.reached = False  # whether the current SuperNode reached its SuperLink
+        self.ever_reached = False  # ... or any of this rover's SuperNodes
+
+    def run(self, procs: Processes, argv: list[str], *, env: dict, log: Path, done: Path) -> str:
+        """Start a SuperNode and wait until it stops, the run is over for this rover
+        (``done`` exists) or the SuperLink has been silent for ``max_wait``; returns its log."""
+        start = log.stat().st_size if log.exists() else 0
+        p = procs.start("supernode", argv, env=env, log=log, new_session=False, die_with_parent=True)
+        self.reached, probed, ended_at = False, time.monotonic(), None
+        text = ""
+        while p.poll() is None:
+            if done.exists():  # the ClientApp has the final model; its reply is still on its way
+                try:
+                    p.wait(timeout=DONE_GRACE)
+                except subprocess.TimeoutExpired:
+                    pass
+                return text
+            text = log.read_bytes()[start:].decode(errors="replace") if log.exists() else ""
+            now = time.monotonic()
+            if _marks(text, CONTACT) and not self.reached:
+                self.reached = self.ever_reached = True
+                self.contact = now
+            if ended_at is None and _marks(text, ENDED):
+                ended_at = now  # Flower's SuperNode can hang after this line: give it END_GRACE s
+            if ended_at is not None and now - ended_at > END_GRACE:
+                break
+            if now - probed > PROBE_EVERY:
+                probed = now
+                if superlink_answers(self.superlink, tls=self.tls):
+                    self.contact = now
+            if now - self.contact > self.max_wait:
+                break  # retry() says no: the SuperLink has been silent for max_wait
+            time.sleep(0.3)
+        if p.poll() is None:
+            procs.stop("supernode", grace=2.0)
+        return log.read_bytes()[start:].decode(errors="replace") if log.exists() else text
+
+    def silent(self) -> bool:
+        """Whether the SuperLink has not answered for ``max_wait`` seconds."""
+        return time.monotonic() - self.contact > self.max_wait
+
+    def retry(self, text: str) -> bool:
+        """Whether a new SuperNode may fix what stopped this one: not a certificate that does
+        not verify, not a refused key (unless the key was accepted before: the SuperLink
+        refuses a second SuperNode for a key until the first one's heartbeat has lapsed),
+        and the SuperLink answered within ``max_wait``."""
+        if _permanent(text) and not (self.ever_reached and _refused(text.lower())):
+            return False
+        return not self.silent()
+
+
+def _permanent(log: str) -> bool:
+    """A SuperNode failure a new SuperNode would repeat: TLS verification, a refused key."""
+    low = log.lower()
+    return "certificate verify failed" in low or _refused(low)
+
+
+def _refused(low: str) -> bool:
+    # Flower 1.41 answers an unregistered key with "[code: 2004] Failed to activate SuperNode."
+    return "failed to activate supernode" in low or "unauthenticated" in low or "public key" in low
+
+
+def rover_failure(pid, superlink: str, log: str, *, max_wait: float, code: int | None) -> str:
+    """One line saying why a rover's SuperNode stopped, from Flower's log."""
+    low = log.lower()
+    lines = [_clean(ln) for ln in log.splitlines() if ln.strip()]
+    if "certificate verify failed" in low or "wrong version number" in low:
+        why = next((ln for ln in lines if "certificate verify failed" in ln.lower()
+                    or "wrong version number" in ln.lower()), "TLS handshake failed")
+        return f"rover {pid}: TLS certificate problem with {superlink} (wrong --root-cert?): {why}"
+    if _refused(low):
+        return (f"rover {pid}: the SuperLink at {superlink} refused this rover's key (not registered with "
+                f"--auth-keys on the base station, no --auth-key given, or this rover's previous SuperNode "
+                f"stopped less than a minute ago and is still listed online: start it again in a minute)")
+    if "unexpected_eof" in low or "401 unauthorized" in low or code == 0:
+        return f"rover {pid}: the link to {superlink} dropped or its SuperLink restarted"
+    if "giving up reconnection" in low or "could not establish a connection" in low:
+        return _gave_up(pid, superlink, max_wait)
+    tail = [ln for ln in log.splitlines() if "ERROR" in ln or "Error" in ln][-1:] or log.strip().splitlines()[-1:]
+    return f"rover {pid}: the Flower SuperNode exited with code {code}" + (f": {_clean(tail[0])}" if tail else "")
+
+
+def _gave_up(pid, superlink: str, max_wait: float) -> str:
+    return (f"rover {pid}: no SuperLink answered at {superlink} for {max_wait:g} s; gave up "
+            f"(wrong address or port, the base station is down, or its run is over)")
+
+
+def _clean(line: str) -> str:
+    """A Flower log line without its colour codes and level prefix."""
+    line = re.sub(r"\x1b\[[0-9;]*m", "", line).strip()
+    return re.sub(r"^(INFO|WARNING|ERROR|DEBUG)\s*:\s*", "", line)

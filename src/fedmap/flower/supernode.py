@@ -1,0 +1,56 @@
+"""Flower's ``flower-supernode``, with one fix for links that drop: ``python -m fedmap.flower.supernode ARGS``.
+
+Flower 1.41's SuperNode retries a failed call to its SuperLink with exponential backoff for
+up to ``--max-wait-time`` seconds, except when the error's text mentions ``ssl``, ``tls`` or
+``certificate``: that it takes for a certificate problem and gives up at once. A link that
+drops during a TLS handshake raises ``[SSL: UNEXPECTED_EOF_WHILE_READING] EOF occurred in
+violation of protocol``, so one short cut ended every SuperNode that was reconnecting, and
+with SuperNode authentication the SuperLink refuses a new SuperNode for the same key until
+the old one's heartbeat has lapsed (2 x 30 s): the rover missed the round.
+
+Here the connection's retry policy treats an EOF in the handshake as the transport error it
+is (retried, within ``--max-wait-time``); a certificate that does not verify still ends the
+SuperNode at once. Everything else is Flower's own ``flower-supernode``.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import flwr.supernode.fleet_http_connection as fleet
+from flwr.supercore.retry import RetryInvoker, make_simple_http_retry_invoker
+from flwr.supernode.cli import flower_supernode
+
+#: Substrings of an SSL error raised by a link that went away mid-handshake (not a TLS problem).
+LINK_DROPPED = ("unexpected_eof_while_reading", "eof occurred in violation of protocol")
+
+
+def link_dropped(exc: BaseException) -> bool:
+    """Whether ``exc`` is a TLS handshake cut short by the link, not a certificate problem."""
+    text = str(exc).lower()
+    return any(s in text for s in LINK_DROPPED) and "certificate" not in text
+
+
+def retry_invoker() -> RetryInvoker:
+    """Flower's HTTP retry invoker, but an EOF during a TLS handshake is retried."""
+    invoker = make_simple_http_retry_invoker()
+    flower_says = invoker.should_giveup
+
+    def should_giveup(exc: Exception) -> bool:
+        if link_dropped(exc):
+            return False
+        return flower_says(exc) if flower_says is not None else False
+
+    invoker.should_giveup = should_giveup
+    return invoker
+
+
+def main(argv: list[str]) -> int:
+    fleet.make_simple_http_retry_invoker = retry_invoker  # the SuperNode's connection to its SuperLink
+    sys.argv = ["flower-supernode", *argv]
+    flower_supernode()
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover - a process of its own
+    sys.exit(main(sys.argv[1:]))
