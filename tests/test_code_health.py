@@ -44,3 +44,13 @@ def test_ruff_is_clean():
 @pytest.mark.slow
 def test_mypy_is_clean_on_src():
     _check([_tool("mypy")])
+
+
+def test_importing_the_cli_or_the_rover_does_not_import_flwr():
+    """The one import the contracts let through (the forked warm server imports the
+    ClientApp inside ``serve``) must stay inside the function: importing the CLI or the
+    rover's module does not load Flower."""
+    code = ("import sys, fedmap.cli, fedmap.flower.rover, fedmap.flower.warm\n"
+            "print(sorted(m for m in sys.modules if m == 'flwr' or m.startswith('flwr.')))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout[-2000:] + r.stderr[-2000:]

@@ -70,7 +70,7 @@ def flower_env(flwr_home: Path) -> dict[str, str]:
             "FLWR_TELEMETRY_ENABLED": "0", "PYTHONUNBUFFERED": "1"}
 
 
-def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+def set_death_signal() -> None:  # pragma: no cover - runs in the child between fork and exec
     """Linux: the child gets SIGKILL when the process that started it dies (even by ``kill -9``),
     so a killed base station never leaves a SuperLink listening on its port."""
     if sys.platform.startswith("linux"):
@@ -123,7 +123,7 @@ class Processes:
         with open(log, "ab") as fh:
             p = subprocess.Popen(argv, env=env, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                  start_new_session=new_session,
-                                 preexec_fn=_die_with_parent if die_with_parent else None)
+                                 preexec_fn=set_death_signal if die_with_parent else None)
         self.procs[name], self.logs[name] = p, log
         return p
 

@@ -26,9 +26,9 @@ imports ``flwr``.
 
 from __future__ import annotations
 
-import json
 import os
 import re
+import signal
 import socket
 import ssl
 import subprocess
@@ -38,6 +38,7 @@ import time
 from pathlib import Path
 
 from fedmap.errors import FedmapError
+from fedmap.flower import warm as warm_server
 from fedmap.flower.faults import parse_fault
 from fedmap.flower.launch import (
     SUPERNODE_EXES,
@@ -46,6 +47,7 @@ from fedmap.flower.launch import (
     free_port,
     key_values,
     require_executables,
+    set_death_signal,
     sigterm_as_interrupt,
 )
 from fedmap.flower.task import load_local_map
@@ -193,31 +195,82 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
                               "done-file": str(done)}, root_cert=root_cert, auth_key=auth_key, max_wait=max_wait)
         log = Path(log) if log is not None else Path(tmp) / "supernode.log"
         env = flower_env(Path(flwr_home) if flwr_home else Path(tmp) / "flwr-home")
+        server = None
         if warm:  # one process imports torch and fedmap once and forks a ClientApp per message
             sock = str(Path(tmp) / "clientapp.sock")
             write_shim(Path(tmp) / "bin", sock)
             env["PATH"] = os.pathsep.join([str(Path(tmp) / "bin"), env["PATH"]])
-            procs.start("warm", [sys.executable, "-m", "fedmap.flower.warm", sock, json.dumps(node_config)],
-                        env=env, log=log, new_session=False, die_with_parent=True)
-        watch = _Watch(superlink, tls=root_cert is not None, max_wait=max_wait)
-        restarts = 0  # in a row, without the SuperNode reaching its SuperLink in between
-        for total in range(1, ROVER_RESTARTS_TOTAL + 2):
-            text = watch.run(procs, argv, env=env, log=log, done=done)
-            if done.exists():
-                return 0
-            code = procs.procs["supernode"].returncode
-            if not watch.retry(text):
-                raise FedmapError(_gave_up(pid, superlink, max_wait) if watch.silent() else
-                                  rover_failure(pid, superlink, text, max_wait=max_wait, code=code))
-            restarts = 1 if watch.reached else restarts + 1
-            if restarts > ROVER_RESTARTS or total > ROVER_RESTARTS_TOTAL:
-                raise FedmapError(rover_failure(pid, superlink, text, max_wait=max_wait, code=code)
-                                  + f" (after {total - 1} new SuperNodes, {restarts - 1} in a row)")
-            why = rover_failure(pid, superlink, text, max_wait=max_wait, code=code).split(": ", 1)[-1]
-            print(f"rover {pid}: {why}; starting a new SuperNode ({restarts}/{ROVER_RESTARTS})",
-                  file=sys.stderr, flush=True)
-            time.sleep(min(0.5 * 2 ** (restarts - 1), PROBE_EVERY))
-    return 0  # pragma: no cover - the with block returns or raises
+            server = fork_warm_server(sock, node_config, env=env, log=log)
+        try:
+            return _supervise(procs, pid, superlink, argv, env=env, log=log, done=done, tls=root_cert is not None,
+                              max_wait=max_wait)
+        finally:
+            if server is not None:
+                _reap(server)
+
+
+def fork_warm_server(sock: str, node_config: dict, *, env: dict, log: Path) -> int:
+    """Start the warm ClientApp server (:mod:`fedmap.flower.warm`) as a fork of this process;
+    returns its PID. This process has already imported fedmap (torch included) and read the
+    rover's map, so the server starts in a fraction of a second instead of paying a fresh
+    Python's 3 s of imports (``benchmarks/flower_startup.py``). It has run no torch
+    operation, so the server and its per-message children start from a clean torch state.
+    The server dies with this process (Linux), logs to ``log`` and runs in ``env``."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    child = os.fork()
+    if child == 0:  # pragma: no cover - the forked server
+        code = 1
+        try:
+            set_death_signal()
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the rover's handler
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            os.dup2(fd, 1)
+            os.dup2(fd, 2)
+            os.environ.clear()
+            os.environ.update(env)
+            warm_server.serve(sock, node_config)
+        except BaseException:  # noqa: BLE001 - the server's failure shows in its log; never return into the rover
+            import traceback
+
+            traceback.print_exc()
+        finally:
+            os._exit(code)
+    return child
+
+
+def _reap(pid: int) -> None:
+    """Stop the forked warm server and collect it."""
+    try:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+    except (ProcessLookupError, ChildProcessError):
+        pass
+
+
+def _supervise(procs: Processes, pid, superlink: str, argv: list[str], *, env: dict, log: Path, done: Path,
+               tls: bool, max_wait: float) -> int:
+    """Run SuperNodes until the run ends for this rover (0) or a one-line failure."""
+    watch = _Watch(superlink, tls=tls, max_wait=max_wait)
+    restarts = 0  # in a row, without the SuperNode reaching its SuperLink in between
+    for total in range(1, ROVER_RESTARTS_TOTAL + 2):
+        text = watch.run(procs, argv, env=env, log=log, done=done)
+        if done.exists():
+            return 0
+        code = procs.procs["supernode"].returncode
+        if not watch.retry(text):
+            raise FedmapError(_gave_up(pid, superlink, max_wait) if watch.silent() else
+                              rover_failure(pid, superlink, text, max_wait=max_wait, code=code))
+        restarts = 1 if watch.reached else restarts + 1
+        if restarts > ROVER_RESTARTS or total > ROVER_RESTARTS_TOTAL:
+            raise FedmapError(rover_failure(pid, superlink, text, max_wait=max_wait, code=code)
+                              + f" (after {total - 1} new SuperNodes, {restarts - 1} in a row)")
+        why = rover_failure(pid, superlink, text, max_wait=max_wait, code=code).split(": ", 1)[-1]
+        print(f"rover {pid}: {why}; starting a new SuperNode ({restarts}/{ROVER_RESTARTS})",
+              file=sys.stderr, flush=True)
+        time.sleep(min(0.5 * 2 ** (restarts - 1), PROBE_EVERY))
+    raise AssertionError("unreachable: the loop returns or raises")  # pragma: no cover
 
 
 class _Watch:
