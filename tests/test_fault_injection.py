@@ -247,14 +247,18 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
 def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     """4 rovers without TLS through a proxy that resets every open connection every 2 s for
     the whole run (uploads and downloads are cut mid-transfer): Flower's retries and the
-    rovers' reconnection carry every rover through both rounds, and the model equals the
-    in-process runner with everyone."""
+    rovers' reconnection carry the rovers through both rounds, and the model equals the
+    in-process runner with the same participation. Seen once in two runs: a reply whose
+    upload was reset after the SuperLink stored it but before it answered is sent again and
+    never completed inside Flower 1.41 (the second PushMessages opens a new session and is
+    told no object is missing); that rover is recorded missing for the round with the
+    reason, after the round's deadline (short here: it is what such a loss costs)."""
     pytest.importorskip("flwr")
     from fedmap.flower.launch import Processes, flower_env, free_port, run_base_station
 
     monkeypatch.setenv("FLWR_HOME", str(tmp_path / "flwr-home"))
     maps = _team(tmp_path, 4)
-    run = {**RUN, "rovers": 4}
+    run = {**RUN, "rovers": 4, "deadline": 90.0}
     port, out = free_port(), tmp_path / "out"
     proxy = Proxy(port)
     stop = threading.Event()
@@ -282,8 +286,12 @@ def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     assert status["state"] == "done"
     m = json.loads((out / "metrics.json").read_text())
     for r in m["rounds"]:
-        assert sorted(r["weights"]) == ["0", "1", "2", "3"] and r["missing"] == [] and r["dropped"] == {}
+        assert r["dropped"] == {} and sorted(r["missing"]) == sorted(set(range(4)) - {int(k) for k in r["weights"]})
+        assert len(r["weights"]) >= 3, r  # at most one lost reply per round
+        assert all(why == "no reply before the round's deadline" for why in r["missing_why"].values())
     assert proxy.counts["dropped"] >= 5
     print("proxy:", proxy.counts)  # the README's fault table
+    print("missing:", [r["missing"] for r in m["rounds"]])
     _same_as_in_process(out, maps, run, m["rounds"])
-    assert codes == {k: 0 for k in range(4)}
+    # every rover ended by itself: 0 with the final model (the base may miss its acknowledgement), else 2
+    assert all(codes[k] == 0 for k in m["rounds"][-1]["final_broadcast_received_by"]) and set(codes.values()) <= {0, 2}

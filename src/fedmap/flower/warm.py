@@ -2,18 +2,18 @@
 
 Flower 1.41's SuperNode runs every message in a new ``flwr-clientapp`` process, which
 imports flwr, torch and fedmap and reads the rover's map again: seconds per message before
-any training. ``fedmap rover`` therefore starts this module's *server* once: it imports
-the ClientApp, reads the rover's map, and listens on a Unix socket. The SuperNode is given
-a stand-in ``flwr-clientapp`` (:data:`fedmap.flower.rover.WARM_SHIM`, first on its ``PATH``) that passes its
-arguments to the server and waits; the server forks a child that runs Flower's own
-``flwr-clientapp`` entry point with those arguments (already imported: nothing to load),
-and reports the child's exit code back to the stand-in.
+any training. ``fedmap rover`` therefore runs this module's *server* once, forked from
+itself (:func:`fedmap.flower.rover.fork_warm_server`: the rover has already imported fedmap
+and read its map, so the server costs no imports): it imports the ClientApp, reads the
+rover's map, and listens on a Unix socket. The SuperNode is given a stand-in
+``flwr-clientapp`` (:data:`fedmap.flower.rover.WARM_SHIM`, first on its ``PATH``) that
+passes its arguments to the server and waits; the server forks a child that runs Flower's
+own ``flwr-clientapp`` entry point with those arguments (already imported: nothing to
+load), and reports the child's exit code back to the stand-in.
 
 Each message still runs in its own process, as Flower expects (its state travels in the
 message's context); what is saved is the start-up. The server runs no torch operation
 before forking, so the children start from a clean torch state.
-
-Run as ``python -m fedmap.flower.warm SOCKET NODE_CONFIG_JSON``.
 """
 
 from __future__ import annotations
@@ -75,7 +75,3 @@ def serve(sock: str, node_config: dict) -> None:  # pragma: no cover - a long-li
             conn.close()
             _run_task(argv)
         threading.Thread(target=_answer, args=(conn, pid), daemon=True).start()
-
-
-if __name__ == "__main__":  # pragma: no cover
-    serve(sys.argv[1], json.loads(sys.argv[2]))
