@@ -216,6 +216,13 @@ FAKE_LOGS = {
                  "violation of protocol (_ssl.c:1006)\nINFO :      SuperNode terminated gracefully."),
     # silent: e.g. polling a SuperLink whose port went away
     "hang-silent": "INFO :      Starting Flower SuperNode",
+    # a self-registering SuperNode's RegisterNode answered but the answer lost (a link reset): re-sent, refused
+    "in-use": ("WARNING :   Giving up reconnection after 0.39 seconds and 2 tries.\nERROR :     Exit Code: 305\n"
+               "Failed to initialize the connection to the SuperLink.\n[code: 23] Public key already in use."),
+    # ActivateNode answered but the answer lost, sent again: the node is already online
+    "refused-resent": ("WARNING :   Connection attempt failed, retrying in 0.70 seconds\nWARNING :   Giving up "
+                       "reconnection after 0.74 seconds and 2 tries.\nERROR :     Exit Code: 305\n[code: 2004] Failed "
+                       "to activate SuperNode."),
     "refused": ("ERROR :     Exit Code: 305\nFailed to initialize the connection to the SuperLink.\n[code: 2004] Failed "
                 "to activate SuperNode."),
     "bad-ca": ("ERROR :     SSL/TLS handshake error detected.\nERROR :     Exit Code: 305\nFailed to initialize the "
@@ -224,7 +231,7 @@ FAKE_LOGS = {
 }
 
 
-def _fake_rover(tmp_path, monkeypatch, script: str, **kw):
+def _fake_rover(tmp_path, monkeypatch, script: str, *, auth: bool = True, **kw):
     """run_rover against the fake SuperNode (``script``: its behaviour at each start, ';'-separated)."""
     (tmp_path / "fake.py").write_text(f"LOGS = {FAKE_LOGS!r}\n" + FAKE_SUPERNODE)
     count = tmp_path / "count"
@@ -234,10 +241,13 @@ def _fake_rover(tmp_path, monkeypatch, script: str, **kw):
 
     monkeypatch.setattr(rover, "supernode_argv", fake_argv)
     monkeypatch.setattr(rover, "PROBE_EVERY", 0.5)
+    key = tmp_path / "rover1"  # SuperNode auth (a registered key); without: the SuperNode registers its own
+    key.write_text("unused")
     t0 = time.monotonic()
     try:
         return rover.run_rover({"partition-id": 1, "map": "unused"}, superlink="127.0.0.1:1", warm=False,
-                               log=tmp_path / "supernode.log", **kw), int(count.read_text()), time.monotonic() - t0
+                               log=tmp_path / "supernode.log", auth_key=key if auth else None,
+                               **kw), int(count.read_text()), time.monotonic() - t0
     except FedmapError as e:
         return str(e), int(count.read_text()), time.monotonic() - t0
 
@@ -268,20 +278,29 @@ def test_a_rover_gives_up_after_max_wait_without_an_answer(tmp_path, monkeypatch
     assert starts == 1 if script == "hang-silent" else starts >= 2
 
 
+def test_a_self_registered_key_already_in_use_is_retried(tmp_path, monkeypatch):
+    """Without SuperNode auth each SuperNode registers a fresh key; "already in use" means its
+    own registration went through and the answer was lost: a new SuperNode fixes it."""
+    assert _fake_rover(tmp_path, monkeypatch, "in-use;done", max_wait=30)[:2] == (0, 2)
+
+
 def test_a_certificate_problem_is_not_retried(tmp_path, monkeypatch):
     line, starts, _ = _fake_rover(tmp_path, monkeypatch, "bad-ca", max_wait=30)
     assert starts == 1 and line.startswith("rover 1: TLS certificate problem with 127.0.0.1:1 (wrong --root-cert?): "
                                            "[SSL: CERTIFICATE_VERIFY_FAILED]"), line
 
 
-def test_a_refused_key_is_final_unless_it_was_accepted_before(tmp_path, monkeypatch):
+def test_a_refused_key_is_final_unless_it_may_be_a_second_activation(tmp_path, monkeypatch):
     """Flower answers 2004 both to an unregistered key and to a second SuperNode for a key
     whose first SuperNode is still listed online (until its heartbeat lapses, ~60 s): a
     rover whose key was accepted earlier retries; a rover refused from the start stops."""
     line, starts, _ = _fake_rover(tmp_path, monkeypatch, "refused", max_wait=30)
     assert starts == 1 and "refused this rover's key" in line, line
-    (tmp_path / "count").unlink()
-    assert _fake_rover(tmp_path, monkeypatch, "hang-eof;refused;refused;done", max_wait=30)[:2] == (0, 4)
+    for script, auth, starts in (("hang-eof;refused;refused;done", True, 4),  # accepted before
+                                 ("refused-resent;done", True, 2),  # its activation was sent twice
+                                 ("refused;done", False, 2)):  # no --auth-key: a new SuperNode, a new key
+        (tmp_path / "count").unlink()
+        assert _fake_rover(tmp_path, monkeypatch, script, auth=auth, max_wait=30)[:2] == (0, starts), script
 
 
 def test_the_supernode_retries_a_tls_handshake_cut_short_but_not_a_bad_certificate():

@@ -203,7 +203,7 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
             server = fork_warm_server(sock, node_config, env=env, log=log)
         try:
             return _supervise(procs, pid, superlink, argv, env=env, log=log, done=done, tls=root_cert is not None,
-                              max_wait=max_wait)
+                              max_wait=max_wait, self_registered=auth_key is None)
         finally:
             if server is not None:
                 _reap(server)
@@ -250,9 +250,9 @@ def _reap(pid: int) -> None:
 
 
 def _supervise(procs: Processes, pid, superlink: str, argv: list[str], *, env: dict, log: Path, done: Path,
-               tls: bool, max_wait: float) -> int:
+               tls: bool, max_wait: float, self_registered: bool) -> int:
     """Run SuperNodes until the run ends for this rover (0) or a one-line failure."""
-    watch = _Watch(superlink, tls=tls, max_wait=max_wait)
+    watch = _Watch(superlink, tls=tls, max_wait=max_wait, self_registered=self_registered)
     restarts = 0  # in a row, without the SuperNode reaching its SuperLink in between
     for total in range(1, ROVER_RESTARTS_TOTAL + 2):
         text = watch.run(procs, argv, env=env, log=log, done=done)
@@ -276,8 +276,9 @@ def _supervise(procs: Processes, pid, superlink: str, argv: list[str], *, env: d
 class _Watch:
     """One SuperNode at a time: started, watched until it stops (or says it has), then judged."""
 
-    def __init__(self, superlink: str, *, tls: bool, max_wait: float) -> None:
+    def __init__(self, superlink: str, *, tls: bool, max_wait: float, self_registered: bool = False) -> None:
         self.superlink, self.tls, self.max_wait = superlink, tls, max_wait
+        self.self_registered = self_registered  # no --auth-key: each SuperNode registers a key of its own
         self.contact = time.monotonic()  # last time the SuperLink answered (the rover's start counts)
         self.reached = False  # whether the current SuperNode reached its SuperLink
         self.ever_reached = False  # ... or any of this rover's SuperNodes
@@ -321,24 +322,25 @@ class _Watch:
         return time.monotonic() - self.contact > self.max_wait
 
     def retry(self, text: str) -> bool:
-        """Whether a new SuperNode may fix what stopped this one: not a certificate that does
-        not verify, not a refused key (unless the key was accepted before: the SuperLink
-        refuses a second SuperNode for a key until the first one's heartbeat has lapsed),
-        and the SuperLink answered within ``max_wait``."""
-        if _permanent(text) and not (self.ever_reached and _refused(text.lower())):
+        """Whether a new SuperNode may fix what stopped this one, and the SuperLink answered
+        within ``max_wait``. Not a certificate that does not verify. Not a refused key either,
+        unless the refusal may be the SuperLink refusing a second activation of a node that
+        is still listed online (until its heartbeat lapses, ~60 s): the key was accepted
+        before, the SuperNode registered its own key (no ``--auth-key``), or its activation
+        was sent twice (the first answer lost to the link)."""
+        low = text.lower()
+        if "certificate verify failed" in low:
+            return False
+        if _refused(low) and not (self.ever_reached or self.self_registered or "connection attempt failed" in low):
             return False
         return not self.silent()
 
 
-def _permanent(log: str) -> bool:
-    """A SuperNode failure a new SuperNode would repeat: TLS verification, a refused key."""
-    low = log.lower()
-    return "certificate verify failed" in low or _refused(low)
-
-
 def _refused(low: str) -> bool:
     # Flower 1.41 answers an unregistered key with "[code: 2004] Failed to activate SuperNode."
-    return "failed to activate supernode" in low or "unauthenticated" in low or "public key" in low
+    # ("[code: 23] Public key already in use" is not a refusal: a self-registering SuperNode
+    # whose RegisterNode was answered but the answer lost re-sent it; a new one has a new key)
+    return "failed to activate supernode" in low or "unauthenticated" in low
 
 
 def rover_failure(pid, superlink: str, log: str, *, max_wait: float, code: int | None) -> str:
@@ -353,7 +355,7 @@ def rover_failure(pid, superlink: str, log: str, *, max_wait: float, code: int |
         return (f"rover {pid}: the SuperLink at {superlink} refused this rover's key (not registered with "
                 f"--auth-keys on the base station, no --auth-key given, or this rover's previous SuperNode "
                 f"stopped less than a minute ago and is still listed online: start it again in a minute)")
-    if "unexpected_eof" in low or "401 unauthorized" in low or code == 0:
+    if "unexpected_eof" in low or "401 unauthorized" in low or "already in use" in low or code == 0:
         return f"rover {pid}: the link to {superlink} dropped or its SuperLink restarted"
     if "giving up reconnection" in low or "could not establish a connection" in low:
         return _gave_up(pid, superlink, max_wait)
