@@ -167,8 +167,9 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
               max_wait: float = ROVER_MAX_WAIT, warm: bool = True) -> int:
     """Run this rover's SuperNode until its run ends; returns 0.
 
-    The SuperNode is a child in this process's group (a signal to the rover reaches it; it
-    dies with the rover even on SIGKILL). The rover returns as soon as its ClientApp has
+    The SuperNode runs in a process group of its own, stopped as a group (with the SuperExec
+    and ClientApps it started) when the rover ends, also on Ctrl-C or SIGTERM; it dies with
+    the rover even on SIGKILL (Linux). The rover returns as soon as its ClientApp has
     received the run's final model (it writes the node config's ``done-file``). A
     SuperNode that stops for a reason a retry can fix (the link dropped, the base station
     restarted) is replaced, within the bounds in the module's docstring; any other failure
@@ -287,7 +288,9 @@ class _Watch:
         """Start a SuperNode and wait until it stops, the run is over for this rover
         (``done`` exists) or the SuperLink has been silent for ``max_wait``; returns its log."""
         start = log.stat().st_size if log.exists() else 0
-        p = procs.start("supernode", argv, env=env, log=log, new_session=False, die_with_parent=True)
+        # its own process group: stopping it stops the SuperExec and ClientApps it started too (they
+        # would otherwise outlive it briefly and write into the rover's temporary Flower home)
+        p = procs.start("supernode", argv, env=env, log=log, new_session=True, die_with_parent=True)
         self.reached, probed, ended_at = False, time.monotonic(), None
         text = ""
         while p.poll() is None:
