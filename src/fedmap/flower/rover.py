@@ -298,7 +298,7 @@ class _Watch:
                 try:
                     p.wait(timeout=DONE_GRACE)
                 except subprocess.TimeoutExpired:
-                    pass
+                    procs.stop("supernode", grace=2.0)  # Flower's SuperNode can hang on its way out
                 return text
             text = log.read_bytes()[start:].decode(errors="replace") if log.exists() else ""
             now = time.monotonic()
