@@ -221,7 +221,6 @@ def fork_warm_server(sock: str, node_config: dict, *, env: dict, log: Path) -> i
     sys.stderr.flush()
     child = os.fork()
     if child == 0:  # pragma: no cover - the forked server
-        code = 1
         try:
             set_death_signal()
             signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the rover's handler
@@ -237,7 +236,7 @@ def fork_warm_server(sock: str, node_config: dict, *, env: dict, log: Path) -> i
 
             traceback.print_exc()
         finally:
-            os._exit(code)
+            os._exit(1)  # serve() only returns by failing
     return child
 
 
@@ -259,17 +258,13 @@ def _supervise(procs: Processes, pid, superlink: str, argv: list[str], *, env: d
         text = watch.run(procs, argv, env=env, log=log, done=done)
         if done.exists():
             return 0
-        code = procs.procs["supernode"].returncode
+        why = rover_failure(pid, superlink, text, max_wait=max_wait, code=procs.procs["supernode"].returncode)
         if not watch.retry(text):
-            raise FedmapError(_gave_up(pid, superlink, max_wait) if watch.silent() else
-                              rover_failure(pid, superlink, text, max_wait=max_wait, code=code))
+            raise FedmapError(_gave_up(pid, superlink, max_wait) if watch.silent() else why)
         restarts = 1 if watch.reached else restarts + 1
         if restarts > ROVER_RESTARTS or total > ROVER_RESTARTS_TOTAL:
-            raise FedmapError(rover_failure(pid, superlink, text, max_wait=max_wait, code=code)
-                              + f" (after {total - 1} new SuperNodes, {restarts - 1} in a row)")
-        why = rover_failure(pid, superlink, text, max_wait=max_wait, code=code).split(": ", 1)[-1]
-        print(f"rover {pid}: {why}; starting a new SuperNode ({restarts}/{ROVER_RESTARTS})",
-              file=sys.stderr, flush=True)
+            raise FedmapError(f"{why} (after {total - 1} new SuperNodes, {restarts - 1} in a row)")
+        print(f"{why}; starting a new SuperNode ({restarts}/{ROVER_RESTARTS})", file=sys.stderr, flush=True)
         time.sleep(min(0.5 * 2 ** (restarts - 1), PROBE_EVERY))
     raise AssertionError("unreachable: the loop returns or raises")  # pragma: no cover
 
@@ -287,7 +282,7 @@ class _Watch:
     def run(self, procs: Processes, argv: list[str], *, env: dict, log: Path, done: Path) -> str:
         """Start a SuperNode and wait until it stops, the run is over for this rover
         (``done`` exists) or the SuperLink has been silent for ``max_wait``; returns its log."""
-        start = log.stat().st_size if log.exists() else 0
+        start = log.stat().st_size if log.exists() else 0  # this SuperNode's lines start here
         # its own process group: stopping it stops the SuperExec and ClientApps it started too (they
         # would otherwise outlive it briefly and write into the rover's temporary Flower home)
         p = procs.start("supernode", argv, env=env, log=log, new_session=True, die_with_parent=True)
@@ -300,7 +295,7 @@ class _Watch:
                 except subprocess.TimeoutExpired:
                     procs.stop("supernode", grace=2.0)  # Flower's SuperNode can hang on its way out
                 return text
-            text = log.read_bytes()[start:].decode(errors="replace") if log.exists() else ""
+            text = _read_from(log, start)
             now = time.monotonic()
             if _marks(text, CONTACT) and not self.reached:
                 self.reached = self.ever_reached = True
@@ -318,7 +313,7 @@ class _Watch:
             time.sleep(0.3)
         if p.poll() is None:
             procs.stop("supernode", grace=2.0)
-        return log.read_bytes()[start:].decode(errors="replace") if log.exists() else text
+        return _read_from(log, start)
 
     def silent(self) -> bool:
         """Whether the SuperLink has not answered for ``max_wait`` seconds."""
@@ -337,6 +332,16 @@ class _Watch:
         if _refused(low) and not (self.ever_reached or self.self_registered or "connection attempt failed" in low):
             return False
         return not self.silent()
+
+
+def _read_from(log: Path, start: int) -> str:
+    """The log's text from byte ``start`` on (this SuperNode's part of it)."""
+    try:
+        with open(log, "rb") as fh:
+            fh.seek(start)
+            return fh.read().decode(errors="replace")
+    except FileNotFoundError:
+        return ""
 
 
 def _refused(low: str) -> bool:
