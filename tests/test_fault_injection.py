@@ -133,32 +133,15 @@ def _rover_argv(port, k, tmp_path, certs, *, root_cert=None, key=None, fault=Non
     return argv + (["--fault", fault] if fault else [])
 
 
-def _team(tmp_path, rovers: int):
-    """Ground truth and the rovers' local maps (as the demo explores them), saved as files."""
-    from fedmap.explore import explore
-    from fedmap.maps.io import save_map
-    from fedmap.maps.sources import TerrainSource, load_truth
-    from fedmap.pipeline import PipelineConfig
-
-    truth = load_truth(TerrainSource(terrain="mars", size=64), seed=1)
-    maps = explore(truth, rovers, "quadrants", seed=1, sensor_radius=PipelineConfig().sensor_radius)
-    for k, m in enumerate(maps):
-        save_map(m, tmp_path / f"local{k}.npy")
-    save_map(truth, tmp_path / "truth.npy")
-    return maps
-
-
 def _same_as_in_process(out, maps, run, rounds):
     """The global model equals the in-process runner where whoever the base did not aggregate
     in a round sits that round out; no round's checkpoint is lost."""
-    from fedmap.federation.runner import run_federation
-    from fedmap.flower.settings import RunSettings
-    from fedmap.nets.model import build_model, get_weights, load_model, preset
+    from tests.test_flower_e2e import _reference_with
+
+    from fedmap.nets.model import get_weights, load_model
 
     absent = {r["round"]: sorted(set(range(len(maps))) - {int(k) for k in r["weights"]}) for r in rounds}
-    net = preset("small", 64)
-    ref = run_federation(get_weights(build_model(net, seed=1)), net, maps, RunSettings.from_run_config(run).federation,
-                         absent=absent)
+    _, ref = _reference_with(maps, run, absent=absent)
     got = get_weights(load_model(out / "global_model.safetensors"))
     for k in ref.weights:
         np.testing.assert_allclose(got[k], ref.weights[k], atol=1e-5)
@@ -180,10 +163,12 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
     survivors. A rover with an unregistered key is refused and one with the wrong CA fails,
     each with one line, while the base serves the others; every rover exits by itself."""
     pytest.importorskip("flwr")
+    from tests.test_flower_e2e import _team  # the four rovers' maps and the ground truth, saved as files
+
     from fedmap.flower.launch import Processes, flower_env, free_port, make_certs, run_base_station
 
     monkeypatch.setenv("FLWR_HOME", str(tmp_path / "flwr-home"))
-    maps = _team(tmp_path, 4)
+    maps = _team(tmp_path)
     certs, other = tmp_path / "certs", tmp_path / "other-ca"
     make_certs(certs, hosts=["127.0.0.1", "localhost"], rovers=5)
     make_certs(other, hosts=["127.0.0.1"], rovers=0)  # a CA that did not sign the SuperLink's certificate
@@ -255,10 +240,12 @@ def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     in-process runner with the same participation, and every rover ends by itself (0 with
     the final model, else 2 with one line)."""
     pytest.importorskip("flwr")
+    from tests.test_flower_e2e import _team
+
     from fedmap.flower.launch import Processes, flower_env, free_port, run_base_station
 
     monkeypatch.setenv("FLWR_HOME", str(tmp_path / "flwr-home"))
-    maps = _team(tmp_path, 4)
+    maps = _team(tmp_path)
     run = {**RUN, "rovers": 4, "deadline": 90.0}
     port, out = free_port(), tmp_path / "out"
     proxy = Proxy(port)
