@@ -2,7 +2,8 @@
 loopback with every fault at once (slow): TLS and SuperNode authentication, a TCP proxy
 between the rovers and the SuperLink that delays traffic, drops every connection and cuts
 the link for a few seconds, a rover whose payload has a flipped bit, a rover that sends a
-NaN update, a rover with an unregistered key and one with the wrong CA.
+NaN update, a rover with an unregistered key and one with the wrong CA; and a second run
+(slow) through a proxy that resets every connection every 2 s.
 """
 
 import json

@@ -1,8 +1,9 @@
 """Launching Flower's processes for ``fedmap base-station`` and ``certs``, and what ``rover`` shares.
 
-The commands start Flower's own processes (``flower-superlink``, ``flower-supernode``,
-``flwr run``) with the right flags and wait for them; every process is started in its
-own session and stopped by its PID (its process group), also on errors and Ctrl-C.
+The commands start Flower's own processes (``flower-superlink``, ``flwr run``; the rover's
+SuperNode is started by :mod:`fedmap.flower.rover`) with the right flags and wait for them;
+every process is started in its own session and stopped by its PID (its process group),
+also on errors and Ctrl-C.
 Nothing here imports ``flwr``: the commands check that it is installed and then run its
 executables.
 """
