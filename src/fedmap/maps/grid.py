@@ -5,15 +5,21 @@ A :class:`GridMap` is an ``H x W`` array of classes (:data:`FREE`, :data:`IMPASS
 as the network's target a map is rendered in the paper's colours (free = green,
 impassable = red, unknown = grey 0.5); a network's RGB output goes back to classes by
 nearest colour.
+
+A map holds *named layers* (:data:`LAYERS`); today the class array is its only layer,
+``"classes"`` (see :class:`GridMap`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 
 import numpy as np
 from affine import Affine
 
+from fedmap._util import suggest
 from fedmap.errors import FedmapError
 
 FREE: int = 0
@@ -30,6 +36,11 @@ PALETTE = np.array(
     ],
     dtype=np.float32,
 )
+
+#: Names of the layers a :class:`GridMap` can hold, canonical layer first.
+#: An ``"elevation"`` layer (metres, float, NaN = unknown) goes here next, beside
+#: ``"classes"``; see :class:`GridMap` for what else it needs.
+LAYERS: tuple[str, ...] = ("classes",)
 
 
 @dataclass
@@ -51,6 +62,26 @@ class GridMap:
         a grid without georeferencing (generated terrain).
     crs : str, optional
         The CRS as WKT, or None.
+
+    Layers
+    ------
+    A map holds named ``(H, W)`` layers on one grid, all sharing ``pixel_size``,
+    ``transform`` and ``crs``; :data:`LAYERS` lists the names a map can hold. Today the
+    only layer is ``"classes"``, stored in the ``classes`` field, which stays the
+    canonical accessor. :attr:`layers` is a read-only mapping name -> array over the
+    same arrays (no copies: ``grid.layers["classes"] is grid.classes``),
+    :meth:`layer` fetches one by name (a one-line :class:`FedmapError` names a missing
+    layer and the available ones) and :meth:`with_layer` returns a new map with one
+    layer replaced, after checking its shape matches the map's and the layer's own
+    rules (``classes``: integer codes FREE, IMPASSABLE, UNKNOWN, stored as uint8).
+
+    An ``"elevation"`` layer (metres, float, NaN = unknown), shared by all agents while
+    each derives its own ``classes`` from it with its own rover profile, would be added
+    as: a name in :data:`LAYERS`; an optional keyword field ``elevation`` after ``crs``
+    (so construction sites stay unchanged), listed in :attr:`layers` when present; its
+    check in :meth:`with_layer` (2-D float, finite or NaN); and carried along by
+    :meth:`with_classes`. The layer lives here in ``maps/``; mission sensing observes
+    it (as it observes ``classes`` today); federation and its codecs carry it.
     """
 
     classes: np.ndarray
@@ -77,6 +108,19 @@ class GridMap:
         return self.classes.shape
 
     @property
+    def layers(self) -> Mapping[str, np.ndarray]:
+        """The map's layers, name -> ``(H, W)`` array, read-only; the arrays are the
+        map's own (``layers["classes"] is classes``)."""
+        return MappingProxyType({"classes": self.classes})
+
+    def layer(self, name: str) -> np.ndarray:
+        """The layer ``name``; a one-line error names it and the layers this map has."""
+        layers = self.layers
+        if name not in layers:
+            raise FedmapError(f"this map has no layer {name!r}; available layers: {', '.join(layers)}")
+        return layers[name]
+
+    @property
     def known(self) -> np.ndarray:
         """Boolean mask of observed cells, (H, W)."""
         return self.classes != UNKNOWN
@@ -97,6 +141,24 @@ class GridMap:
         """A copy with new classes and the same metadata and georeferencing."""
         return GridMap(classes, self.pixel_size, self.source if source is None else source, dict(self.meta),
                        transform=self.transform, crs=self.crs)
+
+    def with_layer(self, name: str, array: np.ndarray, source: str | None = None) -> GridMap:
+        """A new map with layer ``name`` set to ``array`` and everything else kept.
+
+        ``name`` must be one of :data:`LAYERS` and ``array`` must have the map's shape;
+        a ``classes`` layer must hold integer class codes (stored as uint8).
+        """
+        if name not in LAYERS:
+            raise FedmapError(f"unknown map layer {name!r}{suggest(name, LAYERS)}")
+        a = np.asarray(array)
+        if a.shape != self.shape:
+            raise FedmapError(f"layer {name!r} has shape {_shape(a.shape)}, but the map is {_shape(self.shape)}")
+        # Only "classes" so far; each new layer in LAYERS gets its own check and field here.
+        return self.with_classes(check_classes(a, f"layer {name!r}"), source)
+
+
+def _shape(shape: tuple[int, ...]) -> str:
+    return "x".join(str(n) for n in shape) or "()"
 
 
 def check_classes(classes: np.ndarray, what: str = "class map") -> np.ndarray:

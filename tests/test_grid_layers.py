@@ -1,0 +1,90 @@
+"""Tests for the named layers of fedmap.maps.grid.GridMap (today only "classes")."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from affine import Affine
+
+from fedmap.errors import FedmapError
+from fedmap.maps.grid import FREE, IMPASSABLE, LAYERS, UNKNOWN, GridMap
+from fedmap.maps.io import load_map, save_map
+
+
+def _map(shape=(12, 17), seed=0) -> GridMap:
+    rng = np.random.default_rng(seed)
+    return GridMap(rng.integers(0, 3, size=shape).astype(np.uint8), 0.5, "layers", {"note": "x"},
+                   transform=Affine(0.5, 0.0, 100.0, 0.0, -0.5, 200.0))
+
+
+def test_classes_is_the_only_known_layer():
+    assert LAYERS == ("classes",)
+    assert list(_map().layers) == ["classes"]
+
+
+def test_layers_classes_is_the_same_data_as_classes():
+    grid = _map()
+    assert grid.layers["classes"] is grid.classes
+    assert grid.layer("classes") is grid.classes
+    grid.classes[0, 0] = IMPASSABLE  # in-place edits show through, as before
+    assert grid.layers["classes"][0, 0] == IMPASSABLE
+
+
+def test_layers_mapping_is_read_only():
+    grid = _map()
+    with pytest.raises(TypeError):
+        grid.layers["classes"] = np.zeros(grid.shape, np.uint8)  # type: ignore[index]
+
+
+def test_with_layer_rejects_wrong_shape_naming_layer_and_both_shapes():
+    grid = _map((12, 17))
+    with pytest.raises(FedmapError) as exc:
+        grid.with_layer("classes", np.zeros((17, 12), np.uint8))
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert "'classes'" in msg and "17x12" in msg and "12x17" in msg
+
+
+def test_with_layer_keeps_class_checks():
+    grid = _map()
+    with pytest.raises(FedmapError, match="classes"):
+        grid.with_layer("classes", np.full(grid.shape, 3, np.uint8))
+    with pytest.raises(FedmapError, match="integer"):
+        grid.with_layer("classes", np.zeros(grid.shape, np.float32))
+
+
+def test_with_layer_unknown_name_is_refused():
+    with pytest.raises(FedmapError, match="'elevation'.*classes"):
+        _map().with_layer("elevation", np.zeros((12, 17), np.float32))
+
+
+def test_with_layer_returns_a_new_map_with_the_rest_kept():
+    grid = _map()
+    new = np.full(grid.shape, FREE, np.int64)
+    out = grid.with_layer("classes", new)
+    assert out is not grid
+    assert out.classes.dtype == np.uint8
+    np.testing.assert_array_equal(out.layer("classes"), new)
+    assert set(np.unique(grid.classes)) == {FREE, IMPASSABLE, UNKNOWN}  # original untouched
+    assert (out.pixel_size, out.source, out.meta, out.transform, out.crs) == \
+        (grid.pixel_size, grid.source, grid.meta, grid.transform, grid.crs)
+    assert out.meta is not grid.meta
+
+
+def test_missing_layer_error_lists_available_layers():
+    with pytest.raises(FedmapError) as exc:
+        _map().layer("elevation")
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert "'elevation'" in msg and "available layers: classes" in msg
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".png"])
+def test_layers_survive_save_and_load(tmp_path, suffix):
+    grid = _map((23, 31), seed=4)
+    path = tmp_path / f"m{suffix}"
+    save_map(grid, path)
+    back = load_map(path)
+    assert list(back.layers) == list(grid.layers)
+    assert back.layer("classes").dtype == np.uint8
+    np.testing.assert_array_equal(back.layers["classes"], grid.layers["classes"])
