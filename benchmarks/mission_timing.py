@@ -51,7 +51,7 @@ def main() -> None:
         "load_average_before": load_before, "load_average_after": os.getloadavg(),
         "default_mission_s": default_s, "limit_s": LIMIT_S, "within_limit": default_s < LIMIT_S,
         "per_strategy_s": rows, "paper_s": paper_s,
-        "summaries": {n: r.summary for n, r in result.runs.items()},
+        "summaries": {n: r.summary.to_dict() for n, r in result.runs.items()},
     }
     print(f"default mission ({source.label} {truth.shape[0]}², {cfg.rovers} rovers, {cfg.steps} steps, "
           f"{len(cfg.sync_steps)} syncs), load average before {load_before[0]:.2f}:")

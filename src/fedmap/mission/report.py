@@ -15,7 +15,9 @@ from __future__ import annotations
 import io
 import shutil
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image
@@ -23,7 +25,7 @@ from PIL import Image
 from fedmap._util import AtomicDir, atomic_write_bytes, to_json
 from fedmap.maps.grid import PALETTE
 from fedmap.mission.sensing import disk_offsets
-from fedmap.mission.sim import COVERAGE_LEVELS, F1_GOAL, MissionResult
+from fedmap.mission.sim import COVERAGE_LEVELS, F1_GOAL, MissionResult, MissionSummary
 
 
 def _pyplot():
@@ -46,9 +48,7 @@ def metrics(result: MissionResult, *, settings: dict | None = None) -> dict:
                   **result.truth.fractions()},
         "starts": [list(s) for s in result.starts], "base": list(result.base),
         "seconds": result.seconds,
-        "strategies": {name: {"summary": run.summary, "seconds": run.seconds, "series": run.series,
-                              "ledger": [m.to_dict() for m in run.ledger], **run.extra}
-                       for name, run in result.runs.items()},
+        "strategies": {name: run.to_dict() for name, run in result.runs.items()},
     }
 
 
@@ -60,21 +60,24 @@ def _fmt(v, nd: int = 2) -> str:
     return f"{v:,}" if isinstance(v, int) else str(v)
 
 
-#: The side-by-side columns: header -> how to read it from a summary.
-COLUMNS: dict[str, tuple] = {
-    **{f"steps to {int(lv * 100)} %": (lambda s, lv=lv: s["coverage_steps"][f"{int(lv * 100)}%"], 0)
-       for lv in COVERAGE_LEVELS},
-    f"belief F1≥{F1_GOAL} at": (lambda s: s["first_belief_f1_step"], 0),
-    "coverage": (lambda s: s["final"]["coverage"], 3),
-    "redundant": (lambda s: s["final"]["redundant"], 3),
-    "belief acc.": (lambda s: s["final"]["belief_accuracy_mean"], 3),
-    "belief F1": (lambda s: s["final"]["belief_f1_mean"], 2),
-    "global PSNR": (lambda s: s["final"]["global_psnr"], 2),
-    "global SSIM": (lambda s: s["final"]["global_ssim"], 3),
-    "global F1": (lambda s: s["final"]["global_f1"], 2),
-    "global tol.F1": (lambda s: s["final"]["global_f1_tolerant"], 2),
-    "bytes up": (lambda s: s["bytes"]["up"], 0),
-    "bytes down": (lambda s: s["bytes"]["down"], 0),
+def _steps_to(level: float) -> Callable[[MissionSummary], int | None]:
+    return lambda s: s.coverage_steps[level]
+
+
+#: The side-by-side columns: header -> (how to read it from a summary, decimals).
+COLUMNS: dict[str, tuple[Callable[[MissionSummary], Any], int]] = {
+    **{f"steps to {int(lv * 100)} %": (_steps_to(lv), 0) for lv in COVERAGE_LEVELS},
+    f"belief F1≥{F1_GOAL} at": (lambda s: s.first_belief_f1_step, 0),
+    "coverage": (lambda s: s.final_coverage, 3),
+    "redundant": (lambda s: s.final_redundant, 3),
+    "belief acc.": (lambda s: s.final_belief_accuracy_mean, 3),
+    "belief F1": (lambda s: s.final_belief_f1_mean, 2),
+    "global PSNR": (lambda s: s.final_global_psnr, 2),
+    "global SSIM": (lambda s: s.final_global_ssim, 3),
+    "global F1": (lambda s: s.final_global_f1, 2),
+    "global tol.F1": (lambda s: s.final_global_f1_tolerant, 2),
+    "bytes up": (lambda s: s.bytes_up, 0),
+    "bytes down": (lambda s: s.bytes_down, 0),
 }
 
 
@@ -133,7 +136,7 @@ def _png(fig) -> bytes:
 def plot_coverage(result: MissionResult) -> bytes:
     fig, ax = _pyplot().subplots(figsize=(6, 3.6))
     for i, (name, run) in enumerate(result.runs.items()):
-        ax.plot(run.series["step"], run.series["coverage"], label=name, color=f"C{i}")
+        ax.plot(run.series.step, run.series.coverage, label=name, color=f"C{i}")
     for t in result.config.sync_steps:
         ax.axvline(t, color="0.9", lw=0.6, zorder=0)
     ax.set(xlabel="step", ylabel="team coverage", ylim=(0, 1), title="Coverage (grey lines: syncs)")
@@ -144,9 +147,9 @@ def plot_coverage(result: MissionResult) -> bytes:
 def plot_f1(result: MissionResult) -> bytes:
     fig, axes = _pyplot().subplots(1, 2, figsize=(10, 3.6), sharey=True)
     for i, (name, run) in enumerate(result.runs.items()):
-        ev = run.series["eval"]
-        axes[0].plot(ev["step"], ev["f1"], marker=".", label=name, color=f"C{i}")
-        axes[1].plot(ev["step"], [max(f) for f in ev["belief_f1"]], marker=".", label=name, color=f"C{i}")
+        ev = run.series.eval
+        axes[0].plot(ev.step, ev.f1, marker=".", label=name, color=f"C{i}")
+        axes[1].plot(ev.step, [max(f) for f in ev.belief_f1], marker=".", label=name, color=f"C{i}")
     axes[0].set(xlabel="step", ylabel="strict path F1", ylim=(0, 1.02), title="Base's global map")
     axes[1].set(xlabel="step", title="Best rover belief")
     axes[1].axhline(F1_GOAL, color="0.6", ls="--", lw=0.8)
@@ -159,8 +162,8 @@ def plot_accuracy_bytes(result: MissionResult) -> bytes:
     for i, (name, run) in enumerate(result.runs.items()):
         s = run.series
         n = result.config.rovers
-        x = [(sum(u) + sum(d)) / n for u, d in zip(s["bytes_up"], s["bytes_down"])]
-        y = [float(np.mean(a)) for a in s["accuracy"]]
+        x = [(sum(u) + sum(d)) / n for u, d in zip(s.bytes_up, s.bytes_down)]
+        y = [float(np.mean(a)) for a in s.accuracy]
         if max(x) > 0:
             ax.plot(x, y, label=name, color=f"C{i}")
         else:  # no bytes: one point at the end (the bound it reaches for free or alone)
@@ -202,7 +205,7 @@ def frames_rgb(result: MissionResult, name: str, *, scale: int = 2) -> list[np.n
     gap = np.ones((h, 2, 3), dtype=np.float32)
     for f in run.frames:
         panels = [_panel(result.truth.classes)]
-        for k, (belief, pos, n) in enumerate(zip(f["beliefs"], f["pos"], f["trail_len"])):
+        for k, (belief, pos, n) in enumerate(zip(f.beliefs, f.positions, f.trail_len)):
             img = _panel(belief)
             colour = _COLOURS[k % len(_COLOURS)]
             _mark(img, run.trails[k][:n], colour, 0.6)
@@ -211,8 +214,8 @@ def frames_rgb(result: MissionResult, name: str, *, scale: int = 2) -> list[np.n
             _mark(img, fp, (1.0, 1.0, 1.0), 0.8)
             _mark(img, [pos], (0.0, 0.0, 0.0))
             panels.append(img)
-        g = _panel(f["global"])
-        for k, pos in enumerate(f["pos"]):
+        g = _panel(f.global_map)
+        for k, pos in enumerate(f.positions):
             _mark(g, [pos], _COLOURS[k % len(_COLOURS)])
         _mark(g, [result.base], (0.0, 0.0, 0.0))
         panels.append(g)

@@ -9,11 +9,12 @@ its round when the uplinks arrive (``latency`` steps later) and its downlinks ar
 ``latency`` steps after that. See :mod:`fedmap.mission.strategies` for what each
 strategy sends and :mod:`fedmap.mission.link` for the link.
 
-Time series (:attr:`StrategyRun.series`): per step, team coverage, redundant
-observation, each rover's belief accuracy, distance and cumulative bytes, messages
-delivered and dropped; per evaluation step (every sync and the last step), the base's
-global map scores (PSNR, SSIM, strict and tolerant path F1) and each rover's belief
-strict path F1.
+Results are typed: :class:`StrategyRun` holds a strategy's :class:`TimeSeries` (per
+step: team coverage, redundant observation, each rover's belief accuracy, distance and
+cumulative bytes, messages delivered and dropped; per evaluation step, every sync and the
+last step, its :class:`EvalSeries`: the base's global map scores, PSNR, SSIM, strict and
+tolerant path F1, and each rover's belief strict path F1) and its :class:`MissionSummary`.
+They become dicts only for ``metrics.json`` (``to_dict``).
 """
 
 from __future__ import annotations
@@ -22,21 +23,22 @@ import hashlib
 import heapq
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from fedmap.errors import FedmapError
 from fedmap.evaluation.paths import path_f1
-from fedmap.evaluation.scores import score_map
+from fedmap.evaluation.scores import MapScores, score_map
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.planning import path_is_valid
 from fedmap.mission.frontiers import choose_target, plan_path
-from fedmap.mission.link import DOWN, UP, Link, Message
+from fedmap.mission.link import DOWN, UP, Link, Message, StarTopology
 from fedmap.mission.sensing import disk_offsets, footprint
 from fedmap.mission.settings import MissionConfig
-from fedmap.mission.strategies import Strategy, make_strategy
+from fedmap.mission.strategies import DroppedUpdate, Strategy, make_strategy
 
 Cell = tuple[int, int]
 #: Coverage levels whose first step is reported.
@@ -61,23 +63,138 @@ class Rover:
     replan: bool = True
 
 
-@dataclass
+@dataclass(frozen=True)
+class EvalSeries:
+    """The scores at every evaluation step (every sync and the last step), one entry per
+    evaluation step. The global map is the base station's; path F1 plans strict A* on
+    ``eval_pairs`` seeded start/goal pairs, UNKNOWN impassable."""
+
+    step: tuple[int, ...]  #: the evaluation steps
+    psnr: tuple[float, ...]  #: PSNR of the base's global map against the truth, dB
+    ssim: tuple[float, ...]  #: SSIM of the base's global map
+    accuracy: tuple[float, ...]  #: share of the base's global map's cells equal to the truth (0..1)
+    f1: tuple[float, ...]  #: strict path F1 of the base's global map
+    f1_tolerant: tuple[float, ...]  #: tolerant path F1 of the base's global map
+    belief_f1: tuple[tuple[float, ...], ...]  #: per rover: strict path F1 of its belief
+
+    def to_dict(self) -> dict[str, list]:
+        return {"step": list(self.step), "psnr": list(self.psnr), "ssim": list(self.ssim),
+                "accuracy": list(self.accuracy), "f1": list(self.f1), "f1_tolerant": list(self.f1_tolerant),
+                "belief_f1": [list(f) for f in self.belief_f1]}
+
+
+@dataclass(frozen=True)
+class TimeSeries:
+    """One strategy's mission, step by step: one entry per step, 0 (the start) to ``steps``.
+
+    Shares are of the map's cells (0..1); distances are in cells; bytes and message counts
+    are cumulative since the start. Per-rover entries are tuples in team order.
+    """
+
+    step: tuple[int, ...]  #: the steps, 0 to ``steps``
+    coverage: tuple[float, ...]  #: share of cells any rover has observed
+    redundant: tuple[float, ...]  #: share of cells two or more rovers have observed
+    accuracy: tuple[tuple[float, ...], ...]  #: per rover: share of its belief's cells equal to the truth (UNKNOWN wrong)
+    distance: tuple[tuple[float, ...], ...]  #: per rover: distance driven, cells
+    bytes_up: tuple[tuple[int, ...], ...]  #: per rover: bytes it spent on the uplink
+    bytes_down: tuple[tuple[int, ...], ...]  #: per rover: bytes the base spent on its downlink
+    up_delivered: tuple[int, ...]  #: whole team: uplink messages delivered (arrived by this step)
+    up_dropped: tuple[int, ...]  #: whole team: uplink messages not delivered (lost, over budget, out of range, ...)
+    down_delivered: tuple[int, ...]  #: whole team: downlink messages delivered (arrived by this step)
+    down_dropped: tuple[int, ...]  #: whole team: downlink messages not delivered
+    eval: EvalSeries  #: the scores at every evaluation step
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``series`` of ``metrics.json``."""
+        return {"step": list(self.step), "coverage": list(self.coverage), "redundant": list(self.redundant),
+                "accuracy": [list(a) for a in self.accuracy], "distance": [list(d) for d in self.distance],
+                "bytes_up": [list(b) for b in self.bytes_up], "bytes_down": [list(b) for b in self.bytes_down],
+                "up_delivered": list(self.up_delivered), "up_dropped": list(self.up_dropped),
+                "down_delivered": list(self.down_delivered), "down_dropped": list(self.down_dropped),
+                "eval": self.eval.to_dict()}
+
+
+@dataclass(frozen=True)
+class MissionSummary:
+    """One strategy's mission in a few values: when levels were first reached, and the
+    values at the last step (``final_*``). Steps are None when the level was never reached.
+    """
+
+    coverage_steps: dict[float, int | None]  #: first step the team's coverage reached each of COVERAGE_LEVELS
+    belief_f1_goal: float  #: the strict path F1 a belief must reach (:data:`F1_GOAL`)
+    first_belief_f1_step: int | None  #: first evaluation step any rover's belief reached the goal
+    first_belief_f1_step_per_rover: tuple[int | None, ...]  #: the same, per rover
+    final_coverage: float  #: share of cells any rover observed
+    final_redundant: float  #: share of cells two or more rovers observed
+    final_belief_accuracy_mean: float  #: belief accuracy (share of cells), mean over the rovers
+    final_distance_total: float  #: distance driven by the whole team, cells
+    final_global_psnr: float  #: the base's global map: PSNR, dB
+    final_global_ssim: float  #: the base's global map: SSIM
+    final_global_accuracy: float  #: the base's global map: share of cells equal to the truth
+    final_global_f1: float  #: the base's global map: strict path F1
+    final_global_f1_tolerant: float  #: the base's global map: tolerant path F1
+    final_belief_f1_mean: float  #: strict path F1 of the rovers' beliefs, mean over the rovers
+    bytes_up: int  #: uplink bytes of the whole team (sum over the rovers)
+    bytes_down: int  #: downlink bytes of the whole team (sum over the rovers)
+    messages: dict[str, int]  #: ledger entries per ``<direction>_<status>``, e.g. ``up_lost``
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``summary`` of ``metrics.json``."""
+        return {
+            "coverage_steps": {f"{int(level * 100)}%": t for level, t in self.coverage_steps.items()},
+            "belief_f1_goal": self.belief_f1_goal,
+            "first_belief_f1_step": self.first_belief_f1_step,
+            "first_belief_f1_step_per_rover": list(self.first_belief_f1_step_per_rover),
+            "final": {"coverage": self.final_coverage, "redundant": self.final_redundant,
+                      "belief_accuracy_mean": self.final_belief_accuracy_mean,
+                      "distance_total": self.final_distance_total, "global_psnr": self.final_global_psnr,
+                      "global_ssim": self.final_global_ssim, "global_accuracy": self.final_global_accuracy,
+                      "global_f1": self.final_global_f1, "global_f1_tolerant": self.final_global_f1_tolerant,
+                      "belief_f1_mean": self.final_belief_f1_mean},
+            "bytes": {"up": self.bytes_up, "down": self.bytes_down},
+            "messages": dict(self.messages),
+        }
+
+
+@dataclass(frozen=True)
+class Frame:
+    """What the animation draws at one step."""
+
+    step: int
+    beliefs: list[np.ndarray]  #: every rover's belief (classes)
+    global_map: np.ndarray  #: the base's global map (classes)
+    positions: list[Cell]  #: every rover's cell
+    trail_len: list[int]  #: how much of each rover's trail it has driven (cells of the trail)
+
+
+@dataclass(frozen=True)
 class StrategyRun:
     """One strategy's mission: time series, summary, ledger, and what the animation draws."""
 
     name: str
-    series: dict
-    summary: dict
+    series: TimeSeries
+    summary: MissionSummary
     ledger: list[Message]
-    frames: list[dict]
+    frames: list[Frame]
     trails: list[list[Cell]]
     seconds: float
-    extra: dict = field(default_factory=dict)  # strategy-specific records for metrics.json
+    #: the strategy's :attr:`~fedmap.mission.strategies.Strategy.dropped` (None: it sends no model updates)
+    dropped_updates: tuple[DroppedUpdate, ...] | None = None
     strategy: Strategy | None = None  # the final state (for inspection; not written)
 
+    def to_dict(self) -> dict[str, Any]:
+        """The strategy's entry of ``metrics.json`` (no frames, trails or strategy state)."""
+        out: dict[str, Any] = {"summary": self.summary.to_dict(), "seconds": self.seconds,
+                               "series": self.series.to_dict(), "ledger": [m.to_dict() for m in self.ledger]}
+        if self.dropped_updates is not None:
+            out["dropped_updates"] = [d.to_dict() for d in self.dropped_updates]
+        return out
 
-@dataclass
+
+@dataclass(frozen=True)
 class MissionResult:
+    """Every strategy's run of one mission (same terrain, starts, base and link)."""
+
     config: MissionConfig
     truth: GridMap
     starts: list[Cell]
@@ -130,19 +247,18 @@ class _Scorer:
 
     def __init__(self, truth: GridMap, pairs: int, seed: int) -> None:
         self.truth, self.pairs, self.seed = truth, pairs, seed
-        self.full: dict[bytes, dict] = {}
+        self.full: dict[bytes, MapScores] = {}
         self.f1: dict[bytes, float] = {}
 
     @staticmethod
     def _key(classes: np.ndarray) -> bytes:
         return hashlib.blake2b(np.ascontiguousarray(classes).tobytes(), digest_size=16).digest()
 
-    def scores(self, classes: np.ndarray) -> dict:
+    def scores(self, classes: np.ndarray) -> MapScores:
         key = self._key(classes)
         if key not in self.full:
             s = score_map(self.truth.classes, classes, pairs=self.pairs, seed=self.seed)
-            self.full[key] = {"psnr": s.psnr, "ssim": s.ssim, "accuracy": s.accuracy, "f1": s.path.f1,
-                              "f1_tolerant": s.path.tolerant.f1}
+            self.full[key] = s
             self.f1[key] = s.path.f1
         return self.full[key]
 
@@ -151,6 +267,51 @@ class _Scorer:
         if key not in self.f1:
             self.f1[key] = path_f1(self.truth.classes, classes, n_pairs=self.pairs, seed=self.seed).f1
         return self.f1[key]
+
+
+@dataclass(frozen=True)
+class _StepRow:
+    """One step's entry of every :class:`TimeSeries` series (see there)."""
+
+    step: int
+    coverage: float
+    redundant: float
+    accuracy: tuple[float, ...]
+    distance: tuple[float, ...]
+    bytes_up: tuple[int, ...]
+    bytes_down: tuple[int, ...]
+    up_delivered: int
+    up_dropped: int
+    down_delivered: int
+    down_dropped: int
+
+
+@dataclass(frozen=True)
+class _EvalRow:
+    """One evaluation step's entry of every :class:`EvalSeries` series (see there)."""
+
+    step: int
+    psnr: float
+    ssim: float
+    accuracy: float
+    f1: float
+    f1_tolerant: float
+    belief_f1: tuple[float, ...]
+
+
+def _series(rows: list[_StepRow], evals: list[_EvalRow]) -> TimeSeries:
+    """The time series of the recorded rows (one per step, one per evaluation step)."""
+    ev = EvalSeries(step=tuple(e.step for e in evals), psnr=tuple(e.psnr for e in evals),
+                    ssim=tuple(e.ssim for e in evals), accuracy=tuple(e.accuracy for e in evals),
+                    f1=tuple(e.f1 for e in evals), f1_tolerant=tuple(e.f1_tolerant for e in evals),
+                    belief_f1=tuple(e.belief_f1 for e in evals))
+    return TimeSeries(step=tuple(r.step for r in rows), coverage=tuple(r.coverage for r in rows),
+                      redundant=tuple(r.redundant for r in rows), accuracy=tuple(r.accuracy for r in rows),
+                      distance=tuple(r.distance for r in rows), bytes_up=tuple(r.bytes_up for r in rows),
+                      bytes_down=tuple(r.bytes_down for r in rows),
+                      up_delivered=tuple(r.up_delivered for r in rows), up_dropped=tuple(r.up_dropped for r in rows),
+                      down_delivered=tuple(r.down_delivered for r in rows),
+                      down_dropped=tuple(r.down_dropped for r in rows), eval=ev)
 
 
 class _Run:
@@ -165,23 +326,18 @@ class _Run:
         self.team = [Rover(s, np.full(shape, UNKNOWN, dtype=np.uint8), np.full(shape, -1, dtype=np.int64),
                            trail=[s], waypoints=list(w) if config.mode == "waypoints" else [])
                      for s, w in zip(starts, waypoints)]
-        self.link = Link(config.link, base)
+        self.topology = StarTopology(base, config.link.max_range)
+        self.link = Link(config.link, self.topology)
         self.origin = (float(np.mean([s[0] for s in starts])), float(np.mean([s[1] for s in starts])))
         budget = {"up": config.link.uplink_bytes, "down": config.link.downlink_bytes}
         self.strategy: Strategy = make_strategy(name, truth, self.team, budget, methods=config.methods,
                                                 seed=config.seed)
-        self.allowed = None
-        if config.stay_in_range and config.link.max_range is not None:
-            rows, cols = np.indices(shape)
-            self.allowed = np.hypot(rows - base[0], cols - base[1]) <= config.link.max_range
+        self.allowed = self.topology.region(shape) if config.stay_in_range else None
         self.queue: list = []
         self.seq = 0
-        self.series: dict = {"step": [], "coverage": [], "redundant": [], "accuracy": [], "distance": [],
-                             "bytes_up": [], "bytes_down": [], "up_delivered": [], "up_dropped": [],
-                             "down_delivered": [], "down_dropped": [],
-                             "eval": {"step": [], "psnr": [], "ssim": [], "accuracy": [], "f1": [], "f1_tolerant": [],
-                                      "belief_f1": []}}
-        self.frames: list[dict] = []
+        self.rows: list[_StepRow] = []
+        self.evals: list[_EvalRow] = []
+        self.frames: list[Frame] = []
 
     # -- sensing and driving
     def sense(self, k: int, t: int) -> None:
@@ -255,6 +411,10 @@ class _Run:
             self.sense(k, t)
 
     # -- the link
+    def positions(self) -> list[Cell]:
+        """Every rover's cell now, in team order."""
+        return [r.pos for r in self.team]
+
     def _push(self, due: int, kind: str, *data) -> None:
         heapq.heappush(self.queue, (due, self.seq, kind, data))
         self.seq += 1
@@ -263,16 +423,18 @@ class _Run:
         s = self.strategy
         if not s.shares:
             return
-        for k, r in enumerate(self.team):
-            if not self.link.in_range(r.pos):
-                self.link.send(None, round_no=round_no, step=t, rover=k, direction=UP, kind="-", pos=r.pos)
+        positions = self.positions()
+        reachable = self.topology.reachable(positions)
+        for k in range(len(self.team)):
+            if not reachable[k]:  # recorded as out of range
+                self.link.send(None, round_no=round_no, step=t, rover=k, direction=UP, kind="-", positions=positions)
                 continue
             out = s.uplink(k, round_no)
             if out is None:
                 self.link.ledger.append(Message(round_no, t, k, UP, "update", 0, "rejected"))
                 continue
             msg = self.link.send(out.payload, round_no=round_no, step=t, rover=k, direction=UP, kind=out.kind,
-                                 pos=r.pos)
+                                 positions=positions)
             if msg.arrival is not None:  # delivered
                 self._push(msg.arrival, "up", k, out.payload, out.ctx, round_no)
         self._push(t + self.config.link.latency, "base", round_no)
@@ -289,7 +451,7 @@ class _Run:
                 (round_no,) = data
                 for k, out in s.base_round(round_no).items():
                     msg = self.link.send(out.payload, round_no=round_no, step=due, rover=k, direction=DOWN,
-                                         kind=out.kind, pos=self.team[k].pos)
+                                         kind=out.kind, positions=self.positions())
                     if msg.arrival is not None:  # delivered
                         self._push(msg.arrival, "down", k, out.payload, out.ctx, msg)
             else:
@@ -301,38 +463,32 @@ class _Run:
 
     # -- the record
     def record(self, t: int, evaluate: bool) -> None:
-        s, se, truth = self.strategy, self.series, self.truth.classes
+        s, truth = self.strategy, self.truth.classes
         observed = np.stack([r.local != UNKNOWN for r in self.team])
         n_seen = observed.sum(axis=0)
         beliefs = [s.belief(k) for k in range(len(self.team))]
-        se["step"].append(t)
-        se["coverage"].append(float((n_seen > 0).mean()))
-        se["redundant"].append(float((n_seen > 1).mean()))
-        se["accuracy"].append([float((b == truth).mean()) for b in beliefs])
-        se["distance"].append([r.distance for r in self.team])
         n = len(self.team)
         up, down = [0] * n, [0] * n
-        counts = {"up_delivered": 0, "up_dropped": 0, "down_delivered": 0, "down_dropped": 0}
+        delivered, dropped = {UP: 0, DOWN: 0}, {UP: 0, DOWN: 0}
         for m in self.link.ledger:
             (up if m.direction == UP else down)[m.rover] += m.bytes
             ok = m.status == "delivered" and (m.arrival is None or m.arrival <= t)
             if m.status == "delivered" and not ok:
                 continue  # still on its way
-            counts[f"{m.direction}_{'delivered' if ok else 'dropped'}"] += 1
-        se["bytes_up"].append(up)
-        se["bytes_down"].append(down)
-        for key, v in counts.items():
-            se[key].append(v)
+            (delivered if ok else dropped)[m.direction] += 1
+        self.rows.append(_StepRow(
+            step=t, coverage=float((n_seen > 0).mean()), redundant=float((n_seen > 1).mean()),
+            accuracy=tuple(float((b == truth).mean()) for b in beliefs), distance=tuple(r.distance for r in self.team),
+            bytes_up=tuple(up), bytes_down=tuple(down), up_delivered=delivered[UP], up_dropped=dropped[UP],
+            down_delivered=delivered[DOWN], down_dropped=dropped[DOWN]))
         if evaluate:
-            ev = se["eval"]
             g = self.scorer.scores(s.global_map())
-            ev["step"].append(t)
-            for key in ("psnr", "ssim", "accuracy", "f1", "f1_tolerant"):
-                ev[key].append(g[key])
-            ev["belief_f1"].append([self.scorer.strict_f1(b) for b in beliefs])
+            self.evals.append(_EvalRow(step=t, psnr=g.psnr, ssim=g.ssim, accuracy=g.accuracy, f1=g.path.f1,
+                                       f1_tolerant=g.path.tolerant.f1,
+                                       belief_f1=tuple(self.scorer.strict_f1(b) for b in beliefs)))
         if t % self.frame_every == 0 or t == self.config.steps:
-            self.frames.append({"step": t, "beliefs": beliefs, "global": s.global_map().copy(),
-                                "pos": [r.pos for r in self.team], "trail_len": [len(r.trail) for r in self.team]})
+            self.frames.append(Frame(step=t, beliefs=beliefs, global_map=s.global_map().copy(),
+                                     positions=self.positions(), trail_len=[len(r.trail) for r in self.team]))
 
     def run(self, on_step: Callable[[str, int, float], None] | None = None) -> StrategyRun:
         t0 = time.perf_counter()
@@ -349,16 +505,16 @@ class _Run:
             self.deliver(t)
             self.record(t, evaluate=t in syncs or t == c.steps)
             if on_step is not None:
-                on_step(self.name, t, self.series["coverage"][-1])
+                on_step(self.name, t, self.rows[-1].coverage)
         seconds = time.perf_counter() - t0
-        extra = {}
-        if hasattr(self.strategy, "dropped"):
-            extra["dropped_updates"] = self.strategy.dropped
-        return StrategyRun(self.name, self.series, summarise(self.series, self.link.ledger, c), self.link.ledger,
-                           self.frames, [list(r.trail) for r in self.team], seconds, extra, self.strategy)
+        series = _series(self.rows, self.evals)
+        dropped = self.strategy.dropped
+        return StrategyRun(self.name, series, summarise(series, self.link.ledger, c), self.link.ledger, self.frames,
+                           [list(r.trail) for r in self.team], seconds,
+                           dropped_updates=None if dropped is None else tuple(dropped), strategy=self.strategy)
 
 
-def first_step(steps: list[int], values: list[float], level: float) -> int | None:
+def first_step(steps: Sequence[int], values: Sequence[float], level: float) -> int | None:
     """The first step whose value is at least ``level`` (None: never)."""
     for t, v in zip(steps, values):
         if v >= level - 1e-12:
@@ -366,29 +522,34 @@ def first_step(steps: list[int], values: list[float], level: float) -> int | Non
     return None
 
 
-def summarise(series: dict, ledger: list[Message], config: MissionConfig) -> dict:
+def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig) -> MissionSummary:
     """Steps to the coverage levels, first step a belief reaches :data:`F1_GOAL`, finals, bytes."""
-    ev = series["eval"]
-    per_rover_f1 = [first_step(ev["step"], [f[k] for f in ev["belief_f1"]], F1_GOAL) for k in range(config.rovers)]
+    ev = series.eval
+    per_rover_f1 = tuple(first_step(ev.step, [f[k] for f in ev.belief_f1], F1_GOAL) for k in range(config.rovers))
     reached = [t for t in per_rover_f1 if t is not None]
     status: dict[str, int] = {}
     for m in ledger:
         key = f"{m.direction}_{m.status}"
         status[key] = status.get(key, 0) + 1
-    return {
-        "coverage_steps": {f"{int(level * 100)}%": first_step(series["step"], series["coverage"], level)
-                           for level in COVERAGE_LEVELS},
-        "belief_f1_goal": F1_GOAL,
-        "first_belief_f1_step": min(reached) if reached else None,
-        "first_belief_f1_step_per_rover": per_rover_f1,
-        "final": {"coverage": series["coverage"][-1], "redundant": series["redundant"][-1],
-                  "belief_accuracy_mean": float(np.mean(series["accuracy"][-1])),
-                  "distance_total": float(np.sum(series["distance"][-1])),
-                  **{f"global_{k}": ev[k][-1] for k in ("psnr", "ssim", "accuracy", "f1", "f1_tolerant")},
-                  "belief_f1_mean": float(np.mean(ev["belief_f1"][-1]))},
-        "bytes": {"up": int(np.sum(series["bytes_up"][-1])), "down": int(np.sum(series["bytes_down"][-1]))},
-        "messages": dict(sorted(status.items())),
-    }
+    return MissionSummary(
+        coverage_steps={level: first_step(series.step, series.coverage, level) for level in COVERAGE_LEVELS},
+        belief_f1_goal=F1_GOAL,
+        first_belief_f1_step=min(reached) if reached else None,
+        first_belief_f1_step_per_rover=per_rover_f1,
+        final_coverage=series.coverage[-1],
+        final_redundant=series.redundant[-1],
+        final_belief_accuracy_mean=float(np.mean(series.accuracy[-1])),
+        final_distance_total=float(np.sum(series.distance[-1])),
+        final_global_psnr=ev.psnr[-1],
+        final_global_ssim=ev.ssim[-1],
+        final_global_accuracy=ev.accuracy[-1],
+        final_global_f1=ev.f1[-1],
+        final_global_f1_tolerant=ev.f1_tolerant[-1],
+        final_belief_f1_mean=float(np.mean(ev.belief_f1[-1])),
+        bytes_up=int(np.sum(series.bytes_up[-1])),
+        bytes_down=int(np.sum(series.bytes_down[-1])),
+        messages=dict(sorted(status.items())),
+    )
 
 
 def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray | None = None,
@@ -418,4 +579,5 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     return MissionResult(config, truth, starts, base, runs, time.perf_counter() - t0)
 
 
-__all__ = ["COVERAGE_LEVELS", "F1_GOAL", "MissionResult", "Rover", "StrategyRun", "place_starts", "run_mission"]
+__all__ = ["COVERAGE_LEVELS", "F1_GOAL", "EvalSeries", "Frame", "MissionResult", "MissionSummary", "Rover",
+           "StrategyRun", "TimeSeries", "place_starts", "run_mission"]
