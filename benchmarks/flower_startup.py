@@ -50,7 +50,7 @@ def import_cpu(module: str) -> float:
 
 def one_run(tmp: Path, warm: bool) -> dict[str, float]:
     truth = load_truth(TerrainSource(terrain="mars", size=64), seed=0)
-    maps = explore(truth, 4, "quadrants", seed=0, sensor_radius=PipelineConfig().sensor_radius)
+    maps = explore(truth, 4, "quadrants", seed=0, sensor_radius=PipelineConfig().explore.sensor_radius)
     for k, m in enumerate(maps):
         save_map(m, tmp / f"local{k}.npy")
     port = free_port()

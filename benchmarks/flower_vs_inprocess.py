@@ -51,9 +51,9 @@ def main() -> None:
     run = {"net": args.net, "init": "random", "epochs": args.epochs, "seed": args.seed, "rovers": 4, "min-rovers": 4,
            "rounds": args.rounds,
            "deadline": 600.0, "connect-timeout": 300.0, "pairs": 75}
-    pc = PipelineConfig(terrain="mars", size=args.size, seed=args.seed)
+    pc = PipelineConfig(terrain=TerrainSource(terrain="mars", size=args.size), seed=args.seed)
     truth = load_truth(TerrainSource(terrain="mars", size=args.size), seed=args.seed)
-    maps = explore(truth, 4, "quadrants", seed=args.seed, sensor_radius=pc.sensor_radius)
+    maps = explore(truth, 4, "quadrants", seed=args.seed, sensor_radius=pc.explore.sensor_radius)
 
     t = time.perf_counter()
     net = preset(args.net, args.size)
@@ -62,11 +62,11 @@ def main() -> None:
     model = build_model(net)
     set_weights(model, fed.weights)
     classes = classes_from_rgb(render(model, args.size, args.size))
-    psnr = score_map(truth.classes, classes, pairs=pc.eval_pairs, seed=pc.seed).psnr
-    score_map(truth.classes, refine(classes, RefineConfig()), pairs=pc.eval_pairs, seed=pc.seed)
+    psnr = score_map(truth.classes, classes, pairs=pc.evaluate.pairs, seed=pc.seed).psnr
+    score_map(truth.classes, refine(classes, RefineConfig()), pairs=pc.evaluate.pairs, seed=pc.seed)
     in_process_s = time.perf_counter() - t
 
-    ref_rounds = [r["seconds"] for r in fed.history]
+    ref_rounds = [r.seconds for r in fed.history]
     t = time.perf_counter()
     subprocess.run([sys.executable, "-c", "import fedmap.flower.client_app"], check=True)
     cold_import_s = time.perf_counter() - t

@@ -19,6 +19,7 @@ from fedmap.config import (
 )
 from fedmap.errors import FedmapError
 from fedmap.federation.runner import FederationConfig
+from fedmap.nets.init import ModelConfig
 from fedmap.nets.training import TrainConfig
 from fedmap.pipeline import PipelineConfig
 
@@ -32,16 +33,16 @@ def write(tmp_path, text, name="run.toml"):
 def test_paper_preset_is_the_papers_setup():
     """The paper's stated settings (DESIGN.md section 3), built by hand through the config classes."""
     cfg = method_config("paper")
-    ref = PipelineConfig(net="paper", init="meta", federation=FederationConfig(
-        rounds=1, aggregator="fedavg", uplink="fp32", downlink="fp32", local=TrainConfig(epochs=100, lr=1e-3, masked=False)))
+    ref = PipelineConfig(model=ModelConfig(net="paper", init="meta"), federation=FederationConfig(
+        rounds=1, aggregator="fedavg", uplink="fp32", downlink="fp32"), train=TrainConfig(epochs=100, lr=1e-3, masked=False))
     assert cfg == ref
 
 
 def test_fedmap_preset_is_grids_coverage_and_update_payloads():
     cfg = method_config("fedmap")
-    ref = PipelineConfig(net="grid", init="random", federation=FederationConfig(
-        aggregator="coverage", uplink="update-int4+zstd", downlink="update-int8+zstd",
-        local=TrainConfig(epochs=100, lr=0.05, masked=True)))
+    ref = PipelineConfig(method="fedmap", model=ModelConfig(net="grid", init="random"), federation=FederationConfig(
+        aggregator="coverage", uplink="update-int4+zstd", downlink="update-int8+zstd"),
+        train=TrainConfig(epochs=100, lr=0.05, masked=True))
     assert cfg == ref
 
 
@@ -58,7 +59,8 @@ def test_method_config_keywords_are_the_run_config():
     r = resolve(overrides=[{"seed": 5, "terrain": {"size": 64}, "train": {"epochs": 7}, "evaluate": {"pairs": 20},
                             "federation": {"rounds": 3, "eta": 0.003, "aggregator": "fedadam"}}])
     assert cfg == to_pipeline_config(r)
-    assert cfg.federation.seed == 5 and cfg.init == "meta"
+    assert cfg.federation.seed == 5 and cfg.model.init == "meta"
+    assert cfg.federation.local == cfg.train  # [train] is the federation's local training, one source
     with pytest.raises(FedmapError, match="unknown setting 'epoch' \\(did you mean 'epochs'\\?\\)"):
         overrides_from({"epoch": 3})
 
@@ -78,12 +80,12 @@ agents = 6
 mode = "grid"
 """)
     r = resolve(path, [{"train": {"epochs": 7}}, {"explore": {"agents": 9}}])
-    cfg = to_pipeline_config(r, size=64)
-    assert cfg.net == "grid"                          # from the fedmap preset
-    assert cfg.federation.local.lr == 0.02            # file beats preset (0.05)
-    assert cfg.federation.local.masked is True        # preset kept where the file is silent
-    assert cfg.federation.local.epochs == 7           # option beats file
-    assert cfg.agents == 9 and cfg.explore == "grid"
+    cfg = to_pipeline_config(r)
+    assert cfg.model.net == "grid"                    # from the fedmap preset
+    assert cfg.train.lr == 0.02                       # file beats preset (0.05)
+    assert cfg.train.masked is True                   # preset kept where the file is silent
+    assert cfg.train.epochs == 7                      # option beats file
+    assert cfg.explore.agents == 9 and cfg.explore.mode == "grid"
     assert cfg.federation.aggregator == "fedyogi" and cfg.federation.eta == 0.003
     assert cfg.seed == 4 and cfg.federation.seed == 4
     # an option's method changes the preset under the file's explicit values
@@ -115,9 +117,9 @@ def test_config_mistakes_are_named(tmp_path, text, message):
 
 def test_values_are_checked_by_the_library_classes(tmp_path):
     with pytest.raises(FedmapError, match="rounds must be >= 1"):
-        to_pipeline_config(resolve(write(tmp_path, "[federation]\nrounds = 0\n")), size=64)
+        to_pipeline_config(resolve(write(tmp_path, "[federation]\nrounds = 0\n")))
     with pytest.raises(FedmapError, match="unknown aggregator|aggregator"):
-        to_pipeline_config(resolve(write(tmp_path, "[federation]\naggregator = \"fedmean\"\n")), size=64)
+        to_pipeline_config(resolve(write(tmp_path, "[federation]\naggregator = \"fedmean\"\n")))
     with pytest.raises(FedmapError, match="max_slope_deg"):
         terrain_source(resolve(write(tmp_path, "[thresholds]\nmax_slope_deg = 95\n")))
     with pytest.raises(FedmapError, match="unknown terrain source kind 'file'"):
@@ -164,15 +166,15 @@ def test_parse_set():
 def test_the_presets_init_goes_with_its_network(tmp_path):
     """paper's meta-init is for the paper network: swapping the network without an init
     starts from random weights; an explicit init, or a weights file, is kept."""
-    assert method_config("paper").init == "meta"
-    assert method_config("paper", net="small").init == "random"
-    assert method_config("paper", net="grid").init == "random"  # (meta would be refused for grid)
-    assert method_config("paper", net="small", init="empty").init == "empty"
-    assert method_config("paper", net="small", init_weights="w.safetensors").init == "meta"
+    assert method_config("paper").model.init == "meta"
+    assert method_config("paper", net="small").model.init == "random"
+    assert method_config("paper", net="grid").model.init == "random"  # (meta would be refused for grid)
+    assert method_config("paper", net="small", init="empty").model.init == "empty"
+    assert method_config("paper", net="small", init_weights="w.safetensors").model.init == "meta"
     path = write(tmp_path, '[model]\nnet = "small"\ninit = "meta"\n')
-    assert to_pipeline_config(resolve(path)).init == "meta"  # said in the file: kept
-    with pytest.raises(FedmapError, match="unknown setting 'crop'"):
-        method_config("paper", crop=64)  # built-in terrain has no crop
+    assert to_pipeline_config(resolve(path)).model.init == "meta"  # said in the file: kept
+    with pytest.raises(FedmapError, match="crop does not apply to built-in terrain"):
+        method_config("paper", crop=64)
 
 
 def test_a_weights_file_without_an_init_is_a_meta_init():

@@ -141,7 +141,7 @@ def _same_as_in_process(out, maps, run, rounds):
 
     from fedmap.nets.model import get_weights, load_model
 
-    absent = {r["round"]: sorted(set(range(len(maps))) - {int(k) for k in r["weights"]}) for r in rounds}
+    absent = {r["round"]: sorted(set(range(len(maps))) - {int(k) for k in r["aggregation_counts"]}) for r in rounds}
     _, ref = _reference_with(maps, run, absent=absent)
     got = get_weights(load_model(out / "global_model.safetensors"))
     for k in ref.weights:
@@ -215,8 +215,8 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
     assert status["state"] == "done" and cut
     m = json.loads((out / "metrics.json").read_text())
     r1, r2 = m["rounds"]
-    assert "CRC mismatch" in r1["dropped"]["2"] and sorted(r1["weights"]) == ["0", "1", "3"]
-    assert "NaN" in r2["dropped"]["3"] and sorted(r2["weights"]) == ["0", "1", "2"]
+    assert "CRC mismatch" in r1["dropped"]["2"] and sorted(r1["aggregation_counts"]) == ["0", "1", "3"]
+    assert "NaN" in r2["dropped"]["3"] and sorted(r2["aggregation_counts"]) == ["0", "1", "2"]
     assert r1["missing"] == r2["missing"] == []
     assert proxy.counts["cut_dropped"] >= 1 and proxy.counts["delayed_chunks"] > 0
     print("proxy:", proxy.counts)  # the README's fault table
@@ -275,7 +275,8 @@ def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     assert status["state"] == "done"
     m = json.loads((out / "metrics.json").read_text())
     for r in m["rounds"]:
-        assert r["dropped"] == {} and sorted(r["missing"]) == sorted(set(range(4)) - {int(k) for k in r["weights"]})
+        aggregated = {int(k) for k in r["aggregation_counts"]}
+        assert r["dropped"] == {} and sorted(r["missing"]) == sorted(set(range(4)) - aggregated)
         assert all(why == "no reply before the round's deadline" for why in r["missing_why"].values())
     assert proxy.counts["dropped"] >= 5
     print("proxy:", proxy.counts)  # the README's fault table

@@ -101,13 +101,13 @@ def test_two_rounds_equal_run_federation(tmp_path, blob_map):
     for k in ref.weights:
         np.testing.assert_allclose(strategy.held[k], ref.weights[k], atol=1e-6)
     for got, want in zip(strategy.history, ref.history):
-        assert got["uplink_bytes"] == want["uplink_bytes"]
-        assert got["weights"] == {k: float(v) for k, v in want["weights"].items()}
+        assert got.uplink_bytes == want.uplink_bytes
+        assert got.aggregation_counts == {k: float(v) for k, v in want.aggregation_counts.items()}
     # round 1's broadcast went out with round 2's messages, to every rover
-    assert strategy.history[0]["downlink_bytes"] == ref.history[0]["downlink_bytes"]
+    assert strategy.history[0].downlink_bytes == ref.history[0].downlink_bytes
     # the payload Flower carried is exactly what the runner counted, plus the .npy header and key
-    n = ref.history[0]["uplink_bytes"][0]
-    assert strategy.history[0]["flower_uplink_bytes"][0] == n + 128 + len("payload")
+    n = ref.history[0].uplink_bytes[0]
+    assert strategy.history[0].flower.uplink_bytes[0] == n + 128 + len("payload")
 
 
 def test_missing_and_failed_rovers_are_recorded(tmp_path, blob_map):
@@ -116,7 +116,7 @@ def test_missing_and_failed_rovers_are_recorded(tmp_path, blob_map):
     strategy = FedmapStrategy(RunSettings.from_run_config(run))
     arrays, metrics = _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1, skip={103})
     rec = strategy.history[0]
-    assert rec["missing"] == [3] and sorted(rec["weights"]) == [0, 1, 2]
+    assert rec.missing == [3] and sorted(rec.aggregation_counts) == [0, 1, 2]
     assert metrics["rovers-used"] == 3
     # independent reference: train the three survivors by hand and FedAvg them
     net = preset("small", blob_map.shape[0])
@@ -144,8 +144,8 @@ def test_rover_lost_in_a_later_round_is_missing_by_name(tmp_path, blob_map):
     arrays, _ = _round(strategy, grid, contexts, to_record(b""), 1)
     _round(strategy, grid, contexts, arrays, 2, fail={101})
     rec = strategy.history[1]
-    assert rec["missing"] == [1] and "Node Unavailable" in rec["missing_why"][1]
-    assert rec["dropped"] == {} and sorted(rec["weights"]) == [0, 2, 3]
+    assert rec.missing == [1] and "Node Unavailable" in rec.flower.missing_why[1]
+    assert rec.dropped == {} and sorted(rec.aggregation_counts) == [0, 2, 3]
 
 
 def test_too_few_rovers_end_the_run(tmp_path, blob_map):
@@ -174,7 +174,7 @@ def test_rejected_update_drops_a_rover_and_a_mistake_stops_the_run(tmp_path, blo
     strategy = FedmapStrategy(RunSettings.from_run_config(run))
     _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1)
     rec = strategy.history[0]
-    assert rec["dropped"] == {1: "update holds NaN or infinite weights"} and sorted(rec["weights"]) == [0, 2, 3]
+    assert rec.dropped == {1: "update holds NaN or infinite weights"} and sorted(rec.aggregation_counts) == [0, 2, 3]
 
     monkeypatch.setattr(client_app, "train_round", failing(FedmapError("no such init weights file x.safetensors")))
     strategy = FedmapStrategy(RunSettings.from_run_config(run))
@@ -225,16 +225,16 @@ def test_flower_byte_count_cross_check():
 
 
 def test_run_config_errors():
-    with pytest.raises(FedmapError, match="unknown run-config keys"):
+    with pytest.raises(FedmapError, match="unknown run-config key 'roundz' \\(did you mean 'rounds'\\?\\)"):
         RunSettings.from_run_config({"roundz": 2})
-    with pytest.raises(FedmapError, match="rounds=.*must be int"):
+    with pytest.raises(FedmapError, match="config value rounds must be an integer, got 'two'"):
         RunSettings.from_run_config({"rounds": "two"})
     with pytest.raises(FedmapError, match="min-rovers"):
         RunSettings.from_run_config({"rovers": 2, "min-rovers": 3})
     with pytest.raises(FedmapError, match="unknown aggregator"):
         RunSettings.from_run_config({"aggregator": "fedprox"})
     s = RunSettings.from_run_config({"deadline": 30, "masked": "true"})  # TOML ints and CLI strings are fine
-    assert s.deadline == 30.0 and s.federation.local.masked is True
+    assert s.base.deadline == 30.0 and s.pipeline.train.masked is True
 
 
 def test_node_config_generator_matches_the_demo_exploration():
@@ -242,9 +242,9 @@ def test_node_config_generator_matches_the_demo_exploration():
     from fedmap.pipeline import PipelineConfig
 
     pid, m = load_local_map({"partition-id": 2, "terrain": "moon", "size": 64, "agents": 4, "seed": 3})
-    cfg = PipelineConfig(terrain="moon", size=64, seed=3)
+    cfg = PipelineConfig(terrain=TerrainSource(terrain="moon", size=64), seed=3)
     ref = explore(load_truth(TerrainSource(terrain="moon", size=64), seed=3), 4, "quadrants", seed=3,
-                  sensor_radius=cfg.sensor_radius)[2]
+                  sensor_radius=cfg.explore.sensor_radius)[2]
     assert pid == 2 and np.array_equal(m.classes, ref.classes)
     with pytest.raises(FedmapError, match="partition-id"):
         load_local_map({"terrain": "moon"})
@@ -331,12 +331,12 @@ def test_rejoin_with_an_update_downlink_equals_the_in_process_runner(tmp_path, b
     ref = run_federation(get_weights(build_model(net, seed=4)), net, maps, settings.federation, **kw)
     for k in ref.weights:
         np.testing.assert_allclose(strategy.held[k], ref.weights[k], atol=1e-6)
-    assert all(rec["dropped"] == {} for rec in strategy.history)
+    assert all(rec.dropped == {} for rec in strategy.history)
     # round 2's model reached rover 1 as a keyframe (it held round 0's or nothing)
-    assert strategy.history[1]["keyframes"] == [1] == ref.history[1]["keyframes"]
+    assert strategy.history[1].keyframes == [1] == ref.history[1].keyframes
     for got, want in zip(strategy.history[:3], ref.history[:3]):
-        assert got["downlink_bytes"] == want["downlink_bytes"]  # keyed by partition id, never node-…
-        assert got["missing"] == want["missing"]
+        assert got.downlink_bytes == want.downlink_bytes  # keyed by partition id, never node-…
+        assert got.missing == want.missing
 
 
 def test_a_stale_rover_refuses_a_broadcast_it_cannot_decode(tmp_path, blob_map):
@@ -352,9 +352,9 @@ def test_a_stale_rover_refuses_a_broadcast_it_cannot_decode(tmp_path, blob_map):
     strategy.settings = RunSettings.from_run_config({**run, "rounds": 3})
     _round(strategy, grid, contexts, arrays, 3)
     rec = strategy.history[2]
-    assert "stale model" in rec["dropped"][2] and sorted(rec["weights"]) == [0, 1, 3]
+    assert "stale model" in rec.dropped[2] and sorted(rec.aggregation_counts) == [0, 1, 3]
     _round(strategy, grid, contexts, arrays, 4)  # it reported what it holds: now it gets a keyframe
-    assert strategy.history[2]["keyframes"] == [2] and sorted(strategy.history[3]["weights"]) == [0, 1, 2, 3]
+    assert strategy.history[2].keyframes == [2] and sorted(strategy.history[3].aggregation_counts) == [0, 1, 2, 3]
 
 
 def test_the_team_map_size_is_the_majority_not_the_first_reply(tmp_path, blob_map):
@@ -369,11 +369,11 @@ def test_the_team_map_size_is_the_majority_not_the_first_reply(tmp_path, blob_ma
     strategy = FedmapStrategy(RunSettings.from_run_config(run))
     _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1)
     rec = strategy.history[0]
-    assert rec["dropped"] == {0: "rover 0: its map is 32x32, the team's is 24x24"}
-    assert sorted(rec["weights"]) == [1, 2, 3] and strategy.shape == (24, 24)
+    assert rec.dropped == {0: "rover 0: its map is 32x32, the team's is 24x24"}
+    assert sorted(rec.aggregation_counts) == [1, 2, 3] and strategy.shape == (24, 24)
     # with a ground truth the base knows the size before any reply: the 24x24 rovers are wrong
     save_map(big, tmp_path / "truth.npy")
     strategy = FedmapStrategy(RunSettings.from_run_config({**run, "truth": str(tmp_path / "truth.npy"),
                                                            "min-rovers": 1}))
     _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1)
-    assert sorted(strategy.history[0]["dropped"]) == [1, 2, 3] and list(strategy.history[0]["weights"]) == [0]
+    assert sorted(strategy.history[0].dropped) == [1, 2, 3] and list(strategy.history[0].aggregation_counts) == [0]

@@ -42,7 +42,7 @@ def flower_home(tmp_path, monkeypatch):
 def _team(tmp_path):
     """Ground truth and the four rovers' local maps (as the demo explores them), saved as files."""
     truth = load_truth(TerrainSource(terrain="mars", size=64), seed=SEED)
-    maps = explore(truth, 4, "quadrants", seed=SEED, sensor_radius=PipelineConfig().sensor_radius)
+    maps = explore(truth, 4, "quadrants", seed=SEED, sensor_radius=PipelineConfig().explore.sensor_radius)
     save_map(truth, tmp_path / "truth.npy")
     for k, m in enumerate(maps):
         save_map(m, tmp_path / f"local{k}.npy")
@@ -89,7 +89,7 @@ def test_four_rovers_one_round_equal_the_in_process_runner(flower_home):
     assert all(np.array_equal(ckpt[k], got[k]) for k in got)
     n = len(Encoder("fp32").encode(init))  # fp32 payload of this network: the same size both ways
     rnd = m["rounds"][0]
-    assert rnd["missing"] == [] and rnd["dropped"] == {} and sorted(rnd["weights"]) == ["0", "1", "2", "3"]
+    assert rnd["missing"] == [] and rnd["dropped"] == {} and sorted(rnd["aggregation_counts"]) == ["0", "1", "2", "3"]
     assert rnd["uplink_bytes"] == {str(k): n for k in range(4)} == rnd["downlink_bytes"]
     assert rnd["flower_uplink_bytes"] == {str(k): n + 135 for k in range(4)} == rnd["flower_downlink_bytes"]
     assert rnd["final_broadcast_received_by"] == [0, 1, 2, 3]
@@ -108,7 +108,7 @@ def test_a_rover_killed_mid_round_leaves_three(flower_home):
     maps, out, m = _run(flower_home, {**RUN, "deadline": 120.0}, on_status=kill_rover3)
     assert killed
     rnd = m["rounds"][0]
-    assert sorted(rnd["weights"]) == ["0", "1", "2"]
+    assert sorted(rnd["aggregation_counts"]) == ["0", "1", "2"]
     assert rnd["missing"] == [3] and rnd["dropped"] == {}  # no reply: missing, never "dropped"
     _, ref = _reference(maps[:3])
     got = get_weights(load_model(out / "global_model.safetensors"))
@@ -133,8 +133,8 @@ def test_a_killed_rover_restarted_rejoins_with_an_update_codec(flower_home):
     maps, out, m = _run(flower_home, run, on_status=kill_and_restart_rover3)
     assert events
     r1, r2, r3 = m["rounds"]
-    assert sorted(r1["weights"]) == sorted(r3["weights"]) == ["0", "1", "2", "3"]
-    assert sorted(r2["weights"]) == ["0", "1", "2"] and r2["missing"] == [3]
+    assert sorted(r1["aggregation_counts"]) == sorted(r3["aggregation_counts"]) == ["0", "1", "2", "3"]
+    assert sorted(r2["aggregation_counts"]) == ["0", "1", "2"] and r2["missing"] == [3]
     # the broadcast of round r's model is booked in round r's record: rovers 0-2 got round 2's
     # model as an update, the restarted rover (no model) got it as a dense keyframe
     assert not r1.get("keyframes") and r2["keyframes"] == [3] and not r3.get("keyframes")

@@ -184,7 +184,7 @@ def test_base_station_starts_from_the_meta_init_like_the_demo():
     from fedmap.cli import app
     from fedmap.config import method_config
 
-    assert RunSettings.from_run_config({}).pipeline.init == method_config("paper").init == "meta"
+    assert RunSettings.from_run_config({}).pipeline.model.init == method_config("paper").model.init == "meta"
     help_text = CliRunner().invoke(app, ["base-station", "--help"], env={"COLUMNS": "200"}).output
     assert all(word in help_text for word in ("random", "empty", "meta"))
 

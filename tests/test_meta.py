@@ -268,12 +268,12 @@ def test_init_weights_errors(tmp_path, tiny_net):
 
 
 def test_pipeline_meta_init_config_errors():
-    from fedmap.pipeline import PipelineConfig
+    from fedmap.nets.init import ModelConfig
 
     with pytest.raises(FedmapError, match="grid network"):
-        PipelineConfig(init="meta", net="grid")
+        ModelConfig(init="meta", net="grid")
     with pytest.raises(FedmapError, match="only used with init 'meta'"):
-        PipelineConfig(init="random", init_weights="x.safetensors")
+        ModelConfig(init="random", init_weights="x.safetensors")
 
 
 # -- CLI -------------------------------------------------------------------------------

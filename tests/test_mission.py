@@ -12,7 +12,7 @@ from fedmap.federation.mapcodec import decode_map
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
 from fedmap.mission.frontiers import frontier_mask, gain_map
-from fedmap.mission.link import Link
+from fedmap.mission.link import Link, StarTopology
 from fedmap.mission.sensing import footprint
 from fedmap.mission.settings import load_mission
 from fedmap.mission.strategies import unpack_up
@@ -119,8 +119,8 @@ def test_coverage_equals_a_brute_force_count(mission):
                 for col in range(truth.shape[1]):
                     if (r - pr) ** 2 + (col - pc) ** 2 <= c.sensor_radius**2:
                         seen[r, col] = True
-    assert run.series["coverage"][-1] == pytest.approx(seen.mean())
-    assert 0 < run.series["coverage"][-1] <= 1
+    assert run.series.coverage[-1] == pytest.approx(seen.mean())
+    assert 0 < run.series.coverage[-1] <= 1
 
 
 def test_raw_global_map_is_exactly_the_union_of_delivered_observations(mission):
@@ -136,9 +136,9 @@ def test_raw_global_map_is_exactly_the_union_of_delivered_observations(mission):
         cells = decode_map(unpack_up(payload)[3], expected_shape=truth.shape)
         assert np.all((cells == UNKNOWN) | (cells == truth.classes))  # observations are truth
         union = np.where(cells != UNKNOWN, cells, union)
-    assert np.array_equal(run.frames[-1]["global"], union)
+    assert np.array_equal(run.frames[-1].global_map, union)
     # and it is strictly less than what the rovers observed (messages were lost) or equal
-    assert (union != UNKNOWN).mean() <= run.series["coverage"][-1]
+    assert (union != UNKNOWN).mean() <= run.series.coverage[-1]
 
 
 def test_link_drops_exactly_the_seeded_messages(mission):
@@ -149,18 +149,18 @@ def test_link_drops_exactly_the_seeded_messages(mission):
         rng = np.random.default_rng(np.random.SeedSequence([5, m.round, m.rover, d]))
         assert (m.status == "lost") == (rng.random() < 0.3)
     # every strategy sees the same link: lost (round, rover, direction) are a property of the seed
-    link = Link(LinkConfig(loss=0.3, seed=5), (0, 0))
+    link = Link(LinkConfig(loss=0.3, seed=5), StarTopology((0, 0)))
     draws = [link.lost(r, k, "up") for r in range(1, 200) for k in range(3)]
     assert 0.2 < np.mean(draws) < 0.4
-    assert not any(Link(LinkConfig(loss=0.0), (0, 0)).lost(r, 0, "up") for r in range(50))
-    assert all(Link(LinkConfig(loss=1.0), (0, 0)).lost(r, 0, "down") for r in range(50))
+    assert not any(Link(LinkConfig(loss=0.0), StarTopology((0, 0))).lost(r, 0, "up") for r in range(50))
+    assert all(Link(LinkConfig(loss=1.0), StarTopology((0, 0))).lost(r, 0, "down") for r in range(50))
 
 
 def test_same_seed_same_series_and_bytes(mission):
     truth, result = mission
     again = run_mission(_small(strategies=("raw",)), truth)
     a, b = result.runs["raw"], again.runs["raw"]
-    assert a.series == b.series
+    assert a.series == b.series and a.summary == b.summary
     assert [m.to_dict() for m in a.ledger] == [m.to_dict() for m in b.ledger]
     assert a.strategy.received == b.strategy.received
 
@@ -179,9 +179,9 @@ def test_budget_and_range_are_enforced():
 
 def test_central_covers_at_least_as_fast_as_none(mission):
     _, result = mission
-    assert result.runs["central"].series["redundant"][-1] <= result.runs["none"].series["redundant"][-1]
-    assert result.runs["central"].summary["final"]["belief_accuracy_mean"] >= \
-        result.runs["none"].summary["final"]["belief_accuracy_mean"]
+    assert result.runs["central"].series.redundant[-1] <= result.runs["none"].series.redundant[-1]
+    assert result.runs["central"].summary.final_belief_accuracy_mean >= \
+        result.runs["none"].summary.final_belief_accuracy_mean
 
 
 # ---------------------------------------------------------------- errors
@@ -245,8 +245,7 @@ def test_fedmap_strategy_is_one_round_of_fedmap_run():
     from fedmap.config import method_config
     from fedmap.federation.runner import run_federation
     from fedmap.mission.strategies import UP_HEADER, torch_threads
-    from fedmap.nets.init import initial_model
-    from fedmap.nets.model import get_weights, preset
+    from fedmap.pipeline import initial_weights
 
     truth = _maze(32)
     cfg = _small(rovers=2, steps=6, sync_every=6, strategies=("fedmap",), link=LinkConfig(loss=0.0),
@@ -255,16 +254,16 @@ def test_fedmap_strategy_is_one_round_of_fedmap_run():
     strat = run.strategy
     assert strat.rounds_aggregated == 1
     pc = method_config("fedmap", epochs=15, seed=cfg.seed)
-    init = get_weights(initial_model(preset(pc.net, 32), init=pc.init, seed=cfg.seed, prior_steps=pc.prior_steps))
+    init = initial_weights(pc, 32)
     locals_ = [truth.with_classes(r.local, f"rover {k}") for k, r in enumerate(strat.team)]
     with torch_threads():  # the mission's thread setting: the same float order
-        fed = run_federation(init, preset(pc.net, 32), locals_, pc.federation)
+        fed = run_federation(init, pc.model.network(32), locals_, pc.federation)
     for name, w in fed.weights.items():
         np.testing.assert_array_equal(strat.base_held[name], w)
         for k in range(2):  # and every rover decoded the same broadcast
             np.testing.assert_array_equal(strat.rover_held[k][name], w)
     up = [m.bytes for m in run.ledger if m.direction == "up"]
-    assert sorted(up) == sorted(b + UP_HEADER for b in fed.history[0]["uplink_bytes"].values())
+    assert sorted(up) == sorted(b + UP_HEADER for b in fed.history[0].uplink_bytes.values())
 
 
 def test_lost_broadcasts_cost_keyframes_and_rovers_stay_in_step_with_the_base():

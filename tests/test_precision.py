@@ -61,7 +61,7 @@ def test_same_seed_same_bytes(tiny_net, blob_map, precision):
     runs = []
     for _ in range(2):
         m = build_model(tiny_net, seed=5)
-        fit(m, blob_map, TrainConfig(epochs=4, lr=1e-2, batch_pixels=200, precision=precision), seed=9)
+        fit(m, blob_map, TrainConfig(epochs=4, lr=1e-2, batch=200, precision=precision), seed=9)
         runs.append(b"".join(v.tobytes() for v in get_weights(m).values()))
     assert runs[0] == runs[1]
 

@@ -97,8 +97,8 @@ def test_missed_round_fp32_equals_fedavg_by_hand(tiny_net, blob_map):
     g = _fedavg(tiny_net, g, maps, [0, 1, 2, 3], 3, 2)
     for k in g:
         np.testing.assert_allclose(res.weights[k], g[k], atol=1e-5)
-    assert res.history[1]["missing"] == [1] and sorted(res.history[1]["weights"]) == [0, 2, 3]
-    assert sorted(res.history[0]["downlink_bytes"]) == [0, 2, 3]  # rover 1 never got round 1's broadcast
+    assert res.history[1].missing == [1] and sorted(res.history[1].aggregation_counts) == [0, 2, 3]
+    assert sorted(res.history[0].downlink_bytes) == [0, 2, 3]  # rover 1 never got round 1's broadcast
 
 
 @pytest.mark.parametrize("event", ["absent", "restarted"])
@@ -119,15 +119,15 @@ def test_rejoin_with_an_update_downlink_trains_from_the_global_model(tiny_net, b
     cfg = FederationConfig(rounds=4, local=LOCAL, seed=3, uplink="update-int8", downlink="update-int4+zstd")
     kw = {"absent": {2: [1]}} if event == "absent" else {"restarted": {3: [1]}}
     res = run_federation(init, tiny_net, maps, cfg,
-                         on_round=lambda rec, w: globals_.update({rec["round"]: model_version(w)}),
+                         on_round=lambda rec, w: globals_.update({rec.round: model_version(w)}),
                          **kw)
     for r in (2, 3, 4):
         for k in range(4):
             if (r, k) in started:
                 assert started[(r, k)] == globals_[r - 1], (r, k)
-    assert all(not rec["dropped"] for rec in res.history)
-    assert res.history[1]["keyframes"] == [1]  # round 2's model reached rover 1 as a keyframe
+    assert all(not rec.dropped for rec in res.history)
+    assert res.history[1].keyframes == [1]  # round 2's model reached rover 1 as a keyframe
     key = len(Encoder("fp32").encode(res.weights))
-    assert res.history[1]["downlink_bytes"][1] == key > res.history[1]["downlink_bytes"][0]
+    assert res.history[1].downlink_bytes[1] == key > res.history[1].downlink_bytes[0]
     rows = [r for r in res.ledger() if r["round"] == 2 and r["direction"] == "downlink"]
     assert {r["agent"]: r["codec"] for r in rows}[1] == "fp32 keyframe"

@@ -18,6 +18,7 @@ from tests.test_flower import RUN, FakeGrid, _contexts, _round, _team, task_iden
 
 from fedmap.errors import FedmapError  # noqa: E402
 from fedmap.federation.codecs import Encoder  # noqa: E402
+from fedmap.federation.runner import FlowerRound, RoundRecord  # noqa: E402
 from fedmap.flower.checkpoint import (  # noqa: E402
     BaseState,
     checkpoints,
@@ -25,12 +26,12 @@ from fedmap.flower.checkpoint import (  # noqa: E402
     prune,
     read_checkpoint,
     resume_config,
+    run_dir,
     write_checkpoint,
 )
 from fedmap.flower.records import to_record  # noqa: E402
 from fedmap.flower.server_app import FedmapStrategy  # noqa: E402
 from fedmap.flower.settings import RunSettings  # noqa: E402
-from fedmap.flower.task import run_dir  # noqa: E402
 
 
 def _run(strategy, nodes, run, rounds, arrays=None):
@@ -65,10 +66,10 @@ def test_resumed_run_equals_the_uninterrupted_one(tmp_path, blob_map, aggregator
     for k in whole.held:
         np.testing.assert_array_equal(resumed.held[k], whole.held[k])
     for got, want in zip(resumed.history, whole.history):
-        assert got["weights"] == want["weights"] and got["uplink_bytes"] == want["uplink_bytes"]
-        assert got["final_loss"] == pytest.approx(want["final_loss"])
-    assert [r["round"] for r in resumed.history] == [1, 2, 3, 4]
-    assert resumed.history[1]["keyframes"] == [0, 1, 2, 3]  # new rovers: round 2's model as keyframes
+        assert got.aggregation_counts == want.aggregation_counts and got.uplink_bytes == want.uplink_bytes
+        assert got.final_loss == pytest.approx(want.final_loss)
+    assert [r.round for r in resumed.history] == [1, 2, 3, 4]
+    assert resumed.history[1].keyframes == [0, 1, 2, 3]  # new rovers: round 2's model as keyframes
 
     # the test can fail: a resume that forgot the server optimiser's moments ends elsewhere
     forgetful = FedmapStrategy(RunSettings.from_run_config(cfg), run_config=cfg)
@@ -82,8 +83,13 @@ def _state(r, n=1000):
     held = {"a": rng.standard_normal((n, 8)).astype(np.float32), "b": rng.standard_normal(8).astype(np.float32)}
     enc = Encoder("update-int8")
     enc.encode({k: v + 1 for k, v in held.items()}, reference=held)
-    return BaseState(r, held, {"m": {k: v.astype(np.float64) for k, v in held.items()}}, enc.state(),
-                     [{"round": r, "weights": {0: 1.0}}], (24, 24), {"rounds": 9})
+    flower = FlowerRound(missing_why={1: "no reply before the round's deadline"}, node_errors={"77": "Flower error"},
+                         uplink_bytes={0: 235}, downlink_bytes={0: 135}, final_broadcast_received_by=[0])
+    rec = RoundRecord(round=r, final_loss={0: 0.5}, aggregation_counts={0: 1.0}, dropped={2: "stale model"}, missing=[1],
+                      uplink_codec="fp32", downlink_codec="update-int8", uplink_bytes={0: 100}, downlink_bytes={0: 0},
+                      keyframes=[0], seconds=1.5, flower=flower)
+    return BaseState(r, held, {"m": {k: v.astype(np.float64) for k, v in held.items()}}, enc.state(), [rec], (24, 24),
+                     {"rounds": 9})
 
 
 def test_checkpoint_round_trip_and_bounded_count(tmp_path):
@@ -100,12 +106,41 @@ def test_checkpoint_round_trip_and_bounded_count(tmp_path):
         np.testing.assert_array_equal(got.moments["m"][k], want.moments["m"][k])
     for k in want.down_encoder:
         np.testing.assert_array_equal(got.down_encoder[k], want.down_encoder[k])
-    assert got.history == want.history  # partition ids are ints again
+    assert got.history == want.history  # typed records again, partition ids ints (Flower node ids stay strings)
     enc, enc2 = Encoder("update-int8"), Encoder("update-int8")
     enc.restore(got.down_encoder)
     enc2.restore(want.down_encoder)
     x = {k: v * 2 for k, v in want.held.items()}
     assert enc.encode(x, reference=want.held) == enc2.encode(x, reference=want.held)
+
+
+#: One round of a checkpoint's state.json as the base station wrote it before round records were typed.
+OLD_ROUND = {
+    "round": 2, "final_loss": {"0": 0.0369, "2": 0.0393}, "weights": {"0": 1024.0, "2": 1024.0}, "dropped": {},
+    "missing": [1], "codecs": {"uplink": "update-int8", "downlink": "update-int4+zstd"},
+    "uplink_bytes": {"0": 52455, "2": 52455}, "downlink_bytes": {"0": 24073, "1": 202940}, "keyframes": [1],
+    "seconds": 0.137, "missing_why": {"1": "no reply before the round's deadline"}, "node_errors": {"123": "Flower error"},
+    "flower_uplink_bytes": {"0": 52590, "2": 52590}, "flower_downlink_bytes": {"0": 24208, "1": 203075},
+}
+
+
+def test_a_checkpoint_written_before_typed_records_still_loads(tmp_path):
+    """An older checkpoint's history reads back as :class:`RoundRecord` and writes the same
+    JSON again, but for the key ``weights``, now ``aggregation_counts``."""
+    import json
+
+    path = write_checkpoint(tmp_path, _state(2))
+    meta = json.loads((path / "state.json").read_text())
+    meta["history"] = [OLD_ROUND]
+    (path / "state.json").write_text(json.dumps(meta))
+    rec = read_checkpoint(path).history[0]
+    assert rec.aggregation_counts == {0: 1024.0, 2: 1024.0} and rec.downlink_bytes == {0: 24073, 1: 202940}
+    assert rec.uplink_codec == "update-int8" and rec.keyframes == [1] and rec.missing == [1]
+    assert rec.flower is not None and rec.flower.missing_why == {1: "no reply before the round's deadline"}
+    assert rec.flower.node_errors == {"123": "Flower error"} and rec.flower.final_broadcast_received_by is None
+    # written back with its one renamed key: the aggregation counts were under "weights"
+    new = {("aggregation_counts" if k == "weights" else k): v for k, v in OLD_ROUND.items()}
+    assert json.loads(json.dumps(rec.to_dict())) == new
 
 
 def test_a_damaged_checkpoint_is_skipped(tmp_path):

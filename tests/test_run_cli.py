@@ -149,5 +149,5 @@ def test_demo_is_run_with_the_demos_defaults(tmp_path, capsys):
         for r in m["rounds"]:
             r.pop("seconds")
     assert ma == mb
-    assert json.loads((a / "config.json").read_text())["init"] == "meta"
+    assert json.loads((a / "config.json").read_text())["model"]["init"] == "meta"
     assert (a / "config.toml").read_text() == (b / "config.toml").read_text()

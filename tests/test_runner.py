@@ -33,7 +33,7 @@ def test_two_rounds_match_manual_fedavg(tiny_net, blob_map):
     ref = _manual_round(tiny_net, ref, maps, local, 5, 1)
     for k in ref:
         np.testing.assert_allclose(res.weights[k], ref[k], atol=1e-6)
-    assert [r["round"] for r in res.history] == [1, 2]
+    assert [r.round for r in res.history] == [1, 2]
 
 
 def test_byte_counts_are_serialised_sizes(tiny_net, blob_map):
@@ -42,8 +42,8 @@ def test_byte_counts_are_serialised_sizes(tiny_net, blob_map):
     res = run_federation(init, tiny_net, maps, FederationConfig(local=TrainConfig(epochs=1)))
     n = len(Encoder("fp32").encode(init))  # fp32 payload: same size both ways
     rec = res.history[0]
-    assert rec["uplink_bytes"] == {k: n for k in range(4)}
-    assert rec["downlink_bytes"] == {k: n for k in range(4)}
+    assert rec.uplink_bytes == {k: n for k in range(4)}
+    assert rec.downlink_bytes == {k: n for k in range(4)}
     assert res.total_bytes() == {"uplink": 4 * n, "downlink": 4 * n, "uplink_per_agent_round": n}
     ledger = res.ledger()
     assert len(ledger) == 8 and {r["direction"] for r in ledger} == {"uplink", "downlink"}
@@ -63,15 +63,15 @@ def test_codecs_go_through_real_bytes(tiny_net, blob_map):
         set_weights(model, init)
         fit(model, m, local, seed=agent_seed(2, 0, k))
         payload = Encoder("topk:0.05").encode(get_weights(model), reference=init)
-        assert res.history[0]["uplink_bytes"][k] == len(payload)
+        assert res.history[0].uplink_bytes[k] == len(payload)
         ws.append(decode(payload, reference=init))
     broadcast = Encoder("fp16").encode(weighted_average(ws, [m.n_known for m in maps]))
-    assert res.history[0]["downlink_bytes"] == {k: len(broadcast) for k in range(4)}
+    assert res.history[0].downlink_bytes == {k: len(broadcast) for k in range(4)}
     ref = decode(broadcast)  # what the rovers render: the decoded fp16 broadcast
     for k in ref:
         np.testing.assert_allclose(res.weights[k], ref[k], atol=1e-6)
     # the sparse uplink is far smaller than the dense downlink
-    assert res.history[0]["uplink_bytes"][0] < res.history[0]["downlink_bytes"][0] / 5
+    assert res.history[0].uplink_bytes[0] < res.history[0].downlink_bytes[0] / 5
 
 
 def test_malformed_payload_drops_that_agent(tiny_net, blob_map, monkeypatch):
@@ -87,9 +87,9 @@ def test_malformed_payload_drops_that_agent(tiny_net, blob_map, monkeypatch):
 
     monkeypatch.setattr(Encoder, "encode", truncating)
     res = run_federation(init, tiny_net, maps, FederationConfig(local=TrainConfig(epochs=1)))
-    dropped = res.history[0]["dropped"]
+    dropped = res.history[0].dropped
     assert list(dropped) == [1] and "malformed payload" in dropped[1]
-    assert sorted(res.history[0]["weights"]) == [0, 2, 3]
+    assert sorted(res.history[0].aggregation_counts) == [0, 2, 3]
 
 
 def test_nan_update_is_dropped(tiny_net, blob_map, monkeypatch):
@@ -108,8 +108,8 @@ def test_nan_update_is_dropped(tiny_net, blob_map, monkeypatch):
     local = TrainConfig(epochs=2)
     res = run_federation(init, tiny_net, maps, FederationConfig(local=local, seed=1))
     rec = res.history[0]
-    assert list(rec["dropped"]) == [2] and "NaN" in rec["dropped"][2]
-    assert 2 not in rec["uplink_bytes"]
+    assert list(rec.dropped) == [2] and "NaN" in rec.dropped[2]
+    assert 2 not in rec.uplink_bytes
     survivors = [m for m in maps if m.meta["agent"] != 2]
     ws = []
     for m in survivors:
@@ -157,7 +157,7 @@ def test_one_shot_cache_reuses_rover_training(tiny_net, blob_map):
         fresh = run_federation(init, tiny_net, maps, cfg)
         for k in fresh.weights:
             np.testing.assert_array_equal(cached.weights[k], fresh.weights[k])
-        assert cached.history[0]["uplink_bytes"] == fresh.history[0]["uplink_bytes"]
+        assert cached.history[0].uplink_bytes == fresh.history[0].uplink_bytes
     assert n_first > 0 and len(steps) == n_first  # the cached runs trained nothing
     # a different seed, or more rounds, trains again
     run_federation(init, tiny_net, maps, replace(base, seed=3), one_shot_cache=cache,
@@ -202,7 +202,7 @@ def test_rejected_update_from_fit_drops_that_rover(tiny_net, blob_map, monkeypat
 
     monkeypatch.setattr(runner_mod, "fit", diverging)
     res = run_federation(init, tiny_net, maps, FederationConfig(local=TrainConfig(epochs=2), seed=1))
-    assert list(res.history[0]["dropped"]) == [3] and "diverged" in res.history[0]["dropped"][3]
+    assert list(res.history[0].dropped) == [3] and "diverged" in res.history[0].dropped[3]
 
 
 @pytest.mark.parametrize("uplink", ["fp32", "update-int8"])

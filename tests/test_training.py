@@ -20,7 +20,7 @@ def test_fit_lowers_loss_and_learns_the_map(tiny_net, blob_map):
 
 
 def test_fit_is_seeded(tiny_net, blob_map):
-    cfg = TrainConfig(epochs=5, lr=1e-2, batch_pixels=100)
+    cfg = TrainConfig(epochs=5, lr=1e-2, batch=100)
     ws = []
     for seed in (1, 1, 2):
         m = build_model(tiny_net, seed=0)
@@ -31,7 +31,7 @@ def test_fit_is_seeded(tiny_net, blob_map):
 
 
 def test_sampled_epochs_cover_all_pixels(blob_map):
-    cfg = TrainConfig(epochs=2, batch_pixels=100)
+    cfg = TrainConfig(epochs=2, batch=100)
     assert steps_per_epoch(576, cfg) == 6  # 5 full batches + one of 76
     assert steps_per_epoch(501, cfg) == 5  # a last batch of 1 is dropped (BatchNorm)
     assert steps_per_epoch(576, TrainConfig()) == 1
@@ -82,4 +82,4 @@ def test_config_validation():
     with pytest.raises(FedmapError):
         TrainConfig(epochs=-1)
     with pytest.raises(FedmapError):
-        TrainConfig(batch_pixels=1)
+        TrainConfig(batch=1)

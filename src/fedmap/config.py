@@ -1,103 +1,68 @@
 """The one way to build a run's configuration: presets, a TOML file, options -> PipelineConfig.
 
-Layout (every key optional; defaults come from the ``method`` preset and the library's
-config classes)::
+A run config has a top-level ``method`` (a preset, ``src/fedmap/presets/<name>.toml``)
+and ``seed``, and one table per section of :class:`~fedmap.pipeline.PipelineConfig`::
 
-    method = "paper"          # preset (src/fedmap/presets/<name>.toml): paper or fedmap
+    method = "paper"
     seed = 0
+    [terrain]        # fedmap.maps.sources.TerrainSource (relative paths: relative to the TOML file)
+    [terrain.options]  # reader options, e.g. pixel_size, nodata, shape, byteorder
+    [thresholds]     # fedmap.maps.traversability.TraversabilityThresholds
+    [explore]        # fedmap.explore.ExploreConfig
+    [model]          # fedmap.nets.init.ModelConfig
+    [train]          # fedmap.nets.training.TrainConfig
+    [federation]     # fedmap.federation.runner.FederationConfig
+    [refine]         # fedmap.refine.RefineConfig
+    [evaluate]       # fedmap.evaluation.scores.EvaluateConfig
 
-    [terrain]                 # fedmap.maps.sources.TerrainSource
-    kind = "dem"              # builtin | dem | map | tiles
-    path = "gale.tif"         # relative paths are relative to the TOML file
-    crop = 320                # centred square side, or [row0, row1, col0, col1]
-    size = 128                # resample to size x size cells
-    [terrain.options]         # reader options, e.g. pixel_size, nodata, shape, byteorder
-    [thresholds]              # TraversabilityThresholds: max_slope_deg, max_step_m, ..., rover (a profile)
-    [explore]                 # agents, mode, overlap, sensor_radius
-    [model]                   # net, init (random | empty | meta), init_weights, prior_steps
-    [train]                   # epochs, lr, masked, batch (cells per batch; 0 = full grid), precision
-    [federation]              # rounds, aggregator, eta, beta1, beta2, tau, uplink, downlink
-    [refine]                  # window, min_votes, iterations, min_size
-    [evaluate]                # pairs, unknown_passable, central
+Each key of a table is a field of its class, declared once there with its type, default
+and help (:mod:`fedmap._schema`); this module derives the checks, the defaults, the
+``--set`` keys and the :func:`method_config` keywords from those fields and knows no
+setting by name.
 
 Resolution: library defaults < method preset < TOML file < options (:func:`resolve`). An
 unknown section or key, or a value of the wrong type, is a
 :class:`~fedmap.errors.FedmapError` naming the key and the file. :func:`to_pipeline_config`
-maps the result onto :class:`~fedmap.pipeline.PipelineConfig` (whose classes do the
-value checks) and :func:`terrain_source` onto :class:`~fedmap.maps.sources.TerrainSource`.
+builds the :class:`~fedmap.pipeline.PipelineConfig` (whose classes do the value checks)
+and :func:`terrain_source` the :class:`~fedmap.maps.sources.TerrainSource`.
 :func:`method_config` is the same path for Python callers: a method plus overrides.
-Every command (``demo``, ``run``, ``reproduce``, ``bandwidth``, ``base-station``) builds
-its configuration here.
+Every command (``demo``, ``run``, ``mission``, ``reproduce``, ``bandwidth``,
+``base-station``) builds its configuration here.
 """
 
 from __future__ import annotations
 
 import copy
-import math
 import tomllib
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from fedmap import _schema
 from fedmap._util import check_keys, suggest
 from fedmap.errors import FedmapError
-from fedmap.federation.runner import FederationConfig
 from fedmap.maps.grid import GridMap
-from fedmap.maps.sources import DEFAULT_BUILTIN_SIZE, READER_OPTIONS, TerrainSource, load_truth
-from fedmap.maps.traversability import TraversabilityThresholds, rover_profile
-from fedmap.nets.training import TrainConfig
-from fedmap.pipeline import PipelineConfig
-from fedmap.refine import RefineConfig
+from fedmap.maps.sources import READER_OPTIONS, TerrainSource, load_truth
+from fedmap.maps.traversability import rover_profile
+from fedmap.pipeline import MAX_SIDE, MIN_SIDE, PipelineConfig
 
-_NUM = (int, float)
-
-#: Section -> key -> accepted Python types (as tomllib returns them).
-SCHEMA: dict[str, dict[str, tuple[type, ...]]] = {
-    "terrain": {"kind": (str,), "path": (str,), "terrain": (str,), "lon": (int,), "lat": (int,), "tiles": (int,),
-                "crop": (int, list), "size": (int,), "resample": (str,), "options": (dict,)},
-    "thresholds": {"max_slope_deg": _NUM, "max_step_m": _NUM, "max_roughness_m": _NUM, "rover_scale_max_px": _NUM,
-                   "step_window_m": _NUM, "footprint_m": _NUM, "max_slope_percentile": _NUM, "rover": (str,)},
-    "explore": {"agents": (int,), "mode": (str,), "overlap": (int,), "sensor_radius": _NUM},
-    "model": {"net": (str,), "init": (str,), "init_weights": (str,), "prior_steps": (int,)},
-    "train": {"epochs": (int,), "lr": _NUM, "masked": (bool,), "batch": (int,), "precision": (str,)},
-    "federation": {"rounds": (int,), "aggregator": (str,), "eta": _NUM, "beta1": _NUM, "beta2": _NUM, "tau": _NUM,
-                   "uplink": (str,), "downlink": (str,)},
-    "refine": {"window": (int,), "min_votes": (int,), "iterations": (int,), "min_size": (int,)},
-    "evaluate": {"pairs": (int,), "unknown_passable": (bool,), "central": (bool,)},
-}
-TOP_LEVEL: dict[str, tuple[type, ...]] = {"method": (str,), "seed": (int,)}
-
-_TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", bool: "true or false", list: "a list",
-               dict: "a table"}
-
-
-def _check_type(value, types: tuple[type, ...], what: str) -> None:
-    # bool is an int in Python, but `epochs = true` is a mistake.
-    ok = isinstance(value, types) and not (isinstance(value, bool) and bool not in types)
-    if isinstance(value, float) and not math.isfinite(value):
-        ok = False
-    if not ok:
-        want = " or ".join(dict.fromkeys(_TYPE_NAMES[t] for t in types))
-        raise FedmapError(f"{what} must be {want}, got {value!r}")
+#: Section name -> its configuration class (derived from :class:`PipelineConfig`'s fields).
+SECTIONS: dict[str, type] = _schema.sections(PipelineConfig)
 
 
 def validate(data: dict, where: str) -> None:
-    """Check sections, keys and value types of a (partial) run config."""
-    for key, value in data.items():
-        if key in TOP_LEVEL:
-            _check_type(value, TOP_LEVEL[key], f"{key!r} in {where}")
-        elif key in SCHEMA:
-            if not isinstance(value, dict):
-                raise FedmapError(f"[{key}] in {where} must be a table, got {value!r}")
-            check_keys(value, SCHEMA[key], f"[{key}] of {where}")
-            for k, v in value.items():
-                _check_type(v, SCHEMA[key][k], f"[{key}] {k} in {where}")
-        else:
-            raise FedmapError(f"unknown key {key!r} in {where}{suggest(key, [*TOP_LEVEL, *SCHEMA])}")
+    """Check sections, keys and value types of a (partial) run config (one-line errors
+    naming the key and ``where``, with a suggestion for a typo)."""
+    _schema.validate(PipelineConfig, data, where)
     options = data.get("terrain", {}).get("options", {})
     check_keys(options, READER_OPTIONS, f"[terrain.options] of {where}")
     for k, v in options.items():
-        _check_type(v, READER_OPTIONS[k], f"[terrain.options] {k} in {where}")
+        _schema.check_type(v, READER_OPTIONS[k], f"[terrain.options] {k} in {where}")
+
+
+def path_settings() -> list[_schema.Setting]:
+    """The settings that are file paths (relative ones are resolved against their TOML file)."""
+    return [s for s in _schema.walk(PipelineConfig) if s.path]
 
 
 def load_toml(path) -> dict:
@@ -110,10 +75,10 @@ def load_toml(path) -> dict:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise FedmapError(f"cannot read config {path}: {' '.join(str(exc).split())}") from exc
     validate(data, path.name)
-    for section, key in (("terrain", "path"), ("model", "init_weights")):
-        table = data.get(section, {})
-        if key in table and not Path(table[key]).is_absolute():
-            table[key] = str((path.parent / table[key]).resolve())
+    for s in path_settings():
+        table = data.get(s.section, {})
+        if s.name in table and not Path(table[s.name]).is_absolute():
+            table[s.name] = str((path.parent / table[s.name]).resolve())
     return data
 
 
@@ -135,21 +100,12 @@ def load_preset(method: str) -> dict:
 
 
 def base_defaults() -> dict:
-    """The library's defaults (its config classes) as a full run config, before any preset."""
-    p, f, r = PipelineConfig(), FederationConfig(), RefineConfig()
-    return {
-        "method": "paper", "seed": 0,
-        "terrain": {},  # TerrainSource's defaults: built-in mars, 128 cells
-        "thresholds": TraversabilityThresholds().to_dict(),
-        "explore": {"agents": p.agents, "mode": p.explore, "overlap": p.overlap, "sensor_radius": p.sensor_radius},
-        "model": {"net": p.net, "init": p.init, "prior_steps": p.prior_steps},
-        # precision stays "auto" here (portable config.toml); PipelineConfig holds the resolved value
-        "train": {"epochs": f.local.epochs, "lr": f.local.lr, "masked": f.local.masked, "batch": 0, "precision": "auto"},
-        "federation": {"rounds": f.rounds, "aggregator": f.aggregator, "eta": f.eta, "beta1": f.beta1,
-                       "beta2": f.beta2, "tau": f.tau, "uplink": f.uplink, "downlink": f.downlink},
-        "refine": r.to_dict(),
-        "evaluate": {"pairs": p.eval_pairs, "unknown_passable": p.unknown_passable, "central": p.central},
-    }
+    """The library's defaults (the fields of :class:`PipelineConfig`'s sections) as a full
+    run config, before any preset. ``[train] precision`` stays ``"auto"`` (a portable
+    ``config.toml``); the built config holds the resolved value."""
+    out = _schema.defaults(PipelineConfig)
+    out["terrain"] = {}  # TerrainSource's own defaults apply: which keys it uses depends on its kind
+    return out
 
 
 def defaults(method: str = "paper") -> dict:
@@ -246,52 +202,33 @@ def terrain_source(resolved: dict) -> TerrainSource:
                                    where="[terrain]")
 
 
-def to_pipeline_config(resolved: dict, *, size: int | None = None, label: str = "") -> PipelineConfig:
-    """The :class:`~fedmap.pipeline.PipelineConfig` of a resolved config.
-
-    ``size`` is the side of the map the run trains on (a loaded terrain's; default: the
-    built-in terrain's ``[terrain] size``). ``label`` names a file source in titles.
-    """
-    e, m, t, f, ev = (resolved[k] for k in ("explore", "model", "train", "federation", "evaluate"))
-    seed = resolved["seed"]
-    local = TrainConfig(epochs=t["epochs"], lr=float(t["lr"]), masked=t["masked"], batch_pixels=t["batch"] or None,
-                        precision=t["precision"])
-    fed = FederationConfig(rounds=f["rounds"], aggregator=f["aggregator"], eta=float(f["eta"]), beta1=float(f["beta1"]),
-                           beta2=float(f["beta2"]), tau=float(f["tau"]), local=local, seed=seed, uplink=f["uplink"],
-                           downlink=f["downlink"])
-    terrain = resolved["terrain"]
-    builtin = terrain.get("kind", "builtin") == "builtin"
-    if size is None:
-        size = int(terrain.get("size", DEFAULT_BUILTIN_SIZE))
-    return PipelineConfig(
-        terrain=terrain.get("terrain", "mars") if builtin else "mars", label="" if builtin else label, size=size,
-        agents=e["agents"], explore=e["mode"], overlap=e["overlap"], sensor_radius=float(e["sensor_radius"]),
-        net=m["net"], init=m["init"], init_weights=m.get("init_weights"), prior_steps=m["prior_steps"],
-        central=ev["central"], federation=fed, refine=RefineConfig(**resolved["refine"]),
-        thresholds=TraversabilityThresholds(**resolved["thresholds"]), eval_pairs=ev["pairs"],
-        unknown_passable=ev["unknown_passable"], seed=seed,
-    )
+def to_pipeline_config(resolved: dict, *, label: str = "") -> PipelineConfig:
+    """The :class:`~fedmap.pipeline.PipelineConfig` of a resolved config (the sections'
+    classes do the value checks). ``label`` names a file source in titles."""
+    thresholds = _schema.build(SECTIONS["thresholds"], resolved["thresholds"])
+    built = {name: _schema.build(cls, resolved[name]) for name, cls in SECTIONS.items()
+             if name not in ("terrain", "thresholds")}
+    terrain = _schema.build(SECTIONS["terrain"], resolved["terrain"], thresholds=thresholds)
+    top = {s.name: resolved[s.name] for s in _schema.settings(PipelineConfig) if s.name in resolved}
+    builtin = terrain.kind == "builtin"
+    return PipelineConfig(**top, terrain=terrain, thresholds=thresholds, label="" if builtin else label, **built)
 
 
-#: ``method_config`` keyword -> (section, key) of the run config (None: top level).
-KEYWORDS: dict[str, tuple[str | None, str]] = {
-    "method": (None, "method"), "seed": (None, "seed"),
-    "terrain": ("terrain", "terrain"), "size": ("terrain", "size"),
-    "max_slope_deg": ("thresholds", "max_slope_deg"), "max_step_m": ("thresholds", "max_step_m"),
-    "max_roughness_m": ("thresholds", "max_roughness_m"),
-    "max_slope_percentile": ("thresholds", "max_slope_percentile"), "rover": ("thresholds", "rover"),
-    "agents": ("explore", "agents"), "explore": ("explore", "mode"), "overlap": ("explore", "overlap"),
-    "sensor_radius": ("explore", "sensor_radius"),
-    "net": ("model", "net"), "init": ("model", "init"), "init_weights": ("model", "init_weights"),
-    "prior_steps": ("model", "prior_steps"),
-    "epochs": ("train", "epochs"), "lr": ("train", "lr"), "masked": ("train", "masked"), "batch": ("train", "batch"),
-    "precision": ("train", "precision"),
-    "rounds": ("federation", "rounds"), "aggregator": ("federation", "aggregator"), "eta": ("federation", "eta"),
-    "beta1": ("federation", "beta1"), "beta2": ("federation", "beta2"), "tau": ("federation", "tau"),
-    "uplink": ("federation", "uplink"), "downlink": ("federation", "downlink"),
-    "min_size": ("refine", "min_size"), "eval_pairs": ("evaluate", "pairs"), "pairs": ("evaluate", "pairs"),
-    "unknown_passable": ("evaluate", "unknown_passable"), "central": ("evaluate", "central"),
-}
+def keywords() -> dict[str, tuple[str | None, str]]:
+    """:func:`method_config` keywords -> ``(section, key)`` (None: top level): every
+    setting by its dotted key (``"train.lr"``) and, where no other section has a setting
+    of that name, by its bare name (``lr``)."""
+    every = list(_schema.walk(PipelineConfig))
+    out: dict[str, tuple[str | None, str]] = {s.key: (s.section or None, s.name) for s in every}
+    names = [s.name for s in every]
+    for s in every:
+        if names.count(s.name) == 1:
+            out[s.name] = (s.section or None, s.name)
+    return out
+
+
+#: Every keyword of :func:`method_config` (see :func:`keywords`).
+KEYWORDS: dict[str, tuple[str | None, str]] = keywords()
 
 
 def overrides_from(values: dict[str, Any], keys: dict[str, tuple[str | None, str]] = KEYWORDS) -> dict:
@@ -313,18 +250,17 @@ def overrides_from(values: dict[str, Any], keys: dict[str, tuple[str | None, str
 def method_config(method: str = "paper", **settings: Any) -> PipelineConfig:
     """The :class:`~fedmap.pipeline.PipelineConfig` of a preset with ``settings`` laid over it.
 
-    ``settings`` are keywords of :data:`KEYWORDS` (``rounds``, ``epochs``, ``lr``, ``init``,
-    ``aggregator``, ``uplink``, ``size``, ``seed``, ...); None means "the preset's value".
-    This is :func:`resolve` + :func:`to_pipeline_config` for Python callers, so
+    ``settings`` are keywords of :data:`KEYWORDS`: any setting's name (``rounds``,
+    ``epochs``, ``lr``, ``init``, ``aggregator``, ``uplink``, ``size``, ``seed``, ...) or
+    dotted key (``**{"explore.mode": "strips"}``); None means "the preset's value". This
+    is :func:`resolve` + :func:`to_pipeline_config` for Python callers, so
     ``method_config("paper")`` is exactly what ``fedmap demo`` and ``fedmap run`` run.
     """
-    if settings.get("init_weights") is not None:
-        settings["init_weights"] = str(settings["init_weights"])
+    for s in path_settings():
+        for k in (s.name, s.key):
+            if settings.get(k) is not None:
+                settings[k] = str(settings[k])
     return to_pipeline_config(resolve(None, [{"method": method}, overrides_from(settings)]))
-
-
-#: Side limits of the map the pipeline trains on.
-MIN_SIDE, MAX_SIDE = 64, 2048
 
 
 def terrain_table(*, dem: str | Path | None = None, map_path: str | Path | None = None,
@@ -349,12 +285,13 @@ def load_run(config_path: str | Path | None = None, overrides: list[dict] | None
     resolved = resolve(config_path, overrides, terrain=terrain)
     source = terrain_source(resolved)
     resolved["terrain"] = {k: v for k, v in source.to_dict().items() if k != "thresholds"}
+    config = to_pipeline_config(resolved, label=source.label)  # a bad setting stops the run before any terrain work
     truth = load_truth(source, seed=resolved["seed"])
     h, w = truth.shape
     if h != w or not MIN_SIDE <= h <= MAX_SIDE:
         raise FedmapError(f"the terrain map is {h}x{w} cells; the pipeline needs a square map of {MIN_SIDE}..{MAX_SIDE} "
                           f"cells: set [terrain] size (or --size)")
-    return resolved, source, truth, to_pipeline_config(resolved, size=h, label=source.label)
+    return resolved, source, truth, config
 
 
 # --------------------------------------------------------------------------- writing TOML

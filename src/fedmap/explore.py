@@ -20,15 +20,39 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
+from fedmap._schema import setting
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import UNKNOWN, GridMap
 from fedmap.maps.planning import astar, passable_mask
 
 EXPLORE_MODES = ("quadrants", "strips", "grid", "traverse")
+
+
+@dataclass(frozen=True)
+class ExploreConfig:
+    """Who observes what in a one-shot run: the ``[explore]`` section of a run config."""
+
+    agents: int = setting(4, help="Number of rovers")
+    mode: str = setting("quadrants", help="Exploration", choices=EXPLORE_MODES, cli="--explore")
+    overlap: int = setting(0, help="Cells of overlap between neighbouring rovers' blocks")
+    sensor_radius: float = setting(12.0, help="traverse: cells a rover observes around its path")
+
+    def __post_init__(self) -> None:
+        if isinstance(self.agents, bool) or not isinstance(self.agents, int) or self.agents < 1:
+            raise FedmapError(f"agents must be an integer >= 1, got {self.agents!r}")
+        if self.mode not in EXPLORE_MODES:
+            raise FedmapError(f"unknown exploration mode {self.mode!r}; choose one of {', '.join(EXPLORE_MODES)}")
+        if self.overlap < 0 or not self.sensor_radius > 0:
+            raise FedmapError(f"overlap must be >= 0 and sensor_radius positive, got {self.overlap}, {self.sensor_radius}")
+
+    def local_maps(self, truth: GridMap, *, seed: int) -> list[GridMap]:
+        """One local map per rover (:func:`explore`) with these settings."""
+        return explore(truth, self.agents, self.mode, seed=seed, overlap=self.overlap, sensor_radius=self.sensor_radius)
 
 
 def _grid_shape(n: int) -> tuple[int, int]:

@@ -4,21 +4,45 @@
 folder (:class:`fedmap._util.AtomicDir`): the previous folder stays until the new one is
 complete. :func:`write_comparison` writes several methods run on the same rovers (the
 demo's paper-vs-fedmap view): one folder per method plus one figure and one table.
+:func:`write_metrics` is the one writer of a run's ``metrics.json`` (these two and the
+Flower base station's).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from fedmap._util import AtomicDir, to_json
 from fedmap.evaluation.scores import MapScores
+from fedmap.federation.runner import RoundRecord
 from fedmap.maps.export import check_formats, export_maps
 from fedmap.maps.grid import GridMap, render_classes
 from fedmap.maps.io import save_map
 from fedmap.nets.model import save_model
 from fedmap.pipeline import PipelineResult
+
+
+def _json_ready(obj: Any) -> Any:
+    """``obj`` with every :class:`~fedmap.federation.runner.RoundRecord` in it as its JSON layout."""
+    if isinstance(obj, RoundRecord):
+        return obj.to_dict()
+    if isinstance(obj, dict):
+        return {k: _json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_ready(v) for v in obj]
+    return obj
+
+
+def write_metrics(folder: Path, metrics: dict) -> Path:
+    """Write ``metrics`` as ``folder/metrics.json``: the one writer of that file. Round records
+    (``rounds``: :class:`~fedmap.federation.runner.RoundRecord`) become dicts here, at the JSON
+    boundary (:meth:`~fedmap.federation.runner.RoundRecord.to_dict`)."""
+    path = Path(folder) / "metrics.json"
+    path.write_text(to_json(_json_ready(metrics)))
+    return path
 
 
 def _finish(fig, path: Path, *, title: str, legend_height: float, title_height: float) -> None:
@@ -78,8 +102,7 @@ def write_outputs(result: PipelineResult, out_dir: str | Path, *, extra: dict[st
     """
     out = Path(out_dir)
     with AtomicDir(out) as tmp:
-        metrics = {**result.metrics, **(extra_metrics or {}), "timings": result.timings}
-        (tmp / "metrics.json").write_text(to_json(metrics))
+        write_metrics(tmp, {**result.metrics, **(extra_metrics or {}), "timings": result.timings})
         (tmp / "config.json").write_text(to_json(result.config.to_dict()))
         for name, text in (extra or {}).items():
             (tmp / name).write_text(text)
@@ -96,9 +119,10 @@ def write_outputs(result: PipelineResult, out_dir: str | Path, *, extra: dict[st
                     **{f"agent{k + 1}_local": m for k, m in enumerate(result.local_maps)}}
             export_maps(maps, tmp, check_formats(export), frame=result.truth)
         c = result.config
-        init = "zero grids (empty-map prior)" if c.net == "grid" else f"init {c.init}"
-        title = (f"{c.label or c.terrain} {c.size}x{c.size}, {c.agents} agents ({c.explore}), {c.net} net, {init}, "
-                 f"{c.federation.aggregator} x {c.federation.rounds} round(s), {c.federation.local.epochs} local epochs")
+        init = "zero grids (empty-map prior)" if c.model.net == "grid" else f"init {c.model.init}"
+        side = result.truth.shape[0]
+        title = (f"{c.title} {side}x{side}, {c.explore.agents} agents ({c.explore.mode}), {c.model.net} net, {init}, "
+                 f"{c.federation.aggregator} x {c.federation.rounds} round(s), {c.train.epochs} local epochs")
         fig4_panel(result.local_maps, result.truth, result.global_classes, result.refined, tmp / "figure.png",
                    title=title, scores=panel_scores(result.global_scores, result.refined_scores))
     return out
@@ -110,13 +134,13 @@ def comparison_rows(results: dict[str, PipelineResult]) -> list[dict]:
     for name, r in results.items():
         b = r.federation.total_bytes()
         rows.append({
-            "method": name, "net": r.config.net, "aggregator": r.config.federation.aggregator,
+            "method": name, "net": r.config.model.net, "aggregator": r.config.federation.aggregator,
             "psnr": r.global_scores.psnr, "ssim": r.global_scores.ssim, "accuracy": r.global_scores.accuracy,
             "f1": r.global_scores.path.f1, "refined_psnr": r.refined_scores.psnr, "refined_f1": r.refined_scores.path.f1,
             "central_psnr": None if r.central_scores is None else r.central_scores.psnr,
             "uplink_bytes_per_rover_round": b["uplink_per_agent_round"], "uplink_bytes": b["uplink"],
             "downlink_bytes": b["downlink"], "uplink_codec": r.config.federation.uplink,
-            "precision": r.config.federation.local.precision, "seconds": sum(r.timings.values()),
+            "precision": r.config.train.precision, "seconds": sum(r.timings.values()),
         })
     return rows
 
@@ -152,7 +176,7 @@ def comparison_panel(results: dict[str, PipelineResult], path: Path, *, title: s
             row[2].set_title(f"central bound\nPSNR {r.central_scores.psnr:.1f}  F1 {r.central_scores.path.f1:.2f}",
                              fontsize=8)
             col = 3
-        row[col].text(0, 0.5, f"{method}\n{r.config.net} net, {r.config.federation.aggregator}\n"
+        row[col].text(0, 0.5, f"{method}\n{r.config.model.net} net, {r.config.federation.aggregator}\n"
                       f"{per_rover:,.0f} B per rover per round\n({r.config.federation.uplink} uplink)",
                       fontsize=8, va="center", transform=row[col].transAxes)
     _finish(fig, path, title=title, legend_height=0.04, title_height=0.04)
@@ -167,10 +191,10 @@ def write_comparison(results: dict[str, PipelineResult], out_dir: str | Path, *,
     with AtomicDir(out) as tmp:
         for name, r in results.items():
             write_outputs(r, tmp / name, extra=(extra or {}).get(name), export=export)
-        first = next(iter(results.values())).config
-        title = (f"{first.label or first.terrain} {first.size}x{first.size}, {first.agents} rovers ({first.explore}): "
+        first_run = next(iter(results.values()))
+        first, side = first_run.config, first_run.truth.shape[0]
+        title = (f"{first.title} {side}x{side}, {first.explore.agents} rovers ({first.explore.mode}): "
                  f"{' vs '.join(results)}")
         comparison_panel(results, tmp / "figure.png", title=title)
-        metrics = {"methods": comparison_rows(results), **{k: r.metrics for k, r in results.items()}}
-        (tmp / "metrics.json").write_text(to_json(metrics))
+        write_metrics(tmp, {"methods": comparison_rows(results), **{k: r.metrics for k, r in results.items()}})
     return out

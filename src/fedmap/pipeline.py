@@ -11,71 +11,107 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
+from importlib import resources
 
 import numpy as np
 
+from fedmap._schema import setting, wiring
 from fedmap.errors import FedmapError
-from fedmap.evaluation.scores import MapScores, score_map
-from fedmap.explore import explore
-from fedmap.federation.runner import FederationConfig, FederationResult, run_federation, total_local_steps
+from fedmap.evaluation.scores import EvaluateConfig, MapScores
+from fedmap.explore import ExploreConfig
+from fedmap.federation.runner import FederationConfig, FederationResult, RoundRecord, run_federation, total_local_steps
 from fedmap.maps.grid import GridMap, check_same_frame, classes_from_rgb
 from fedmap.maps.sources import TerrainSource, load_truth
 from fedmap.maps.terrain import TERRAIN_KINDS
 from fedmap.maps.traversability import TraversabilityThresholds
-from fedmap.nets.init import check_init, initial_model
-from fedmap.nets.model import CoordNet, GridNet, build_model, get_weights, preset, render, set_weights
-from fedmap.nets.training import fit, steps_per_epoch
+from fedmap.nets.init import ModelConfig
+from fedmap.nets.init import initial_model as build_initial_model
+from fedmap.nets.model import CoordNet, GridNet, Weights, build_model, get_weights, render, set_weights
+from fedmap.nets.training import TrainConfig, fit, steps_per_epoch
 from fedmap.refine import RefineConfig
 from fedmap.stages import global_map, truth_summary, union_map
 
 
+def _method_names() -> tuple[str, ...]:
+    files = resources.files("fedmap.presets").iterdir()
+    return tuple(sorted(f.name.removesuffix(".toml") for f in files if f.name.endswith(".toml")))
+
+
 @dataclass(frozen=True)
 class PipelineConfig:
-    """Everything one run needs: terrain, team, network and its start, federation, refinement,
-    scoring. Build it for a named method with :func:`fedmap.config.method_config`."""
+    """Everything one run needs, one section per step: terrain, traversability, exploration,
+    network, local training, federation, refinement, scoring. Its settings are the run
+    config's (TOML, ``--set``, the command-line options and the Flower run config are
+    derived from these fields, :mod:`fedmap._schema`). Build it for a named method with
+    :func:`fedmap.config.method_config`, or from a TOML file with :func:`fedmap.config.load_run`.
+    """
 
-    terrain: str = "mars"
-    size: int = 128
-    agents: int = 4
-    explore: str = "quadrants"
-    overlap: int = 0
-    sensor_radius: float = 12.0
-    net: str = "paper"
-    init: str = "random"
-    init_weights: str | None = None  # init="meta": a weights file (default: the shipped meta-init)
-    prior_steps: int = 150
-    central: bool = True  # also fit one network to the union of the local maps (upper bound)
-    federation: FederationConfig = field(default_factory=FederationConfig)
-    refine: RefineConfig = field(default_factory=RefineConfig)
-    thresholds: TraversabilityThresholds = field(default_factory=TraversabilityThresholds)
-    eval_pairs: int = 75
-    unknown_passable: bool = False
-    seed: int = 0
-    label: str = ""  # the terrain's name in titles (a DEM file...); default: terrain
+    method: str = setting("paper", help="Preset (paper: the source paper's network and FedAvg from its meta-init; "
+                          "fedmap: feature grids, coverage-aware FedAvg, int4/int8 update payloads); everything else "
+                          "is laid over it", choices=_method_names)
+    seed: int = setting(0, help="Seed of the terrain, exploration, initialisation, training and evaluation")
+    terrain: TerrainSource = setting(default_factory=TerrainSource, help="What terrain is mapped")
+    thresholds: TraversabilityThresholds = setting(default_factory=TraversabilityThresholds,
+                                                   help="Rover limits: DEM -> traversability")
+    explore: ExploreConfig = setting(default_factory=ExploreConfig, help="Who observes what")
+    model: ModelConfig = setting(default_factory=ModelConfig, help="The network and its start")
+    train: TrainConfig = setting(default_factory=TrainConfig, help="Local training")
+    federation: FederationConfig = setting(default_factory=FederationConfig, help="Rounds, aggregation, payloads")
+    refine: RefineConfig = setting(default_factory=RefineConfig, help="Gap filling and blob removal")
+    evaluate: EvaluateConfig = setting(default_factory=EvaluateConfig, help="Scoring against the truth")
+    label: str = wiring("")  # the terrain's name in titles (a DEM file...); default: the built-in terrain
 
     def __post_init__(self) -> None:
-        if self.terrain not in TERRAIN_KINDS:
-            raise FedmapError(f"unknown terrain {self.terrain!r}; choose one of {', '.join(TERRAIN_KINDS)}")
-        if isinstance(self.size, bool) or not isinstance(self.size, int) or not 64 <= self.size <= 2048:
-            raise FedmapError(f"size must be an integer number of cells in [64, 2048], got {self.size}")
-        if self.eval_pairs <= 0:
-            raise FedmapError(f"eval pairs must be positive, got {self.eval_pairs}")
-        preset(self.net)
-        check_init(self.init, self.net)
-        if self.init_weights is not None and self.init != "meta":
-            raise FedmapError(f"init weights are only used with init 'meta', not {self.init!r}")
+        # one source of truth: the federation trains with [train] and the run's seed, and the
+        # terrain is classified with [thresholds]
+        if self.federation.local != self.train or self.federation.seed != self.seed:
+            object.__setattr__(self, "federation", replace(self.federation, local=self.train, seed=self.seed))
+        if self.terrain.thresholds != self.thresholds:
+            object.__setattr__(self, "terrain", replace(self.terrain, thresholds=self.thresholds))
+        if self.terrain.kind == "builtin":
+            if self.terrain.terrain not in TERRAIN_KINDS:
+                raise FedmapError(f"unknown terrain {self.terrain.terrain!r}; choose one of {', '.join(TERRAIN_KINDS)}")
+            size = self.terrain.size
+            if isinstance(size, bool) or not isinstance(size, int) or not MIN_SIDE <= size <= MAX_SIDE:
+                raise FedmapError(f"size must be an integer number of cells in [{MIN_SIDE}, {MAX_SIDE}], got {size}")
 
     def to_dict(self) -> dict:
         return asdict(self)
 
+    @property
+    def title(self) -> str:
+        """The terrain's name in titles."""
+        return self.label or self.terrain.terrain
+
     def score(self, truth: GridMap, classes: np.ndarray) -> MapScores:
         """``classes`` scored against ``truth`` with this run's pairs, seed and planner."""
-        return score_map(truth.classes, classes, pairs=self.eval_pairs, seed=self.seed,
-                         unknown_passable=self.unknown_passable)
+        return self.evaluate.score(truth.classes, classes, seed=self.seed)
 
-    def terrain_source(self) -> TerrainSource:
-        """The built-in terrain this config maps when no ``truth`` is given."""
-        return TerrainSource(kind="builtin", terrain=self.terrain, size=self.size, thresholds=self.thresholds)
+
+#: Side limits of the map the pipeline trains on.
+MIN_SIDE, MAX_SIDE = 64, 2048
+
+
+# --------------------------------------------------------------------------- the run assembly
+
+
+def build_local_maps(config: PipelineConfig, truth: GridMap) -> list[GridMap]:
+    """The rovers' local maps of a one-shot run: the one place they are built (the
+    pipeline and the Flower rovers call it)."""
+    return config.explore.local_maps(truth, seed=config.seed)
+
+
+def initial_model(config: PipelineConfig, side: int) -> CoordNet | GridNet:
+    """The model every rover starts round 1 from, for a ``side x side`` map: the one place
+    it is built (the pipeline, the Flower apps and the mission strategies call it)."""
+    m = config.model
+    return build_initial_model(m.network(side), init=m.init, seed=config.seed, prior_steps=m.prior_steps,
+                               init_weights=m.init_weights, precision=config.train.precision)
+
+
+def initial_weights(config: PipelineConfig, side: int) -> Weights:
+    """The weights of :func:`initial_model`."""
+    return get_weights(initial_model(config, side))
 
 
 @dataclass
@@ -124,7 +160,7 @@ def run_pipeline(
     local_maps: list[GridMap] | None = None,
     on_stage: Callable[[str | None, int], None] | None = None,
     on_step: Callable[[int, float], None] | None = None,
-    on_round: Callable[[dict, dict], None] | None = None,
+    on_round: Callable[[RoundRecord, Weights], None] | None = None,
     one_shot_cache: dict | None = None,
 ) -> PipelineResult:
     """Run the whole job. ``on_stage(name, total_steps)`` announces each stage;
@@ -140,27 +176,25 @@ def run_pipeline(
     t = time.perf_counter()
     stage("terrain", 0)
     if truth is None:
-        truth = load_truth(config.terrain_source(), seed=config.seed)
+        truth = load_truth(config.terrain, seed=config.seed)
     if local_maps is None:
-        local_maps = explore(truth, config.agents, config.explore, seed=config.seed, overlap=config.overlap,
-                             sensor_radius=config.sensor_radius)
+        local_maps = build_local_maps(config, truth)
     elif check_same_frame(local_maps) != truth.shape:
         raise FedmapError(f"local maps are {local_maps[0].shape}, the ground truth is {truth.shape}")
     timings["terrain_and_explore_s"] = time.perf_counter() - t
 
-    net_config = preset(config.net, truth.shape[0])
+    net_config = config.model.network(truth.shape[0])
     t = time.perf_counter()
-    if config.init == "empty":
-        stage("empty-map prior", config.prior_steps)
-    elif config.init == "meta":
+    if config.model.init == "empty":
+        stage("empty-map prior", config.model.prior_steps)
+    elif config.model.init == "meta":
         stage("meta-init weights", 0)
-    init_model = initial_model(net_config, init=config.init, seed=config.seed, prior_steps=config.prior_steps,
-                               init_weights=config.init_weights, precision=config.federation.local.precision)
+    init_weights = initial_weights(config, truth.shape[0])
     timings["init_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
     stage("federated training", total_local_steps(local_maps, config.federation))
-    fed = run_federation(get_weights(init_model), net_config, local_maps, config.federation, on_step=on_step,
+    fed = run_federation(init_weights, net_config, local_maps, config.federation, on_step=on_step,
                          on_round=on_round, one_shot_cache=one_shot_cache)
     timings["federation_s"] = time.perf_counter() - t
 
@@ -173,13 +207,13 @@ def run_pipeline(
     agent_scores = [config.score(truth, m.classes) for m in local_maps]
     timings["evaluate_s"] = time.perf_counter() - t
     central_scores, steps, central_classes = None, None, None
-    if config.central:
+    if config.evaluate.central:
         t = time.perf_counter()
-        steps = config.federation.rounds * config.federation.local.epochs
-        stage("centralised upper bound", steps * steps_per_epoch(truth.classes.size, config.federation.local))
+        steps = config.federation.rounds * config.train.epochs
+        stage("centralised upper bound", steps * steps_per_epoch(truth.classes.size, config.train))
         central = build_model(net_config)
-        set_weights(central, get_weights(init_model))
-        fit(central, union_map(local_maps), replace(config.federation.local, epochs=steps), seed=config.seed,
+        set_weights(central, init_weights)
+        fit(central, union_map(local_maps), replace(config.train, epochs=steps), seed=config.seed,
             on_step=on_step)
         central_classes = classes_from_rgb(render(central, h, w))
         central_scores = config.score(truth, central_classes)

@@ -21,16 +21,20 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage
 
+from fedmap._schema import setting
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 
 
 @dataclass(frozen=True)
 class RefineConfig:
-    window: int = 3
-    min_votes: int = 5
-    iterations: int = 2
-    min_size: int = 0
+    """Refinement of a global map: the ``[refine]`` section of a run config."""
+
+    window: int = setting(3, help="Refinement: side of the majority-vote window that fills UNKNOWN gaps (odd)")
+    min_votes: int = setting(5, help="Refinement: known neighbours of one class needed to fill a gap")
+    iterations: int = setting(2, help="Refinement: gap-filling passes")
+    min_size: int = setting(0, help="Refinement: remove impassable blobs smaller than this many cells (paper: 200; "
+                            "0 = off)")
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:

@@ -10,10 +10,10 @@ import typer
 from rich.table import Table
 
 from fedmap.cli.ui import console, fit, fmt, progress_bar, stage_callbacks
+from fedmap.config import method_config
 from fedmap.experiments.reproduce import F1_MEANINGS, PAPER_TABLE2, ReproduceConfig
 from fedmap.experiments.reproduce import reproduce as run_reproduce
 from fedmap.experiments.table3 import bandwidth_report
-from fedmap.pipeline import PipelineConfig
 
 
 def bandwidth(
@@ -25,7 +25,7 @@ def bandwidth(
     out: Path = typer.Option(Path("fedmap-out/bandwidth"), "--out", "-o", help="Output folder (replaced atomically)."),
 ) -> None:
     """Table III with real bytes: model codecs vs raw, JPEG, WebP, PNG and zstd of the map."""
-    PipelineConfig(terrain=terrain, size=size, eval_pairs=pairs)  # validates before any work
+    method_config(terrain=terrain, size=size, pairs=pairs)  # validates before any work
     t0 = time.perf_counter()
     with progress_bar() as progress:
         on_stage, on_step = stage_callbacks(progress)

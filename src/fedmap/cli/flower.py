@@ -13,61 +13,45 @@ from typing import Optional
 
 import typer
 
+from fedmap import _schema
+from fedmap.cli.options import parameters, with_settings
 from fedmap.cli.ui import console, progress_bar
-from fedmap.config import overrides_from, resolve
+from fedmap.config import resolve
 from fedmap.flower.checkpoint import resume_config
 from fedmap.flower.launch import make_certs, run_base_station
 from fedmap.flower.rover import ROVER_MAX_WAIT, rover_node_config, run_rover
-from fedmap.flower.settings import run_config_from
+from fedmap.flower.settings import BaseStation, RunSettings, flower_key, run_config_from
+from fedmap.pipeline import PipelineConfig
+
+#: ``base-station``'s generated options: the run settings the base station passes on (no
+#: [terrain]: it names its ground truth with its own settings) and its own settings.
+_SETTINGS = [*(s for s in _schema.walk(PipelineConfig) if s.section not in ("terrain", "thresholds")),
+             *_schema.settings(BaseStation)]
+_BASE = {s.name for s in _schema.settings(BaseStation)}
 
 
+@with_settings(parameters(_SETTINGS, presets=True, skip=("--out", "--resume")))
 def base_station(
-    rovers: int = typer.Option(4, help="Rovers in the team (partition ids 0..rovers-1)."),
-    min_rovers: int = typer.Option(1, "--min-rovers", help="Fewest rovers a round may aggregate; fewer ends the run."),
-    deadline: float = typer.Option(600.0, help="Seconds a round waits for replies; late rovers are recorded as missing."),
-    connect_timeout: float = typer.Option(120.0, "--connect-timeout", help="Seconds to wait for rovers to connect."),
-    method: Optional[str] = typer.Option(None, help="Preset: paper or fedmap (the options below override it) [paper]."),
-    rounds: Optional[int] = typer.Option(None, help="Communication rounds R [1]."),
-    aggregator: Optional[str] = typer.Option(None, help="fedavg, fedadam, fedyogi or coverage."),
-    eta: Optional[float] = typer.Option(None, help="Server learning rate for fedadam/fedyogi [0.01]."),
-    local_epochs: Optional[int] = typer.Option(None, "--local-epochs", help="Local epochs per round E [100]."),
-    lr: Optional[float] = typer.Option(None, help="Local Adam learning rate."),
-    masked: Optional[bool] = typer.Option(None, help="Loss on known cells only."),
-    net: Optional[str] = typer.Option(None, help="Network: paper, small or grid."),
-    init: Optional[str] = typer.Option(None, help="Initial weights: random, empty (empty-map prior) or meta (shipped meta-init)."),
-    uplink: Optional[str] = typer.Option(None, help="Rover -> base codec (see fedmap demo --help)."),
-    downlink: Optional[str] = typer.Option(None, help="Base -> rover codec."),
-    seed: Optional[int] = typer.Option(None, help="Seed of the initial model and the rovers' training [0]."),
-    terrain: Optional[str] = typer.Option(None, help="Ground truth from the built-in generator (mars, moon, ice)."),
-    size: Optional[int] = typer.Option(None, help="Generated ground truth side in cells [128]."),
-    truth: Optional[Path] = typer.Option(None, help="Ground-truth map file (.png or .npy) to evaluate against."),
-    pairs: Optional[int] = typer.Option(None, help="Random start/goal pairs for the path F1 [75]."),
-    min_size: Optional[int] = typer.Option(None, "--min-size", help="Refinement: remove impassable blobs smaller than this [0]."),
     host: str = typer.Option("0.0.0.0", help="Address the SuperLink listens on."),
     port: int = typer.Option(9092, help="SuperLink port (rovers connect to HOST:PORT)."),
     certs: Optional[Path] = typer.Option(None, help="TLS: folder from `fedmap certs` (ca.crt, server.pem, server.key)."),
     auth_keys: Optional[Path] = typer.Option(None, "--auth-keys", help="SuperNode authentication: folder of rover *.pub keys."),
     out: Path = typer.Option(Path("fedmap-out/flower"), "--out", "-o", help="Output folder (replaced atomically)."),
-    keep_checkpoints: Optional[int] = typer.Option(None, "--keep-checkpoints",
-                                                   help="Per-round checkpoints kept in OUT.run/ [3]."),
     resume: Optional[Path] = typer.Option(None, "--resume", metavar="OUT",
                                           help="Continue the crashed run that was writing to OUT from its last "
                                                "complete checkpoint (its settings; the run options are ignored)."),
+    settings: Optional[dict] = None,
 ) -> None:
     """Base station: start a SuperLink and run fedmap's ServerApp for R rounds."""
-    settings = dict(method=method, rounds=rounds, aggregator=aggregator, eta=eta, epochs=local_epochs, lr=lr,
-                    masked=masked, net=net, init=init, uplink=uplink, downlink=downlink, seed=seed, size=size,
-                    pairs=pairs, min_size=min_size)
-    resolved = resolve(None, [overrides_from(settings)])
-    cfg = run_config_from(resolved, rovers=rovers, min_rovers=min_rovers, deadline=deadline,
-                          connect_timeout=connect_timeout, terrain=terrain, out=str(out),
-                          truth=str(truth.resolve()) if truth else None, keep_checkpoints=keep_checkpoints)
+    settings = dict(settings or {})
+    base = {k: settings.pop(k) for k in list(settings) if k in _BASE}
+    cfg = run_config_from(resolve(None, [settings]), **base, out=str(out))
     if resume is not None:
         cfg, out = resume_config(resume), resume
-        if keep_checkpoints is not None:
-            cfg["keep-checkpoints"] = keep_checkpoints
+        if "keep_checkpoints" in base:
+            cfg[flower_key("keep_checkpoints")] = base["keep_checkpoints"]
         console.print(f"resuming {out} from {Path(cfg['resume']).name}")
-    rounds = cfg["rounds"]
+    rounds = RunSettings.from_run_config(cfg).federation.rounds
     t0 = time.perf_counter()
     with progress_bar() as progress:
         task = progress.add_task("waiting for rovers", total=rounds, loss="")
@@ -87,7 +71,7 @@ def base_station(
                          on_ready=on_ready)
     m = json.loads((out / "metrics.json").read_text())
     for r in m["rounds"]:
-        console.print(f"round {r['round']}: aggregated rovers {sorted(int(k) for k in r['weights'])}; "
+        console.print(f"round {r['round']}: aggregated rovers {sorted(int(k) for k in r['aggregation_counts'])}; "
                       f"missing {r['missing'] or 'none'}; dropped {r['dropped'] or 'none'}; "
                       f"uplink {sum(r['uplink_bytes'].values()):,} B")
     if "global" in m:

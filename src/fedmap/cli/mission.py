@@ -10,48 +10,37 @@ from typing import Optional
 import typer
 from rich.table import Table
 
+from fedmap import _schema
 from fedmap._util import to_json
+from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import console, fit, progress_bar
-from fedmap.config import dumps_toml, terrain_table
+from fedmap.config import dumps_toml
 from fedmap.maps.sources import load_source_dem, load_truth
 from fedmap.mission import load_mission, run_mission
 from fedmap.mission.report import table_rows, write_mission
+from fedmap.mission.settings import MISSION_SECTIONS, parse_sets
+from fedmap.pipeline import PipelineConfig
+
+#: ``mission``'s generated options: the top-level seed, the terrain and threshold settings
+#: exactly as ``run``'s, then [mission] and [link].
+_SETTINGS = [*(s for s in _schema.walk(PipelineConfig) if s.section in ("", "terrain", "thresholds") and s.name != "method"),
+             *(s for name, cls in MISSION_SECTIONS.items() for s in _schema.settings(cls, name))]
 
 
+@with_settings(parameters(_SETTINGS, skip=SHORTCUT_FLAGS), terrain=True)
 def mission(
     config: Optional[Path] = typer.Argument(None, help="Mission TOML ([terrain], [thresholds], [mission], [link], [strategies.*]); default: built-in mars 128²."),
     preset: Optional[str] = typer.Option(None, help="A shipped mission preset laid under the file, e.g. cadre."),
-    strategies: Optional[str] = typer.Option(None, help="Comma-separated: none, raw, paper, fedmap, central [none,raw,fedmap,central]."),
-    steps: Optional[int] = typer.Option(None, help="Mission steps [150]."),
-    sync_every: Optional[int] = typer.Option(None, "--sync-every", help="Steps between sync rounds [10]."),
-    rovers: Optional[int] = typer.Option(None, help="Number of rovers [4]."),
-    speed: Optional[int] = typer.Option(None, help="Cells driven per step [2]."),
-    sensor_radius: Optional[float] = typer.Option(None, "--sensor-radius", help="Sensor range in cells [8]."),
-    line_of_sight: Optional[bool] = typer.Option(None, "--line-of-sight/--no-line-of-sight", help="Observe only cells in line of sight over the DEM [off]."),
-    mode: Optional[str] = typer.Option(None, help="frontier (coordinated frontier exploration) or waypoints (a fixed traverse)."),
-    stay_in_range: Optional[bool] = typer.Option(None, "--stay-in-range/--roam", help="Pick only targets within the link's range of the base."),
-    uplink_bytes: Optional[int] = typer.Option(None, "--uplink-bytes", help="Uplink budget per rover per round, bytes [unlimited]."),
-    downlink_bytes: Optional[int] = typer.Option(None, "--downlink-bytes", help="Downlink budget per rover per round, bytes [unlimited]."),
-    loss: Optional[float] = typer.Option(None, help="Probability that a message is lost [0.1]."),
-    latency: Optional[int] = typer.Option(None, help="Steps a message takes, each way [0]."),
-    max_range: Optional[float] = typer.Option(None, "--max-range", help="Link range from the base, cells [unlimited]."),
-    seed: Optional[int] = typer.Option(None, help="Seed of the terrain, the waypoints and the scoring [0]."),
-    terrain: Optional[str] = typer.Option(None, help="Built-in terrain (mars, moon, ice) instead of the file's."),
-    dem: Optional[Path] = typer.Option(None, help="A DEM file instead of the file's terrain."),
-    map_path: Optional[Path] = typer.Option(None, "--map", help="A class map (PNG/NPY) instead of the file's terrain."),
-    size: Optional[int] = typer.Option(None, help="Resample the terrain to size x size cells."),
+    set_: Optional[list[str]] = typer.Option(None, "--set", help="Any mission key: section.key=value (TOML value), e.g. mission.rovers=3; repeatable."),
     animation: bool = typer.Option(True, "--animation/--no-animation", help="Write the GIF (and MP4 with ffmpeg) of each strategy."),
     out: Path = typer.Option(Path("fedmap-out/mission"), "--out", "-o", help="Output folder (replaced atomically)."),
+    settings: Optional[dict] = None,
+    terrain: Optional[dict] = None,
 ) -> None:
     """Run one mission with every sharing strategy; write metrics.json, report.md, plots and animations."""
     t0 = time.perf_counter()
-    table = terrain_table(dem=dem, map_path=map_path, builtin=terrain)
-    m = {"strategies": strategies, "steps": steps, "sync_every": sync_every, "rovers": rovers, "speed": speed,
-         "sensor_radius": sensor_radius, "line_of_sight": line_of_sight, "mode": mode, "stay_in_range": stay_in_range}
-    link = {"uplink_bytes": uplink_bytes, "downlink_bytes": downlink_bytes, "loss": loss, "latency": latency,
-            "max_range": max_range}
-    cfg, source, resolved = load_mission(config, preset=preset, mission=m, link=link, terrain=table, size=size,
-                                         seed=seed)
+    cfg, source, resolved = load_mission(config, preset=preset, terrain=terrain,
+                                         overrides=[*parse_sets(set_), settings or {}])
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
         truth = load_truth(source, seed=cfg.seed)

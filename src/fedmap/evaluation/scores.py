@@ -6,6 +6,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from fedmap._schema import setting
+from fedmap.errors import FedmapError
 from fedmap.evaluation.metrics import image_scores
 from fedmap.evaluation.paths import PaperScores, PathScores, path_f1
 from fedmap.maps.planning import passable_mask
@@ -50,6 +52,24 @@ class MapScores:
                 "iou_impassable": self.iou_impassable, "path": self.path.to_dict(),
                 "paper_other_unknown": None if other is None else
                 {"unknown_passable": not self.path.unknown_passable, **asdict(other)}}
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """How a run's maps are scored: the ``[evaluate]`` section of a run config."""
+
+    pairs: int = setting(75, help="Seeded start/goal pairs of the A* path F1")
+    unknown_passable: bool = setting(False, help="Let the path planner cross UNKNOWN cells")
+    central: bool = setting(True, help="Also fit one network to the union of the local maps (the centralised upper "
+                            "bound)")
+
+    def __post_init__(self) -> None:
+        if isinstance(self.pairs, bool) or not isinstance(self.pairs, int) or self.pairs <= 0:
+            raise FedmapError(f"eval pairs must be positive, got {self.pairs}")
+
+    def score(self, truth: np.ndarray, classes: np.ndarray, *, seed: int) -> MapScores:
+        """``classes`` scored against ``truth`` with these pairs and planner."""
+        return score_map(truth, classes, pairs=self.pairs, seed=seed, unknown_passable=self.unknown_passable)
 
 
 def score_map(truth: np.ndarray, classes: np.ndarray, *, pairs: int, seed: int,

@@ -38,11 +38,12 @@ from fedmap.evaluation.paths import PaperScores
 from fedmap.evaluation.scores import MapScores
 from fedmap.experiments.real_terrain import REAL_TERRAINS, load_real
 from fedmap.experiments.table3 import bandwidth_report
+from fedmap.federation.runner import RoundRecord
 from fedmap.maps.grid import GridMap, classes_from_rgb
 from fedmap.maps.sources import TerrainSource, load_truth
 from fedmap.meta.ablation import AblationConfig, make_inits, run_ablation, write_ablation
 from fedmap.nets.init import SHIPPED_WEIGHTS
-from fedmap.nets.model import build_model, preset, render, set_weights
+from fedmap.nets.model import Weights, build_model, preset, render, set_weights
 from fedmap.nets.training import resolve_precision
 from fedmap.outputs import fig4_panel, panel_scores
 from fedmap.pipeline import PipelineConfig, run_pipeline
@@ -176,15 +177,16 @@ def run_table2(name: str, truth: GridMap, config: ReproduceConfig, *, on_stage=N
             on_stage(f"{name}: {row.label}", 0)
         res = run_pipeline(cfg, truth=truth, on_stage=on_stage, on_step=on_step, one_shot_cache=cache)
         fed = cfg.federation
-        rec = {"label": row.label, "method": row.method, "net": cfg.net, "init": cfg.init, "aggregator": fed.aggregator,
+        rec = {"label": row.label, "method": row.method, "net": cfg.model.net, "init": cfg.model.init,
+               "aggregator": fed.aggregator,
                "eta": fed.eta if fed.aggregator in ("fedadam", "fedyogi") else None, "rounds": fed.rounds,
-               "local_epochs": fed.local.epochs, "uplink": fed.uplink,
+               "local_epochs": cfg.train.epochs, "uplink": fed.uplink,
                "uplink_bytes_per_rover_round": res.federation.total_bytes()["uplink_per_agent_round"],
                **_summary(res.global_scores), "refined": _summary(res.refined_scores)}
         rows.append(rec)
         results[row.label] = res
         if central and res.central_scores is not None:
-            rows.append({"label": "paper net, centralised (upper bound)", "method": "paper", "net": cfg.net,
+            rows.append({"label": "paper net, centralised (upper bound)", "method": "paper", "net": cfg.model.net,
                          "aggregator": None, "eta": None, "rounds": None, "local_epochs": res.central_steps,
                          "uplink": "raw maps", "uplink_bytes_per_rover_round": None, **_summary(res.central_scores)})
     return {"rows": rows, "results": results}
@@ -195,18 +197,18 @@ def rounds_curve(truth: GridMap, method: str, config: ReproduceConfig, *, on_sta
     init = {"init": "meta"} if method == "paper" and _has_meta_weights() else {}
     cfg = _row_config(Row("curve", method, rounds=config.curve_rounds, epochs=config.curve_epochs, overrides=init),
                       config, central=False)
-    net = preset(cfg.net, truth.shape[0])
+    net = cfg.model.network(truth.shape[0])
     model = build_model(net)
     points: list[dict] = []
 
-    def score(rec: dict, weights: dict) -> None:
+    def score(rec: RoundRecord, weights: Weights) -> None:
         set_weights(model, weights)
         classes = classes_from_rgb(render(model, *truth.shape))
         m = cfg.score(truth, classes)
         s = _summary(m)
-        points.append({"round": rec["round"], "psnr": m.psnr, "ssim": m.ssim, "f1": m.path.f1,
+        points.append({"round": rec.round, "psnr": m.psnr, "ssim": m.ssim, "f1": m.path.f1,
                        "f1_tolerant": m.path.tolerant.f1,
-                       "uplink_bytes": sum(rec["uplink_bytes"].values()),
+                       "uplink_bytes": sum(rec.uplink_bytes.values()),
                        "f1_paper": s["f1_paper"], "f1_paper_unknown_passable": s["f1_paper_unknown_passable"]})
 
     run_pipeline(cfg, truth=truth, on_stage=on_stage, on_step=on_step, on_round=score)

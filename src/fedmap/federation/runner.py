@@ -34,12 +34,14 @@ from __future__ import annotations
 import hashlib
 import time
 from collections.abc import Callable, Collection, Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
+from fedmap._schema import setting, wiring
 from fedmap.errors import FedmapError, RejectedUpdate
-from fedmap.federation.aggregate import Aggregator, make_aggregator
+from fedmap.federation.aggregate import AGGREGATORS, Aggregator, make_aggregator
 from fedmap.federation.codecs import CodecSpec, Encoder, decode
 from fedmap.maps.grid import GridMap, check_same_frame
 from fedmap.nets.model import NetConfig, Weights, build_model, get_weights, set_weights
@@ -48,16 +50,24 @@ from fedmap.nets.training import TrainConfig, fit, steps_per_epoch
 
 @dataclass(frozen=True)
 class FederationConfig:
-    rounds: int = 1
-    aggregator: str = "fedavg"
-    eta: float = 1e-2  # FedAdam / FedYogi server learning rate
-    beta1: float = 0.9
-    beta2: float = 0.99
-    tau: float = 1e-3
-    local: TrainConfig = field(default_factory=TrainConfig)
-    seed: int = 0
-    uplink: str = "fp32"  # payload codec, see fedmap.federation.codecs.CodecSpec.parse
-    downlink: str = "fp32"
+    """Rounds, aggregation and payload codecs: the ``[federation]`` section of a run config.
+
+    ``local`` (the ``[train]`` section) and ``seed`` (the run's) are filled by the run
+    assembly (:class:`fedmap.pipeline.PipelineConfig`); they are not settings of their own.
+    """
+
+    rounds: int = setting(1, help="Communication rounds R")
+    aggregator: str = setting("fedavg", help="Server aggregation (coverage: coverage-aware FedAvg)",
+                              choices=lambda: tuple(AGGREGATORS))
+    eta: float = setting(1e-2, help="Server learning rate (fedadam, fedyogi)")
+    beta1: float = setting(0.9, help="Server first-moment decay (fedadam, fedyogi)")
+    beta2: float = setting(0.99, help="Server second-moment decay (fedadam, fedyogi)")
+    tau: float = setting(1e-3, help="Server adaptivity epsilon (fedadam, fedyogi)")
+    local: TrainConfig = wiring(default_factory=TrainConfig)
+    seed: int = wiring(0)
+    uplink: str = setting("fp32", help="Rover -> base payload codec: fp32, fp16, bf16, int8, int4, topk:0.01, "
+                          "update-int4, ... (+zstd)")
+    downlink: str = setting("fp32", help="Base -> rover payload codec (the uplink's grammar)")
 
     def __post_init__(self) -> None:
         if self.rounds < 1:
@@ -74,27 +84,159 @@ class FederationConfig:
         return asdict(self)
 
 
+def _by_agent(d: Mapping[Any, Any]) -> dict[int, Any]:
+    """A dict keyed by agent (rover index, Flower partition id) back from JSON, where its keys became strings."""
+    return {int(k): v for k, v in d.items()}
+
+
+#: The JSON keys a Flower round adds to :meth:`RoundRecord.to_dict` (:meth:`FlowerRound.to_dict`).
+_FLOWER_KEYS = ("missing_why", "node_errors", "flower_uplink_bytes", "flower_downlink_bytes",
+                "final_broadcast_received_by")
+
+
+@dataclass(frozen=True)
+class FlowerRound:
+    """What the Flower base station (:mod:`fedmap.flower.server_app`) adds to a round's record.
+
+    ``missing_why``: missing rover -> why it delivered nothing; ``node_errors``: Flower node id
+    (a string) -> its error, for nodes that never said which rover they are; ``uplink_bytes`` /
+    ``downlink_bytes``: rover -> the bytes Flower counted for its payload (fedmap's payload plus
+    the record's ``.npy`` header and key; ``downlink_bytes`` is filled in as the round's model
+    reaches the rovers); ``final_broadcast_received_by``: the rovers that acknowledged the
+    final model (set on the last round once the run ends, else None).
+    """
+
+    missing_why: dict[int, str]
+    node_errors: dict[str, str]
+    uplink_bytes: dict[int, int]
+    downlink_bytes: dict[int, int]
+    final_broadcast_received_by: list[int] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON keys it adds to its round's :meth:`RoundRecord.to_dict` (``flower_uplink_bytes``, ...)."""
+        d: dict[str, Any] = {"missing_why": dict(self.missing_why), "node_errors": dict(self.node_errors),
+                             "flower_uplink_bytes": dict(self.uplink_bytes),
+                             "flower_downlink_bytes": dict(self.downlink_bytes)}
+        if self.final_broadcast_received_by is not None:
+            d["final_broadcast_received_by"] = list(self.final_broadcast_received_by)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> FlowerRound:
+        """The Flower part of a round record in :meth:`RoundRecord.to_dict` layout (after JSON)."""
+        acked = d.get("final_broadcast_received_by")
+        return cls(missing_why=_by_agent(d.get("missing_why", {})),
+                   node_errors={str(k): v for k, v in d.get("node_errors", {}).items()},
+                   uplink_bytes=_by_agent(d.get("flower_uplink_bytes", {})),
+                   downlink_bytes=_by_agent(d.get("flower_downlink_bytes", {})),
+                   final_broadcast_received_by=None if acked is None else [int(k) for k in acked])
+
+
+@dataclass(frozen=True)
+class RoundRecord:
+    """One round of a federation: an entry of :attr:`FederationResult.history`, the same for
+    every runner (in process, Flower). Agents are rover indices (Flower: partition ids).
+
+    Attributes
+    ----------
+    round : int
+        The round number, 1-based.
+    final_loss : dict
+        Agent -> its last local training loss (None when it took no step), for every
+        aggregated agent.
+    aggregation_counts : dict
+        Agent -> its aggregation count n_k (the known cells of its map: the weight of its
+        update in the aggregation), for every agent whose update was aggregated.
+    dropped : dict
+        Agent -> why its reply was not used (it replied, unlike a missing agent).
+    missing : list
+        Agents that delivered nothing this round.
+    uplink_codec, downlink_codec : str
+        The labels of the round's payload codecs.
+    uplink_bytes : dict
+        Agent -> bytes of its uplink payload.
+    downlink_bytes : dict
+        Agent -> bytes of this round's model as it was sent to that agent (the broadcast or
+        a keyframe).
+    keyframes : list
+        Agents that got this round's model as a dense keyframe instead of the broadcast.
+    seconds : float
+        Wall time of the round.
+    flower : FlowerRound or None
+        What the Flower base station adds (None in process).
+
+    The record is frozen, but this round's model is sent after the round: ``downlink_bytes``,
+    ``keyframes`` and ``flower.downlink_bytes`` are filled in as it reaches the rovers
+    (:func:`book_downlink`, in the next round or at the end of the run).
+
+    :meth:`to_dict` is its JSON layout (``metrics.json`` ``rounds``, checkpoints), whose keys
+    are not all the field names: the codecs are
+    ``codecs: {uplink, downlink}`` and the Flower fields are flat (:meth:`FlowerRound.to_dict`).
+    """
+
+    round: int
+    final_loss: dict[int, float | None]
+    aggregation_counts: dict[int, float]
+    dropped: dict[int, str]
+    missing: list[int]
+    uplink_codec: str
+    downlink_codec: str
+    uplink_bytes: dict[int, int]
+    downlink_bytes: dict[int, int]
+    keyframes: list[int]
+    seconds: float
+    flower: FlowerRound | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The record as ``metrics.json`` and checkpoints hold it (int agent keys: ``to_json`` makes them strings)."""
+        d: dict[str, Any] = {
+            "round": self.round, "final_loss": dict(self.final_loss), "aggregation_counts": dict(self.aggregation_counts),
+            "dropped": dict(self.dropped), "missing": list(self.missing),
+            "codecs": {"uplink": self.uplink_codec, "downlink": self.downlink_codec},
+            "uplink_bytes": dict(self.uplink_bytes), "downlink_bytes": dict(self.downlink_bytes),
+            "keyframes": list(self.keyframes), "seconds": self.seconds,
+        }
+        if self.flower is not None:
+            d.update(self.flower.to_dict())
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> RoundRecord:
+        """A record back from :meth:`to_dict`'s layout after JSON (a checkpoint's
+        ``state.json``, also one written before records were typed): agent ids are ints again."""
+        codecs = d["codecs"]
+        counts = d["aggregation_counts"] if "aggregation_counts" in d else d["weights"]  # its name before typed records
+        return cls(round=int(d["round"]), final_loss=_by_agent(d["final_loss"]),
+                   aggregation_counts=_by_agent(counts), dropped=_by_agent(d["dropped"]),
+                   missing=[int(k) for k in d["missing"]], uplink_codec=str(codecs["uplink"]),
+                   downlink_codec=str(codecs["downlink"]), uplink_bytes=_by_agent(d["uplink_bytes"]),
+                   downlink_bytes=_by_agent(d["downlink_bytes"]), keyframes=[int(k) for k in d.get("keyframes", [])],
+                   seconds=float(d["seconds"]),
+                   flower=FlowerRound.from_dict(d) if any(k in d for k in _FLOWER_KEYS) else None)
+
+
 @dataclass
 class FederationResult:
     weights: Weights
-    history: list[dict]
+    history: list[RoundRecord]
     aggregator: dict
 
     def ledger(self) -> list[dict]:
         """One row per (round, agent, direction): codec and bytes."""
         rows = []
         for r in self.history:
-            for direction in ("downlink", "uplink"):
-                for agent, n in r[f"{direction}_bytes"].items():
-                    keyframe = direction == "downlink" and agent in r.get("keyframes", ())
-                    rows.append({"round": r["round"], "agent": agent, "direction": direction,
-                                 "codec": f"{KEYFRAME} keyframe" if keyframe else r["codecs"][direction], "bytes": n})
+            for direction, sent, codec in (("downlink", r.downlink_bytes, r.downlink_codec),
+                                           ("uplink", r.uplink_bytes, r.uplink_codec)):
+                for agent, n in sent.items():
+                    keyframe = direction == "downlink" and agent in r.keyframes
+                    rows.append({"round": r.round, "agent": agent, "direction": direction,
+                                 "codec": f"{KEYFRAME} keyframe" if keyframe else codec, "bytes": n})
         return rows
 
     def total_bytes(self) -> dict:
-        up = sum(sum(r["uplink_bytes"].values()) for r in self.history)
-        down = sum(sum(r["downlink_bytes"].values()) for r in self.history)
-        n_up = sum(len(r["uplink_bytes"]) for r in self.history)
+        up = sum(sum(r.uplink_bytes.values()) for r in self.history)
+        down = sum(sum(r.downlink_bytes.values()) for r in self.history)
+        n_up = sum(len(r.uplink_bytes) for r in self.history)
         return {"uplink": up, "downlink": down, "uplink_per_agent_round": up / max(n_up, 1)}
 
 
@@ -304,7 +446,7 @@ def run_federation(
     config: FederationConfig,
     *,
     on_step: Callable[[int, float], None] | None = None,
-    on_round: Callable[[dict, Weights], None] | None = None,
+    on_round: Callable[[RoundRecord, Weights], None] | None = None,
     one_shot_cache: dict | None = None,
     absent: Mapping[int, Collection[int]] | None = None,
     restarted: Mapping[int, Collection[int]] | None = None,
@@ -336,7 +478,7 @@ def run_federation(
     rover_held = [held for _ in local_maps]  # what each rover holds
     up_encs = [Encoder(up_spec) for _ in local_maps]  # residuals live on the rovers
     model = build_model(net_config)
-    history: list[dict] = []
+    history: list[RoundRecord] = []
     cache_key = None
     if one_shot_cache is not None and config.rounds == 1:
         cache_key = (config.uplink, config.local, config.seed, tuple(m.classes.tobytes() for m in local_maps),
@@ -366,14 +508,14 @@ def run_federation(
                          versions=versions)
         held = step.held  # the base continues from the decoded broadcast, as the rovers will
         bc.advance(held, step.downlink)
-        rec = round_record(r + 1, step, losses, {k: len(p) for k, p in payloads.items()}, {}, up_spec, down_spec,
-                           time.perf_counter() - t0,
-                           missing=sorted(set(range(len(local_maps))) - set(present)))
+        rec = round_record(r + 1, step, losses, {k: len(p) for k, p in payloads.items()}, up_spec, down_spec,
+                           time.perf_counter() - t0, missing=sorted(set(range(len(local_maps))) - set(present)))
         history.append(rec)
         if on_round is not None:
             on_round(rec, held)
     if history:  # the final broadcast goes to the rovers that replied in the last round
-        _deliver(bc, rover_held, sorted(set(history[-1]["weights"]) | set(history[-1]["dropped"])), history[-1])
+        last = history[-1]
+        _deliver(bc, rover_held, sorted(set(last.aggregation_counts) | set(last.dropped)), last)
     return FederationResult(held, history, {"name": config.aggregator, **aggregator.hyperparameters()})
 
 
@@ -382,7 +524,7 @@ def init_held(init_weights: Weights) -> Weights:
     return {k: np.asarray(v, dtype=np.float32) for k, v in init_weights.items()}
 
 
-def _deliver(bc: Broadcaster, rover_held: list[Weights], rovers: list[int], rec: dict) -> None:
+def _deliver(bc: Broadcaster, rover_held: list[Weights], rovers: list[int], rec: RoundRecord) -> None:
     """In process: send ``rovers`` what :meth:`Broadcaster.for_rover` says, book it in ``rec``."""
     for k in rovers:
         d = bc.for_rover(model_version(rover_held[k]))
@@ -390,26 +532,23 @@ def _deliver(bc: Broadcaster, rover_held: list[Weights], rovers: list[int], rec:
         book_downlink(rec, k, d)
 
 
-def book_downlink(rec: dict, agent, d: Downlink) -> None:
+def book_downlink(rec: RoundRecord, agent: int, d: Downlink) -> None:
     """Count the downlink ``d`` sent to ``agent`` in the round record whose model it carries."""
     if d.kind == "none":
         return
-    rec["downlink_bytes"][agent] = len(d.payload)
-    if d.kind == "keyframe":
-        rec["keyframes"] = sorted({*rec.get("keyframes", []), agent})
+    rec.downlink_bytes[agent] = len(d.payload)
+    if d.kind == "keyframe" and agent not in rec.keyframes:
+        rec.keyframes.append(agent)
+        rec.keyframes.sort()
 
 
-def round_record(round_no: int, step: BaseStep, losses: dict, up_bytes: dict, down_bytes: dict,
-                 up_spec: CodecSpec, down_spec: CodecSpec, seconds: float, *, missing: list | None = None) -> dict:
-    """One round's entry of ``FederationResult.history`` (the same layout for every runner).
-
-    ``dropped``: agents that replied but whose update was not used, with the reason;
-    ``missing``: agents that delivered nothing this round; ``keyframes`` (added when the
-    round's model is sent): agents that got it as a dense keyframe instead of the broadcast.
-    """
-    return {
-        "round": round_no, "final_loss": {k: losses.get(k) for k in step.counts}, "weights": dict(step.counts),
-        "dropped": step.dropped, "missing": list(missing or []),
-        "codecs": {"uplink": up_spec.label(), "downlink": down_spec.label()},
-        "uplink_bytes": up_bytes, "downlink_bytes": down_bytes, "keyframes": [], "seconds": seconds,
-    }
+def round_record(round_no: int, step: BaseStep, losses: Mapping[int, float | None], up_bytes: dict[int, int],
+                 up_spec: CodecSpec, down_spec: CodecSpec, seconds: float, *, missing: list[int] | None = None,
+                 flower: FlowerRound | None = None) -> RoundRecord:
+    """One round's entry of ``FederationResult.history`` (the same for every runner), made
+    once the round is aggregated: nobody has its model yet (``downlink_bytes`` and
+    ``keyframes`` are empty until :func:`book_downlink`)."""
+    return RoundRecord(round=round_no, final_loss={k: losses.get(k) for k in step.counts},
+                       aggregation_counts=dict(step.counts), dropped=step.dropped, missing=list(missing or []),
+                       uplink_codec=up_spec.label(), downlink_codec=down_spec.label(), uplink_bytes=up_bytes,
+                       downlink_bytes={}, keyframes=[], seconds=seconds, flower=flower)

@@ -1,13 +1,14 @@
 """The base station's per-round checkpoints: everything a crashed run needs to continue.
 
-After every round the base writes ``<out>.run/checkpoint_round{r:04d}/`` with
+After every round the base writes ``<out>.run/checkpoint_round{r:04d}/`` (:func:`run_dir`) with
 :class:`~fedmap._util.AtomicDir` (a hidden temporary folder renamed into place when
 complete), so a folder with that name is always complete:
 
 ``arrays.npz``        the global model (``held/<name>``), the server optimiser's moments
                       (FedAdam / FedYogi ``m/<name>``, ``v/<name>``), the downlink encoder's
                       error-feedback state (``down/...``); plain arrays, no pickle
-``state.json``        round, tensor order, the ledger (round history), the team's map size,
+``state.json``        round, tensor order, the ledger (round history, each round as
+                      :meth:`~fedmap.federation.runner.RoundRecord.to_dict`), the team's map size,
                       the run config, and the SHA-256 of ``arrays.npz``
 ``global_model.safetensors``  the round's model for people and ``fedmap`` commands
 
@@ -37,6 +38,7 @@ import numpy as np
 
 from fedmap._util import AtomicDir, to_json
 from fedmap.errors import FedmapError
+from fedmap.federation.runner import RoundRecord
 from fedmap.nets.model import Weights
 
 _NAME = re.compile(r"^checkpoint_round(\d{4,})$")
@@ -50,9 +52,15 @@ class BaseState:
     held: Weights
     moments: dict[str, Weights]  # "m" / "v" of FedAdam / FedYogi; empty for FedAvg
     down_encoder: Weights | None  # Encoder.state() of the downlink encoder
-    history: list[dict]
+    history: list[RoundRecord]
     shape: tuple[int, int]
     run_config: dict[str, Any]
+
+
+def run_dir(out: Path) -> Path:
+    """``<out>.run/``: the base station's status and per-round checkpoints while a run goes."""
+    out = Path(out)
+    return out.with_name(out.name + ".run")
 
 
 def checkpoint_dir(run_dir: Path, round_no: int) -> Path:
@@ -70,7 +78,7 @@ def write_checkpoint(run_dir: Path, state: BaseState, *, model_bytes: bytes | No
     np.savez(buf, allow_pickle=False, **arrays)
     blob = buf.getvalue()
     meta = {"round": state.round, "names": list(state.held), "moments": sorted(state.moments),
-            "history": state.history, "shape": list(state.shape), "run_config": state.run_config,
+            "history": [r.to_dict() for r in state.history], "shape": list(state.shape), "run_config": state.run_config,
             "arrays_sha256": hashlib.sha256(blob).hexdigest()}
     target = checkpoint_dir(run_dir, state.round)
     with AtomicDir(target) as tmp:
@@ -96,7 +104,7 @@ def read_checkpoint(path: Path) -> BaseState:
     held = {n: arrays[f"held/{n}"] for n in meta["names"]}  # payload order, as the run had it
     moments = {w: {n: arrays[f"{w}/{n}"] for n in meta["names"]} for w in meta["moments"]}
     down = {k[len("down/"):]: v for k, v in arrays.items() if k.startswith("down/")} or None
-    history = [_int_keys(r) for r in meta["history"]]
+    history = [RoundRecord.from_dict(r) for r in meta["history"]]
     return BaseState(int(meta["round"]), held, moments, down, history, (int(meta["shape"][0]), int(meta["shape"][1])),
                      dict(meta["run_config"]))
 
@@ -125,8 +133,6 @@ def latest_checkpoint(run_dir: Path) -> tuple[Path, BaseState] | None:
 def resume_config(out: Path) -> dict[str, Any]:
     """The run config that continues the crashed run whose outputs were to go to ``out``:
     its own run config, ``resume`` set to its newest complete checkpoint."""
-    from fedmap.flower.task import run_dir
-
     found = latest_checkpoint(run_dir(Path(out).resolve()))
     if found is None:
         raise FedmapError(f"nothing to resume: no complete checkpoint in {run_dir(Path(out).resolve())}")
@@ -141,13 +147,3 @@ def prune(run_dir: Path, keep: int) -> None:
         shutil.rmtree(p, ignore_errors=True)
     for p in Path(run_dir).glob(".checkpoint_round*.tmp-*"):
         shutil.rmtree(p, ignore_errors=True)
-
-
-def _int_keys(rec: dict) -> dict:
-    """JSON turned the rovers' partition ids into strings; the live history has ints."""
-    out: dict = {}
-    for k, v in rec.items():
-        if isinstance(v, dict) and all(isinstance(x, str) and x.isdigit() for x in v):
-            v = {int(x): y for x, y in v.items()}
-        out[k] = v
-    return out

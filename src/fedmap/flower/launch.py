@@ -396,7 +396,8 @@ def _serve(procs: Processes, settings: RunSettings, run_config: dict, *, host: s
     submit_run(flwr_home, run_config, env=env)
     if on_ready is not None:
         on_ready()
-    budget = settings.connect_timeout + settings.federation.rounds * (settings.deadline + settings.connect_timeout) + 600
+    b = settings.base
+    budget = b.connect_timeout + settings.federation.rounds * (b.deadline + b.connect_timeout) + 600
     return wait_for_result(settings.out, since=since, timeout=budget, alive=alive, on_status=on_status)
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
+from dataclasses import replace
 from logging import INFO
 from pathlib import Path
 from typing import Any
@@ -30,7 +31,16 @@ from flwr.supercore import log
 
 from fedmap.errors import FedmapError
 from fedmap.federation.codecs import CodecSpec, Encoder
-from fedmap.federation.runner import Broadcaster, Downlink, FederationResult, base_step, book_downlink, round_record
+from fedmap.federation.runner import (
+    Broadcaster,
+    Downlink,
+    FederationResult,
+    FlowerRound,
+    RoundRecord,
+    base_step,
+    book_downlink,
+    round_record,
+)
 from fedmap.flower.checkpoint import BaseState, read_checkpoint
 from fedmap.flower.records import check_flower_count, from_record, to_record
 from fedmap.flower.settings import RunSettings
@@ -72,27 +82,27 @@ class FedmapStrategy(Strategy):
         self.held: Weights | None = None  # what the base holds; the initial model until round 1 ends
         self.broadcaster = Broadcaster(None)  # the initial model is built once the team's size is known
         self.shape: tuple[int, int] | None = truth_shape(settings)
-        self.history: list[dict] = []
+        self.history: list[RoundRecord] = []
         self.node_partition: dict[int, int] = {}  # Flower node id -> rover index
         self.node_version: dict[int, str] = {}  # Flower node id -> version of the model it holds
         self._sleep = sleep
         self._t0 = 0.0
         self._sent: dict[str, int] = {}  # message id -> node id of the last messages sent
         self._down: dict[int, tuple[Downlink, int]] = {}  # node id -> what it was sent, Flower's byte count
-        if settings.resume:
-            self.resume(read_checkpoint(Path(settings.resume)))
+        if settings.base.resume:
+            self.resume(read_checkpoint(Path(settings.base.resume)))
 
     # -- helpers ---------------------------------------------------------------------------
 
     def _wait_for_nodes(self, grid: Grid, want: int) -> list[int]:
         """Connected node ids once ``want`` are there or ``connect_timeout`` has passed."""
         s = self.settings
-        t_end = time.monotonic() + s.connect_timeout
+        t_end = time.monotonic() + s.base.connect_timeout
         while len(nodes := sorted(grid.get_node_ids())) < want and time.monotonic() < t_end:
             self._sleep(0.5)
-        if len(nodes) < s.min_rovers:
-            raise FedmapError(f"only {len(nodes)} rover(s) connected after {s.connect_timeout:g} s, "
-                              f"fewer than min-rovers={s.min_rovers}; start more rovers or lower min-rovers")
+        if len(nodes) < s.base.min_rovers:
+            raise FedmapError(f"only {len(nodes)} rover(s) connected after {s.base.connect_timeout:g} s, "
+                              f"fewer than min-rovers={s.base.min_rovers}; start more rovers or lower min-rovers")
         return nodes
 
     def _messages(self, nodes: list[int], kind: str, server_round: int) -> list[Message]:
@@ -119,7 +129,7 @@ class FedmapStrategy(Strategy):
         rec = self.history[-1]
         book_downlink(rec, pid, d)
         if d.kind != "none":
-            rec["flower_downlink_bytes"][pid] = flower
+            _flower(rec).downlink_bytes[pid] = flower
 
     def _team_shape(self, shapes: dict[int, tuple[int, int]]) -> tuple[int, int]:
         """The team's map size: the ground truth's, else the first round's majority (tie: larger)."""
@@ -134,7 +144,7 @@ class FedmapStrategy(Strategy):
         s = self.settings
         first = server_round == 1  # of this Flower run: a resumed run waits for the whole team again
         server_round += self.offset  # the run's round number (training seeds depend on it)
-        nodes = self._wait_for_nodes(grid, s.rovers if first else s.min_rovers)
+        nodes = self._wait_for_nodes(grid, s.base.rovers if first else s.base.min_rovers)
         log(INFO, "fedmap: round %d: sending to %d rover(s)", server_round, len(nodes))
         write_status(s.out, "running", round=server_round, nodes=len(nodes))
         self._t0 = time.perf_counter()
@@ -188,13 +198,13 @@ class FedmapStrategy(Strategy):
             counts[pid] = float(met["known-cells"])
             losses[pid] = float(met["loss"]) if "loss" in met else None
             versions[pid] = self.node_version.get(node, "")
-        for pid in set(range(s.rovers)) - set(payloads) - set(dropped) - set(missing_why):
+        for pid in set(range(s.base.rovers)) - set(payloads) - set(dropped) - set(missing_why):
             missing_why[pid] = "no reply before the round's deadline"
         missing = sorted(missing_why)
-        if len(payloads) < s.min_rovers:
+        if len(payloads) < s.base.min_rovers:
             raise FedmapError(
                 f"round {server_round}: {len(payloads)} rover(s) delivered an update, fewer than min-rovers="
-                f"{s.min_rovers} (missing: {missing or 'none'}; dropped: {dropped or 'none'})")
+                f"{s.base.min_rovers} (missing: {missing or 'none'}; dropped: {dropped or 'none'})")
         assert self.shape is not None  # set by the first replies; at least min-rovers >= 1 replied
         if self.held is None:
             self.held = initial_weights(s, self.shape[0])
@@ -203,22 +213,22 @@ class FedmapStrategy(Strategy):
                          round_label=server_round, versions=versions)
         self.held = step.held
         self.broadcaster.advance(step.held, step.downlink)
-        rec = round_record(server_round, step, losses, {k: len(p) for k, p in sorted(payloads.items())}, {},
-                           self.up_spec, self.down_spec, time.perf_counter() - self._t0, missing=missing)
-        rec.update(missing_why=dict(sorted(missing_why.items())), node_errors=node_errors,
-                   flower_uplink_bytes=dict(sorted(flower_up.items())), flower_downlink_bytes={})
+        flower = FlowerRound(missing_why=dict(sorted(missing_why.items())), node_errors=node_errors,
+                             uplink_bytes=dict(sorted(flower_up.items())), downlink_bytes={})
+        rec = round_record(server_round, step, losses, {k: len(p) for k, p in sorted(payloads.items())},
+                           self.up_spec, self.down_spec, time.perf_counter() - self._t0, missing=missing, flower=flower)
         self.history.append(rec)
         log(INFO, "fedmap: round %d aggregated %d rover(s); missing %s; dropped %s", server_round,
             len(step.counts), missing, list(step.dropped))
         return to_record(step.downlink), MetricRecord({"rovers-used": len(step.counts),
-                                                       "uplink-bytes": sum(rec["uplink_bytes"].values())})
+                                                       "uplink-bytes": sum(rec.uplink_bytes.values())})
 
     def configure_evaluate(self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid) -> list[Message]:
         if server_round + self.offset < self.settings.federation.rounds:
             return []  # broadcasts ride on the next round's train messages
         # the final model goes to the rovers that replied in the last round (used or dropped):
         # a rover that died may still be listed as connected, and waiting for it would cost a deadline
-        last = set(self.history[-1]["weights"]) | set(self.history[-1]["dropped"]) if self.history else set()
+        last = set(self.history[-1].aggregation_counts) | set(self.history[-1].dropped) if self.history else set()
         nodes = sorted(n for n in grid.get_node_ids() if self.node_partition.get(n) in last)
         return self._messages(nodes, MessageType.EVALUATE, server_round + self.offset)
 
@@ -233,14 +243,15 @@ class FedmapStrategy(Strategy):
             acked.append(pid)
         acked.sort()
         if self.history:
-            self.history[-1]["final_broadcast_received_by"] = acked
+            rec = self.history[-1]
+            self.history[-1] = replace(rec, flower=replace(_flower(rec), final_broadcast_received_by=acked))
         return None
 
     def summary(self) -> None:
         s = self.settings
         log(INFO, "fedmap strategy: %s, %d round(s), uplink %s, downlink %s, %d rovers (min %d), deadline %g s",
-            s.federation.aggregator, s.federation.rounds, self.up_spec.label(), self.down_spec.label(), s.rovers,
-            s.min_rovers, s.deadline)
+            s.federation.aggregator, s.federation.rounds, self.up_spec.label(), self.down_spec.label(), s.base.rovers,
+            s.base.min_rovers, s.base.deadline)
 
     # -- per round, on the base ---------------------------------------------------------------
 
@@ -274,6 +285,12 @@ class FedmapStrategy(Strategy):
                                                           **self.aggregator.hyperparameters()})
 
 
+def _flower(rec: RoundRecord) -> FlowerRound:
+    """The Flower part of a round record of this base station (every one has it)."""
+    assert rec.flower is not None, f"round {rec.round} has no Flower record"
+    return rec.flower
+
+
 def _metrics(msg: Message) -> Any:
     """A reply's metrics (the ClientApp writes numbers only)."""
     return msg.content["metrics"]
@@ -289,13 +306,13 @@ def run_base_station(grid: Grid, settings: RunSettings, run_config: dict | None 
         raise FedmapError(f"nothing to resume: the checkpoint is after round {strategy.offset} of "
                           f"{settings.federation.rounds}")
     strategy.start(grid=grid, initial_arrays=to_record(b""), num_rounds=left,
-                   timeout=settings.deadline, evaluate_fn=strategy.checkpoint)
+                   timeout=settings.base.deadline, evaluate_fn=strategy.checkpoint)
     fed = strategy.result()
     flower = {
         "settings": settings.record(),
-        "missing": {r["round"]: r["missing"] for r in fed.history},
-        "flower_bytes": [{"round": r["round"], "uplink": r["flower_uplink_bytes"],
-                          "downlink": r["flower_downlink_bytes"]} for r in fed.history],
+        "missing": {r.round: r.missing for r in fed.history},
+        "flower_bytes": [{"round": r.round, "uplink": _flower(r).uplink_bytes, "downlink": _flower(r).downlink_bytes}
+                         for r in fed.history],
     }
     assert strategy.shape is not None  # set with the first aggregated round
     return write_base_outputs(fed, strategy.shape, settings, flower, federation_s=time.perf_counter() - t0)

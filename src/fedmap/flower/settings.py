@@ -1,68 +1,112 @@
 """Run config (base station, ``[tool.flwr.app.config]``) and node config (one rover).
 
-Flower passes both as flat ``{key: scalar}`` dicts with hyphenated keys. The run
-config's run keys (:data:`RUN_KEYS`) are the flat form of fedmap's run config and go
-through the one configuration builder (:mod:`fedmap.config`), so a Flower run and
-``fedmap run`` with the same settings build the same :class:`~fedmap.pipeline.PipelineConfig`.
+Flower passes both as flat ``{key: scalar}`` dicts. The run config holds two kinds of key,
+both derived from dataclass fields (:mod:`fedmap._schema`), never listed by hand:
+
+- **run settings**: every one-value setting of :class:`~fedmap.pipeline.PipelineConfig`'s
+  sections except ``[terrain]`` (the base station names its ground truth with its own
+  keys), under its name with hyphens (``rounds``, ``lr``, ``prior-steps``, ``max-slope-deg``)
+  and ``seed``. A setting that may be unset is ``""`` when unset (Flower has no null).
+  They go through the one configuration builder (:mod:`fedmap.config`), so a Flower run
+  and ``fedmap run`` with the same settings build the same
+  :class:`~fedmap.pipeline.PipelineConfig`.
+- **the base station's own keys**: the fields of :class:`BaseStation`, the same way.
+
 :data:`RUN_DEFAULTS` is the ``paper`` preset in that flat form plus the base station's
-own keys; the app's ``pyproject.toml`` declares the same table (a test checks it).
+defaults; the app's ``pyproject.toml`` declares the same table (a test checks it).
 This module does not import ``flwr``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from fedmap.config import defaults, overrides_from, resolve, to_pipeline_config
+from fedmap import _schema
+from fedmap.config import SECTIONS, defaults, resolve, to_pipeline_config
 from fedmap.errors import FedmapError
 from fedmap.federation.runner import FederationConfig
 from fedmap.maps.sources import DEFAULT_BUILTIN_SIZE
 from fedmap.pipeline import PipelineConfig
 
-#: Run-config key -> (section, key) of fedmap's run config.
-RUN_KEYS: dict[str, tuple[str | None, str]] = {
-    "rounds": ("federation", "rounds"), "aggregator": ("federation", "aggregator"), "eta": ("federation", "eta"),
-    "epochs": ("train", "epochs"), "lr": ("train", "lr"), "masked": ("train", "masked"),
-    "uplink": ("federation", "uplink"), "downlink": ("federation", "downlink"), "seed": (None, "seed"),
-    "net": ("model", "net"), "init": ("model", "init"), "prior-steps": ("model", "prior_steps"),
-    "size": ("terrain", "size"), "pairs": ("evaluate", "pairs"), "min-size": ("refine", "min_size"),
-}
 
-#: The base station's own keys with their defaults (``terrain`` / ``truth``: "" = none;
-#: ``resume``: a checkpoint folder to continue from; ``keep-checkpoints``: rounds kept).
-BASE_DEFAULTS: dict[str, Any] = {
-    "rovers": 4, "min-rovers": 1, "deadline": 600.0, "connect-timeout": 120.0, "out": "fedmap-out/flower",
-    "truth": "", "terrain": "", "resume": "", "keep-checkpoints": 3,
-}
+@dataclass(frozen=True)
+class BaseStation:
+    """The base station's own settings (not part of a run config)."""
+
+    rovers: int = _schema.setting(4, help="Rovers in the team (partition ids 0..rovers-1)")
+    min_rovers: int = _schema.setting(1, help="Fewest rovers a round may aggregate; fewer ends the run")
+    deadline: float = _schema.setting(600.0, help="Seconds a round waits for replies; late rovers are recorded as "
+                                      "missing")
+    connect_timeout: float = _schema.setting(120.0, help="Seconds to wait for rovers to connect")
+    out: str = _schema.setting("fedmap-out/flower", help="Output folder (replaced atomically)")
+    truth: str = _schema.setting("", help="Ground-truth map file (.png or .npy) to evaluate against ('': none)",
+                                 path=True)
+    terrain: str = _schema.setting("", help="Ground truth from the built-in generator: mars, moon or ice ('': none)")
+    size: int = _schema.setting(DEFAULT_BUILTIN_SIZE, help="Side of the generated ground truth, cells")
+    resume: str = _schema.setting("", help="A checkpoint folder this run continues from ('': none)")
+    keep_checkpoints: int = _schema.setting(3, help="Per-round checkpoints kept in OUT.run/")
+
+    def __post_init__(self) -> None:
+        if self.keep_checkpoints < 1:
+            raise FedmapError(f"keep-checkpoints must be >= 1, got {self.keep_checkpoints}")
+        if self.rovers < 1:
+            raise FedmapError(f"rovers must be >= 1 (the team is partition ids 0..rovers-1), got {self.rovers}")
+        if not 1 <= self.min_rovers <= self.rovers:
+            raise FedmapError(f"need 1 <= min-rovers <= rovers, got min-rovers={self.min_rovers}, rovers={self.rovers}")
+        if not (self.deadline > 0 and self.connect_timeout > 0):
+            raise FedmapError(f"deadline and connect-timeout must be positive, got {self.deadline}, "
+                              f"{self.connect_timeout}")
+        if self.truth and self.terrain:
+            raise FedmapError("give either truth (a map file) or terrain (a built-in generator), not both")
+
+
+def flower_key(name: str) -> str:
+    """A setting's run-config key: its name with hyphens (``prior_steps`` -> ``prior-steps``)."""
+    return name.replace("_", "-")
+
+
+def _run_settings() -> dict[str, _schema.Setting]:
+    out = {flower_key(s.name): s for s in _schema.settings(PipelineConfig) if s.name == "seed"}
+    for name, cls in SECTIONS.items():
+        if name != "terrain":
+            out.update({flower_key(s.name): s for s in _schema.settings(cls, name) if s.scalar})
+    return out
+
+
+#: Run-config key -> the run setting it sets.
+RUN_KEYS: dict[str, _schema.Setting] = _run_settings()
+#: Run-config key -> the base station's setting it sets.
+BASE_KEYS: dict[str, _schema.Setting] = {flower_key(s.name): s for s in _schema.settings(BaseStation)}
+if set(RUN_KEYS) & set(BASE_KEYS):  # a new setting must not take a base-station key's name
+    raise RuntimeError(f"run-config keys used twice: {sorted(set(RUN_KEYS) & set(BASE_KEYS))}")
 
 
 def flat_run_config(resolved: dict) -> dict[str, Any]:
-    """The run keys of a resolved fedmap run config, as Flower's flat run config (a built-in
-    terrain's side, when no ``[terrain] size`` is set, is the built-in default)."""
-    terrain = {"size": DEFAULT_BUILTIN_SIZE, **resolved["terrain"]}
-    return {key: resolved[name] if section is None else (terrain if section == "terrain" else resolved[section])[name]
-            for key, (section, name) in RUN_KEYS.items()}
+    """The run settings of a resolved fedmap run config, as Flower's flat run config."""
+    out: dict[str, Any] = {}
+    for key, s in RUN_KEYS.items():
+        value = (resolved if not s.section else resolved.get(s.section, {})).get(s.name)
+        out[key] = "" if value is None else value
+    return out
 
 
-#: Every run-config key with its default: the ``paper`` preset, flattened.
-RUN_DEFAULTS: dict[str, Any] = {**flat_run_config(defaults("paper")), **BASE_DEFAULTS}
-
-_TYPES = {"eta": float, "lr": float, "deadline": float, "connect-timeout": float, "masked": bool,
-          "aggregator": str, "uplink": str, "downlink": str, "net": str, "init": str, "out": str, "truth": str,
-          "terrain": str, "resume": str}
+#: Every run-config key with its default: the ``paper`` preset, flattened, then the base station's.
+RUN_DEFAULTS: dict[str, Any] = {**flat_run_config(defaults("paper")),
+                                **{k: s.default for k, s in BASE_KEYS.items()}}
 
 
-def _typed(cfg: dict, key: str) -> Any:
-    kind = _TYPES.get(key, int)
-    value = cfg.get(key, RUN_DEFAULTS[key])
-    if kind is float and isinstance(value, int) and not isinstance(value, bool):
-        value = float(value)
-    if kind is bool and isinstance(value, str) and value.lower() in ("true", "false"):
+def _typed(key: str, s: _schema.Setting, value: Any) -> Any:
+    """A run-config value as the setting's type (TOML ints for floats and CLI strings for
+    bools are fine; ``""`` unsets an optional setting). None: unset."""
+    if s.optional and value == "":
+        return None
+    if bool in s.types and isinstance(value, str) and value.lower() in ("true", "false"):
         value = value.lower() == "true"
-    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-        raise FedmapError(f"config value {key}={value!r} must be {kind.__name__}")
+    _schema.check_type(value, s.types, f"config value {key}")
+    if float in s.types and int not in s.types and not isinstance(value, bool):
+        value = float(value)
     return value
 
 
@@ -71,59 +115,47 @@ class RunSettings:
     """The base station's settings (from Flower's run config)."""
 
     pipeline: PipelineConfig  # built by fedmap.config, like every command's
-    rovers: int
-    min_rovers: int
-    deadline: float
-    connect_timeout: float
-    out: Path
-    truth: str  # a ground-truth map file, or ""
-    terrain: str  # a built-in terrain generated as ground truth, or ""
-    resume: str = ""  # a checkpoint folder this run continues from, or ""
-    keep_checkpoints: int = 3  # per-round checkpoints kept in <out>.run/
+    base: BaseStation
 
     @property
     def federation(self) -> FederationConfig:
         return self.pipeline.federation
 
+    @property
+    def out(self) -> Path:
+        return Path(self.base.out)
+
     @classmethod
     def from_run_config(cls, cfg: dict) -> RunSettings:
         unknown = sorted(set(cfg) - set(RUN_DEFAULTS))
         if unknown:
-            raise FedmapError(f"unknown run-config keys {unknown}; known: {', '.join(RUN_DEFAULTS)}")
-        values = {k: _typed(cfg, k) for k in RUN_DEFAULTS}
-        run = overrides_from({k: values[k] for k in RUN_KEYS}, RUN_KEYS)
-        terrain = values["terrain"]
-        if terrain:
-            run["terrain"] = {**run.get("terrain", {}), "terrain": terrain}
-        resolved = resolve(None, [run])
-        label = Path(values["truth"]).name if values["truth"] else ""
-        s = cls(to_pipeline_config(resolved, label=label), values["rovers"], values["min-rovers"], values["deadline"],
-                values["connect-timeout"], Path(values["out"]), values["truth"], terrain, values["resume"],
-                values["keep-checkpoints"])
-        if s.keep_checkpoints < 1:
-            raise FedmapError(f"keep-checkpoints must be >= 1, got {s.keep_checkpoints}")
-        if s.rovers < 1:
-            raise FedmapError(f"rovers must be >= 1 (the team is partition ids 0..rovers-1), got {s.rovers}")
-        if not 1 <= s.min_rovers <= s.rovers:
-            raise FedmapError(f"need 1 <= min-rovers <= rovers, got min-rovers={s.min_rovers}, rovers={s.rovers}")
-        if not (s.deadline > 0 and s.connect_timeout > 0):
-            raise FedmapError(f"deadline and connect-timeout must be positive, got {s.deadline}, {s.connect_timeout}")
-        if s.truth and s.terrain:
-            raise FedmapError("give either truth (a map file) or terrain (a built-in generator), not both")
-        return s
+            known = sorted(RUN_DEFAULTS)
+            raise FedmapError(f"unknown run-config key {unknown[0]!r}{_schema.suggest(unknown[0], known)}")
+        values = {k: _typed(k, s, cfg.get(k, RUN_DEFAULTS[k])) for k, s in {**RUN_KEYS, **BASE_KEYS}.items()}
+        base = BaseStation(**{s.name: values[k] for k, s in BASE_KEYS.items()})
+        run: dict = {}
+        for key, s in RUN_KEYS.items():
+            # Flower passes every key; one at its default counts as unset, so that, as in
+            # `fedmap run`, a rover profile's limits apply unless a limit is set beside it
+            if values[key] is not None and values[key] != _typed(key, s, RUN_DEFAULTS[key]):
+                if s.section:
+                    run.setdefault(s.section, {})[s.name] = values[key]
+                else:
+                    run[s.name] = values[key]
+        run["terrain"] = {"size": base.size, **({"terrain": base.terrain} if base.terrain else {})}
+        label = Path(base.truth).name if base.truth else ""
+        return cls(to_pipeline_config(resolve(None, [run]), label=label), base)
 
     def record(self) -> dict[str, Any]:
         """The base station's settings as ``metrics.json`` records them."""
-        return {"rovers": self.rovers, "min_rovers": self.min_rovers, "deadline": self.deadline,
-                "connect_timeout": self.connect_timeout, "out": str(self.out), "truth": self.truth,
-                "terrain": self.terrain, "resume": self.resume, "keep_checkpoints": self.keep_checkpoints}
+        return asdict(self.base)
 
 
 def run_config_from(resolved: dict, **base: Any) -> dict[str, Any]:
     """The full flat run config of a resolved fedmap run config plus base-station keys
     (``rovers``, ``min_rovers``, ``deadline``, ...; None = default)."""
-    extra = {k.replace("_", "-"): v for k, v in base.items() if v is not None}
-    unknown = sorted(set(extra) - set(BASE_DEFAULTS))
+    extra = {flower_key(k): v for k, v in base.items() if v is not None}
+    unknown = sorted(set(extra) - set(BASE_KEYS))
     if unknown:
-        raise FedmapError(f"unknown base-station settings {unknown}; known: {', '.join(BASE_DEFAULTS)}")
-    return {**flat_run_config(resolved), **BASE_DEFAULTS, **extra}
+        raise FedmapError(f"unknown base-station settings {unknown}; known: {', '.join(BASE_KEYS)}")
+    return {**flat_run_config(resolved), **{k: s.default for k, s in BASE_KEYS.items()}, **extra}

@@ -15,21 +15,20 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fedmap._util import AtomicDir, atomic_write_bytes, to_json
+from fedmap._util import AtomicDir, atomic_write_bytes
 from fedmap.config import method_config
 from fedmap.errors import FedmapError
-from fedmap.explore import explore
 from fedmap.federation.codecs import Encoder
 from fedmap.federation.runner import FederationResult, apply_downlink, rover_step
-from fedmap.flower.checkpoint import BaseState, checkpoints, prune, write_checkpoint
+from fedmap.flower.checkpoint import BaseState, checkpoints, prune, run_dir, write_checkpoint
 from fedmap.flower.settings import RunSettings
 from fedmap.maps.grid import GridMap, classes_from_rgb
 from fedmap.maps.io import load_map, save_map
 from fedmap.maps.sources import TerrainSource, load_truth
-from fedmap.nets.init import initial_model
-from fedmap.nets.model import Weights, build_model, get_weights, preset, render, save_model, set_weights
-from fedmap.outputs import write_outputs
-from fedmap.pipeline import PipelineResult
+from fedmap.nets.model import Weights, build_model, render, save_model, set_weights
+from fedmap.outputs import write_metrics, write_outputs
+from fedmap.pipeline import PipelineResult, build_local_maps
+from fedmap.pipeline import initial_weights as run_initial_weights
 from fedmap.stages import global_map
 
 # --------------------------------------------------------------------------- the rover
@@ -68,17 +67,13 @@ def _read_local_map(node_config: dict) -> tuple[int, GridMap]:
     if pid >= agents:
         raise FedmapError(f"partition-id {pid} is not below agents={agents}")
     cfg = method_config(terrain=str(node_config["terrain"]), size=int(node_config.get("size", 128)), agents=agents,
-                        explore=str(node_config.get("explore", "quadrants")), seed=int(node_config.get("seed", 0)))
-    truth = load_truth(cfg.terrain_source(), seed=cfg.seed)
-    maps = explore(truth, cfg.agents, cfg.explore, seed=cfg.seed, overlap=cfg.overlap, sensor_radius=cfg.sensor_radius)
-    return pid, maps[pid]
+                        mode=str(node_config.get("explore", "quadrants")), seed=int(node_config.get("seed", 0)))
+    return pid, build_local_maps(cfg, load_truth(cfg.terrain, seed=cfg.seed))[pid]
 
 
 def initial_weights(settings: RunSettings, height: int) -> Weights:
     """The initial model every rover and the base rebuild alone (never sent)."""
-    p = settings.pipeline
-    return get_weights(initial_model(preset(p.net, height), init=p.init, seed=p.seed, prior_steps=p.prior_steps,
-                                     init_weights=p.init_weights))
+    return run_initial_weights(settings.pipeline, height)
 
 
 def rover_state(settings: RunSettings, local: GridMap, held: Weights | None,
@@ -101,13 +96,13 @@ def train_round(settings: RunSettings, local: GridMap, pid: int, server_round: i
     """One rover's round (:func:`~fedmap.federation.runner.rover_step`): the uplink payload
     and the last loss; raises :class:`~fedmap.errors.RejectedUpdate` when this rover's
     update must be left out."""
-    model = build_model(preset(settings.pipeline.net, local.shape[0]))
+    model = build_model(settings.pipeline.model.network(local.shape[0]))
     return rover_step(model, local, held, encoder, settings.federation, round_idx=server_round - 1, agent=pid)
 
 
 def save_received(settings: RunSettings, local: GridMap, held: Weights, out: Path) -> None:
     """The final global model a rover received, and its rendering, in ``out``."""
-    model = build_model(preset(settings.pipeline.net, local.shape[0]))
+    model = build_model(settings.pipeline.model.network(local.shape[0]))
     set_weights(model, held)
     save_model(model, out / "global_model.safetensors")
     rgb = render(model, *local.shape)
@@ -115,12 +110,6 @@ def save_received(settings: RunSettings, local: GridMap, held: Weights, out: Pat
 
 
 # --------------------------------------------------------------------------- the base station
-
-
-def run_dir(out: Path) -> Path:
-    """``<out>.run/``: the base station's status and per-round checkpoints while a run goes."""
-    out = Path(out)
-    return out.with_name(out.name + ".run")
 
 
 def run_status_path(out: Path) -> Path:
@@ -135,7 +124,7 @@ def write_status(out_dir: Path, state: str, **fields: Any) -> None:
 def save_checkpoint(settings: RunSettings, state: BaseState) -> None:
     """The base station after ``state.round`` rounds, atomically, in ``<out>.run/``
     (:mod:`fedmap.flower.checkpoint`); only the last ``keep-checkpoints`` are kept."""
-    model = build_model(preset(settings.pipeline.net, state.shape[0]))
+    model = build_model(settings.pipeline.model.network(state.shape[0]))
     set_weights(model, state.held)
     tmp = run_dir(settings.out) / f".model-round{state.round}.safetensors"
     save_model(model, tmp, extra={"round": state.round})
@@ -143,27 +132,27 @@ def save_checkpoint(settings: RunSettings, state: BaseState) -> None:
         write_checkpoint(run_dir(settings.out), state, model_bytes=tmp.read_bytes())
     finally:
         tmp.unlink(missing_ok=True)
-    prune(run_dir(settings.out), settings.keep_checkpoints)
+    prune(run_dir(settings.out), settings.base.keep_checkpoints)
     write_status(settings.out, "running", round=state.round, saved=True)
 
 
 def truth_shape(settings: RunSettings) -> tuple[int, int] | None:
     """The team's map size when the base has a ground truth (its file's, or the built-in
     terrain's side), else None."""
-    if settings.truth:
+    if settings.base.truth:
         return base_truth(settings).shape  # type: ignore[union-attr]
-    if settings.terrain:
-        return (settings.pipeline.size, settings.pipeline.size)
+    if settings.base.terrain:
+        return (settings.base.size, settings.base.size)
     return None
 
 
 def base_truth(settings: RunSettings) -> GridMap | None:
     """The ground truth the base evaluates against: a map file, a built-in terrain, or None."""
     p = settings.pipeline
-    if settings.truth:
-        return load_truth(TerrainSource(kind="map", path=settings.truth))
-    if settings.terrain:
-        return load_truth(p.terrain_source(), seed=p.seed)
+    if settings.base.truth:
+        return load_truth(TerrainSource(kind="map", path=settings.base.truth))
+    if settings.base.terrain:
+        return load_truth(p.terrain, seed=p.seed)
     return None
 
 
@@ -173,7 +162,7 @@ def write_base_outputs(fed: FederationResult, shape: tuple[int, int], settings: 
     p = settings.pipeline
     h, w = shape
     t = time.perf_counter()
-    net = preset(p.net, h)
+    net = p.model.network(h)
     model, rgb, classes, refined = global_map(net, fed.weights, (h, w), p.refine)
     truth = base_truth(settings)
     out = settings.out
@@ -189,7 +178,7 @@ def write_base_outputs(fed: FederationResult, shape: tuple[int, int], settings: 
         metrics = {"aggregator": fed.aggregator, "bytes": fed.total_bytes(), "ledger": fed.ledger(),
                    "rounds": fed.history, "flower": flower}
         with AtomicDir(out) as tmp:
-            (tmp / "metrics.json").write_text(to_json({**metrics, "timings": {"federation_s": federation_s}}))
+            write_metrics(tmp, {**metrics, "timings": {"federation_s": federation_s}})
             save_model(model, tmp / "global_model.safetensors", extra={"flower": flower["settings"]})
             save_map(frame, tmp / "global_map.png")
             save_map(frame.with_classes(refined, "refined global map"), tmp / "refined_map.png")

@@ -14,11 +14,12 @@ the same way and resampled by nearest neighbour.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
+from fedmap._schema import setting, wiring
 from fedmap._util import check_keys
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
@@ -26,7 +27,7 @@ from fedmap.maps.georef import crop_transform, scale_transform
 from fedmap.maps.grid import GridMap
 from fedmap.maps.io import crop_dem, load_dem, load_map, mosaic_heightmap_tiles, resample_dem
 from fedmap.maps.regrid import RESAMPLE_METHODS
-from fedmap.maps.terrain import generate_dem
+from fedmap.maps.terrain import TERRAIN_KINDS, generate_dem
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
 
 SOURCE_KINDS: tuple[str, ...] = ("builtin", "dem", "map", "tiles")
@@ -73,17 +74,20 @@ class TerrainSource:
         Rover limits for DEM -> traversability.
     """
 
-    kind: str = "builtin"
-    path: str | None = None
-    terrain: str = "mars"
-    lon: int | None = None
-    lat: int | None = None
-    tiles: int = 8
-    crop: int | tuple[int, int, int, int] | None = None
-    size: int | None = None
-    resample: str = "area"
-    options: dict = field(default_factory=dict)
-    thresholds: TraversabilityThresholds = field(default_factory=TraversabilityThresholds)
+    kind: str = setting("builtin", help="Terrain source", choices=lambda: SOURCE_KINDS)
+    path: str | None = setting(None, help="The DEM or map file, or the tile folder", path=True)
+    terrain: str = setting("mars", help="Built-in terrain", choices=lambda: TERRAIN_KINDS)
+    lon: int | None = setting(None, help="tiles: longitude of the south-west tile")
+    lat: int | None = setting(None, help="tiles: latitude of the south-west tile")
+    tiles: int = setting(8, help="tiles: tiles per side")
+    crop: int | tuple[int, int, int, int] | None = setting(
+        None, help="Centred square crop in cells, or [row0, row1, col0, col1], before resampling")
+    size: int | None = setting(None, help="Resample the terrain to size x size cells (built-in: generated at this "
+                               f"size, default {DEFAULT_BUILTIN_SIZE})")
+    resample: str = setting("area", help="DEM resampling", choices=lambda: RESAMPLE_METHODS)
+    options: dict = setting(default_factory=dict, help="Reader options (pixel_size, nodata, band, crs, shape, dtype, "
+                            "byteorder, header_bytes, offset, zero_is_nodata)")
+    thresholds: TraversabilityThresholds = wiring(default_factory=TraversabilityThresholds)
 
     def __post_init__(self) -> None:
         if self.kind not in SOURCE_KINDS:

@@ -39,6 +39,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage
 
+from fedmap._schema import setting
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
@@ -76,14 +77,19 @@ class TraversabilityThresholds:
         The profile these limits came from (a label).
     """
 
-    max_slope_deg: float = 15.0
-    max_step_m: float = 0.3
-    max_roughness_m: float = 0.15
-    rover_scale_max_px: float = 2.0
-    step_window_m: float | None = None
-    footprint_m: float | None = None
-    max_slope_percentile: float | None = None
-    rover: str | None = None
+    max_slope_deg: float = setting(15.0, help="Steepest traversable slope, degrees")
+    max_step_m: float = setting(0.3, help="Highest traversable step, metres", cli="--max-step")
+    max_roughness_m: float = setting(0.15, help="Largest roughness (plane-fit residual std over the footprint), metres",
+                                     cli="--max-roughness")
+    rover_scale_max_px: float = setting(2.0, help="Step and roughness are tested only at pixels of at most this many "
+                                        "metres")
+    step_window_m: float | None = setting(None, help="Side of the window a step is measured over, metres (unset: the "
+                                          "8 neighbours)")
+    footprint_m: float | None = setting(None, help="Side of the roughness plane-fit window, metres (unset: 3x3 cells)")
+    max_slope_percentile: float | None = setting(None, help="Slope limit as this percentile (0-100] of the map's own "
+                                                 "slopes (replaces max_slope_deg)")
+    rover: str | None = setting(None, help="Limits of a published rover profile (limits set beside it win)",
+                                choices=lambda: ROVER_NAMES)
 
     def __post_init__(self) -> None:
         if not 0 < self.max_slope_deg < 90:

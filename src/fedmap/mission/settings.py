@@ -19,13 +19,15 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from fedmap import _schema
+from fedmap._schema import setting, wiring
 from fedmap._util import check_keys, suggest
-from fedmap.config import KEYWORDS, base_defaults, merge, terrain_source, validate, with_rover_profile
+from fedmap.config import KEYWORDS, base_defaults, merge, parse_set, terrain_source, validate, with_rover_profile
 from fedmap.errors import FedmapError
 from fedmap.maps.sources import TerrainSource
 
@@ -78,12 +80,13 @@ class LinkConfig:
         The link's own seed (the loss draws).
     """
 
-    uplink_bytes: int | None = None
-    downlink_bytes: int | None = None
-    loss: float = 0.1
-    latency: int = 0
-    max_range: float | None = None
-    seed: int = 0
+    uplink_bytes: int | None = setting(None, help="Uplink budget per rover per sync round, bytes (unset: unlimited)")
+    downlink_bytes: int | None = setting(None, help="Downlink budget per rover per sync round, bytes (unset: "
+                                         "unlimited)")
+    loss: float = setting(0.1, help="Probability that a message is lost")
+    latency: int = setting(0, help="Steps a message takes, each way")
+    max_range: float | None = setting(None, help="Link range from the base station, cells (unset: unlimited)")
+    seed: int = setting(0, help="The link's own seed (its loss draws)", cli="--link-seed")
 
     def __post_init__(self) -> None:
         for name in ("uplink_bytes", "downlink_bytes"):
@@ -140,26 +143,31 @@ class MissionConfig:
         preset (e.g. ``{"fedmap": {"epochs": 30}}``).
     """
 
-    rovers: int = 4
-    steps: int = 150
-    sync_every: int = 10
-    speed: int = 2
-    sensor_radius: float = 8.0
-    line_of_sight: bool = False
-    sensor_height_m: float = 1.5
-    lander: tuple[int, int] | None = None
-    starts: tuple[tuple[int, int], ...] | None = None
-    base: tuple[int, int] | None = None
-    mode: str = "frontier"
-    waypoints: tuple[tuple[tuple[int, int], ...], ...] | None = None
-    n_waypoints: int = 6
-    stay_in_range: bool = False
-    unknown_cost: float = 1.5
-    strategies: tuple[str, ...] = DEFAULT_STRATEGIES
-    eval_pairs: int = 40
-    link: LinkConfig = field(default_factory=LinkConfig)
-    methods: dict = field(default_factory=dict)
-    seed: int = 0
+    rovers: int = setting(4, help="Number of rovers")
+    steps: int = setting(150, help="Mission steps")
+    sync_every: int = setting(10, help="Steps between sync rounds")
+    speed: int = setting(2, help="Cells driven per step")
+    sensor_radius: float = setting(8.0, help="Sensor range, cells")
+    line_of_sight: bool = setting(False, help="Observe only cells in line of sight over the DEM")
+    sensor_height_m: float = setting(1.5, help="Sensor height above the ground for line of sight, metres")
+    lander: tuple[int, int] | None = setting(None, help="[row, col] the team starts from (unset: the map centre)")
+    starts: tuple[tuple[int, int], ...] | None = setting(None, help="One [row, col] start per rover (overrides "
+                                                         "lander)")
+    base: tuple[int, int] | None = setting(None, help="[row, col] of the base station (unset: the lander)")
+    mode: str = setting("frontier", help="frontier: coordinated frontier exploration; waypoints: a fixed traverse",
+                        choices=MODES)
+    waypoints: tuple[tuple[tuple[int, int], ...], ...] | None = setting(
+        None, help="waypoints: one list of [row, col] per rover (unset: seeded random ones)")
+    n_waypoints: int = setting(6, help="waypoints: seeded random waypoints per rover")
+    stay_in_range: bool = setting(False, help="Pick only targets within the link's range of the base",
+                                  cli="--stay-in-range/--roam")
+    unknown_cost: float = setting(1.5, help="Cost of an unknown cell relative to a known free one when rating targets")
+    strategies: tuple[str, ...] = setting(DEFAULT_STRATEGIES, help="Ways of sharing to run side by side, "
+                                          "comma-separated", choices=STRATEGIES)
+    eval_pairs: int = setting(40, help="Start/goal pairs of the path F1 (scored at every sync and at the end)")
+    link: LinkConfig = wiring(default_factory=LinkConfig)
+    methods: dict = wiring(default_factory=dict)
+    seed: int = wiring(0)
 
     def __post_init__(self) -> None:
         def whole(name: str, low: int) -> None:
@@ -208,9 +216,9 @@ class MissionConfig:
         return asdict(self)
 
 
-#: [mission] keys -> accepted types.
-_MISSION_KEYS = {f.name: f for f in fields(MissionConfig) if f.name not in ("link", "methods", "seed")}
-_LINK_KEYS = {f.name for f in fields(LinkConfig)}
+#: The tables of a mission file besides the run config's ``seed``, ``[terrain]`` and ``[thresholds]``.
+MISSION_SECTIONS: dict[str, type] = {"mission": MissionConfig, "link": LinkConfig}
+_RUN_PART = ("seed", "terrain", "thresholds")
 
 
 def _read_toml(path: Path) -> dict:
@@ -237,12 +245,15 @@ def _preset_data(name: str) -> dict:
 
 def load_mission(path: str | Path | None = None, *, preset: str | None = None, mission: dict | None = None,
                  link: dict | None = None, terrain: dict | None = None, size: int | None = None,
-                 seed: int | None = None) -> tuple[MissionConfig, TerrainSource, dict]:
+                 seed: int | None = None, overrides: list[dict] | None = None) -> tuple[MissionConfig, TerrainSource, dict]:
     """Preset < TOML file < options -> ``(mission config, terrain source, resolved dict)``.
 
-    ``mission`` and ``link`` are ``[mission]`` / ``[link]`` keys from options (None values
-    left out); ``terrain`` replaces the file's terrain source (like ``fedmap run --dem``),
-    keeping its ``crop``, ``size`` and ``resample``; ``size`` then resamples the terrain.
+    ``overrides`` are partial mission files laid over the file in order (e.g. from
+    ``--set mission.rovers=3`` or ``--set thresholds.rover=cadre``); ``mission`` and
+    ``link`` are ``[mission]`` / ``[link]`` keys and ``seed`` the top-level seed (None
+    values left out); ``terrain`` replaces the file's terrain source (like
+    ``fedmap run --dem``), keeping its ``crop``, ``size`` and ``resample``; ``size`` then
+    resamples the terrain.
     """
     data: dict = _preset_data(preset) if preset is not None else {}
     if path is not None:
@@ -253,36 +264,31 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
             t["path"] = str((path.parent / t["path"]).resolve())
         data = merge(data, file_data)
     where = Path(path).name if path is not None else "the mission settings"
-    for key in data:
-        if key not in ("seed", "terrain", "thresholds", "mission", "link", "strategies"):
-            raise FedmapError(f"unknown key {key!r} in {where}"
-                              f"{suggest(key, ['seed', 'terrain', 'thresholds', 'mission', 'link', 'strategies'])}")
+    check_mission_file(data, where)
     if terrain is not None:
         kept = {k: v for k, v in data.get("terrain", {}).items() if k in ("crop", "size", "resample")}
         data["terrain"] = {**kept, **terrain}
-    if size is not None:
-        data["terrain"] = {**data.get("terrain", {}), "size": size}
-    run_part = {k: data[k] for k in ("seed", "terrain", "thresholds") if k in data}
-    validate(run_part, where)
-    if seed is not None:
-        run_part["seed"] = seed
+    layers = [*(overrides or []),
+              {"mission": {k: v for k, v in (mission or {}).items() if v is not None},
+               "link": {k: v for k, v in (link or {}).items() if v is not None},
+               **({"terrain": {"size": size}} if size is not None else {}),
+               **({"seed": seed} if seed is not None else {})}]
+    for layer in layers:
+        m = layer.get("mission", {})
+        if isinstance(m.get("strategies"), str):  # "none,raw" from the command line
+            m["strategies"] = [x.strip() for x in m["strategies"].split(",") if x.strip()]
+        check_mission_file(layer, "the command-line options")
+        data = merge(data, layer)
+    run_part = {k: data[k] for k in _RUN_PART if k in data}
     resolved = merge(base_defaults(), run_part)
+    resolved["terrain"] = run_part.get("terrain", {})  # TerrainSource's own defaults (they depend on the kind)
     # a rover profile applies as in `fedmap run` (limits set beside it win)
     resolved["thresholds"] = with_rover_profile(resolved["thresholds"], [run_part])
     source = terrain_source(resolved)
-    m = dict(data.get("mission", {}))
-    m.update({k: v for k, v in (mission or {}).items() if v is not None})
-    check_keys(m, _MISSION_KEYS, f"[mission] of {where}")
-    lk = dict(data.get("link", {}))
-    lk.update({k: v for k, v in (link or {}).items() if v is not None})
-    check_keys(lk, _LINK_KEYS, f"[link] of {where}")
     methods = data.get("strategies", {})
-    if not isinstance(methods, dict) or not all(isinstance(v, dict) for v in methods.values()):
-        raise FedmapError(f"[strategies] of {where} must hold tables like [strategies.fedmap]")
-    if "strategies" in m and isinstance(m["strategies"], str):
-        m["strategies"] = [s.strip() for s in m["strategies"].split(",") if s.strip()]
     try:
-        config = MissionConfig(**{**m, "link": LinkConfig(**lk), "methods": methods, "seed": resolved["seed"]})
+        config = _schema.build(MissionConfig, data.get("mission", {}), link=_schema.build(LinkConfig, data.get("link", {})),
+                               methods=methods, seed=resolved["seed"])
     except TypeError as exc:  # a wrong type reaching a comparison
         raise FedmapError(f"bad mission setting: {exc}") from exc
     if config.line_of_sight and source.kind == "map":
@@ -292,6 +298,26 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
                                                             if k not in ("link", "methods", "seed")},
            "link": config.link.to_dict(), "strategies": methods}
     return config, source, out
+
+
+def check_mission_file(data: dict, where: str) -> None:
+    """Check the tables, keys and value types of a (partial) mission file."""
+    known = [*_RUN_PART, *MISSION_SECTIONS, "strategies"]
+    for key in data:
+        if key not in known:
+            raise FedmapError(f"unknown key {key!r} in {where}{suggest(key, known)}")
+    validate({k: data[k] for k in _RUN_PART if k in data}, where)
+    for name, cls in MISSION_SECTIONS.items():
+        if name in data:
+            _schema.check_table(cls, data[name], where, section=name)
+    methods = data.get("strategies", {})
+    if not isinstance(methods, dict) or not all(isinstance(v, dict) for v in methods.values()):
+        raise FedmapError(f"[strategies] of {where} must hold tables like [strategies.fedmap]")
+
+
+def parse_sets(assignments: list[str] | None) -> list[dict]:
+    """``--set section.key=value`` assignments as partial mission files."""
+    return [parse_set(a) for a in assignments or []]
 
 
 def with_settings(config: MissionConfig, **changes: Any) -> MissionConfig:

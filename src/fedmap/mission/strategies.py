@@ -52,8 +52,8 @@ from fedmap.federation.runner import (
     rover_step,
 )
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb
-from fedmap.nets.init import initial_model
-from fedmap.nets.model import Weights, build_model, get_weights, preset, render, set_weights
+from fedmap.nets.model import Weights, build_model, render, set_weights
+from fedmap.pipeline import initial_weights
 
 _UP = struct.Struct("<8shhhh")  # model version (8 bytes), row, col, target row, target col
 _DOWN = struct.Struct("<B8sB")  # kind, reference model version (8 bytes), rovers reported
@@ -124,6 +124,20 @@ def unpack_down(payload: bytes) -> tuple[str, str, dict[int, tuple[Cell, Cell | 
     return _KINDS[kind], _unv(ref), reports, payload[off:]
 
 
+@dataclass(frozen=True)
+class DroppedUpdate:
+    """A model update that did not make it into the base's model: rejected by its rover's
+    step (not sent), or delivered but not aggregated (e.g. stale). Its round, its rover
+    (-1: the round's every update, when the base could use none) and why."""
+
+    round: int
+    rover: int
+    why: str
+
+    def to_dict(self) -> dict:
+        return {"round": self.round, "rover": self.rover, "why": self.why}
+
+
 @dataclass
 class Outgoing:
     """A payload a strategy wants to send (``payload=None``: nothing fits the budget)."""
@@ -138,6 +152,10 @@ class Strategy:
 
     name = "none"
     shares = False
+    #: The model updates that did not make it into the base's model, in order. None for a
+    #: strategy that sends no model updates, so has none to drop (``metrics.json`` then has
+    #: no ``dropped_updates``).
+    dropped: list[DroppedUpdate] | None = None
 
     def __init__(self, truth: GridMap, team: list, budget: dict[str, int | None]) -> None:
         self.truth = truth
@@ -332,9 +350,8 @@ class Model(Strategy):
         self.name = method
         pc = method_config(method, **{**MISSION_DEFAULTS.get(method, {}), **settings, "seed": seed})
         self.fed = pc.federation
-        self.net_config = preset(pc.net, self.shape[0])
-        init = init_held(get_weights(initial_model(self.net_config, init=pc.init, seed=seed,
-                                                   prior_steps=pc.prior_steps, init_weights=pc.init_weights)))
+        self.net_config = pc.model.network(self.shape[0])
+        init = init_held(initial_weights(pc, self.shape[0]))
         self.model = build_model(self.net_config)
         self.aggregator = self.fed.make_aggregator()
         self.up_update = CodecSpec.parse(self.fed.uplink).update
@@ -347,7 +364,7 @@ class Model(Strategy):
         self.acked_version: list[str | None] = [self.bc.version for _ in team]  # what the base knows each rover holds
         self.inbox: dict[int, tuple[str, bytes, float]] = {}
         self.rounds_aggregated = 0
-        self.dropped: list[dict] = []  # (round, rover, why) of delivered updates not used
+        self.dropped: list[DroppedUpdate] = []
         self.losses: list[dict] = []
 
     @property
@@ -376,7 +393,7 @@ class Model(Strategy):
                 body, loss = rover_step(self.model, local, self.rover_held[k], self.up_encs[k], self.fed,
                                         round_idx=round_no - 1, agent=k)
         except RejectedUpdate as e:
-            self.dropped.append({"round": round_no, "rover": k, "why": str(e)})
+            self.dropped.append(DroppedUpdate(round_no, k, str(e)))
             return None
         self.losses.append({"round": round_no, "rover": k, "loss": loss})
         payload = pack_up(self.rover_version[k], r.pos, r.target, body)
@@ -401,10 +418,10 @@ class Model(Strategy):
                     step = base_step(self.aggregator, self.base_held, payloads, counts, self.down_enc,
                                      round_label=round_no, versions=versions)
             except FedmapError as e:  # every update was dropped (e.g. stale): no new model this round
-                self.dropped.append({"round": round_no, "rover": -1, "why": str(e)})
+                self.dropped.append(DroppedUpdate(round_no, -1, str(e)))
             else:
                 for k, why in step.dropped.items():
-                    self.dropped.append({"round": round_no, "rover": k, "why": why})
+                    self.dropped.append(DroppedUpdate(round_no, k, why))
                 self.bc.advance(step.held, step.downlink)
                 self.rounds_aggregated += 1
         out = {}

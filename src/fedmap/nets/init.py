@@ -15,13 +15,26 @@ it never travels.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from fedmap._schema import setting
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import UNKNOWN, GridMap
-from fedmap.nets.model import CoordNet, GridNet, NetConfig, Weights, build_model, get_weights, load_model, set_weights
+from fedmap.nets.model import (
+    NET_CHOICES,
+    CoordNet,
+    GridNet,
+    NetConfig,
+    Weights,
+    build_model,
+    get_weights,
+    load_model,
+    preset,
+    set_weights,
+)
 from fedmap.nets.training import TrainConfig, fit
 
 INITS = ("random", "empty", "meta")
@@ -29,6 +42,31 @@ INITS = ("random", "empty", "meta")
 #: The meta-initialised paper network shipped with the package (its metadata holds the
 #: exact ``fedmap meta-train`` command that produced it).
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent.parent / "weights" / "paper_meta.safetensors"
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The network and where it starts: the ``[model]`` section of a run config."""
+
+    net: str = setting("paper", help="Network (paper: the Fourier MLP, 199,683 parameters; grid: feature grids)",
+                       choices=lambda: NET_CHOICES)
+    init: str = setting("random", help="Initial weights (empty: the empty-map prior; meta: the shipped meta-init)",
+                        choices=lambda: INITS)
+    init_weights: str | None = setting(None, help="With init meta: a weights file from fedmap meta-train instead of "
+                                       "the shipped one", path=True)
+    prior_steps: int = setting(150, help="Steps of the empty-map prior (init empty)")
+
+    def __post_init__(self) -> None:
+        preset(self.net)
+        check_init(self.init, self.net)
+        if self.init_weights is not None and self.init != "meta":
+            raise FedmapError(f"init weights are only used with init 'meta', not {self.init!r}")
+        if isinstance(self.prior_steps, bool) or not isinstance(self.prior_steps, int) or self.prior_steps < 0:
+            raise FedmapError(f"prior_steps must be an integer >= 0, got {self.prior_steps!r}")
+
+    def network(self, side: int) -> NetConfig:
+        """The network of this config for a ``side x side`` map."""
+        return preset(self.net, side)
 
 
 def check_init(init: str, net: str) -> None:

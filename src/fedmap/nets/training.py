@@ -17,48 +17,52 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from fedmap._schema import setting
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.maps.grid import GridMap
 from fedmap.nets.model import CoordNet, GridNet, grid_coords
 
+#: Training precisions: ``auto`` resolves to ``bf16`` or ``fp32`` (:func:`resolve_precision`).
+PRECISIONS = ("auto", "bf16", "fp32")
+
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Local optimisation settings.
+    """Local optimisation settings: the ``[train]`` section of a run config.
 
-    ``epochs`` passes over the map. With ``batch_pixels=None`` (the paper's setup) one
-    epoch is one Adam step on the full grid; otherwise one epoch is a seeded random
-    permutation of all pixels cut into batches of ``batch_pixels``.
-    ``masked=False`` trains on every cell, UNKNOWN ones towards grey (the paper);
-    ``masked=True`` puts the loss on known cells only.
-    ``precision`` is the arithmetic of the training step (:data:`PRECISIONS`): ``fp32``
-    everywhere, or ``bf16`` matrix products (bfloat16 autocast; weights, optimiser state,
-    loss and rendering stay fp32). ``auto`` becomes ``bf16`` where the CPU multiplies
-    bfloat16 natively (AVX-512 BF16 or AMX) and ``fp32`` elsewhere; the config always
-    holds the resolved value, so ``config.json`` and checkpoints record what ran.
+    With ``batch`` unset (the paper's setup) one epoch is one Adam step on the full grid;
+    otherwise one epoch is a seeded random permutation of all pixels cut into batches of
+    ``batch`` cells. ``masked=False`` trains on every cell, UNKNOWN ones towards grey
+    (the paper); ``masked=True`` puts the loss on known cells only. ``precision`` is the
+    arithmetic of the training step (:data:`PRECISIONS`): ``fp32`` everywhere, or
+    ``bf16`` matrix products (bfloat16 autocast; weights, optimiser state, loss and
+    rendering stay fp32). ``auto`` becomes ``bf16`` where the CPU multiplies bfloat16
+    natively (AVX-512 BF16 or AMX) and ``fp32`` elsewhere; the config always holds the
+    resolved value, so ``config.json`` and checkpoints record what ran.
     """
 
-    epochs: int = 100
-    lr: float = 1e-3
-    batch_pixels: int | None = None
-    masked: bool = False
-    precision: str = "auto"
+    epochs: int = setting(100, help="Local epochs per round E (passes over the rover's map)", cli="--local-epochs")
+    lr: float = setting(1e-3, help="Local Adam learning rate")
+    batch: int | None = setting(None, help="Cells per training batch (unset or 0: one full-grid step per epoch)")
+    masked: bool = setting(False, help="Loss on known cells only (off: UNKNOWN cells are trained towards grey)")
+    precision: str = setting("auto", help="Training arithmetic (auto: bf16 matrix products where the CPU has native "
+                             "bf16, else fp32)", choices=PRECISIONS)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "precision", resolve_precision(self.precision))
+        if self.batch == 0:
+            object.__setattr__(self, "batch", None)
         if self.epochs < 0:
             raise FedmapError(f"local epochs must be >= 0, got {self.epochs}")
         if not self.lr > 0:
             raise FedmapError(f"learning rate must be positive, got {self.lr}")
-        if self.batch_pixels is not None and self.batch_pixels <= 1:
-            raise FedmapError(f"batch_pixels must be > 1 (BatchNorm needs a batch), got {self.batch_pixels}")
+        if self.batch is not None and self.batch <= 1:
+            raise FedmapError(f"batch must be > 1 cells (BatchNorm needs a batch), got {self.batch}")
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-#: Training precisions: ``auto`` resolves to ``bf16`` or ``fp32`` (:func:`resolve_precision`).
-PRECISIONS = ("auto", "bf16", "fp32")
 
 
 def native_bf16() -> bool:
@@ -165,11 +169,11 @@ def fit(
     model.train()
     losses: list[float] = []
     for _ in range(config.epochs):
-        if config.batch_pixels is None or config.batch_pixels >= n:
+        if config.batch is None or config.batch >= n:
             batches: Sequence[torch.Tensor | None] = [None]
         else:
             perm = torch.randperm(n, generator=gen)
-            chunks = [perm[a : a + config.batch_pixels] for a in range(0, n, config.batch_pixels)]
+            chunks = [perm[a : a + config.batch] for a in range(0, n, config.batch)]
             if len(chunks) > 1 and len(chunks[-1]) < 2:  # BatchNorm cannot take one sample
                 chunks = chunks[:-1]
             batches = chunks
@@ -190,7 +194,7 @@ def fit(
 
 
 def steps_per_epoch(n_pixels: int, config: TrainConfig) -> int:
-    if config.batch_pixels is None or config.batch_pixels >= n_pixels:
+    if config.batch is None or config.batch >= n_pixels:
         return 1
-    full, rest = divmod(n_pixels, config.batch_pixels)
+    full, rest = divmod(n_pixels, config.batch)
     return full + (1 if rest >= 2 else 0)
