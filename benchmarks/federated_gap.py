@@ -69,8 +69,8 @@ def main() -> None:
                 "terrain": tname, "method": mname,
                 "psnr": g.psnr, "ssim": g.ssim, "f1": g.path.f1,
                 "central_psnr": c.psnr, "central_ssim": c.ssim, "central_f1": c.path.f1,
-                "uplink_B_per_agent_round": b["uplink_per_agent_round"],
-                "downlink_B_total": b["downlink"],
+                "uplink_B_per_agent_round": b.uplink_per_agent_round,
+                "downlink_B_total": b.downlink,
                 "rounds": res.config.federation.rounds, "wall_s": wall - res.timings.get("central_s", 0.0),
             }
             rows.append(row)

@@ -52,7 +52,7 @@ def main() -> None:
             assert c is not None  # central is on in both presets
             fmt = lambda x: "inf" if x == float("inf") else f"{x:.1f}"  # noqa: E731
             print(f"| {tname} | {mname} | {seen:.0%} | {fmt(g.psnr)} / {g.path.f1:.2f} | "
-                  f"{fmt(c.psnr)} / {c.path.f1:.2f} | {r.federation.total_bytes()['uplink_per_agent_round']:,.0f} | "
+                  f"{fmt(c.psnr)} / {c.path.f1:.2f} | {r.federation.total_bytes().uplink_per_agent_round:,.0f} | "
                   f"{time.perf_counter() - t:.0f} |", flush=True)
 
 

@@ -303,7 +303,7 @@ def test_app_pyproject_declares_every_run_config_key():
     from fedmap.flower.settings import RUN_DEFAULTS
 
     app = tomllib.loads((app_dir() / "pyproject.toml").read_text())["tool"]["flwr"]["app"]
-    assert app["config"] == RUN_DEFAULTS
+    assert app["config"] == RUN_DEFAULTS, "a setting changed: run `python -m fedmap.flower.settings` to regenerate it"
     assert app["components"] == {"serverapp": "fedmap.flower.server_app:app",
                                  "clientapp": "fedmap.flower.client_app:app"}
 

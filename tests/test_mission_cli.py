@@ -106,3 +106,29 @@ def test_mp4_when_ffmpeg_is_present(tmp_path):
     frames = [np.full((16, 20, 3), 40 * i, dtype=np.uint8) for i in range(5)]
     data = mp4_bytes(frames)
     assert data is not None and b"ftyp" in data[:64]
+
+
+def test_mission_takes_runs_terrain_and_threshold_options(tmp_path, capsys):
+    """The line from the schema issue: a DEM, a percentile slope limit, a rover profile and
+    a --set of a [mission] key, exactly as `fedmap run` takes the first three."""
+    from fedmap.config import load_run
+    from fedmap.maps.terrain import generate_dem
+
+    dem = tmp_path / "site.npy"
+    np.save(dem, generate_dem("moon", 64, seed=1).elevation)
+    out = tmp_path / "m"
+    rc, stdout, err = _run(["--dem", dem, "--pixel-size", "2", "--max-slope", "p75", "--rover", "cadre",
+                            "--set", "mission.rovers=3", "--steps", "6", "--sync-every", "3", "--strategies", "none,raw",
+                            "--no-animation", "-o", out], capsys)
+    assert rc == 0, err
+    saved = tomllib.loads((out / "mission.toml").read_text())
+    assert saved["mission"]["rovers"] == 3
+    assert saved["thresholds"]["rover"] == "cadre" and saved["thresholds"]["max_slope_percentile"] == 75.0
+    assert saved["terrain"]["kind"] == "dem" and saved["terrain"]["options"] == {"pixel_size": 2.0}
+    # the same options give `fedmap run` the same thresholds (one set of declarations)
+    run_resolved = load_run(None, [{"thresholds": {"rover": "cadre", "max_slope_percentile": 75.0},
+                                    "terrain": {"options": {"pixel_size": 2.0}}}],
+                            terrain={"kind": "dem", "path": str(dem)})[0]
+    assert run_resolved["thresholds"] == saved["thresholds"]
+    ledger = json.loads((out / "metrics.json").read_text())["strategies"]["raw"]["ledger"]
+    assert {m["rover"] for m in ledger if m["direction"] == "up"} == {0, 1, 2}  # three rovers sent

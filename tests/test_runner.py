@@ -44,7 +44,8 @@ def test_byte_counts_are_serialised_sizes(tiny_net, blob_map):
     rec = res.history[0]
     assert rec.uplink_bytes == {k: n for k in range(4)}
     assert rec.downlink_bytes == {k: n for k in range(4)}
-    assert res.total_bytes() == {"uplink": 4 * n, "downlink": 4 * n, "uplink_per_agent_round": n}
+    b = res.total_bytes()
+    assert (b.uplink, b.downlink, b.uplink_per_agent_round) == (4 * n, 4 * n, n)
     ledger = res.ledger()
     assert len(ledger) == 8 and {r["direction"] for r in ledger} == {"uplink", "downlink"}
     assert all(r["bytes"] == n and r["codec"] == "fp32" for r in ledger)

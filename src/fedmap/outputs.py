@@ -10,6 +10,7 @@ Flower base station's).
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -26,8 +27,9 @@ from fedmap.pipeline import PipelineResult
 
 
 def _json_ready(obj: Any) -> Any:
-    """``obj`` with every :class:`~fedmap.federation.runner.RoundRecord` in it as its JSON layout."""
-    if isinstance(obj, RoundRecord):
+    """``obj`` with every typed record in it (a :class:`~fedmap.federation.runner.RoundRecord`,
+    :class:`~fedmap.federation.runner.ByteTotals`, ...: anything with ``to_dict``) as its JSON layout."""
+    if isinstance(obj, RoundRecord) or (dataclasses.is_dataclass(obj) and hasattr(obj, "to_dict")):
         return obj.to_dict()
     if isinstance(obj, dict):
         return {k: _json_ready(v) for k, v in obj.items()}
@@ -138,8 +140,8 @@ def comparison_rows(results: dict[str, PipelineResult]) -> list[dict]:
             "psnr": r.global_scores.psnr, "ssim": r.global_scores.ssim, "accuracy": r.global_scores.accuracy,
             "f1": r.global_scores.path.f1, "refined_psnr": r.refined_scores.psnr, "refined_f1": r.refined_scores.path.f1,
             "central_psnr": None if r.central_scores is None else r.central_scores.psnr,
-            "uplink_bytes_per_rover_round": b["uplink_per_agent_round"], "uplink_bytes": b["uplink"],
-            "downlink_bytes": b["downlink"], "uplink_codec": r.config.federation.uplink,
+            "uplink_bytes_per_rover_round": b.uplink_per_agent_round, "uplink_bytes": b.uplink,
+            "downlink_bytes": b.downlink, "uplink_codec": r.config.federation.uplink,
             "precision": r.config.train.precision, "seconds": sum(r.timings.values()),
         })
     return rows
@@ -165,7 +167,7 @@ def comparison_panel(results: dict[str, PipelineResult], path: Path, *, title: s
         ax.imshow(render_classes(cls), interpolation="nearest")
         ax.set_title(name, fontsize=8)
     for row, (method, r) in zip(axes[1:], results.items()):
-        per_rover = r.federation.total_bytes()["uplink_per_agent_round"]
+        per_rover = r.federation.total_bytes().uplink_per_agent_round
         for ax, (what, cls, sc) in zip(row, (("global map", r.global_classes, r.global_scores),
                                               ("refined", r.refined, r.refined_scores))):
             ax.imshow(render_classes(cls), interpolation="nearest")

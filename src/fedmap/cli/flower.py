@@ -17,10 +17,12 @@ from fedmap import _schema
 from fedmap.cli.options import parameters, with_settings
 from fedmap.cli.ui import console, progress_bar
 from fedmap.config import resolve
+from fedmap.explore import ExploreConfig
 from fedmap.flower.checkpoint import resume_config
 from fedmap.flower.launch import make_certs, run_base_station
 from fedmap.flower.rover import ROVER_MAX_WAIT, rover_node_config, run_rover
 from fedmap.flower.settings import BaseStation, RunSettings, flower_key, run_config_from
+from fedmap.maps.sources import DEFAULT_BUILTIN_SIZE
 from fedmap.pipeline import PipelineConfig
 
 #: ``base-station``'s generated options: the run settings the base station passes on (no
@@ -92,9 +94,9 @@ def rover(
     partition_id: int = typer.Option(..., "--partition-id", help="This rover's index in the team (0-based)."),
     map_path: Optional[Path] = typer.Option(None, "--map", help="This rover's local map (.png or .npy)."),
     terrain: Optional[str] = typer.Option(None, help="Or: take the local map from the built-in generator (mars, moon, ice)."),
-    size: int = typer.Option(128, help="Generator: map side in cells."),
-    agents: int = typer.Option(4, help="Generator: rovers in the team."),
-    explore: str = typer.Option("quadrants", help="Generator: exploration pattern."),
+    size: int = typer.Option(DEFAULT_BUILTIN_SIZE, help="Generator: map side in cells."),
+    agents: int = typer.Option(ExploreConfig().agents, help="Generator: rovers in the team."),
+    explore: str = typer.Option(ExploreConfig().mode, help="Generator: exploration pattern."),
     seed: int = typer.Option(0, help="Generator: seed (the same as the base station's)."),
     root_cert: Optional[Path] = typer.Option(None, "--root-cert", help="TLS: the base station's ca.crt (else insecure)."),
     auth_key: Optional[Path] = typer.Option(None, "--auth-key", help="SuperNode authentication: this rover's private key."),

@@ -67,8 +67,8 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
     console.print(f"PSNR in dB on RGB renderings; P/R/F1: A* path planning over {ev.pairs} start/goal pairs "
                   f"(UNKNOWN {'passable' if ev.unknown_passable else 'impassable'}). {F1_CAPTION}")
     b = result.federation.total_bytes()
-    console.print(f"link: {b['uplink']:,} B uplink ({fed.uplink}), {b['downlink']:,} B downlink ({fed.downlink}) in "
-                  f"total; {b['uplink_per_agent_round']:,.0f} B per rover per round uplink")
+    console.print(f"link: {b.uplink:,} B uplink ({fed.uplink}), {b.downlink:,} B downlink ({fed.downlink}) in "
+                  f"total; {b.uplink_per_agent_round:,.0f} B per rover per round uplink")
     console.print(f"outputs: {out}/  (config.toml, metrics.json, figure.png, global_model.safetensors, maps)")
     console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
 

@@ -181,7 +181,7 @@ def run_table2(name: str, truth: GridMap, config: ReproduceConfig, *, on_stage=N
                "aggregator": fed.aggregator,
                "eta": fed.eta if fed.aggregator in ("fedadam", "fedyogi") else None, "rounds": fed.rounds,
                "local_epochs": cfg.train.epochs, "uplink": fed.uplink,
-               "uplink_bytes_per_rover_round": res.federation.total_bytes()["uplink_per_agent_round"],
+               "uplink_bytes_per_rover_round": res.federation.total_bytes().uplink_per_agent_round,
                **_summary(res.global_scores), "refined": _summary(res.refined_scores)}
         rows.append(rec)
         results[row.label] = res

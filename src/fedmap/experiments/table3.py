@@ -62,8 +62,8 @@ def federated_points(truth: GridMap, *, seed: int, pairs: int, on_stage: Callabl
         res = run_pipeline(cfg, truth=truth, on_step=on_step)
         g = res.global_scores
         b = res.federation.total_bytes()
-        points.append({"label": label, "bytes": b["uplink"], "uplink_per_agent_round": b["uplink_per_agent_round"],
-                       "downlink": b["downlink"], "rounds": cfg.federation.rounds, "psnr": g.psnr,
+        points.append({"label": label, "bytes": b.uplink, "uplink_per_agent_round": b.uplink_per_agent_round,
+                       "downlink": b.downlink, "rounds": cfg.federation.rounds, "psnr": g.psnr,
                        "ssim": g.ssim, "f1": g.path.f1, "f1_tolerant": g.path.tolerant.f1})
     return points
 

@@ -233,11 +233,23 @@ class FederationResult:
                                  "codec": f"{KEYFRAME} keyframe" if keyframe else codec, "bytes": n})
         return rows
 
-    def total_bytes(self) -> dict:
+    def total_bytes(self) -> ByteTotals:
         up = sum(sum(r.uplink_bytes.values()) for r in self.history)
         down = sum(sum(r.downlink_bytes.values()) for r in self.history)
         n_up = sum(len(r.uplink_bytes) for r in self.history)
-        return {"uplink": up, "downlink": down, "uplink_per_agent_round": up / max(n_up, 1)}
+        return ByteTotals(up, down, up / max(n_up, 1))
+
+
+@dataclass(frozen=True)
+class ByteTotals:
+    """Bytes on the link over a whole federation (every rover, every round)."""
+
+    uplink: int  # rover -> base, all rovers and rounds
+    downlink: int  # base -> rover, all rovers and rounds (broadcasts and keyframes)
+    uplink_per_agent_round: float  # mean uplink payload of one rover in one round
+
+    def to_dict(self) -> dict:
+        return asdict(self)
 
 
 def agent_seed(seed: int, round_idx: int, agent: int) -> int:

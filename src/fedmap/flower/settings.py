@@ -159,3 +159,29 @@ def run_config_from(resolved: dict, **base: Any) -> dict[str, Any]:
     if unknown:
         raise FedmapError(f"unknown base-station settings {unknown}; known: {', '.join(BASE_KEYS)}")
     return {**flat_run_config(resolved), **{k: s.default for k, s in BASE_KEYS.items()}, **extra}
+
+
+def app_config_toml() -> str:
+    """The ``[tool.flwr.app.config]`` table the Flower app's ``pyproject.toml`` must declare
+    (``flwr run`` accepts overrides of declared keys only): :data:`RUN_DEFAULTS`."""
+
+    def value(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        return repr(v)
+
+    lines = ["[tool.flwr.app.config]", *(f"{k} = {value(v)}" for k, v in RUN_DEFAULTS.items())]
+    return "\n".join(lines) + "\n"
+
+
+def write_app_config(path: Path) -> None:
+    """Replace the ``[tool.flwr.app.config]`` table (the file's last) of the app's ``pyproject.toml``."""
+    text = Path(path).read_text(encoding="utf-8")
+    head = text[:text.index("[tool.flwr.app.config]")]
+    Path(path).write_text(head + app_config_toml(), encoding="utf-8")
+
+
+if __name__ == "__main__":  # python -m fedmap.flower.settings: regenerate the app's run-config table
+    write_app_config(Path(__file__).resolve().parent / "app" / "pyproject.toml")

@@ -63,11 +63,11 @@ def _read_local_map(node_config: dict) -> tuple[int, GridMap]:
         return pid, load_map(str(node_config["map"]))
     if "terrain" not in node_config:
         raise FedmapError("node config needs map=<path> or terrain=<mars|moon|ice> (with size, agents, explore, seed)")
-    agents = int(node_config.get("agents", 4))
-    if pid >= agents:
-        raise FedmapError(f"partition-id {pid} is not below agents={agents}")
-    cfg = method_config(terrain=str(node_config["terrain"]), size=int(node_config.get("size", 128)), agents=agents,
-                        mode=str(node_config.get("explore", "quadrants")), seed=int(node_config.get("seed", 0)))
+    keys = (("size", "size"), ("agents", "agents"), ("mode", "explore"), ("seed", "seed"))
+    given: dict[str, Any] = {k: node_config.get(key) for k, key in keys}
+    cfg = method_config(terrain=str(node_config["terrain"]), **given)  # unset: the run config's defaults
+    if pid >= cfg.explore.agents:
+        raise FedmapError(f"partition-id {pid} is not below agents={cfg.explore.agents}")
     return pid, build_local_maps(cfg, load_truth(cfg.terrain, seed=cfg.seed))[pid]
 
 
