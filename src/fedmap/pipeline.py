@@ -70,10 +70,10 @@ class PipelineConfig:
             object.__setattr__(self, "terrain", replace(self.terrain, thresholds=self.thresholds))
         if self.terrain.kind == "builtin":
             if self.terrain.terrain not in TERRAIN_KINDS:
-                raise FedmapError(f"unknown terrain {self.terrain.terrain!r}; choose one of {', '.join(TERRAIN_KINDS)}")
+                raise FedmapError(f"unknown terrain kind {self.terrain.terrain!r}; choose one of {', '.join(TERRAIN_KINDS)}")
             size = self.terrain.size
             if isinstance(size, bool) or not isinstance(size, int) or not MIN_SIDE <= size <= MAX_SIDE:
-                raise FedmapError(f"size must be an integer number of cells in [{MIN_SIDE}, {MAX_SIDE}], got {size}")
+                raise FedmapError(f"terrain size must be an integer in [{MIN_SIDE}, {MAX_SIDE}], got {size}")
 
     def to_dict(self) -> dict:
         return asdict(self)
