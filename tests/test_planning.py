@@ -556,3 +556,83 @@ def test_path_f1_argument_errors():
         path_f1(a, a, n_pairs=0)
     with pytest.raises(FedmapError, match="fewer than two"):
         path_f1(np.full((5, 6), IMPASSABLE, np.uint8), a)
+
+
+# ----------------------------------------------------------------------------- the compiled search
+
+
+def reference_astar(passable: np.ndarray, start, goal):
+    """The pure-Python A* fedmap used before its search was compiled (same tie-break:
+    heap key (f, h, flat index), orthogonal moves before diagonal ones, a parent changes
+    only on a route shorter by more than 1e-9). Kept here as the reference."""
+    import heapq
+
+    passable = np.asarray(passable, dtype=bool)
+    if not (passable[start] and passable[goal]):
+        return None
+    W = passable.shape[1] + 2
+    free = np.pad(passable, 1, constant_values=False).ravel().tolist()
+    s, t = (start[0] + 1) * W + start[1] + 1, (goal[0] + 1) * W + goal[1] + 1
+    gr, gc = divmod(t, W)
+
+    def heur(i):
+        r, c = divmod(i, W)
+        dr, dc = abs(r - gr), abs(c - gc)
+        return (dr + dc) + (math.sqrt(2.0) - 2.0) * min(dr, dc)
+
+    g, parent, closed = {s: 0.0}, {s: -1}, set()
+    heap = [(heur(s), heur(s), s)]
+    moves = [(d, None, None, 1.0) for d in (-W, W, -1, 1)] + [
+        (-W - 1, -W, -1, math.sqrt(2.0)), (-W + 1, -W, 1, math.sqrt(2.0)),
+        (W - 1, W, -1, math.sqrt(2.0)), (W + 1, W, 1, math.sqrt(2.0))]
+    while heap:
+        _, _, i = heapq.heappop(heap)
+        if i in closed:
+            continue
+        if i == t:
+            path = []
+            while i != -1:
+                r, c = divmod(i, W)
+                path.append((r - 1, c - 1))
+                i = parent[i]
+            return path[::-1]
+        closed.add(i)
+        for d, a, b, step in moves:
+            j = i + d
+            if free[j] and (a is None or (free[i + a] and free[i + b])) and j not in closed:
+                nj = g[i] + step
+                if nj < g.get(j, math.inf) - 1e-9:
+                    g[j], parent[j] = nj, i
+                    heapq.heappush(heap, (nj + heur(j), heur(j), j))
+    return None
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_astar_gives_the_reference_path_cell_for_cell(seed):
+    """Strict path F1 counts identical paths, so the compiled search must keep the tie-break:
+    every path equal to the pure-Python reference's, not just as short."""
+    passable = random_passable(100 + seed, shape=(30, 41), blocked=0.15 + 0.05 * seed)
+    rng = np.random.default_rng(seed)
+    cells = np.argwhere(passable)
+    for _ in range(40):
+        a, b = rng.choice(len(cells), size=2, replace=False)
+        s, g = tuple(int(v) for v in cells[a]), tuple(int(v) for v in cells[b])
+        assert astar(passable, s, g) == reference_astar(passable, s, g)
+
+
+def test_truth_paths_are_cached_without_changing_a_score():
+    from fedmap.evaluation import paths
+
+    truth = np.where(random_passable(3, shape=(20, 24), blocked=0.3), FREE, IMPASSABLE).astype(np.uint8)
+    pred = truth.copy()
+    pred[5, :] = IMPASSABLE
+    paths._TRUTH_PATHS.clear()
+    cold = path_f1(truth, pred, n_pairs=30, seed=2)
+    assert len(paths._TRUTH_PATHS) == 1
+    warm = path_f1(truth, pred, n_pairs=30, seed=2)  # the truth's plans come from the cache
+    assert warm == cold and len(paths._TRUTH_PATHS) == 1
+    planned = paths.truth_paths(truth == FREE, 30, 2)
+    assert [p for _, p in planned] == [reference_astar(truth == FREE, s, g) for (s, g), _ in planned]
+    for k in range(paths._TRUTH_PATHS_KEPT + 2):  # other seeds: the oldest entries leave
+        paths.truth_paths(truth == FREE, 5, 100 + k)
+    assert len(paths._TRUTH_PATHS) == paths._TRUTH_PATHS_KEPT

@@ -11,6 +11,8 @@ path at most 5% longer is correct) and the paper's text read literally
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -93,6 +95,33 @@ def _prf(tp: int, fp: int, fn: int) -> tuple[float, float, float]:
     return p, r, f
 
 
+Pair = tuple[tuple[int, int], tuple[int, int]]
+Path = list[tuple[int, int]]
+
+#: Recent truths' planned pairs (:func:`truth_paths`), least recently used first.
+_TRUTH_PATHS: OrderedDict[tuple, list] = OrderedDict()
+_TRUTH_PATHS_KEPT = 8
+
+
+def truth_paths(passable: np.ndarray, n_pairs: int, seed: int) -> list[tuple[Pair, Path | None]]:
+    """The seeded start/goal pairs of a truth's passable mask with the truth's path of each
+    (None: unreachable). A truth does not change during a mission or a ``reproduce``
+    terrain, so the last few are kept, keyed by the mask's bytes (a pure function of its
+    arguments: the cache changes no result, only the time)."""
+    passable = np.ascontiguousarray(passable, dtype=bool)
+    key = (passable.shape, hashlib.blake2b(passable.tobytes(), digest_size=16).digest(), n_pairs, seed)
+    if key in _TRUTH_PATHS:
+        _TRUTH_PATHS.move_to_end(key)
+        return _TRUTH_PATHS[key]
+    labels, _ = ndimage.label(passable)  # 4-connectivity == reachability (see module doc)
+    planned = [((s, g), astar(passable, s, g) if labels[s] == labels[g] else None)
+               for s, g in sample_pairs(passable, n_pairs, seed=seed)]
+    _TRUTH_PATHS[key] = planned
+    while len(_TRUTH_PATHS) > _TRUTH_PATHS_KEPT:
+        _TRUTH_PATHS.popitem(last=False)
+    return planned
+
+
 def path_f1(
     truth: np.ndarray,
     pred: np.ndarray,
@@ -134,14 +163,12 @@ def path_f1(
         raise FedmapError(f"n_pairs must be positive, got {n_pairs}")
     pt = passable_mask(truth, unknown_passable=unknown_passable)
     pp = passable_mask(pred, unknown_passable=unknown_passable)
-    lt, _ = ndimage.label(pt)  # 4-connectivity == reachability (see module doc)
-    lp, _ = ndimage.label(pp)
+    lp, _ = ndimage.label(pp)  # 4-connectivity == reachability (see module doc)
     tp = fp = fn = tn = 0
     tol_tp = tol_fp = tol_fn = 0
     pap_fp = pap_fn = differ = 0  # the literal reading: its TP and TN are the strict ones
     ratios = []
-    for s, g in sample_pairs(pt, n_pairs, seed=seed):
-        true_path = astar(pt, s, g) if lt[s] == lt[g] else None
+    for (s, g), true_path in truth_paths(pt, n_pairs, seed):
         pred_path = astar(pp, s, g) if (lp[s] and lp[s] == lp[g]) else None
         if true_path is None and pred_path is None:
             tn += 1

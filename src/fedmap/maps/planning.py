@@ -7,7 +7,10 @@ allowed only if both orthogonal cells it passes are passable (no corner cutting)
 path never squeezes between two diagonal obstacles. The heuristic is the octile distance
 (admissible and consistent), so A* returns a shortest path. Ties are broken by
 ``(f, h, flat index)`` and a node's parent only changes on a strictly shorter route, so
-the same map always gives the same path.
+the same map always gives the same path. The search is compiled with numba (the same
+algorithm, operation for operation, as the pure-Python planner it replaced, which the
+tests keep as a reference: every path is identical, so strict path F1 is unchanged);
+the compiled code is cached on disk after its first use.
 
 Because diagonals need both orthogonal neighbours, two cells are connected exactly when
 they are in the same 4-connected component; :func:`fedmap.evaluation.paths.path_f1` uses that to answer
@@ -23,6 +26,7 @@ import heapq
 import math
 
 import numpy as np
+from numba import njit
 
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN
@@ -43,7 +47,7 @@ def astar(passable: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -
     """Shortest 8-connected path from ``start`` to ``goal`` (both (row, col)), or None.
 
     The path includes both end points. Returns None when either end is not passable or
-    the goal cannot be reached.
+    the goal cannot be reached. The search runs compiled (:func:`_search`).
     """
     passable = np.asarray(passable, dtype=bool)
     h, w = passable.shape
@@ -54,56 +58,70 @@ def astar(passable: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -
         return None
     # Pad with a blocked border so neighbour lookups need no bounds checks.
     W = w + 2
-    free = np.pad(passable, 1, constant_values=False).ravel().tolist()
+    free = np.pad(passable, 1, constant_values=False).ravel()
     s = (start[0] + 1) * W + start[1] + 1
     t = (goal[0] + 1) * W + goal[1] + 1
-    gr, gc = divmod(t, W)
+    parent, found = _search(free, W, s, t)
+    if not found:
+        return None
+    path = []
+    i = t
+    while i != -1:
+        r, c = divmod(int(i), W)
+        path.append((r - 1, c - 1))
+        i = parent[i]
+    return path[::-1]
+
+
+@njit(cache=True)
+def _search(free: np.ndarray, W: int, s: int, t: int) -> tuple[np.ndarray, bool]:  # pragma: no cover (compiled)
+    """A* on the padded, flattened grid ``free`` (row length ``W``) from ``s`` to ``t``:
+    ``(parent, found)``, ``parent[i]`` the cell ``i`` was reached from (-1: none).
+
+    Compiled with numba; the heap key ``(f, h, flat index)``, the neighbour order (up,
+    down, left, right, then NW, NE, SW, SE) and the 1e-9 rule for a shorter route are the
+    module's tie-break, so the path is the same on every machine.
+    """
+    n = free.size
+    g = np.full(n, np.inf)
+    parent = np.full(n, -1, np.int64)
+    closed = np.zeros(n, np.bool_)
+    gr, gc = t // W, t % W
     orth = (-W, W, -1, 1)
-    diag = ((-W - 1, -W, -1), (-W + 1, -W, 1), (W - 1, W, -1), (W + 1, W, 1))  # (move, via1, via2)
-
-    def heur(i: int) -> float:
-        r, c = divmod(i, W)
-        dr, dc = abs(r - gr), abs(c - gc)
-        return (dr + dc) + (SQRT2 - 2.0) * min(dr, dc)
-
-    g = {s: 0.0}
-    parent = {s: -1}
-    closed = set()
-    h0 = heur(s)
+    diag = (-W - 1, -W + 1, W - 1, W + 1)
+    via_row = (-W, -W, W, W)  # the two orthogonal cells a diagonal move passes
+    via_col = (-1, 1, -1, 1)
+    dr, dc = abs(s // W - gr), abs(s % W - gc)
+    h0 = (dr + dc) + (SQRT2 - 2.0) * min(dr, dc)
+    g[s] = 0.0
     heap = [(h0, h0, s)]
-    push, pop = heapq.heappush, heapq.heappop
-    while heap:
-        _, _, i = pop(heap)
-        if i in closed:
+    while len(heap):
+        _, _, i = heapq.heappop(heap)
+        if closed[i]:
             continue
         if i == t:
-            path = []
-            while i != -1:
-                r, c = divmod(i, W)
-                path.append((r - 1, c - 1))
-                i = parent[i]
-            return path[::-1]
-        closed.add(i)
+            return parent, True
+        closed[i] = True
         gi = g[i]
-        for d in orth:
-            j = i + d
-            if free[j] and j not in closed:
-                nj = gi + 1.0
-                if nj < g.get(j, math.inf) - 1e-9:
+        for k in range(8):
+            if k < 4:
+                j = i + orth[k]
+                ok = free[j]
+                step = 1.0
+            else:
+                j = i + diag[k - 4]
+                ok = free[j] and free[i + via_row[k - 4]] and free[i + via_col[k - 4]]
+                step = SQRT2
+            if ok and not closed[j]:
+                nj = gi + step
+                if nj < g[j] - 1e-9:
                     g[j] = nj
                     parent[j] = i
-                    hj = heur(j)
-                    push(heap, (nj + hj, hj, j))
-        for d, a, b in diag:
-            j = i + d
-            if free[j] and free[i + a] and free[i + b] and j not in closed:
-                nj = gi + SQRT2
-                if nj < g.get(j, math.inf) - 1e-9:
-                    g[j] = nj
-                    parent[j] = i
-                    hj = heur(j)
-                    push(heap, (nj + hj, hj, j))
-    return None
+                    r, c = j // W, j % W
+                    dr, dc = abs(r - gr), abs(c - gc)
+                    hj = (dr + dc) + (SQRT2 - 2.0) * min(dr, dc)
+                    heapq.heappush(heap, (nj + hj, hj, j))
+    return parent, False
 
 
 def path_length(path: list[tuple[int, int]]) -> float:
