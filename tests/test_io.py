@@ -421,7 +421,7 @@ def test_raw_samples_through_a_gdal_vrt(tmp_path):
         np.testing.assert_array_equal(np.nan_to_num(dem.elevation, nan=-4200), z)
     other = load_dem(tmp_path / "t_big.img", shape=(30, 40), byteorder="little", header_bytes=4).elevation
     assert not np.array_equal(other, z)
-    with pytest.raises(FedmapError, match="not recognized.*shape=") as exc:
+    with pytest.raises(FedmapError, match="does not recognise its format; raw samples without a label need shape=") as exc:
         load_dem(tmp_path / "t_big.img")
     assert_one_line(exc)
     with pytest.raises(FedmapError, match="bytes but 4 header"):

@@ -86,11 +86,23 @@ def resolved_thresholds(resolved):
     (["--set", "explore.agnets=3"], "error: unknown key 'agnets' in [explore] of the command-line options "
                                     "(did you mean 'agents'?)"),
     (["missing.toml"], "error: no such config file: missing.toml"),
+    # a newcomer's slips: each line says what is wrong and what to do
+    (["site.tif"], "error: site.tif is not a TOML config (it looks like a terrain file): pass it with --dem (a DEM) "
+                   "or --map (a class map)"),
+    (["--dem", "notes.tif"], "error: cannot read DEM {tmp}/notes.tif: it is a text file, not a raster (the wrong file?)"),
+    (["--dem", "noise.tif"], "error: cannot read DEM {tmp}/noise.tif: GDAL does not recognise it as a raster (a damaged "
+                             "file, or not what its .tif name says)"),
+    (["--dem", "site.tif", "--size", "-64"], "error: terrain size is the side to resample to, at least 3 cells, got -64"),
 ])
 def test_bad_run_input_one_line_exit_2(tmp_path, capsys, monkeypatch, args, message):
     monkeypatch.chdir(tmp_path)
+    np.save(tmp_path / "dem.npy", np.arange(64 * 64, dtype=np.float32).reshape(64, 64) * 0.01)
+    (tmp_path / "site.tif").write_bytes(b"II*\x00" + bytes(range(256)) * 4)  # binary, not TOML (and no raster)
+    (tmp_path / "notes.tif").write_text("my notes about the site\nnot a raster\n")
+    (tmp_path / "noise.tif").write_bytes(bytes((i * 7919) % 256 for i in range(3000)))
     rc, _, err = _run([*args, "-o", tmp_path / "o"], capsys)
     assert rc == 2
+    message = message.replace("{tmp}", str(tmp_path.resolve()))  # --dem paths are made absolute
     assert err.startswith(message) and err.count("\n") == 1
     assert not (tmp_path / "o").exists()
 

@@ -65,15 +65,31 @@ def path_settings() -> list[_schema.Setting]:
     return [s for s in _schema.walk(PipelineConfig) if s.path]
 
 
+#: Suffixes of the terrain files a command takes with --dem or --map, not as its TOML config.
+TERRAIN_SUFFIXES = (".tif", ".tiff", ".png", ".npy", ".asc", ".img", ".cub", ".lbl", ".xml", ".jp2", ".nc", ".yaml",
+                    ".yml", ".pgm", ".vrt")
+
+
+def read_toml(path: str | Path, what: str = "config") -> dict:
+    """A TOML file's tables; a missing, binary or unparsable file is a one-line error, and a
+    terrain file given in its place (a common slip) says to pass it with --dem or --map."""
+    path = Path(path)
+    if not path.is_file():
+        raise FedmapError(f"no such {what} file: {path}")
+    looks_like_terrain = path.suffix.lower() in TERRAIN_SUFFIXES
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        if looks_like_terrain or isinstance(exc, UnicodeDecodeError):
+            raise FedmapError(f"{path} is not a TOML {what} (it looks like a terrain file): pass it with --dem "
+                              "(a DEM) or --map (a class map)") from exc
+        raise FedmapError(f"cannot read {what} {path}: {' '.join(str(exc).split())}") from exc
+
+
 def load_toml(path) -> dict:
     """Read and validate a run config; relative terrain paths become relative to its folder."""
     path = Path(path)
-    if not path.is_file():
-        raise FedmapError(f"no such config file: {path}")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise FedmapError(f"cannot read config {path}: {' '.join(str(exc).split())}") from exc
+    data = read_toml(path)
     validate(data, path.name)
     for s in path_settings():
         table = data.get(s.section, {})

@@ -327,6 +327,29 @@ def _raw_vrt(path: Path, shape=None, dtype=None, byteorder=None, header_bytes=No
             f"<LineOffset>{cols * dt.itemsize}</LineOffset><ByteOrder>{order}</ByteOrder></VRTRasterBand></VRTDataset>")
 
 
+#: Suffixes of raw sample files, which GDAL reads only with a label or shape=(rows, cols).
+_RAW_SUFFIXES = ("", ".img", ".raw", ".dat", ".bin")
+
+
+def _unrecognised(path: Path) -> str:
+    """Why GDAL may not recognise ``path``, and what to do, in a few words."""
+    try:
+        head = path.read_bytes()[:4096]
+    except OSError:
+        head = b""
+    if head:
+        try:
+            text = head.decode("utf-8")
+        except UnicodeDecodeError:
+            text = ""
+        if text and sum(ch.isprintable() or ch.isspace() for ch in text) >= 0.95 * len(text):
+            return "it is a text file, not a raster (the wrong file?)"
+    if path.suffix.lower() in _RAW_SUFFIXES:
+        return "GDAL does not recognise its format; raw samples without a label need shape=(rows, cols) " \
+               "(and dtype, byteorder) in [terrain.options]"
+    return f"GDAL does not recognise it as a raster (a damaged file, or not what its {path.suffix} name says)"
+
+
 def _read_gdal(path: Path, band: int, raw: dict):
     """Stored values, GDAL's validity mask, scale/offset, transform, CRS and meta of one band."""
     import rasterio
@@ -350,8 +373,9 @@ def _read_gdal(path: Path, band: int, raw: dict):
                 meta = {"format": "raw" if raw else src.driver.lower(), "driver": src.driver,
                         "bands": src.count, "file_nodata": src.nodatavals[band - 1]}
     except (RasterioError, CPLE_BaseError) as exc:
-        hint = "; raw samples without a label need shape=(rows, cols)" if "not recognized" in str(exc) else ""
-        raise FedmapError(f"cannot read DEM {path}: {_one_line(exc)}{hint}") from exc
+        if "not recognized" in str(exc):  # GDAL's message repeats the path: say what it means instead
+            raise FedmapError(f"cannot read DEM {path}: {_unrecognised(path)}") from exc
+        raise FedmapError(f"cannot read DEM {path}: {_one_line(exc)}") from exc
     return values, valid, (float(scale or 1.0), float(offset or 0.0)), transform, crs, meta
 
 

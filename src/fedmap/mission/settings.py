@@ -27,7 +27,16 @@ from typing import Any
 from fedmap import _schema
 from fedmap._schema import setting, wiring
 from fedmap._util import check_keys, suggest
-from fedmap.config import KEYWORDS, base_defaults, merge, parse_set, terrain_source, validate, with_rover_profile
+from fedmap.config import (
+    KEYWORDS,
+    base_defaults,
+    merge,
+    parse_set,
+    read_toml,
+    terrain_source,
+    validate,
+    with_rover_profile,
+)
 from fedmap.errors import FedmapError
 from fedmap.maps.sources import TerrainSource
 
@@ -47,7 +56,7 @@ def check_strategies(names) -> tuple[str, ...]:
         raise FedmapError("a mission needs at least one strategy")
     for s in names:
         if s not in STRATEGIES:
-            raise FedmapError(f"unknown strategy {s!r}{suggest(s, STRATEGIES)}; choose from {', '.join(STRATEGIES)}")
+            raise FedmapError(f"unknown strategy {s!r}{suggest(s, STRATEGIES)}")
     if len(set(names)) != len(names):
         raise FedmapError(f"a strategy is listed twice: {', '.join(names)}")
     return names
@@ -221,15 +230,6 @@ MISSION_SECTIONS: dict[str, type] = {"mission": MissionConfig, "link": LinkConfi
 _RUN_PART = ("seed", "terrain", "thresholds")
 
 
-def _read_toml(path: Path) -> dict:
-    if not path.is_file():
-        raise FedmapError(f"no such mission file: {path}")
-    try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise FedmapError(f"cannot read mission {path}: {' '.join(str(exc).split())}") from exc
-
-
 def preset_names() -> tuple[str, ...]:
     """Mission presets shipped in ``fedmap/mission/presets/<name>.toml`` (e.g. ``cadre``)."""
     files = resources.files("fedmap.mission").joinpath("presets").iterdir()
@@ -258,7 +258,7 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
     data: dict = _preset_data(preset) if preset is not None else {}
     if path is not None:
         path = Path(path)
-        file_data = _read_toml(path)
+        file_data = read_toml(path, "mission")
         t = file_data.get("terrain", {})
         if isinstance(t, dict) and "path" in t and isinstance(t["path"], str) and not Path(t["path"]).is_absolute():
             t["path"] = str((path.parent / t["path"]).resolve())
