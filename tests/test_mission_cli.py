@@ -31,6 +31,8 @@ def test_mission_cli_writes_every_output(tmp_path, capsys):
     assert "wall time" in stdout and "raw" in stdout
     metrics = json.loads((out / "metrics.json").read_text())
     assert list(metrics["strategies"]) == ["none", "raw", "central"]
+    _report_links_only_files_that_exist(out)
+    assert "mission_raw.gif" in (out / "report.md").read_text()
     raw = metrics["strategies"]["raw"]
     assert len(raw["series"]["step"]) == 13 and raw["series"]["eval"]["step"] == [4, 8, 12]
     # the ledger and the cumulative bytes agree
@@ -134,3 +136,12 @@ def test_mission_takes_runs_terrain_and_threshold_options(tmp_path, capsys):
     assert run_resolved["thresholds"] == saved["thresholds"]
     ledger = json.loads((out / "metrics.json").read_text())["strategies"]["raw"]["ledger"]
     assert {m["rover"] for m in ledger if m["direction"] == "up"} == {0, 1, 2}  # three rovers sent
+    _report_links_only_files_that_exist(out)
+    assert "animations: none" in (out / "report.md").read_text()  # --no-animation wrote none
+
+
+def _report_links_only_files_that_exist(out: Path) -> None:
+    import re
+
+    named = re.findall(r"`([\w.-]+\.(?:png|gif|mp4|json|toml|md))`", (out / "report.md").read_text())
+    assert named and all((out / n).is_file() for n in named), [n for n in named if not (out / n).is_file()]

@@ -22,10 +22,11 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from fedmap._util import AtomicDir, atomic_write_bytes, to_json
+from fedmap._util import AtomicDir, atomic_write_bytes
 from fedmap.maps.grid import PALETTE
 from fedmap.mission.sensing import disk_offsets
 from fedmap.mission.sim import COVERAGE_LEVELS, F1_GOAL, MissionResult, MissionSummary
+from fedmap.outputs import write_metrics
 
 
 def _pyplot():
@@ -98,7 +99,11 @@ def side_by_side(result: MissionResult) -> str:
     return "\n".join(lines) + "\n"
 
 
-def report_md(result: MissionResult, *, title: str) -> str:
+def report_md(result: MissionResult, *, title: str, animations: list[str] | None = None) -> str:
+    """The mission's ``report.md``; ``animations`` are the animation files written beside it
+    (None: one GIF per strategy), so the report links only files that exist."""
+    if animations is None:
+        animations = [f"mission_{n}.gif" for n in result.runs]
     c, link = result.config, result.config.link
     h, w = result.truth.shape
     budget = lambda b: "unlimited" if b is None else f"{b:,} B"  # noqa: E731
@@ -118,7 +123,7 @@ def report_md(result: MissionResult, *, title: str) -> str:
         f"Wall time: {result.seconds:.1f} s ("
         + ", ".join(f"{n} {r.seconds:.1f} s" for n, r in result.runs.items()) + ").", "",
         "Plots: `coverage.png`, `f1.png`, `accuracy_bytes.png`; animations: "
-        + ", ".join(f"`mission_{n}.gif`" for n in result.runs) + ".", "",
+        + (", ".join(f"`{name}`" for name in animations) if animations else "none (not asked for)") + ".", "",
     ]
     return "\n".join(lines)
 
@@ -254,8 +259,7 @@ def write_mission(result: MissionResult, out_dir: str | Path, *, title: str, set
     """Write a mission's outputs as one atomic folder (see the module docstring)."""
     out_dir = Path(out_dir)
     with AtomicDir(out_dir) as tmp:
-        atomic_write_bytes(tmp / "metrics.json", to_json(metrics(result, settings=settings)).encode())
-        atomic_write_bytes(tmp / "report.md", report_md(result, title=title).encode())
+        write_metrics(tmp, metrics(result, settings=settings))
         atomic_write_bytes(tmp / "coverage.png", plot_coverage(result))
         atomic_write_bytes(tmp / "f1.png", plot_f1(result))
         atomic_write_bytes(tmp / "accuracy_bytes.png", plot_accuracy_bytes(result))
@@ -268,4 +272,7 @@ def write_mission(result: MissionResult, out_dir: str | Path, *, title: str, set
                 mp4 = mp4_bytes(frames)
                 if mp4 is not None:
                     atomic_write_bytes(tmp / f"mission_{name}.mp4", mp4)
+        written = [f"mission_{n}.{ext}" for n in result.runs for ext in ("gif", "mp4")
+                   if (tmp / f"mission_{n}.{ext}").is_file()]
+        atomic_write_bytes(tmp / "report.md", report_md(result, title=title, animations=written).encode())
     return out_dir
