@@ -163,3 +163,23 @@ def test_demo_is_run_with_the_demos_defaults(tmp_path, capsys):
     assert ma == mb
     assert json.loads((a / "config.json").read_text())["model"]["init"] == "meta"
     assert (a / "config.toml").read_text() == (b / "config.toml").read_text()
+
+
+def test_a_percentile_slope_limit_is_reported_in_degrees(tmp_path, capsys):
+    """p75 resolves to an angle: the console, metrics.json and config.toml say which, and
+    config.toml keeps only the setting that was used."""
+    from fedmap.maps.terrain import generate_dem
+    from fedmap.maps.traversability import slope_degrees
+
+    dem = generate_dem("moon", 64, seed=1, pixel_size=100.0)
+    np.save(tmp_path / "dem.npy", dem.elevation)
+    out = tmp_path / "o"
+    rc, stdout, err = _run(["--dem", tmp_path / "dem.npy", "--pixel-size", "100", "--max-slope", "p75",
+                            "--local-epochs", "1", "--no-central", "--pairs", "3", "-o", out], capsys)
+    assert rc == 0, err
+    want = float(np.percentile(slope_degrees(dem.elevation, 100.0), 75))  # coarse: the slope test alone
+    got = json.loads((out / "metrics.json").read_text())["truth"]["slope_limit_deg"]
+    assert got == pytest.approx(want)
+    assert f"slope limit {want:.3g} deg (p75 of the map's slopes)" in " ".join(stdout.split())
+    saved = tomllib.loads((out / "config.toml").read_text())["thresholds"]
+    assert saved["max_slope_percentile"] == 75.0 and "max_slope_deg" not in saved

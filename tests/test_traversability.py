@@ -384,6 +384,20 @@ def test_one_class_maps_warn_in_one_line():
     assert "warning" not in dem_to_traversability(Dem(z, 1.0, "half")).meta
 
 
+@pytest.mark.parametrize("steep_cols, warns", [(2, False), (8, False), (9, True)])
+def test_a_mostly_impassable_map_warns_above_80_percent(steep_cols, warns):
+    """Vancouver at 15 deg was 83% impassable with no word: above 80% impassable the map warns
+    (a map 80% free is what planetary terrain often is, and does not)."""
+    z = plane((10, 10), 1.0, deg_x=5.0)
+    if steep_cols:
+        z[:, 10 - steep_cols:] = plane((10, steep_cols), 1.0, deg_x=40.0) + z[0, 10 - steep_cols]
+    g = dem_to_traversability(Dem(z, 1.0, "part steep"))
+    share = float((g.classes == IMPASSABLE).mean())
+    assert ("warning" in g.meta) == warns == (share > 0.8), share
+    if warns:
+        assert "impassable" in g.meta["warning"] and "--max-slope" in g.meta["warning"]
+
+
 def test_classes_keep_the_dem_georeferencing():
     from affine import Affine
 

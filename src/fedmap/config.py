@@ -307,7 +307,16 @@ def load_run(config_path: str | Path | None = None, overrides: list[dict] | None
     if h != w or not MIN_SIDE <= h <= MAX_SIDE:
         raise FedmapError(f"the terrain map is {h}x{w} cells; the pipeline needs a square map of {MIN_SIDE}..{MAX_SIDE} "
                           f"cells: set [terrain] size (or --size)")
+    resolved["thresholds"] = used_thresholds(resolved["thresholds"])
     return resolved, source, truth, config
+
+
+def used_thresholds(thresholds: dict) -> dict:
+    """``[thresholds]`` as written to ``config.toml``: a slope limit given as a percentile
+    replaces the one in degrees, so only the setting that was used is kept."""
+    if thresholds.get("max_slope_percentile") is not None:
+        return {k: v for k, v in thresholds.items() if k != "max_slope_deg"}
+    return thresholds
 
 
 # --------------------------------------------------------------------------- writing TOML

@@ -27,7 +27,10 @@ def global_map(net_config: NetConfig, weights: Weights, shape: tuple[int, int],
 def truth_summary(truth: GridMap) -> dict:
     """The ground truth as ``metrics.json`` describes it."""
     h, w = truth.shape
-    return {"shape": [h, w], "pixel_size_m": truth.pixel_size, "source": truth.source, **truth.fractions()}
+    out = {"shape": [h, w], "pixel_size_m": truth.pixel_size, "source": truth.source, **truth.fractions()}
+    if truth.meta.get("slope_limit_deg") is not None:  # the slope limit used (a percentile's, resolved)
+        out["slope_limit_deg"] = truth.meta["slope_limit_deg"]
+    return out
 
 
 def union_map(local_maps: list[GridMap]) -> GridMap:

@@ -13,7 +13,7 @@ from rich.table import Table
 from fedmap import _schema
 from fedmap._util import to_json
 from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
-from fedmap.cli.ui import console, fit, progress_bar
+from fedmap.cli.ui import console, fit, progress_bar, terrain_line
 from fedmap.config import dumps_toml
 from fedmap.maps.sources import load_source_dem, load_truth
 from fedmap.mission import load_mission, run_mission
@@ -67,6 +67,7 @@ def mission(
     for r in rows:
         t.add_row(*(r[i] for i in keep))
     console.print(fit(t))
+    console.print(terrain_line(source.label, truth, source.thresholds))
     console.print("50/80/95 %: first step the team's coverage reached it; F1>=.9: first step a rover's belief gave "
                   "strict A* path F1 >= 0.9; cov., acc.: coverage and mean belief accuracy at the end; glob.F1: the "
                   "base's map, strict; up/down: bytes of the whole team. All columns: report.md.")

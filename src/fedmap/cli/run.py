@@ -20,7 +20,7 @@ import typer
 from fedmap import _schema
 from fedmap._util import atomic_write_bytes, clean_json, to_json
 from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
-from fedmap.cli.ui import F1_CAPTION, comparison_table, console, progress_bar, scores_table, stage_callbacks
+from fedmap.cli.ui import F1_CAPTION, comparison_table, console, progress_bar, scores_table, stage_callbacks, terrain_line
 from fedmap.config import dumps_toml, load_run, parse_set
 from fedmap.errors import FedmapError
 from fedmap.evaluation.scores import score_map
@@ -56,10 +56,8 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
         write_outputs(result, out, extra={"config.toml": dumps_toml(resolved), "run_config.json": to_json(resolved)},
                       export=export)
         on_stage(None, 0)
-    f = truth.fractions()
     fed = pconfig.federation
-    console.print(f"terrain: {source.label}, {truth.shape[0]}x{truth.shape[1]} cells of {truth.pixel_size:.3g} m; "
-                  f"{f['free']:.1%} free, {f['impassable']:.1%} impassable, {f['unknown']:.1%} unknown")
+    console.print(terrain_line(source.label, truth, pconfig.thresholds))
     console.print(f"method: {resolved['method']} ({pconfig.model.net} net, init {pconfig.model.init}, {fed.aggregator} x "
                   f"{fed.rounds} round(s), {pconfig.train.epochs} local epochs)")
     console.print(scores_table(result))
@@ -91,10 +89,8 @@ def _execute_many(methods: list[str], overrides: list[dict], *, out: Path, expor
         on_stage("write outputs", 0)
         write_comparison(results, out, extra=resolved_by, export=export)
         on_stage(None, 0)
-    f = truth.fractions()
-    console.print(f"terrain: {source.label}, {truth.shape[0]}x{truth.shape[1]} cells of {truth.pixel_size:.3g} m; "
-                  f"{f['free']:.1%} free, {f['impassable']:.1%} impassable, {f['unknown']:.1%} unknown; "
-                  f"{pconfig.explore.agents} rovers ({pconfig.explore.mode}), the same for every method")
+    console.print(f"{terrain_line(source.label, truth, pconfig.thresholds)}; {pconfig.explore.agents} rovers "
+                  f"({pconfig.explore.mode}), the same for every method")
     console.print(comparison_table(comparison_rows(results)))
     console.print(f"PSNR in dB; F1: strict A* path F1 over {pconfig.evaluate.pairs} start/goal pairs (an identical path "
                   "is a TP, a different path both an FP and an FN); B/rover: uplink bytes per rover per round, as "

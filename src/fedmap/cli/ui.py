@@ -30,9 +30,25 @@ from rich.progress import (
 from rich.table import Table
 
 from fedmap.evaluation.scores import MapScores
+from fedmap.maps.grid import GridMap
+from fedmap.maps.traversability import TraversabilityThresholds
 from fedmap.pipeline import PipelineResult
 
 console = Console()
+
+
+def terrain_line(label: str, truth: GridMap, thresholds: TraversabilityThresholds) -> str:
+    """One line on the ground truth: size, cell size, class shares, and the slope limit used
+    (a percentile's resolved to degrees, so ``--max-slope p75`` says what it meant)."""
+    f = truth.fractions()
+    line = (f"terrain: {label}, {truth.shape[0]}x{truth.shape[1]} cells of {truth.pixel_size:.3g} m; "
+            f"{f['free']:.1%} free, {f['impassable']:.1%} impassable, {f['unknown']:.1%} unknown")
+    limit = truth.meta.get("slope_limit_deg")
+    if limit is not None and thresholds.max_slope_percentile is not None:
+        line += f"; slope limit {limit:.3g} deg (p{thresholds.max_slope_percentile:g} of the map's slopes)"
+    elif limit is not None:
+        line += f"; slope limit {limit:.3g} deg"
+    return line
 
 #: How progress is shown, set once per command by the ``fedmap`` callback (:func:`set_output`).
 _OUTPUT: dict[str, bool] = {"quiet": False, "json": False}

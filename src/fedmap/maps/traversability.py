@@ -267,15 +267,22 @@ def window_steps(elevation: np.ndarray, pixel_size: float, size: int, max_step_m
     return out
 
 
+#: Shares of the known cells above which a traversability map is flagged (:func:`class_balance_warning`).
+MAX_IMPASSABLE, MAX_FREE = 0.80, 0.99
+
+
 def class_balance_warning(grid: GridMap, thresholds: TraversabilityThresholds,
                           slope_limit_deg: float | None = None) -> str | None:
-    """A one-line warning when the known cells are more than 99% free or 99% impassable."""
+    """A one-line warning when the known cells are more than :data:`MAX_IMPASSABLE` impassable
+    (a rover could go almost nowhere: its limits may not suit the pixel size) or more than
+    :data:`MAX_FREE` free (nothing to avoid). Planetary maps are often 75-85 % free (the
+    built-in terrains are), so a mostly free map alone is no warning."""
     known = grid.classes[grid.classes != UNKNOWN]
     if known.size == 0:
         return None
-    for cls, name in ((FREE, "free"), (IMPASSABLE, "impassable")):
+    for cls, name, most in ((FREE, "free", MAX_FREE), (IMPASSABLE, "impassable", MAX_IMPASSABLE)):
         frac = float((known == cls).mean())
-        if frac > 0.99:
+        if frac > most:
             return (f"the traversability map is {frac:.1%} {name} at {grid.pixel_size:.3g} m pixels with "
                     f"{thresholds.describe(slope_limit_deg)}: these limits may not suit this pixel size "
                     f"(other limits: --rover NAME, --max-slope DEG, or --max-slope p75 for a coarse DEM)")

@@ -34,6 +34,7 @@ from fedmap.config import (
     parse_set,
     read_toml,
     terrain_source,
+    used_thresholds,
     validate,
     with_rover_profile,
 )
@@ -294,7 +295,7 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
     if config.line_of_sight and source.kind == "map":
         raise FedmapError("line of sight needs the terrain's elevation (a DEM, tiles or built-in source, not a class map)")
     out = {"seed": resolved["seed"], "terrain": {k: v for k, v in source.to_dict().items() if k != "thresholds"},
-           "thresholds": resolved["thresholds"], "mission": {k: v for k, v in asdict(config).items()
+           "thresholds": used_thresholds(resolved["thresholds"]), "mission": {k: v for k, v in asdict(config).items()
                                                             if k not in ("link", "methods", "seed")},
            "link": config.link.to_dict(), "strategies": methods}
     return config, source, out
