@@ -63,7 +63,7 @@ def test_run_with_rover_percentile_and_exports_overlays_the_dem(tmp_path, capsys
     assert truth.pixel_size == pytest.approx(0.625) and "UTM zone 12N" in truth.crs
     assert truth.transform @ (64, 64) == pytest.approx(t @ (80, 80)) and truth.transform @ (0, 0) == (t.c, t.f)
     np.testing.assert_array_equal(truth.classes, load_map(out / "truth.png").classes)
-    for name in ("global_map", "refined_map", "agent1_local", "agent2_local"):
+    for name in ("global_map", "refined_map", "rover0_local", "rover1_local"):
         assert load_map(out / f"{name}.tif").transform == truth.transform
         assert (out / f"{name}.yaml").is_file() and (out / f"{name}.pgm").is_file()
     ros = yaml.safe_load((out / "truth.yaml").read_text())

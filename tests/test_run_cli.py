@@ -92,7 +92,8 @@ def resolved_thresholds(resolved):
     (["--dem", "notes.tif"], "error: cannot read DEM {tmp}/notes.tif: it is a text file, not a raster (the wrong file?)"),
     (["--dem", "noise.tif"], "error: cannot read DEM {tmp}/noise.tif: GDAL does not recognise it as a raster (a damaged "
                              "file, or not what its .tif name says)"),
-    (["--dem", "site.tif", "--size", "-64"], "error: terrain size is the side to resample to, at least 3 cells, got -64"),
+    (["--dem", "site.tif", "--size", "-64"], "error: terrain size must be at least 3 cells (the side the map is "
+                                             "resampled to), got -64"),
 ])
 def test_bad_run_input_one_line_exit_2(tmp_path, capsys, monkeypatch, args, message):
     monkeypatch.chdir(tmp_path)

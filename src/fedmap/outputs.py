@@ -71,7 +71,7 @@ def fig4_panel(local_maps: list[GridMap], truth: GridMap, global_classes: np.nda
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = [(f"agent {k + 1} local map", m.classes) for k, m in enumerate(local_maps)]
+    panels = [(f"rover {k} local map", m.classes) for k, m in enumerate(local_maps)]
     panels += [("ground truth", truth.classes), ("federated global map", global_classes), ("refined global map", refined)]
     n = len(panels)
     fig, axes = plt.subplots(1, n, figsize=(2.4 * n, 2.9), dpi=110)
@@ -113,15 +113,15 @@ def write_outputs(result: PipelineResult, out_dir: str | Path, *, extra: dict[st
         save_map(result.truth.with_classes(result.global_classes, "federated global map"), tmp / "global_map.png")
         save_map(result.truth.with_classes(result.refined, "refined global map"), tmp / "refined_map.png")
         for k, m in enumerate(result.local_maps):
-            save_map(m, tmp / f"agent{k + 1}_local.png")
+            save_map(m, tmp / f"rover{k}_local.png")
         if export:
             maps = {"truth": result.truth,
                     "global_map": result.truth.with_classes(result.global_classes, "federated global map"),
                     "refined_map": result.truth.with_classes(result.refined, "refined global map"),
-                    **{f"agent{k + 1}_local": m for k, m in enumerate(result.local_maps)}}
+                    **{f"rover{k}_local": m for k, m in enumerate(result.local_maps)}}
             export_maps(maps, tmp, check_formats(export), frame=result.truth)
         c = result.config
-        init = "zero grids (empty-map prior)" if c.model.net == "grid" else f"init {c.model.init}"
+        init = c.model.start
         side = result.truth.shape[0]
         title = (f"{c.title} {side}x{side}, {c.explore.agents} agents ({c.explore.mode}), {c.model.net} net, {init}, "
                  f"{c.federation.aggregator} x {c.federation.rounds} round(s), {c.train.epochs} local epochs")
@@ -156,7 +156,7 @@ def comparison_panel(results: dict[str, PipelineResult], path: Path, *, title: s
     import matplotlib.pyplot as plt
 
     first = next(iter(results.values()))
-    top = [(f"rover {k + 1} local map", m.classes) for k, m in enumerate(first.local_maps)]
+    top = [(f"rover {k} local map", m.classes) for k, m in enumerate(first.local_maps)]
     top.append(("ground truth", first.truth.classes))
     ncols = max(len(top), 2)
     fig, axes = plt.subplots(1 + len(results), ncols, figsize=(2.3 * ncols, 2.5 * (1 + len(results))), dpi=110,

@@ -58,7 +58,7 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
         on_stage(None, 0)
     fed = pconfig.federation
     console.print(terrain_line(source.label, truth, pconfig.thresholds))
-    console.print(f"method: {resolved['method']} ({pconfig.model.net} net, init {pconfig.model.init}, {fed.aggregator} x "
+    console.print(f"method: {resolved['method']} ({pconfig.model.net} net, {pconfig.model.start}, {fed.aggregator} x "
                   f"{fed.rounds} round(s), {pconfig.train.epochs} local epochs)")
     console.print(scores_table(result))
     ev = pconfig.evaluate

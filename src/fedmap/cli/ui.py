@@ -243,7 +243,7 @@ def scores_table(result: PipelineResult) -> Table:
     rows: list[tuple[str, MapScores]] = [("federated", result.global_scores), ("fed.+refined", result.refined_scores)]
     if result.central_scores is not None:
         rows.append(("central (bound)", result.central_scores))
-    rows += [(f"rover {k + 1} alone", s) for k, s in enumerate(result.agent_scores)]
+    rows += [(f"rover {k} alone", s) for k, s in enumerate(result.agent_scores)]
     for name, m in rows:
         p, imp, pas = m.path, m.paper_unknown_impassable, m.paper_unknown_passable
         t.add_row(name, fmt(m.psnr), fmt(m.ssim, 3), fmt(m.accuracy, 3), fmt(p.precision), fmt(p.recall), fmt(p.f1),

@@ -107,7 +107,8 @@ class TerrainSource:
             if isinstance(crop, list):
                 object.__setattr__(self, "crop", tuple(crop))
         if self.size is not None and (isinstance(self.size, bool) or not isinstance(self.size, int) or self.size < 3):
-            raise FedmapError(f"terrain size is the side to resample to, at least 3 cells, got {self.size!r}")
+            raise FedmapError(f"terrain size must be at least 3 cells (the side the map is resampled to), "
+                              f"got {self.size!r}")
         if self.resample not in RESAMPLE_METHODS:
             raise FedmapError(f"unknown resample method {self.resample!r}; choose one of {', '.join(RESAMPLE_METHODS)}")
         unknown = sorted(set(self.options) - set(READER_OPTIONS))

@@ -64,6 +64,15 @@ class ModelConfig:
         if isinstance(self.prior_steps, bool) or not isinstance(self.prior_steps, int) or self.prior_steps < 0:
             raise FedmapError(f"prior_steps must be an integer >= 0, got {self.prior_steps!r}")
 
+    @property
+    def start(self) -> str:
+        """The initial weights in words, the same in the console and the figures."""
+        if self.init == "random":
+            return "zero grids (empty-map prior)" if self.net == "grid" else "random init"
+        if self.init == "empty":
+            return "empty-map prior"
+        return f"meta-init ({Path(self.init_weights).name})" if self.init_weights else "meta-init (shipped)"
+
     def network(self, side: int) -> NetConfig:
         """The network of this config for a ``side x side`` map."""
         return preset(self.net, side)
