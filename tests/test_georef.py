@@ -114,3 +114,34 @@ def test_body_radii_sphere_and_wgs84_by_hand():
     assert dx == pytest.approx(dy * math.cos(math.radians(0.5)))
     with pytest.raises(FedmapError, match="not a coordinate reference system"):
         crs_wkt("EPSG:999999")
+
+
+def test_a_runs_png_maps_keep_their_place_on_the_body(tmp_path, capsys):
+    """The README pairs `fedmap export truth.png --format geotiff` with "overlays its DEM in
+    QGIS": a run's PNGs carry the truth's CRS and transform (text chunks, and a GDAL .aux.xml
+    sidecar that QGIS reads), and exporting one keeps them, as rasterio reads it back."""
+    from fedmap.cli import main
+    from fedmap.maps.terrain import generate_dem
+
+    dem = geo_dem(64, 64, 2.0)
+    z = generate_dem("mars", 64, seed=2, pixel_size=2.0).elevation.astype(np.float32)
+    with rasterio.open(tmp_path / "site.tif", "w", driver="GTiff", height=64, width=64, count=1, dtype="float32",
+                       crs=UTM, transform=dem.transform) as dst:
+        dst.write(z, 1)
+    out = tmp_path / "run"
+    rc = main(["run", "--dem", str(tmp_path / "site.tif"), "--max-slope", "p75", "--local-epochs", "1",
+               "--no-central", "--pairs", "3", "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    for name in ("truth.png", "refined_map.png", "rover0_local.png"):
+        with rasterio.open(out / name) as src:  # GDAL reads the sidecar: what QGIS sees
+            assert src.crs.to_epsg() == 32612 and src.transform == dem.transform, name
+    rc = main(["export", str(out / "truth.png"), "--format", "geotiff", "-o", str(tmp_path / "truth.tif")])
+    assert rc == 0
+    assert "no georeferencing" not in capsys.readouterr().out
+    with rasterio.open(tmp_path / "truth.tif") as src:
+        assert src.crs.to_epsg() == 32612 and src.transform == dem.transform
+        truth = load_map(out / "truth.png")
+        np.testing.assert_array_equal(src.read(1), truth.classes)
+    # a map in a local frame writes no sidecar
+    save_map(GridMap(np.zeros((4, 4), np.uint8), 1.0, "local"), tmp_path / "local.png")
+    assert not (tmp_path / "local.png.aux.xml").exists() and load_map(tmp_path / "local.png").transform is None

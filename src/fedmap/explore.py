@@ -163,7 +163,8 @@ def explore(
     local = []
     for k, mask in enumerate(seen):
         classes = np.where(mask, truth.classes, UNKNOWN).astype(np.uint8)
-        m = GridMap(classes, truth.pixel_size, f"agent{k}:{mode}", {"agent": k, "mode": mode})
+        m = GridMap(classes, truth.pixel_size, f"agent{k}:{mode}", {"agent": k, "mode": mode},
+                    transform=truth.transform, crs=truth.crs)  # in the global frame: the truth's place
         if m.n_known == 0:
             raise FedmapError(f"agent {k} observed nothing (its region is all nodata)")
         local.append(m)

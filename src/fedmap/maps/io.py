@@ -108,6 +108,23 @@ MAP_SUFFIXES: tuple[str, ...] = (".png", ".npy", ".tif", ".tiff", ".yaml", ".yml
 SQUARE_TOLERANCE: float = 0.01
 
 PNG_PIXEL_SIZE_KEY = "fedmap:pixel_size"
+#: PNG text chunks that carry a map's place on its body (the affine transform, the CRS as WKT).
+PNG_TRANSFORM_KEY, PNG_CRS_KEY = "fedmap:transform", "fedmap:crs"
+
+
+def pam_sidecar(grid: GridMap) -> bytes | None:
+    """GDAL's ``.aux.xml`` (PAM) for a georeferenced map saved as PNG: with it, GDAL, QGIS
+    and rasterio place the PNG on its body (None for a map in a local frame)."""
+    if grid.transform is None:
+        return None
+    t = grid.transform
+    gt = ", ".join(repr(float(v)) for v in (t.c, t.a, t.b, t.f, t.d, t.e))  # GDAL's geotransform order
+    srs = "" if not grid.crs else f"  <SRS>{_xml_escape(grid.crs)}</SRS>\n"
+    return f"<PAMDataset>\n{srs}  <GeoTransform>{gt}</GeoTransform>\n</PAMDataset>\n".encode()
+
+
+def _xml_escape(text: str) -> str:
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
 
 #: Options of raw samples read through a GDAL raw VRT.
 RAW_OPTIONS: tuple[str, ...] = ("shape", "dtype", "byteorder", "header_bytes")
@@ -171,7 +188,14 @@ def save_map(grid: GridMap, path) -> None:
         rgb8 = np.rint(render_classes(grid.classes) * 255.0).astype(np.uint8)
         info = PngInfo()
         info.add_text(PNG_PIXEL_SIZE_KEY, repr(float(grid.pixel_size)))
+        if grid.transform is not None:  # the map keeps its place on the body (and a GDAL sidecar)
+            info.add_text(PNG_TRANSFORM_KEY, " ".join(repr(float(v)) for v in tuple(grid.transform)[:6]))
+            if grid.crs:
+                info.add_text(PNG_CRS_KEY, grid.crs)
         Image.fromarray(rgb8).save(buf, format="PNG", pnginfo=info)
+        sidecar = pam_sidecar(grid)
+        if sidecar is not None:
+            atomic_write_bytes(path.with_name(path.name + ".aux.xml"), sidecar)
     else:
         np.save(buf, np.ascontiguousarray(grid.classes, dtype=np.uint8), allow_pickle=False)
     atomic_write_bytes(path, buf.getvalue())
@@ -233,7 +257,14 @@ def _read_png_map(path: Path) -> tuple[np.ndarray, dict, float | None]:
             raise FedmapError(
                 f"cannot read map {path}: bad {PNG_PIXEL_SIZE_KEY} text {text[PNG_PIXEL_SIZE_KEY]!r}"
             ) from exc
-    return classes, {"png_mode": mode, "decoded_as": "classes" if kind == "gray" else "nearest colour"}, stored_px
+    meta: dict = {"png_mode": mode, "decoded_as": "classes" if kind == "gray" else "nearest colour"}
+    if PNG_TRANSFORM_KEY in text:
+        try:
+            meta["_transform"] = Affine(*(float(v) for v in text[PNG_TRANSFORM_KEY].split()))
+        except (TypeError, ValueError) as exc:
+            raise FedmapError(f"cannot read map {path}: bad {PNG_TRANSFORM_KEY} text {text[PNG_TRANSFORM_KEY]!r}") from exc
+        meta["_crs"] = text.get(PNG_CRS_KEY) or None
+    return classes, meta, stored_px
 
 
 def _read_npy_map(path: Path) -> tuple[np.ndarray, dict]:
@@ -288,7 +319,8 @@ def load_map(path, *, pixel_size: float | None = None) -> GridMap:
         px, meta["pixel_size_from"] = 1.0, "default"
     if classes.ndim != 2 or min(classes.shape) <= 0:
         raise FedmapError(f"map {path} must be a non-empty 2-D grid, got shape {classes.shape}")
-    return GridMap(classes, px, str(path), meta)
+    transform, crs = meta.pop("_transform", None), meta.pop("_crs", None)  # a PNG fedmap georeferenced
+    return GridMap(classes, px, str(path), meta, transform=transform, crs=crs)
 
 
 # --------------------------------------------------------------------------- DEMs
