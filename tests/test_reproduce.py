@@ -60,6 +60,8 @@ def test_reproduce_report(tmp_path):
     md = (out / "report.md").read_text()
     assert "Table II" in md and "paper preset, FedYogi (eta=0.01)" in md
     assert "| paper F1 | paper F1 (u.p.) |" in md and "paper F1: the paper's text read literally" in md
+    ep = data["config"]["curve_epochs"]  # the rounds table says what a round is there
+    assert f"A round here is {ep} local epochs" in md and f"R=2 ({2 * ep} ep.)" in md
     assert all("f1_paper" in p for pts in data["rounds_curve"]["mars"].values() for p in pts)
     for fig in ["rounds_curve.png", *data["terrains"]["mars"]["figures"].values()]:
         with Image.open(out / fig) as im:

@@ -335,9 +335,12 @@ def markdown(result: dict) -> str:
            + ". The paper does not say how its A* treats UNKNOWN cells: compare its F1 with both paper F1 columns.",
            ""]
     md += ["## Global map quality vs rounds", "", f"![rounds curve]({result['figures']['rounds_curve']})", "",
-           "Each cell: PSNR / strict F1 / paper F1 (UNKNOWN impassable).", "",
-           "| terrain | method | " + " | ".join(f"R={p['round']}" for p in next(iter(next(iter(
-               result["rounds_curve"].values())).values()))) + " |",
+           f"A round here is {c['curve_epochs']} local epochs (Table II's rows train {c['epochs']} local epochs in "
+           "one round, so its R = 1 is not this table's R = 1). Each cell: PSNR / strict F1 / paper F1 (UNKNOWN "
+           "impassable).", "",
+           "| terrain | method | " + " | ".join(f"R={p['round']} ({p['round'] * c['curve_epochs']} ep.)"
+                                                for p in next(iter(next(iter(result["rounds_curve"].values())).values())))
+           + " |",
            "|---|---|" + "---:|" * c["curve_rounds"]]
     for terrain, by_method in result["rounds_curve"].items():
         for method, pts in by_method.items():
