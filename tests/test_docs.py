@@ -121,3 +121,10 @@ def test_mkdocs_build_strict(tmp_path):
     assert "WARNING" not in r.stderr + r.stdout, r.stderr
     assert (tmp_path / "site" / "api" / "pipeline" / "index.html").is_file()
     assert "run_pipeline" in (tmp_path / "site" / "api" / "pipeline" / "index.html").read_text()
+
+
+def test_the_api_index_lists_every_api_page():
+    index = (ROOT / "docs" / "api" / "index.md").read_text()
+    pages = sorted(p.name for p in (ROOT / "docs" / "api").glob("*.md") if p.name != "index.md")
+    missing = [p for p in pages if f"]({p})" not in index]
+    assert not missing, f"docs/api/index.md does not list {missing}"
