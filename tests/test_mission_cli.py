@@ -145,3 +145,36 @@ def _report_links_only_files_that_exist(out: Path) -> None:
 
     named = re.findall(r"`([\w.-]+\.(?:png|gif|mp4|json|toml|md))`", (out / "report.md").read_text())
     assert named and all((out / n).is_file() for n in named), [n for n in named if not (out / n).is_file()]
+
+
+def test_report_flags_undelivered_messages_and_names_the_best_map(tmp_path, capsys):
+    """report.md says which messages did not arrive and why (counted here from the ledger),
+    each strategy's belief accuracy at step 0, and one computed line naming the best map and
+    the best map per byte (recomputed here from metrics.json)."""
+    out = tmp_path / "m"
+    rc, stdout, err = _run([*TINY, "--strategies", "none,raw", "--uplink-bytes", "60", "--loss", "0.3",
+                            "--no-animation", "-o", out], capsys)
+    assert rc == 0, err
+    metrics = json.loads((out / "metrics.json").read_text())["strategies"]
+    report = (out / "report.md").read_text()
+    raw_row = next(line for line in report.splitlines() if line.startswith("| raw |")).split(" | ")
+    header = next(line for line in report.splitlines() if line.startswith("| strategy |")).split(" | ")
+    cell = dict(zip(header, raw_row))
+    for direction, col in (("up", "uplinks not delivered"), ("down", "downlinks not delivered |")):
+        counts: dict = {}
+        for m in metrics["raw"]["ledger"]:
+            if m["direction"] == direction and m["status"] != "delivered":
+                counts[m["status"]] = counts.get(m["status"], 0) + 1
+        want = ", ".join(f"{counts[s]} {s}" for s in ("over budget", "lost", "stale", "out of range", "rejected")
+                         if s in counts) or "-"
+        assert cell[col].rstrip(" |") == want
+    assert "over budget" in cell["uplinks not delivered"]  # 60 B is tight: the test exercises the flag
+    acc0 = sum(metrics["raw"]["series"]["accuracy"][0]) / 2
+    assert cell["belief acc. at step 0"] == f"{acc0:.3f}"
+    acc = {n: metrics[n]["summary"]["final"]["belief_accuracy_mean"] for n in ("none", "raw")}
+    best = "raw" if acc["raw"] > acc["none"] else "none"
+    assert f"Best map: **{best}**" in report
+    spent = sum(metrics["raw"]["summary"]["bytes"].values())
+    if acc["raw"] > acc["none"] and spent:
+        assert f"Best map per byte: **raw** (+{(acc['raw'] - acc['none']) * 100:.1f} accuracy points" in report
+    assert f"Best map: {best}" in " ".join(stdout.split())  # the console says it too

@@ -17,7 +17,7 @@ from fedmap.cli.ui import console, fit, progress_bar, terrain_line
 from fedmap.config import dumps_toml
 from fedmap.maps.sources import load_source_dem, load_truth
 from fedmap.mission import load_mission, run_mission
-from fedmap.mission.report import table_rows, write_mission
+from fedmap.mission.report import table_rows, verdict, write_mission
 from fedmap.mission.settings import MISSION_SECTIONS, parse_sets
 from fedmap.pipeline import PipelineConfig
 
@@ -70,7 +70,9 @@ def mission(
     console.print(terrain_line(source.label, truth, source.thresholds))
     console.print("50/80/95 %: first step the team's coverage reached it; F1>=.9: first step a rover's belief gave "
                   "strict A* path F1 >= 0.9; cov., acc.: coverage and mean belief accuracy at the end; glob.F1: the "
-                  "base's map, strict; up/down: bytes of the whole team. All columns: report.md.")
+                  "base's map, strict; team up/down B: bytes of the whole team over the mission; up lost/over: "
+                  "uplink messages that did not arrive, by why. All columns: report.md.")
+    console.print(verdict(result).replace("**", ""))
     console.print(f"outputs: {out}/  (metrics.json, report.md, coverage.png, f1.png, accuracy_bytes.png"
                   f"{', mission_<strategy>.gif' if animation else ''})")
     console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
@@ -79,7 +81,7 @@ def mission(
 #: Columns of the console table (report.md has them all) -> their short headers.
 _CONSOLE = {"strategy": "strategy", "steps to 50 %": "50 %", "steps to 80 %": "80 %", "steps to 95 %": "95 %",
             "belief F1≥0.9 at": "F1>=.9", "coverage": "cov.", "belief acc.": "acc.", "global F1": "glob.F1",
-            "bytes up": "up B", "bytes down": "down B"}
+            "team bytes up": "team up B", "team bytes down": "team down B", "uplinks not delivered": "up lost/over"}
 
 
 def _toml_ready(d: dict) -> dict:

@@ -77,17 +77,57 @@ COLUMNS: dict[str, tuple[Callable[[MissionSummary], Any], int]] = {
     "global SSIM": (lambda s: s.final_global_ssim, 3),
     "global F1": (lambda s: s.final_global_f1, 2),
     "global tol.F1": (lambda s: s.final_global_f1_tolerant, 2),
-    "bytes up": (lambda s: s.bytes_up, 0),
-    "bytes down": (lambda s: s.bytes_down, 0),
+    "team bytes up": (lambda s: s.bytes_up, 0),
+    "team bytes down": (lambda s: s.bytes_down, 0),
 }
+
+#: Ledger statuses of a message that did not arrive, in the order the report names them.
+UNDELIVERED = ("over budget", "lost", "stale", "out of range", "rejected")
+
+
+def undelivered(summary: MissionSummary, direction: str) -> str:
+    """``"30 over budget, 2 lost"``: the messages of one direction (``up`` / ``down``) that
+    did not arrive, by why (``-``: none)."""
+    parts = [f"{summary.messages[f'{direction}_{st}']} {st}" for st in UNDELIVERED
+             if summary.messages.get(f"{direction}_{st}")]
+    return ", ".join(parts) or "-"
+
+
+def verdict(result: MissionResult) -> str:
+    """One computed line: which strategy left the rovers the best map, and which gained the
+    most map per byte on the link (``central``, the free oracle, is left out of both)."""
+    runs = {n: r for n, r in result.runs.items() if n != "central"}
+    if not runs:
+        return "Only the central oracle ran: nothing to compare."
+    acc = {n: r.summary.final_belief_accuracy_mean for n, r in runs.items()}
+    best = max(acc, key=lambda n: (acc[n], -(runs[n].summary.bytes_up + runs[n].summary.bytes_down)))
+    line = f"Best map: **{best}** (belief accuracy {acc[best]:.3f}"
+    if "none" in runs and best != "none":
+        line += f", against {acc['none']:.3f} sharing nothing"
+    line += ")."
+    # what the bytes bought: the accuracy above sharing nothing (or, without `none`, above step 0)
+    spent = {n: r.summary.bytes_up + r.summary.bytes_down for n, r in runs.items()}
+    base = {n: acc["none"] if "none" in runs else float(np.mean(r.series.accuracy[0])) for n, r in runs.items()}
+    gain = {n: (acc[n] - base[n]) / spent[n] for n in runs if spent[n] > 0 and acc[n] > base[n]}
+    than = "sharing nothing" if "none" in runs else "step 0"
+    if gain:
+        top = max(gain, key=lambda n: gain[n])
+        line += (f" Best map per byte: **{top}** (+{(acc[top] - base[top]) * 100:.1f} accuracy points over {than} "
+                 f"for {spent[top]:,} B of the team's traffic).")
+    elif any(spent.values()):
+        line += f" No strategy that used the link gave a better map than {than}."
+    return line
 
 
 def table_rows(result: MissionResult) -> tuple[list[str], list[list[str]]]:
-    """Header and one row per strategy of the side-by-side table (final values)."""
-    header = ["strategy", *COLUMNS]
+    """Header and one row per strategy of the side-by-side table (final values, the belief
+    accuracy at step 0 before any message, and the messages that did not arrive)."""
+    header = ["strategy", *COLUMNS, "belief acc. at step 0", "uplinks not delivered", "downlinks not delivered"]
     rows = []
     for name, run in result.runs.items():
-        rows.append([name, *(_fmt(get(run.summary), nd) for get, nd in COLUMNS.values())])
+        rows.append([name, *(_fmt(get(run.summary), nd) for get, nd in COLUMNS.values()),
+                     _fmt(float(np.mean(run.series.accuracy[0])), 3),
+                     undelivered(run.summary, "up"), undelivered(run.summary, "down")])
     return header, rows
 
 
@@ -118,8 +158,11 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         f"{'unlimited' if link.max_range is None else f'{link.max_range:g} cells'}.", "",
         "Final values at the last step; *steps to* and *at* columns are the first step a level was reached "
         f"(`-`: never). Path F1 is strict (A*, {c.eval_pairs} seeded start/goal pairs, UNKNOWN impassable), "
-        "scored at every sync and at the last step; belief columns average the rovers.", "",
+        "scored at every sync and at the last step; belief columns average the rovers; *belief acc. at step 0* "
+        "is before any message (a model strategy's starts from its initial model's rendering). Bytes are the "
+        "whole team's, summed over the rovers and the mission; *not delivered* counts messages by why.", "",
         side_by_side(result),
+        verdict(result), "",
         f"Wall time: {result.seconds:.1f} s ("
         + ", ".join(f"{n} {r.seconds:.1f} s" for n, r in result.runs.items()) + ").", "",
         "Plots: `coverage.png`, `f1.png`, `accuracy_bytes.png`; animations: "
