@@ -13,6 +13,7 @@ from PIL import Image
 
 from fedmap.cli import main
 from fedmap.mission import load_mission
+from fedmap.mission.report import LABEL_BAND
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 TINY = ["--size", "64", "--steps", "12", "--sync-every", "4", "--rovers", "2", "--sensor-radius", "4"]
@@ -40,7 +41,7 @@ def test_mission_cli_writes_every_output(tmp_path, capsys):
     for m in raw["ledger"]:
         if m["direction"] == "up":
             up[m["rover"]] += m["bytes"]
-    assert raw["series"]["bytes_up"][-1] == up and sum(up) == raw["summary"]["bytes"]["up"]
+    assert raw["series"]["bytes_up_per_rover"][-1] == up and sum(up) == raw["summary"]["team_bytes"]["up"]
     report = (out / "report.md").read_text()
     for name in ("none", "raw", "central"):
         assert f"| {name} |" in report
@@ -49,8 +50,15 @@ def test_mission_cli_writes_every_output(tmp_path, capsys):
             assert im.size[0] > 100
     with Image.open(out / "mission_raw.gif") as gif:
         assert gif.n_frames == 13  # one frame per step (12 steps + the start)
-        # truth | 2 beliefs | global, each 64 wide, 2-cell gaps, upscaled x2
-        assert gif.size == (2 * (4 * 64 + 3 * 2), 2 * 64)
+        # truth | 2 beliefs | global, each 64 wide, 2-cell gaps, upscaled x2; a title band and a footer
+        assert gif.size == (2 * (4 * 64 + 3 * 2), 2 * 64 + 2 * LABEL_BAND)
+        first = np.asarray(gif.convert("RGB"))
+        gif.seek(12)
+        last = np.asarray(gif.convert("RGB"))
+    # the title band is written (black text on white), the same on every frame; the footer
+    # (step, bytes so far) changes from the first frame to the last
+    assert (first[:LABEL_BAND] < 100).any() and np.array_equal(first[:LABEL_BAND], last[:LABEL_BAND])
+    assert not np.array_equal(first[-LABEL_BAND:], last[-LABEL_BAND:])
     resolved = tomllib.loads((out / "mission.toml").read_text())
     assert resolved["mission"]["steps"] == 12 and resolved["link"]["loss"] == 0.5
 
@@ -174,7 +182,7 @@ def test_report_flags_undelivered_messages_and_names_the_best_map(tmp_path, caps
     acc = {n: metrics[n]["summary"]["final"]["belief_accuracy_mean"] for n in ("none", "raw")}
     best = "raw" if acc["raw"] > acc["none"] else "none"
     assert f"Best map: **{best}**" in report
-    spent = sum(metrics["raw"]["summary"]["bytes"].values())
+    spent = sum(metrics["raw"]["summary"]["team_bytes"].values())
     if acc["raw"] > acc["none"] and spent:
         assert f"Best map per byte: **raw** (+{(acc['raw'] - acc['none']) * 100:.1f} accuracy points" in report
     assert f"Best map: {best}" in " ".join(stdout.split())  # the console says it too

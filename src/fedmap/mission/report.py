@@ -243,7 +243,8 @@ def _mark(img: np.ndarray, cells, colour, alpha: float = 1.0) -> None:
 
 
 def frames_rgb(result: MissionResult, name: str, *, scale: int = 2) -> list[np.ndarray]:
-    """The animation frames of one strategy: truth | each rover's belief | global map."""
+    """The animation frames of one strategy: truth | each rover's belief | global map, under a
+    band naming the panels and above one with the step, the team's bytes so far and the legend."""
     run = result.runs[name]
     h, w = result.truth.shape
     ring = disk_offsets(result.config.sensor_radius)
@@ -269,8 +270,32 @@ def frames_rgb(result: MissionResult, name: str, *, scale: int = 2) -> list[np.n
         panels.append(g)
         row = np.concatenate([x for p in panels for x in (p, gap)][:-1], axis=1)
         frame = (np.clip(row, 0, 1) * 255).astype(np.uint8)
-        out.append(np.repeat(np.repeat(frame, scale, axis=0), scale, axis=1))
+        up, down = (sum(b[f.step]) for b in (run.series.bytes_up, run.series.bytes_down))
+        out.append(_labelled(np.repeat(np.repeat(frame, scale, axis=0), scale, axis=1),
+                             ["truth", *(f"rover {k}" for k in range(len(f.beliefs))), "global map"],
+                             (w + 2) * scale,
+                             f"{name}  step {f.step}/{result.config.steps}  team bytes so far: {up:,} up, {down:,} down"
+                             "   green free, red impassable, grey unknown"))
     return out
+
+
+#: Heights in pixels of a frame's title band (panel names) and footer (step, bytes, legend).
+LABEL_BAND = 14
+
+
+def _labelled(frame: np.ndarray, titles: list[str], stride: int, footer: str) -> np.ndarray:
+    """``frame`` with a white band above it naming each panel (panels every ``stride``
+    pixels) and one below it with ``footer``."""
+    from PIL import ImageDraw
+
+    h, w, _ = frame.shape
+    canvas = Image.new("RGB", (w, h + 2 * LABEL_BAND), (255, 255, 255))
+    canvas.paste(Image.fromarray(frame), (0, LABEL_BAND))
+    draw = ImageDraw.Draw(canvas)
+    for i, t in enumerate(titles):
+        draw.text((i * stride + 2, 1), t, fill=(0, 0, 0))
+    draw.text((2, h + LABEL_BAND + 1), footer, fill=(0, 0, 0))
+    return np.asarray(canvas)
 
 
 def gif_bytes(frames: list[np.ndarray], *, ms: int = 120) -> bytes:

@@ -108,7 +108,8 @@ class TimeSeries:
         """The ``series`` of ``metrics.json``."""
         return {"step": list(self.step), "coverage": list(self.coverage), "redundant": list(self.redundant),
                 "accuracy": [list(a) for a in self.accuracy], "distance": [list(d) for d in self.distance],
-                "bytes_up": [list(b) for b in self.bytes_up], "bytes_down": [list(b) for b in self.bytes_down],
+                "bytes_up_per_rover": [list(b) for b in self.bytes_up],
+                "bytes_down_per_rover": [list(b) for b in self.bytes_down],
                 "up_delivered": list(self.up_delivered), "up_dropped": list(self.up_dropped),
                 "down_delivered": list(self.down_delivered), "down_dropped": list(self.down_dropped),
                 "eval": self.eval.to_dict()}
@@ -151,7 +152,7 @@ class MissionSummary:
                       "global_ssim": self.final_global_ssim, "global_accuracy": self.final_global_accuracy,
                       "global_f1": self.final_global_f1, "global_f1_tolerant": self.final_global_f1_tolerant,
                       "belief_f1_mean": self.final_belief_f1_mean},
-            "bytes": {"up": self.bytes_up, "down": self.bytes_down},
+            "team_bytes": {"up": self.bytes_up, "down": self.bytes_down},
             "messages": dict(self.messages),
         }
 
