@@ -116,23 +116,27 @@ def initial_weights(config: PipelineConfig, side: int) -> Weights:
 
 @dataclass
 class PipelineResult:
-    """Everything a run computed; :attr:`metrics` is its ``metrics.json`` (without timings)."""
+    """Everything a run computed; :attr:`metrics` is its ``metrics.json`` (without timings).
 
-    config: PipelineConfig
-    truth: GridMap
-    local_maps: list[GridMap]
-    model: CoordNet | GridNet
-    global_rgb: np.ndarray
-    global_classes: np.ndarray
-    refined: np.ndarray
-    federation: FederationResult
-    global_scores: MapScores
-    refined_scores: MapScores
-    agent_scores: list[MapScores]
-    central_scores: MapScores | None = None
-    central_steps: int | None = None
-    timings: dict = field(default_factory=dict)
-    central_classes: np.ndarray | None = None  # the centralised bound's class map
+    ``result.global_scores.path.f1`` is the federated map's strict path F1,
+    ``result.federation.total_bytes().uplink`` the bytes every rover sent in all rounds.
+    """
+
+    config: PipelineConfig  #: the run's settings
+    truth: GridMap  #: the ground truth
+    local_maps: list[GridMap]  #: rover k's observations (UNKNOWN elsewhere), in the truth's frame
+    model: CoordNet | GridNet  #: the final global model, as the rovers decoded it
+    global_rgb: np.ndarray  #: (H, W, 3) in [0, 1]: the global model's rendering
+    global_classes: np.ndarray  #: (H, W) classes of the rendering (nearest colour)
+    refined: np.ndarray  #: (H, W) classes after gap filling and blob removal
+    federation: FederationResult  #: rounds (typed records), the byte ledger, the aggregator
+    global_scores: MapScores  #: the federated map against the truth
+    refined_scores: MapScores  #: the refined map against the truth
+    agent_scores: list[MapScores]  #: each rover's own map against the truth
+    central_scores: MapScores | None = None  #: one network fitted to all the observations (the upper bound)
+    central_steps: int | None = None  #: its training steps (rounds x local epochs)
+    timings: dict = field(default_factory=dict)  #: stage -> seconds
+    central_classes: np.ndarray | None = None  #: the centralised bound's class map
 
     @property
     def metrics(self) -> dict:

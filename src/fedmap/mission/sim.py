@@ -172,13 +172,13 @@ class Frame:
 class StrategyRun:
     """One strategy's mission: time series, summary, ledger, and what the animation draws."""
 
-    name: str
-    series: TimeSeries
-    summary: MissionSummary
-    ledger: list[Message]
-    frames: list[Frame]
-    trails: list[list[Cell]]
-    seconds: float
+    name: str  #: the strategy (none, raw, paper, fedmap, central)
+    series: TimeSeries  #: per step (0 to steps) and per evaluation step
+    summary: MissionSummary  #: first steps a level was reached, and the final values
+    ledger: list[Message]  #: one entry per message, with its bytes and its fate
+    frames: list[Frame]  #: what the animation draws, one per step
+    trails: list[list[Cell]]  #: each rover's cells driven, in order
+    seconds: float  #: wall time of this strategy's run, seconds
     #: the strategy's :attr:`~fedmap.mission.strategies.Strategy.dropped` (None: it sends no model updates)
     dropped_updates: tuple[DroppedUpdate, ...] | None = None
     strategy: Strategy | None = None  # the final state (for inspection; not written)
@@ -194,14 +194,19 @@ class StrategyRun:
 
 @dataclass(frozen=True)
 class MissionResult:
-    """Every strategy's run of one mission (same terrain, starts, base and link)."""
+    """Every strategy's run of one mission (same terrain, starts, base and link).
 
-    config: MissionConfig
-    truth: GridMap
-    starts: list[Cell]
-    base: Cell
-    runs: dict[str, StrategyRun]
-    seconds: float
+    A final value is ``result.runs["raw"].summary.final_global_f1``; a curve is
+    ``result.runs["raw"].series.coverage`` (one value per step); every message is in
+    ``result.runs["raw"].ledger``.
+    """
+
+    config: MissionConfig  #: the mission as run
+    truth: GridMap  #: the ground truth the rovers explore
+    starts: list[Cell]  #: each rover's start cell (row, col)
+    base: Cell  #: the base station's cell (row, col)
+    runs: dict[str, StrategyRun]  #: strategy name -> its run, in the order they ran
+    seconds: float  #: wall time of the whole mission, seconds
 
 
 def place_starts(truth: GridMap, config: MissionConfig) -> tuple[list[Cell], Cell]:
