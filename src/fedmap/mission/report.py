@@ -212,10 +212,15 @@ def plot_accuracy_bytes(result: MissionResult) -> bytes:
         n = result.config.rovers
         x = [(sum(u) + sum(d)) / n for u, d in zip(s.bytes_up, s.bytes_down)]
         y = [float(np.mean(a)) for a in s.accuracy]
+        lost = undelivered(run.summary, "up")
+        label = name if lost == "-" else f"{name} (uplinks: {lost})"  # a silent strategy says why
         if max(x) > 0:
-            ax.plot(x, y, label=name, color=f"C{i}")
+            ax.plot(x, y, label=label, color=f"C{i}")
         else:  # no bytes: one point at the end (the bound it reaches for free or alone)
-            ax.scatter([0.0], [y[-1]], label=f"{name} (0 B, final)", zorder=3, color=f"C{i}")
+            ax.scatter([0.0], [y[-1]], label=f"{label} (0 B, final)", zorder=3, color=f"C{i}")
+        # its value at step 0, before any message (a model strategy's comes from its initial model)
+        ax.scatter([0.0], [y[0]], marker="o", facecolors="none", edgecolors=f"C{i}", zorder=3,
+                   label="step 0 (before any message)" if i == 0 else None)
     ax.set(xlabel="cumulative bytes per rover (up + down)", ylabel="mean belief accuracy", ylim=(0, 1),
            title="Map accuracy vs bytes")
     ax.set_xscale("symlog", linthresh=100)
