@@ -35,7 +35,7 @@ def test_mission_cli_writes_every_output(tmp_path, capsys):
     _report_links_only_files_that_exist(out)
     assert "mission_raw.gif" in (out / "report.md").read_text()
     raw = metrics["strategies"]["raw"]
-    assert len(raw["series"]["step"]) == 13 and raw["series"]["eval"]["step"] == [4, 8, 12]
+    assert len(raw["series"]["step"]) == 13 and raw["series"]["eval"]["step"] == [0, 4, 8, 12]
     # the ledger and the cumulative bytes agree
     up = [0, 0]
     for m in raw["ledger"]:

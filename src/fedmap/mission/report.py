@@ -158,7 +158,7 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         f"{'unlimited' if link.max_range is None else f'{link.max_range:g} cells'}.", "",
         "Final values at the last step; *steps to* and *at* columns are the first step a level was reached "
         f"(`-`: never). Path F1 is strict (A*, {c.eval_pairs} seeded start/goal pairs, UNKNOWN impassable), "
-        "scored at every sync and at the last step; belief columns average the rovers; *belief acc. at step 0* "
+        "scored at step 0, at every sync and at the last step; belief columns average the rovers; *belief acc. at step 0* "
         "is before any message (a model strategy's starts from its initial model's rendering). Bytes are the "
         "whole team's, summed over the rovers and the mission; *not delivered* counts messages by why.", "",
         side_by_side(result),

@@ -147,7 +147,7 @@ class MissionConfig:
     strategies : tuple of str
         Which of :data:`STRATEGIES` to run, on the same terrain, starts, seeds and link.
     eval_pairs : int
-        Start/goal pairs of the path F1 (scored at every sync and at the last step).
+        Start/goal pairs of the path F1 (scored at step 0, every sync and the last step).
     methods : dict
         Per model strategy, :func:`fedmap.config.method_config` keywords laid over its
         preset (e.g. ``{"fedmap": {"epochs": 30}}``).
@@ -174,7 +174,7 @@ class MissionConfig:
     unknown_cost: float = setting(1.5, help="Cost of an unknown cell relative to a known free one when rating targets")
     strategies: tuple[str, ...] = setting(DEFAULT_STRATEGIES, help="Ways of sharing to run side by side, "
                                           "comma-separated", choices=STRATEGIES)
-    eval_pairs: int = setting(40, help="Start/goal pairs of the path F1 (scored at every sync and at the end)")
+    eval_pairs: int = setting(40, help="Start/goal pairs of the path F1 (scored at step 0, every sync and the end)")
     link: LinkConfig = wiring(default_factory=LinkConfig)
     methods: dict = wiring(default_factory=dict)
     seed: int = wiring(0)

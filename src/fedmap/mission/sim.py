@@ -501,7 +501,7 @@ class _Run:
         c = self.config
         for k in range(len(self.team)):
             self.sense(k, 0)
-        self.record(0, evaluate=False)
+        self.record(0, evaluate=True)  # step 0 too: a score owed to the initial model shows as such
         syncs = {t: i + 1 for i, t in enumerate(c.sync_steps)}
         for t in range(1, c.steps + 1):
             for k in range(len(self.team)):
