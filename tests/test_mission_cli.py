@@ -184,5 +184,19 @@ def test_report_flags_undelivered_messages_and_names_the_best_map(tmp_path, caps
     assert f"Best map: **{best}**" in report
     spent = sum(metrics["raw"]["summary"]["team_bytes"].values())
     if acc["raw"] > acc["none"] and spent:
-        assert f"Best map per byte: **raw** (+{(acc['raw'] - acc['none']) * 100:.1f} accuracy points" in report
+        assert f"Best map per byte: **raw** (+{(acc['raw'] - acc['none']) * 100:.2f} accuracy points" in report
     assert f"Best map: {best}" in " ".join(stdout.split())  # the console says it too
+
+
+def test_a_strategy_that_got_nothing_through_is_not_the_best_map(tmp_path, capsys):
+    """The newcomer's case: a model strategy whose every uplink is over budget keeps its
+    initial model's rendering; the verdict says so instead of naming it the best map."""
+    out = tmp_path / "m"
+    rc, stdout, err = _run([*TINY, "--strategies", "none,fedmap", "--uplink-bytes", "5", "--no-animation",
+                            "-o", out], capsys)
+    assert rc == 0, err
+    report = (out / "report.md").read_text()
+    fedmap = json.loads((out / "metrics.json").read_text())["strategies"]["fedmap"]["summary"]
+    assert sum(fedmap["team_bytes"].values()) == 0 and fedmap["messages"]["up_over budget"] > 0
+    assert "Best map: **none**" in report
+    assert f"fedmap got nothing through the link (uplinks: {fedmap['messages']['up_over budget']} over budget)" in report

@@ -96,9 +96,18 @@ def undelivered(summary: MissionSummary, direction: str) -> str:
 def verdict(result: MissionResult) -> str:
     """One computed line: which strategy left the rovers the best map, and which gained the
     most map per byte on the link (``central``, the free oracle, is left out of both)."""
-    runs = {n: r for n, r in result.runs.items() if n != "central"}
+    others = {n: r for n, r in result.runs.items() if n != "central"}
+    # a strategy that got nothing through the link holds its own observations over its
+    # initial model's rendering: a score from the latter is a guess, so it is no candidate
+    silent = [n for n, r in others.items() if n != "none" and r.summary.bytes_up + r.summary.bytes_down == 0]
+    runs = {n: r for n, r in others.items() if n not in silent}
+    notes = "".join(f" {n} got nothing through the link (uplinks: {undelivered(others[n].summary, 'up')}): its "
+                    f"{others[n].summary.final_belief_accuracy_mean:.3f} is its own observations over its initial "
+                    f"model ({float(np.mean(others[n].series.accuracy[0])):.3f} at step 0), not shared knowledge."
+                    for n in silent)
     if not runs:
-        return "Only the central oracle ran: nothing to compare."
+        return ("Only the central oracle ran: nothing to compare." if not others else
+                "No strategy got anything through the link." + notes)
     acc = {n: r.summary.final_belief_accuracy_mean for n, r in runs.items()}
     best = max(acc, key=lambda n: (acc[n], -(runs[n].summary.bytes_up + runs[n].summary.bytes_down)))
     line = f"Best map: **{best}** (belief accuracy {acc[best]:.3f}"
@@ -112,11 +121,11 @@ def verdict(result: MissionResult) -> str:
     than = "sharing nothing" if "none" in runs else "step 0"
     if gain:
         top = max(gain, key=lambda n: gain[n])
-        line += (f" Best map per byte: **{top}** (+{(acc[top] - base[top]) * 100:.1f} accuracy points over {than} "
+        line += (f" Best map per byte: **{top}** (+{(acc[top] - base[top]) * 100:.2f} accuracy points over {than} "
                  f"for {spent[top]:,} B of the team's traffic).")
     elif any(spent.values()):
         line += f" No strategy that used the link gave a better map than {than}."
-    return line
+    return line + notes
 
 
 def table_rows(result: MissionResult) -> tuple[list[str], list[list[str]]]:
