@@ -38,7 +38,7 @@ from fedmap.evaluation.paths import PaperScores
 from fedmap.evaluation.scores import MapScores
 from fedmap.experiments.real_terrain import REAL_TERRAINS, load_real
 from fedmap.experiments.table3 import bandwidth_report
-from fedmap.federation.runner import RoundRecord
+from fedmap.federation.runner import FederationConfig, RoundRecord
 from fedmap.maps.grid import GridMap, classes_from_rgb
 from fedmap.maps.sources import TerrainSource, load_truth
 from fedmap.meta.ablation import AblationConfig, make_inits, run_ablation, write_ablation
@@ -301,12 +301,18 @@ F1_MEANINGS = ("F1 (strict): an identical path is a TP, a different path is both
                "u.p.: passable). Strict and tolerant F1 plan with UNKNOWN cells impassable.")
 
 
+def _server_defaults() -> str:
+    """FedAdam's other hyperparameters as the run used them (the library's defaults), in words."""
+    hp = FederationConfig(aggregator="fedadam").make_aggregator().hyperparameters()
+    return ", ".join(f"{k} {v:g}" for k, v in hp.items() if k != "eta" and v is not None)
+
+
 def markdown(result: dict) -> str:
     c = result["config"]
     src = "built-in terrains" if c["data"] is None else f"real terrain from `{c['data']}`"
     md = [f"# fedmap reproduce — {src}", "",
           f"{c['size']}x{c['size']} maps, 4 rovers (quadrants), seed {c['seed']}, {c['pairs']} A* routes per map. "
-          f"Server learning rate for FedAdam/FedYogi: eta = {c['eta']:g} (beta1 0.9, beta2 0.99, tau 1e-3).", "",
+          f"Server learning rate for FedAdam/FedYogi: eta = {c['eta']:g} ({_server_defaults()}).", "",
           "## Table II — one-shot federated mapping", "",
           "PSNR/SSIM on the RGB renderings; P/R/F1 of A* paths. Bytes: one rover's uplink per round.", "",
           F1_MEANINGS, ""]
