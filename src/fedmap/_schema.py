@@ -280,7 +280,7 @@ def help_text(s: Setting, default: Any = MISSING) -> str:
     if s.choices:
         text += f"; one of {', '.join(s.choices)}"
     d = s.default if default is MISSING else default
-    if d is None and "unset" in text:  # the help already says what unset means
+    if d in (None, "") and ("unset" in text or "'': none" in text):  # the help already says what unset means
         return text
     shown = "unset" if d is None else ("on" if d is True else "off" if d is False else
                                        ",".join(map(str, d)) if isinstance(d, (tuple, list)) else str(d))
