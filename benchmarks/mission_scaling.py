@@ -1,0 +1,111 @@
+"""How a mission's cost grows with the map and the team: built-in terrain at several sizes
+and team sizes, a fixed number of steps, the chosen strategies; wall time per strategy,
+time per step, peak RSS and the team's bytes, and the growth exponent of the time against
+cells x agents (a least-squares fit in log-log).
+
+    python benchmarks/mission_scaling.py [--sizes 128 256 512] [--agents 4 8] [--steps 100]
+        [--strategies none,raw,fedmap,central] [--out benchmarks/results/mission_scaling]
+
+Each configuration runs in its own process, so its peak RSS is its own. Writes
+``scaling.json`` and ``scaling.png`` (log-log) in ``--out`` and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def one(size: int, agents: int, steps: int, strategies: str, terrain: str) -> dict:
+    """One configuration, in this process: the numbers of its row."""
+    from fedmap.maps.sources import load_truth
+    from fedmap.mission import load_mission, run_mission
+
+    t0 = time.perf_counter()
+    cfg, source, _ = load_mission(terrain={"kind": "builtin", "terrain": terrain}, size=size,
+                                  mission={"rovers": agents, "steps": steps, "strategies": strategies})
+    truth = load_truth(source, seed=cfg.seed)
+    result = run_mission(cfg, truth)
+    return {"size": size, "agents": agents, "steps": steps, "cells_x_agents": size * size * agents,
+            "seconds": time.perf_counter() - t0,
+            "per_strategy_s": {n: r.seconds for n, r in result.runs.items()},
+            "per_step_ms": {n: 1000 * r.seconds / steps for n, r in result.runs.items()},
+            "team_bytes": {n: r.summary.bytes_up + r.summary.bytes_down for n, r in result.runs.items()},
+            "coverage": {n: r.summary.final_coverage for n, r in result.runs.items()},
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def fit_exponent(x: list[float], y: list[float]) -> float | None:
+    """Slope of log(y) against log(x), least squares (None with fewer than two x values)."""
+    if len(set(x)) < 2:
+        return None
+    return float(np.polyfit(np.log(x), np.log(y), 1)[0])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256, 512])
+    ap.add_argument("--agents", type=int, nargs="+", default=[4, 8])
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--strategies", default="none,raw,fedmap,central")
+    # moon: at every size its map centre (the lander) opens onto most of the free ground;
+    # built-in mars at 512² puts the lander in a free pocket of 101 cells, and the rovers stay in it
+    ap.add_argument("--terrain", default="moon")
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/mission_scaling"))
+    ap.add_argument("--one", nargs=2, type=int, help=argparse.SUPPRESS)  # size agents: run one, print JSON
+    args = ap.parse_args()
+    if args.one:
+        print(json.dumps(one(args.one[0], args.one[1], args.steps, args.strategies, args.terrain)))
+        return
+    rows = []
+    load = os.getloadavg()[0]
+    for size in args.sizes:
+        for agents in args.agents:
+            cmd = [sys.executable, __file__, "--one", str(size), str(agents), "--steps", str(args.steps),
+                   "--strategies", args.strategies, "--terrain", args.terrain]
+            done = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            row = json.loads(done.stdout.strip().splitlines()[-1])
+            rows.append(row)
+            print(f"{size:5d}² {agents:3d} agents: {row['seconds']:7.1f} s, peak {row['peak_rss_mb']:6.0f} MB, "
+                  f"coverage {max(row['coverage'].values()):.3f}; "
+                  + ", ".join(f"{n} {s:.1f} s" for n, s in row["per_strategy_s"].items()), flush=True)
+    names = list(rows[0]["per_strategy_s"])
+    x = [r["cells_x_agents"] for r in rows]
+    exponents = {n: fit_exponent(x, [r["per_strategy_s"][n] for r in rows]) for n in names}
+    exponents["all"] = fit_exponent(x, [r["seconds"] for r in rows])
+    print("growth exponent of the time against cells x agents: "
+          + ", ".join(f"{n} {e:.2f}" for n, e in exponents.items() if e is not None))
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "scaling.json").write_text(json.dumps({"steps": args.steps, "terrain": args.terrain,
+                                                       "strategies": names, "rows": rows,
+                                                       "exponents": exponents, "load_average_before": load,
+                                                       "cpus": os.cpu_count()}, indent=1))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    order = np.argsort(x)
+    for i, n in enumerate(names):
+        ys = [rows[j]["per_strategy_s"][n] for j in order]
+        e = exponents[n]
+        ax.loglog([x[j] for j in order], ys, "o-", color=f"C{i}", label=f"{n} (exponent {e:.2f})" if e else n)
+    ax.set(xlabel="cells x agents", ylabel=f"wall time of {args.steps} steps, s",
+           title=f"Mission cost vs map and team size (built-in {args.terrain}, 2 cores)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(args.out / "scaling.png", dpi=120)
+    print(f"wrote {args.out}/scaling.json and scaling.png")
+
+
+if __name__ == "__main__":
+    main()
