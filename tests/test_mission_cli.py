@@ -200,3 +200,24 @@ def test_a_strategy_that_got_nothing_through_is_not_the_best_map(tmp_path, capsy
     assert sum(fedmap["team_bytes"].values()) == 0 and fedmap["messages"]["up_over budget"] > 0
     assert "Best map: **none**" in report
     assert f"fedmap got nothing through the link (uplinks: {fedmap['messages']['up_over budget']} over budget)" in report
+
+
+def test_a_start_in_a_small_pocket_is_flagged(tmp_path, capsys):
+    """Built-in mars at 512² puts the lander in a free pocket of 101 cells: the rovers could
+    only explore that. Here the same by hand: a free 5x5 pocket walled off at the centre."""
+    from fedmap.maps.grid import FREE, IMPASSABLE, GridMap
+    from fedmap.mission.sim import start_pocket_warning
+
+    classes = np.full((64, 64), FREE, np.uint8)
+    classes[28:37, 28:37] = IMPASSABLE
+    classes[30:35, 30:35] = FREE  # the pocket around the centre (32, 32)
+    cfg, _, _ = load_mission(mission={"rovers": 2})
+    warning = start_pocket_warning(GridMap(classes, 1.0, "pocket"), cfg)
+    assert warning is not None and "free ground of 25 cells" in warning
+    open_map = np.full((64, 64), FREE, np.uint8)
+    assert start_pocket_warning(GridMap(open_map, 1.0, "open"), cfg) is None
+    np.save(tmp_path / "pocket.npy", classes)
+    rc, stdout, err = _run(["--map", tmp_path / "pocket.npy", "--steps", "3", "--strategies", "none",
+                            "--no-animation", "-o", tmp_path / "m"], capsys)
+    assert rc == 0, err
+    assert "warning: the rovers start on free ground of 25 cells" in " ".join(stdout.split())

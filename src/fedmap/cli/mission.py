@@ -19,6 +19,7 @@ from fedmap.maps.sources import load_source_dem, load_truth
 from fedmap.mission import load_mission, run_mission
 from fedmap.mission.report import table_rows, verdict, write_mission
 from fedmap.mission.settings import MISSION_SECTIONS, parse_sets
+from fedmap.mission.sim import start_pocket_warning
 from fedmap.pipeline import PipelineConfig
 
 #: ``mission``'s generated options: the top-level seed, the terrain and threshold settings
@@ -44,6 +45,9 @@ def mission(
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
         truth = load_truth(source, seed=cfg.seed)
+        for warning in (truth.meta.get("warning"), start_pocket_warning(truth, cfg)):
+            if warning:
+                console.print(f"warning: {warning}", soft_wrap=True)  # one line, however wide
         elevation = load_source_dem(source, seed=cfg.seed).elevation if cfg.line_of_sight else None
 
         def on_strategy(name: str) -> None:

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from fedmap.errors import FedmapError
 from fedmap.evaluation.paths import path_f1
@@ -235,6 +236,27 @@ def place_starts(truth: GridMap, config: MissionConfig) -> tuple[list[Cell], Cel
     d = (cells[:, 0] - lander[0]) ** 2 + (cells[:, 1] - lander[1]) ** 2
     order = np.lexsort((cells[:, 1], cells[:, 0], d))[: config.rovers]
     return [(int(cells[i][0]), int(cells[i][1])) for i in order], base
+
+
+#: A start whose free ground reaches less than this share of the map's free cells is flagged.
+SMALL_POCKET = 0.05
+
+
+def start_pocket_warning(truth: GridMap, config: MissionConfig) -> str | None:
+    """A one-line warning when the rovers start on a free pocket cut off from most of the
+    map's free ground (they can explore only that pocket), else None. Reachability is
+    4-connectivity, the planner's (:mod:`fedmap.maps.planning`)."""
+    starts, _ = place_starts(truth, config)
+    free = truth.classes == FREE
+    labels, _ = ndimage.label(free)
+    sizes = np.bincount(labels.ravel())
+    reach = int(sum(sizes[lab] for lab in {labels[s] for s in starts} if lab))
+    total = int(free.sum())
+    if total and reach < SMALL_POCKET * total:
+        return (f"the rovers start on free ground of {reach:,} cells, cut off from the rest of the map's "
+                f"{total:,} free cells: they can explore only that pocket (set [mission] lander or starts, or "
+                f"another terrain or slope limit)")
+    return None
 
 
 def plan_waypoints(truth: GridMap, config: MissionConfig) -> list[list[Cell]]:
