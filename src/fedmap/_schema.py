@@ -20,7 +20,9 @@ a setting".
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import functools
 import math
 import types
 import typing
@@ -132,10 +134,6 @@ def toml_types(tp: Any) -> tuple[type, ...]:
     return tuple(dict.fromkeys(out))
 
 
-def _hints(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
-
-
 def _choices(meta: dict) -> tuple[str, ...] | None:
     c = meta["choices"]
     if c is None:
@@ -143,9 +141,11 @@ def _choices(meta: dict) -> tuple[str, ...] | None:
     return tuple(c() if callable(c) else c)
 
 
-def settings(cls: type, section: str = "") -> list[Setting]:
-    """The settings of one configuration class (its sections not included), in field order."""
-    hints = _hints(cls)
+@functools.cache
+def settings(cls: type, section: str = "") -> tuple[Setting, ...]:
+    """The settings of one configuration class (its sections not included), in field order.
+    Derived once per class (the CLI builds its options from them at every start-up)."""
+    hints = typing.get_type_hints(cls)
     out = []
     for f in dataclasses.fields(cls):
         meta = f.metadata.get(_META)
@@ -159,14 +159,19 @@ def settings(cls: type, section: str = "") -> list[Setting]:
             raise TypeError(f"setting {cls.__name__}.{f.name} has no default")
         out.append(Setting(section, f.name, hints[f.name], default, meta["help"], _choices(meta), meta["cli"],
                            meta["path"]))
-    return out
+    return tuple(out)
+
+
+@functools.cache
+def _sections(cls: type) -> tuple[tuple[str, type], ...]:
+    hints = typing.get_type_hints(cls)
+    return tuple((f.name, hints[f.name]) for f in dataclasses.fields(cls)
+                 if f.metadata.get(_META) is not None and is_config(hints[f.name]))
 
 
 def sections(cls: type) -> dict[str, type]:
     """``{section name: configuration class}`` of the fields of ``cls`` that are sections."""
-    hints = _hints(cls)
-    return {f.name: hints[f.name] for f in dataclasses.fields(cls)
-            if f.metadata.get(_META) is not None and is_config(hints[f.name])}
+    return dict(_sections(cls))
 
 
 def walk(cls: type) -> Iterator[Setting]:
@@ -178,11 +183,11 @@ def walk(cls: type) -> Iterator[Setting]:
 
 def defaults(cls: type) -> dict[str, Any]:
     """The field defaults of a root configuration as a nested TOML-ready dict (unset
-    optional settings left out)."""
+    optional settings left out; a new dict, the defaults' own objects not shared)."""
     out: dict[str, Any] = {s.name: s.default for s in settings(cls) if s.default is not None}
     for name, sub in sections(cls).items():
         out[name] = {s.name: to_toml(s.default) for s in settings(sub, name) if s.default is not None}
-    return out
+    return copy.deepcopy(out)
 
 
 def to_toml(value: Any) -> Any:
@@ -219,25 +224,19 @@ def check_table(cls: type, table: Any, where: str, *, section: str = "") -> None
         check_type(value, known[key].types, f"[{section}] {key} in {where}" if section else f"{key!r} in {where}")
 
 
-def validate(cls: type, data: Any, where: str, *, extra: dict[str, Callable[[Any, str], None]] | None = None) -> None:
-    """Check a (partial) nested config of the root class ``cls``: sections, keys, types.
-
-    ``extra`` names further top-level keys with their own checks.
-    """
+def validate(cls: type, data: Any, where: str) -> None:
+    """Check a (partial) nested config of the root class ``cls``: sections, keys, types."""
     if not isinstance(data, dict):
         raise FedmapError(f"{where} must be a table, got {data!r}")
     top = {s.name: s for s in settings(cls)}
     subs = sections(cls)
-    extra = extra or {}
     for key, value in data.items():
         if key in top:
             check_type(value, top[key].types, f"{key!r} in {where}")
         elif key in subs:
             check_table(subs[key], value, where, section=key)
-        elif key in extra:
-            extra[key](value, where)
         else:
-            raise FedmapError(f"unknown key {key!r} in {where}{suggest(key, [*top, *subs, *extra])}")
+            raise FedmapError(f"unknown key {key!r} in {where}{suggest(key, [*top, *subs])}")
 
 
 def build(cls: type, table: dict, **wired: Any) -> Any:
@@ -264,16 +263,6 @@ def _to_tuple(v: Any) -> Any:
     return tuple(_to_tuple(x) for x in v) if isinstance(v, list) else v
 
 
-def table_of(obj: Any) -> dict[str, Any]:
-    """The settings of one configuration instance as a TOML-ready table (unset ones left out)."""
-    out = {}
-    for s in settings(type(obj)):
-        v = getattr(obj, s.name)
-        if v is not None:
-            out[s.name] = to_toml(v)
-    return out
-
-
 def help_text(s: Setting, default: Any = MISSING) -> str:
     """The one-line help of a setting with its allowed values and default appended."""
     text = s.help.rstrip(".")
@@ -282,6 +271,15 @@ def help_text(s: Setting, default: Any = MISSING) -> str:
     d = s.default if default is MISSING else default
     if d in (None, "") and ("unset" in text or "'': none" in text):  # the help already says what unset means
         return text
-    shown = "unset" if d is None else ("on" if d is True else "off" if d is False else
-                                       ",".join(map(str, d)) if isinstance(d, (tuple, list)) else str(d))
-    return f"{text} (default: {shown})"
+    return f"{text} (default: {shown(d)})"
+
+
+def shown(value: Any) -> str:
+    """A setting's value as help text shows it (``on`` / ``off``, ``unset``, lists comma-separated)."""
+    if value is None:
+        return "unset"
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    if isinstance(value, (tuple, list)):
+        return ",".join(map(str, value))
+    return str(value)

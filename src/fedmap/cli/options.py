@@ -42,18 +42,15 @@ def _decls(s: _schema.Setting, kind: type) -> list[str]:
     return [flag]
 
 
-def _preset_default(s: _schema.Setting) -> Any:
-    """The default a run sees: the library's, or ``paper: x, fedmap: y`` when presets differ."""
+def _preset_default(s: _schema.Setting, presets: dict[str, dict]) -> Any:
+    """The default a run sees: the library's, or ``paper: x; fedmap: y`` when the
+    ``presets`` (name -> resolved defaults) differ."""
     if not s.section:
         return s.default
-    by = {}
-    for m in preset_names():
-        table = defaults(m) if not s.section else defaults(m).get(s.section, {})
-        by[m] = table.get(s.name, s.default)
+    by = {m: table.get(s.section, {}).get(s.name, s.default) for m, table in presets.items()}
     if len({repr(v) for v in by.values()}) == 1:
         return next(iter(by.values()))
-    shown = {m: "unset" if v is None else "on" if v is True else "off" if v is False else v for m, v in by.items()}
-    return "; ".join(f"{m}: {v}" for m, v in shown.items())
+    return "; ".join(f"{m}: {_schema.shown(v)}" for m, v in by.items())
 
 
 def _option(name: str, kind: type, decl: str, help_: str) -> inspect.Parameter:
@@ -87,12 +84,13 @@ def parameters(settings: Iterable[_schema.Setting], *, presets: bool = False,
     """One keyword parameter (a typer option) per setting that takes one value, but for
     those whose flag is in ``skip`` (e.g. :data:`SHORTCUT_FLAGS`, which a shortcut has)."""
     skip = set(skip)
+    preset_defaults = {m: defaults(m) for m in preset_names()} if presets else {}  # once, not per option
     out = []
     for s in settings:
         kind = _kind(s)
         if kind is None or _decls(s, kind)[0].split("/")[0] in skip:
             continue
-        default = _preset_default(s) if presets else s.default
+        default = _preset_default(s, preset_defaults) if presets else s.default
         help_ = _schema.help_text(s, default)
         if s.path:
             kind = Path

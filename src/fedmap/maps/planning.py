@@ -22,11 +22,11 @@ ground); ``unknown_passable=True`` makes the planner optimistic instead.
 
 from __future__ import annotations
 
+import functools
 import heapq
 import math
 
 import numpy as np
-from numba import njit
 
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN
@@ -61,7 +61,7 @@ def astar(passable: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -
     free = np.pad(passable, 1, constant_values=False).ravel()
     s = (start[0] + 1) * W + start[1] + 1
     t = (goal[0] + 1) * W + goal[1] + 1
-    parent, found = _search(free, W, s, t)
+    parent, found = _compiled()(free, W, s, t)
     if not found:
         return None
     path = []
@@ -73,8 +73,16 @@ def astar(passable: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -
     return path[::-1]
 
 
-@njit(cache=True)
-def _search(free: np.ndarray, W: int, s: int, t: int) -> tuple[np.ndarray, bool]:  # pragma: no cover (compiled)
+@functools.cache
+def _compiled():
+    """:func:`_search` compiled with numba (cached on disk). Compiled at the first plan, not
+    at import: importing numba costs every fedmap command about 0.2 s, most of which plan nothing."""
+    from numba import njit
+
+    return njit(cache=True)(_search)
+
+
+def _search(free: np.ndarray, W: int, s: int, t: int) -> tuple[np.ndarray, bool]:
     """A* on the padded, flattened grid ``free`` (row length ``W``) from ``s`` to ``t``:
     ``(parent, found)``, ``parent[i]`` the cell ``i`` was reached from (-1: none).
 
