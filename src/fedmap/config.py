@@ -44,7 +44,7 @@ from fedmap.errors import FedmapError
 from fedmap.maps.grid import GridMap
 from fedmap.maps.sources import READER_OPTIONS, TerrainSource, load_truth
 from fedmap.maps.traversability import rover_profile
-from fedmap.pipeline import MAX_SIDE, MIN_SIDE, PipelineConfig
+from fedmap.pipeline import MAX_SIDE, MIN_SIDE, PipelineConfig, preset_names
 
 #: Section name -> its configuration class (derived from :class:`PipelineConfig`'s fields).
 SECTIONS: dict[str, type] = _schema.sections(PipelineConfig)
@@ -96,12 +96,6 @@ def load_toml(path) -> dict:
         if s.name in table and not Path(table[s.name]).is_absolute():
             table[s.name] = str((path.parent / table[s.name]).resolve())
     return data
-
-
-def preset_names() -> tuple[str, ...]:
-    """The presets shipped in ``fedmap/presets/``: ``("fedmap", "paper")``."""
-    files = resources.files("fedmap.presets").iterdir()
-    return tuple(sorted(f.name.removesuffix(".toml") for f in files if f.name.endswith(".toml")))
 
 
 def load_preset(method: str) -> dict:
@@ -322,7 +316,8 @@ def used_thresholds(thresholds: dict) -> dict:
 # --------------------------------------------------------------------------- writing TOML
 
 
-def _toml_value(v: Any) -> str:
+def toml_value(v: Any) -> str:
+    """One TOML value: a scalar, or a list of them."""
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (int, float)):
@@ -330,7 +325,7 @@ def _toml_value(v: Any) -> str:
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {type(v).__name__} as TOML")
 
 
@@ -342,7 +337,7 @@ def dumps_toml(data: dict) -> str:
         scalars = {k: v for k, v in d.items() if not isinstance(v, dict) and v is not None}
         if name:
             lines.append(f"\n[{name}]")
-        lines.extend(f"{k} = {_toml_value(v)}" for k, v in scalars.items())
+        lines.extend(f"{k} = {toml_value(v)}" for k, v in scalars.items())
         for k, v in d.items():
             if isinstance(v, dict):
                 table(v, f"{name}.{k}" if name else k)

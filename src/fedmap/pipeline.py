@@ -32,7 +32,8 @@ from fedmap.refine import RefineConfig
 from fedmap.stages import global_map, truth_summary, union_map
 
 
-def _method_names() -> tuple[str, ...]:
+def preset_names() -> tuple[str, ...]:
+    """The presets shipped in ``fedmap/presets/`` (the values of ``method``): ``("fedmap", "paper")``."""
     files = resources.files("fedmap.presets").iterdir()
     return tuple(sorted(f.name.removesuffix(".toml") for f in files if f.name.endswith(".toml")))
 
@@ -48,7 +49,7 @@ class PipelineConfig:
 
     method: str = setting("paper", help="Preset (paper: the source paper's network and FedAvg from its meta-init; "
                           "fedmap: feature grids, coverage-aware FedAvg, int4/int8 update payloads); everything else "
-                          "is laid over it", choices=_method_names)
+                          "is laid over it", choices=preset_names)
     seed: int = setting(0, help="Seed of the terrain, exploration, initialisation, training and evaluation")
     terrain: TerrainSource = setting(default_factory=TerrainSource, help="What terrain is mapped")
     thresholds: TraversabilityThresholds = setting(default_factory=TraversabilityThresholds,

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from fedmap import _schema
-from fedmap.config import SECTIONS, defaults, resolve, to_pipeline_config
+from fedmap.config import SECTIONS, defaults, resolve, to_pipeline_config, toml_value
 from fedmap.errors import FedmapError
 from fedmap.federation.runner import FederationConfig
 from fedmap.maps.sources import DEFAULT_BUILTIN_SIZE
@@ -164,15 +164,7 @@ def run_config_from(resolved: dict, **base: Any) -> dict[str, Any]:
 def app_config_toml() -> str:
     """The ``[tool.flwr.app.config]`` table the Flower app's ``pyproject.toml`` must declare
     (``flwr run`` accepts overrides of declared keys only): :data:`RUN_DEFAULTS`."""
-
-    def value(v: Any) -> str:
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, str):
-            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-        return repr(v)
-
-    lines = ["[tool.flwr.app.config]", *(f"{k} = {value(v)}" for k, v in RUN_DEFAULTS.items())]
+    lines = ["[tool.flwr.app.config]", *(f"{k} = {toml_value(v)}" for k, v in RUN_DEFAULTS.items())]
     return "\n".join(lines) + "\n"
 
 
