@@ -18,7 +18,6 @@ import numpy as np
 
 from fedmap._util import AtomicDir, to_json
 from fedmap.evaluation.scores import MapScores
-from fedmap.federation.runner import RoundRecord
 from fedmap.maps.export import check_formats, export_maps
 from fedmap.maps.grid import GridMap, render_classes
 from fedmap.maps.io import save_map
@@ -29,7 +28,7 @@ from fedmap.pipeline import PipelineResult
 def _json_ready(obj: Any) -> Any:
     """``obj`` with every typed record in it (a :class:`~fedmap.federation.runner.RoundRecord`,
     :class:`~fedmap.federation.runner.ByteTotals`, ...: anything with ``to_dict``) as its JSON layout."""
-    if isinstance(obj, RoundRecord) or (dataclasses.is_dataclass(obj) and hasattr(obj, "to_dict")):
+    if dataclasses.is_dataclass(obj) and hasattr(obj, "to_dict"):
         return obj.to_dict()
     if isinstance(obj, dict):
         return {k: _json_ready(v) for k, v in obj.items()}
