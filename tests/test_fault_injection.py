@@ -277,7 +277,7 @@ def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     for r in m["rounds"]:
         aggregated = {int(k) for k in r["aggregation_counts"]}
         assert r["dropped"] == {} and sorted(r["missing"]) == sorted(set(range(4)) - aggregated)
-        assert all(why == "no reply before the round's deadline" for why in r["missing_why"].values())
+        assert all(why == "no reply before the round's deadline" for why in r["missing_why"].values()), r["missing_why"]
     assert proxy.counts["dropped"] >= 5
     print("proxy:", proxy.counts)  # the README's fault table
     print("missing:", [r["missing"] for r in m["rounds"]])
