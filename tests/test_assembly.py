@@ -45,7 +45,8 @@ def _mission_start(settings: dict) -> dict:
     truth = load_truth(method_config(size=SIDE, seed=SEED).terrain, seed=SEED)
     blank = np.full(truth.shape, UNKNOWN, np.uint8)
     team = [Rover(pos=(10 * k, 10), local=blank.copy(), obs_step=np.full(truth.shape, -1)) for k in range(2)]
-    strategy = make_strategy("paper", truth, team, {"up": None, "down": None}, methods={"paper": settings}, seed=SEED)
+    strategy = make_strategy("paper", truth, team, {"up": None, "down": None}, methods={"paper": settings}, seed=SEED,
+                             radius=8.0)
     return strategy.rover_held[0]  # type: ignore[attr-defined]
 
 

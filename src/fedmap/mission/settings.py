@@ -42,7 +42,7 @@ from fedmap.errors import FedmapError
 from fedmap.maps.sources import TerrainSource
 
 #: Every sharing strategy, from the lower bound to the upper bound.
-STRATEGIES: tuple[str, ...] = ("none", "raw", "paper", "fedmap", "central")
+STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive", "paper", "fedmap", "central")
 #: The strategies a mission runs unless told otherwise (``paper`` is slow: an option).
 DEFAULT_STRATEGIES: tuple[str, ...] = ("none", "raw", "fedmap", "central")
 #: The strategies that train a network and share it with the rovers' step of ``fedmap run``.

@@ -359,7 +359,7 @@ class _Run:
         self.origin = (float(np.mean([s[0] for s in starts])), float(np.mean([s[1] for s in starts])))
         budget = {"up": config.link.uplink_bytes, "down": config.link.downlink_bytes}
         self.strategy: Strategy = make_strategy(name, truth, self.team, budget, methods=config.methods,
-                                                seed=config.seed)
+                                                seed=config.seed, radius=config.sensor_radius)
         self.allowed = self.topology.region(shape) if config.stay_in_range else None
         self.queue: list = []
         self.seq = 0

@@ -41,6 +41,7 @@ import torch
 
 from fedmap.config import method_config
 from fedmap.errors import FedmapError, RejectedUpdate
+from fedmap.federation import streamcodec
 from fedmap.federation.codecs import CodecSpec, Encoder
 from fedmap.federation.mapcodec import decode_map, encode_map
 from fedmap.federation.runner import (
@@ -51,7 +52,9 @@ from fedmap.federation.runner import (
     model_version,
     rover_step,
 )
+from fedmap.federation.streamcodec import initial_state
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb
+from fedmap.mission.sensing import disk_offsets
 from fedmap.nets.model import Weights, build_model, render, set_weights
 from fedmap.pipeline import initial_weights
 
@@ -447,7 +450,7 @@ class Model(Strategy):
 
 
 def make_strategy(name: str, truth: GridMap, team: list, budget: dict[str, int | None], *, methods: dict,
-                  seed: int) -> Strategy:
+                  seed: int, radius: float) -> Strategy:
     """A fresh strategy of ``name`` for one run."""
     if name == "none":
         return Strategy(truth, team, budget)
@@ -455,4 +458,211 @@ def make_strategy(name: str, truth: GridMap, team: list, budget: dict[str, int |
         return Central(truth, team, budget)
     if name == "raw":
         return Raw(truth, team, budget)
+    if name == "predictive":
+        return Predictive(truth, team, budget, radius=radius)
     return Model(truth, team, budget, method=name, settings=dict(methods.get(name, {})), seed=seed)
+
+
+def cover(positions, shape: tuple[int, int], radius: float) -> np.ndarray:
+    """Boolean ``shape`` map of every cell within ``radius`` of any of ``positions`` (the
+    footprints of a trail without line of sight: the cells a trail may have observed)."""
+    out = np.zeros(shape, dtype=bool)
+    p = np.asarray(list(positions), dtype=np.int64).reshape(-1, 2)
+    if p.size:
+        off = disk_offsets(radius)
+        rr = (p[:, None, 0] + off[None, :, 0]).ravel()
+        cc = (p[:, None, 1] + off[None, :, 1]).ravel()
+        ok = (rr >= 0) & (rr < shape[0]) & (cc >= 0) & (cc < shape[1])
+        out[rr[ok], cc[ok]] = True
+    return out
+
+
+class Predictive(Strategy):
+    """Lossless sharing of new cells with a persistent, learned probability model
+    (:mod:`fedmap.federation.streamcodec`); see the module docstring for the protocol.
+
+    Per rover, each direction of its link has a coder state on both ends. An uplink
+    carries the rover's trail since the last one the base acknowledged (its moves), its
+    target, and its observed cells within sensor range of that trail that the base does
+    not hold: neither from this rover nor in the global map the rover holds. A downlink
+    carries the other rovers' trails the rover does not hold, their targets, and every
+    cell of the global map the rover does not hold (cells within sensor range of those
+    trails cost least). The receiver derives which cells are candidates from the trails.
+    **Over budget**, an uplink carries the longest prefix of its trail that fits (and the
+    cells in range of it), a downlink the same share of every other rover's trail.
+    """
+
+    name = "predictive"
+    shares = True
+
+    def __init__(self, truth: GridMap, team: list, budget: dict[str, int | None], *, radius: float) -> None:
+        super().__init__(truth, team, budget)
+        n, shape = len(team), self.shape
+        self.radius = radius
+        init = initial_state()
+        empty = np.full(shape, UNKNOWN, dtype=np.uint8)
+        starts = [r.pos for r in team]
+        # rover side
+        self.up_rover = [init.copy() for _ in team]
+        self.down_rover = [init.copy() for _ in team]
+        self.r_sent = [1] * n  # entries of its own trail the base holds (the start is known)
+        self.r_delivered = [np.zeros(shape, dtype=bool) for _ in team]  # own cells the base holds
+        self.r_held = [empty.copy() for _ in team]
+        self.r_target = [None] * n  # its own target as the base holds it
+        self.r_trails = [[[s] for s in starts] for _ in team]  # rover k's copy of every trail
+        self.r_targets: list[list[Cell | None]] = [[None] * n for _ in team]
+        # base side
+        self.up_base = [init.copy() for _ in team]
+        self.down_base = [init.copy() for _ in team]
+        self.b_trails = [[s] for s in starts]
+        self.b_from = [np.zeros(shape, dtype=bool) for _ in team]
+        self.b_held = [empty.copy() for _ in team]
+        self.b_targets: list[Cell | None] = [None] * n
+        self.b_fwd = [[1] * n for _ in team]  # entries of rover j's trail that rover k holds
+        self.b_fwd_targets: list[list[Cell | None]] = [[None] * n for _ in team]
+        self.base = empty.copy()
+
+    def held(self, k: int) -> np.ndarray:
+        return self.r_held[k]
+
+    def global_map(self) -> np.ndarray:
+        return self.base
+
+    def _candidates(self, anchors: list[Cell]):
+        def derive(tracks: list[list[Cell]]) -> np.ndarray:
+            return cover([*anchors, *(p for t in tracks for p in t)], self.shape, self.radius)
+        return derive
+
+    def _rover_known(self, k: int) -> np.ndarray:
+        r = self.team[k]
+        return np.where(self.r_held[k] != UNKNOWN, self.r_held[k],
+                        np.where(self.r_delivered[k], r.local, UNKNOWN)).astype(np.uint8)
+
+    def _base_known(self, k: int) -> np.ndarray:
+        return np.where(self.b_held[k] != UNKNOWN, self.b_held[k],
+                        np.where(self.b_from[k], self.base, UNKNOWN)).astype(np.uint8)
+
+    # -- uplink
+    def uplink(self, k: int, round_no: int) -> Outgoing | None:
+        r = self.team[k]
+        known = self._rover_known(k)
+        a = self.r_sent[k]
+        anchor = r.trail[a - 1]
+        pending = r.trail[a:]
+        derive = self._candidates([anchor])
+
+        def make(n: int) -> tuple[bytes, streamcodec.Fold, np.ndarray]:
+            cand = derive([pending[:n]]) & (known == UNKNOWN)
+            cells = np.where(cand, r.local, UNKNOWN).astype(np.uint8)
+            content = streamcodec.Content([list(pending[:n])], [r.target], cells)
+            payload, fold = streamcodec.encode(content, state=self.up_rover[k], anchors=[anchor],
+                                               mark_refs=[self.r_target[k]], known=known, candidates=derive)
+            return payload, fold, cells
+
+        n = _longest_fitting(lambda n: len(make(n)[0]), len(pending), self.budget["up"])
+        if n is None:
+            return Outgoing(None, "cells", {})
+        payload, fold, cells = make(n)
+        return Outgoing(payload, "cells", {"n": n, "fold": fold, "cells": cells, "target": r.target})
+
+    def receive_uplink(self, k: int, payload: bytes, ctx: dict, round_no: int) -> None:
+        a = self.b_trails[k][-1]
+        try:
+            got = streamcodec.decode(payload, state=self.up_base[k], anchors=[a], mark_refs=[self.b_targets[k]],
+                                     known=self._base_known(k), candidates=self._candidates([a]))
+        except RejectedUpdate:
+            ctx["used"] = False
+            return
+        ctx["used"] = True
+        self.up_base[k].fold(got.fold)
+        self.b_trails[k].extend(got.tracks[0])
+        self.b_targets[k] = got.marks[0]
+        carried = got.cells != UNKNOWN
+        self.b_from[k] |= carried
+        self.base = np.where(carried, got.cells, self.base).astype(np.uint8)
+
+    def uplink_acked(self, k: int, ctx: dict) -> None:
+        if not ctx.get("used"):
+            return
+        self.up_rover[k].fold(ctx["fold"])
+        self.r_sent[k] += ctx["n"]
+        self.r_delivered[k] |= ctx["cells"] != UNKNOWN
+        self.r_target[k] = ctx["target"]
+
+    # -- downlink
+    def base_round(self, round_no: int) -> dict[int, Outgoing]:
+        out = {}
+        n_team = len(self.team)
+        for k in range(n_team):
+            others = [j for j in range(n_team) if j != k]
+            known = self._base_known(k)
+            anchors = [self.b_trails[j][self.b_fwd[k][j] - 1] for j in others]
+            news = [self.b_trails[j][self.b_fwd[k][j]:] for j in others]
+            marks = [self.b_targets[j] for j in others]
+            refs = [self.b_fwd_targets[k][j] for j in others]
+            lacking = (self.base != UNKNOWN) & (known == UNKNOWN)
+            if not lacking.any() and not any(news) and marks == refs:
+                continue  # it holds everything the base has
+            derive = self._candidates(anchors)
+            longest = max((len(t) for t in news), default=0)
+
+            def make(n: int, news=news, derive=derive, known=known, lacking=lacking, anchors=anchors, marks=marks,
+                     refs=refs, k=k, longest=longest) -> tuple[bytes, streamcodec.Fold, list[list[Cell]], np.ndarray]:
+                share = [t[:-(-len(t) * n // longest)] if longest else [] for t in news]
+                if n == longest:
+                    cells = np.where(lacking, self.base, UNKNOWN).astype(np.uint8)
+                else:
+                    cells = np.where(lacking & derive(share), self.base, UNKNOWN).astype(np.uint8)
+                content = streamcodec.Content(share, marks, cells)
+                payload, fold = streamcodec.encode(content, state=self.down_base[k], anchors=anchors, mark_refs=refs,
+                                                   known=known, candidates=derive)
+                return payload, fold, share, cells
+
+            n = _longest_fitting(lambda n: len(make(n)[0]), longest, self.budget["down"])
+            if n is None:
+                out[k] = Outgoing(None, "map", {})
+                continue
+            payload, fold, share, cells = make(n)
+            out[k] = Outgoing(payload, "map", {"fold": fold, "tracks": share, "cells": cells, "marks": marks,
+                                               "others": others})
+        return out
+
+    def receive_downlink(self, k: int, payload: bytes, ctx: dict) -> bool:
+        others = ctx["others"]
+        anchors = [self.r_trails[k][j][-1] for j in others]
+        try:
+            got = streamcodec.decode(payload, state=self.down_rover[k], anchors=anchors,
+                                     mark_refs=[self.r_targets[k][j] for j in others], known=self._rover_known(k),
+                                     candidates=self._candidates(anchors))
+        except RejectedUpdate:  # coded against a state or map this rover no longer holds
+            return False
+        # the rover's end
+        self.down_rover[k].fold(got.fold)
+        carried = got.cells != UNKNOWN
+        self.r_held[k] = np.where(carried, got.cells, self.r_held[k]).astype(np.uint8)
+        for j, track, mark in zip(others, got.tracks, got.marks):
+            self.r_trails[k][j].extend(track)
+            self.r_targets[k][j] = mark
+            self.known_reports[k][j] = (self.r_trails[k][j][-1], mark)
+        # the base's end: the link-level acknowledgement
+        self.down_base[k].fold(ctx["fold"])
+        self.b_held[k] = np.where(ctx["cells"] != UNKNOWN, ctx["cells"], self.b_held[k]).astype(np.uint8)
+        for j, track, mark in zip(others, ctx["tracks"], ctx["marks"]):
+            self.b_fwd[k][j] += len(track)
+            self.b_fwd_targets[k][j] = mark
+        return True
+
+
+def _longest_fitting(size, longest: int, budget: int | None) -> int | None:
+    """The largest ``n`` in ``0..longest`` whose ``size(n)`` fits ``budget`` (binary search;
+    sizes grow with ``n``), or None when even ``n = 0`` does not fit."""
+    if budget is None or size(longest) <= budget:
+        return longest
+    lo, hi, best = 0, longest - 1, None
+    while lo <= hi:
+        mid = (lo + hi) // 2
+        if size(mid) <= budget:
+            best, lo = mid, mid + 1
+        else:
+            hi = mid - 1
+    return best

@@ -1,0 +1,348 @@
+"""``predictive``: lossless messages of newly observed cells, coded with a probability
+model that both ends of a link keep, message after message.
+
+The ``context`` codec (:mod:`fedmap.federation.mapcodec`) starts every message from
+nothing: its counts, its headers, and the mask of *which* cells are new. Here:
+
+* **The model persists.** Each direction of each link has a :class:`CoderState`: the
+  counts of the cell model (the ``context`` codec's contexts), of trail moves and of
+  marks. A message is coded with the state both ends hold; the sender folds the
+  message's counts into its state when it learns the message was delivered, the receiver
+  when it decodes it, so a lost message never desynchronises them (counts add, so the
+  order of folding does not matter). Each message names the state it was coded with
+  (:attr:`CoderState.seq`, one byte); a receiver holding another state rejects it.
+* **It starts learned.** :func:`initial_state` starts from counts learned offline on the
+  Earth-like map collections of the meta-initialisation (never on a test site), shipped
+  in ``fedmap/weights/cell_prior.npz``; :func:`learn_prior` retrains them.
+* **The mask is derived where it can be.** A message carries *tracks* (positions, each an
+  8-neighbour step from the previous, coded as moves in context of the previous move),
+  and the cells it may carry (the *candidates*) are derived by the caller from the
+  tracks (e.g. every cell within sensor range of a new position that the receiver does
+  not hold). Only candidate cells are coded: each as FREE, IMPASSABLE or "not carried"
+  (UNKNOWN), predicted from its four neighbours at distance ``s`` in the map the receiver
+  already holds plus the cells decoded so far (coarse to fine, as ``context``). Without
+  line of sight every candidate is carried, and "not carried" soon costs almost nothing.
+  Cells outside the candidates are allowed too (one flag, then coded in their own
+  contexts), so the format never depends on the caller's derivation being complete.
+* **Headers are bits, not bytes.** Everything after the state byte goes through one
+  range coder: counts with Elias-gamma lengths, marks (a cell such as a target: "same
+  as last acknowledged", "none", or a new cell at ``log2(H W)`` bits), moves, cells.
+
+Layout: ``seq & 0xFF`` (1 byte), the range coder's 32-bit words (big-endian, trailing
+zero bytes dropped; the decoder pads them back), and one check byte (CRC-32 of the
+decoded content, low byte) that catches a decode against the wrong state or map.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from importlib import resources
+
+import constriction
+import numpy as np
+
+from fedmap.errors import FedmapError, RejectedUpdate
+from fedmap.federation.mapcodec import _KINDS, _LEVELS, _N_CTX, N_CLASSES, _contexts, _phases, _rounds
+from fedmap.maps.grid import UNKNOWN
+
+Cell = tuple[int, int]
+#: Contexts per table: 256 neighbour contexts, in candidates (0) or outside them (1).
+N_FEATURES = 2
+N_TABLES = 1 + len(_KINDS) * _LEVELS
+#: The 8 moves between neighbouring cells, and the "no previous move" context.
+MOVES: tuple[Cell, ...] = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
+_MOVE_INDEX = {m: i for i, m in enumerate(MOVES)}
+_NO_MOVE = len(MOVES)
+#: Mark symbols: the same cell as the reference, no cell, a new cell.
+SAME, NONE, NEW = 0, 1, 2
+_MAX_LEN_BITS = 24  # Elias-gamma lengths (counts up to 2**24 - 1)
+#: Additive prior on every count (as the ``context`` codec).
+ALPHA = 0.25
+#: A context's counts are halved when its total passes this (both ends, at folding), so the
+#: model keeps adapting to the site instead of freezing.
+COUNT_LIMIT = 1 << 12
+PRIOR_FILE = "cell_prior.npz"
+
+
+@dataclass
+class CoderState:
+    """The model of one direction of one link; both ends hold an identical copy.
+
+    ``cells``: (table, feature x 256 contexts, 3 classes) counts; ``moves``: (previous
+    move or none, move) counts; ``lengths``: counts of Elias-gamma length prefixes;
+    ``marks``: counts of SAME / NONE / NEW. ``seq`` counts the messages folded in."""
+
+    cells: np.ndarray
+    moves: np.ndarray
+    lengths: np.ndarray
+    marks: np.ndarray
+    seq: int = 0
+
+    def copy(self) -> CoderState:
+        return CoderState(self.cells.copy(), self.moves.copy(), self.lengths.copy(), self.marks.copy(), self.seq)
+
+    def fold(self, delta: Fold) -> None:
+        """Add an acknowledged message's counts (both ends, once per delivered message)."""
+        for name in ("cells", "moves", "lengths", "marks"):
+            a = getattr(self, name)
+            a += getattr(delta, name)
+            _halve(a, COUNT_LIMIT)
+        self.seq += 1
+
+    def same_as(self, other: CoderState) -> bool:
+        return self.seq == other.seq and all(np.array_equal(getattr(self, n), getattr(other, n))
+                                             for n in ("cells", "moves", "lengths", "marks"))
+
+
+def _halve(a: np.ndarray, limit: int) -> None:
+    """Halve (rounding up) every context (last axis) whose total passes ``limit``."""
+    total = a.sum(axis=-1, keepdims=True)
+    big = np.broadcast_to(total > limit, a.shape)
+    a[big] = (a[big] + 1) // 2
+
+
+@dataclass
+class Fold:
+    """A message's counts, to fold into both ends' states once it is delivered."""
+
+    cells: np.ndarray
+    moves: np.ndarray
+    lengths: np.ndarray
+    marks: np.ndarray
+
+    @classmethod
+    def empty(cls) -> Fold:
+        return cls(np.zeros((N_TABLES, N_FEATURES * _N_CTX, N_CLASSES), np.int64),
+                   np.zeros((_NO_MOVE + 1, len(MOVES)), np.int64), np.zeros(_MAX_LEN_BITS + 1, np.int64),
+                   np.zeros(3, np.int64))
+
+
+def blank_state() -> CoderState:
+    """A state with no counts (every probability from the prior ``ALPHA``)."""
+    f = Fold.empty()
+    return CoderState(f.cells, f.moves, f.lengths, f.marks)
+
+
+def initial_state() -> CoderState:
+    """The shipped learned initial state (:func:`learn_prior`), or a blank one without it."""
+    path = resources.files("fedmap.weights").joinpath(PRIOR_FILE)
+    if not path.is_file():
+        return blank_state()
+    with path.open("rb") as f, np.load(f) as z:
+        s = CoderState(*(z[n].astype(np.int64) for n in ("cells", "moves", "lengths", "marks")))
+    b = blank_state()
+    if any(getattr(s, n).shape != getattr(b, n).shape for n in ("cells", "moves", "lengths", "marks")):
+        raise FedmapError(f"{PRIOR_FILE} does not match this fedmap's coder (reinstall fedmap)")
+    return s
+
+
+@dataclass
+class Content:
+    """What one message carries.
+
+    ``tracks``: per track, the new positions (each an 8-neighbour step from the previous
+    position, the track's anchor); ``marks``: cells or None (e.g. targets), each coded
+    against a reference cell the receiver already holds; ``cells``: (H, W) classes,
+    UNKNOWN where the message carries nothing."""
+
+    tracks: list[list[Cell]]
+    marks: list[Cell | None]
+    cells: np.ndarray
+    fold: Fold = field(default_factory=Fold.empty)
+
+
+# -- the symmetric walk: one description of the format for both ends -------------------
+class _Io:
+    """Encoder or decoder behind one call: ``sym(values or None, probabilities)``."""
+
+    def __init__(self, words: np.ndarray | None = None) -> None:
+        self.enc = constriction.stream.queue.RangeEncoder() if words is None else None
+        self.dec = None if words is None else constriction.stream.queue.RangeDecoder(words)
+        self.cat = constriction.stream.model.Categorical(perfect=False)
+        self.uni = constriction.stream.model.Uniform()
+
+    def sym(self, values: np.ndarray | None, probs: np.ndarray) -> np.ndarray:
+        if self.enc is not None:
+            assert values is not None
+            self.enc.encode(np.asarray(values, dtype=np.int32), self.cat, probs)
+            return np.asarray(values, dtype=np.int64)
+        assert self.dec is not None
+        return np.asarray(self.dec.decode(self.cat, probs), dtype=np.int64)
+
+    def uniform(self, value: int | None, size: int) -> int:
+        if size < 2:
+            return 0
+        sizes = np.array([size], dtype=np.int32)
+        if self.enc is not None:
+            assert value is not None
+            self.enc.encode(np.array([value], dtype=np.int32), self.uni, sizes)
+            return int(value)
+        assert self.dec is not None
+        return int(self.dec.decode(self.uni, sizes)[0])
+
+
+def _p(counts: np.ndarray) -> np.ndarray:
+    c = counts.astype(np.float64) + ALPHA
+    return c / c.sum(axis=-1, keepdims=True)
+
+
+def _count(io: _Io, value: int | None, state: CoderState, fold: Fold) -> int:
+    """A non-negative integer: its bit length (adaptive), then the bits below the top one."""
+    n_bits = None if value is None else int(value).bit_length()
+    if n_bits is not None and n_bits > _MAX_LEN_BITS:
+        raise FedmapError(f"a count of {value} is too large for a message")
+    counts = state.lengths + fold.lengths
+    n_bits = int(io.sym(None if n_bits is None else np.array([n_bits]), _p(counts)[None, :])[0])
+    fold.lengths[n_bits] += 1
+    if n_bits <= 1:
+        return n_bits
+    low = io.uniform(None if value is None else value - (1 << (n_bits - 1)), 1 << (n_bits - 1))
+    return (1 << (n_bits - 1)) + low
+
+
+def _mark(io: _Io, value: Cell | None | str, reference: Cell | None, shape: tuple[int, int],
+          state: CoderState, fold: Fold) -> Cell | None:
+    """A cell or None, against a ``reference`` the receiver holds (``value`` "?" to decode)."""
+    decoding = isinstance(value, str)
+    kind = None if decoding else (SAME if value == reference else NONE if value is None else NEW)
+    kind = int(io.sym(None if kind is None else np.array([kind]), _p(state.marks + fold.marks)[None, :])[0])
+    fold.marks[kind] += 1
+    if kind == SAME:
+        return reference
+    if kind == NONE:
+        return None
+    v = value if isinstance(value, tuple) else None
+    r = io.uniform(None if v is None else v[0], shape[0])
+    c = io.uniform(None if v is None else v[1], shape[1])
+    return (r, c)
+
+
+def _track(io: _Io, positions: Sequence[Cell] | None, anchor: Cell, shape: tuple[int, int], state: CoderState,
+           fold: Fold) -> list[Cell]:
+    moves = None
+    if positions is not None:
+        moves, prev = [], anchor
+        for cell in positions:
+            step = (cell[0] - prev[0], cell[1] - prev[1])
+            if step not in _MOVE_INDEX:
+                raise FedmapError(f"a track steps from {prev} to {cell}: tracks move between neighbouring cells")
+            moves.append(_MOVE_INDEX[step])
+            prev = cell
+    n = _count(io, None if moves is None else len(moves), state, fold)
+    if n > shape[0] * shape[1]:
+        raise FedmapError(f"a track of {n} moves on a {shape[0]}x{shape[1]} map")
+    out, prev_move, pos = [], _NO_MOVE, anchor
+    for i in range(n):
+        probs = _p(state.moves[prev_move] + fold.moves[prev_move])[None, :]
+        m = int(io.sym(None if moves is None else np.array([moves[i]]), probs)[0])
+        fold.moves[prev_move, m] += 1
+        prev_move = m
+        pos = (pos[0] + MOVES[m][0], pos[1] + MOVES[m][1])
+        if not (0 <= pos[0] < shape[0] and 0 <= pos[1] < shape[1]):
+            raise FedmapError(f"a track leaves the map at {pos}")
+        out.append(pos)
+    return out
+
+
+def _cells(io: _Io, cells: np.ndarray | None, known: np.ndarray, todo: np.ndarray, feature: int,
+           state: CoderState, fold: Fold) -> None:
+    """Code the classes of the ``todo`` cells (a class or UNKNOWN each) into ``known`` in place."""
+    h, w = known.shape
+    if todo[0, 0]:
+        p = _p(state.cells[0, feature * _N_CTX] + fold.cells[0, feature * _N_CTX])[None, :]
+        v = int(io.sym(None if cells is None else np.array([cells[0, 0]]), p)[0])
+        fold.cells[0, feature * _N_CTX, v] += 1
+        known[0, 0] = v
+    for table, s, rows, cols in _phases(h, w):
+        sub = todo[np.ix_(rows, cols)].ravel()
+        if not sub.any():
+            continue
+        ctx = _contexts(known, table, s, rows, cols, None)[sub] + feature * _N_CTX
+        rr = np.repeat(rows, cols.size)[sub]
+        cc = np.tile(cols, rows.size)[sub]
+        order, rounds = _rounds(ctx)
+        ctx, rr, cc = ctx[order], rr[order], cc[order]
+        truth = None if cells is None else cells[rr, cc].astype(np.int64)
+        sym = np.empty(ctx.size, dtype=np.int64)
+        for part in rounds:
+            probs = _p(state.cells[table, ctx[part]] + fold.cells[table, ctx[part]])
+            sym[part] = io.sym(None if truth is None else truth[part], probs)
+            np.add.at(fold.cells[table], (ctx[part], sym[part]), 1)
+        known[rr, cc] = sym
+
+
+def _walk(io: _Io, content: Content | None, *, anchors: Sequence[Cell], mark_refs: Sequence[Cell | None],
+          known: np.ndarray, candidates: Callable[[list[list[Cell]]], np.ndarray], state: CoderState) -> Content:
+    fold = Fold.empty()
+    tracks = [_track(io, None if content is None else content.tracks[i], a, known.shape, state, fold)
+              for i, a in enumerate(anchors)]
+    marks = [_mark(io, "?" if content is None else content.marks[i], ref, known.shape, state, fold)
+             for i, ref in enumerate(mark_refs)]
+    cand = np.asarray(candidates(tracks), dtype=bool) & (known == UNKNOWN)
+    held = known.copy()
+    cells = None if content is None else content.cells
+    if cells is not None:
+        carried = cells != UNKNOWN
+        if (carried & (known != UNKNOWN)).any():
+            raise FedmapError("a message would carry cells the receiver already holds")
+    _cells(io, cells, held, cand, 0, state, fold)
+    outside = None if cells is None else int((carried & ~cand).any())
+    if io.uniform(outside, 2):
+        _cells(io, cells, held, (held == UNKNOWN) & ~cand, 1, state, fold)
+    out = np.where(known == UNKNOWN, held, UNKNOWN).astype(np.uint8)
+    return Content(tracks, marks, out, fold)
+
+
+def _check(content: Content, seq: int) -> int:
+    h = zlib.crc32(content.cells.tobytes(), seq & 0xFF)
+    h = zlib.crc32(np.asarray([p for t in content.tracks for p in t] or [(0, 0)], dtype=np.int32).tobytes(), h)
+    h = zlib.crc32(np.asarray([m if m is not None else (-1, -1) for m in content.marks] or [(0, 0)],
+                              dtype=np.int32).tobytes(), h)
+    return h & 0xFF
+
+
+def encode(content: Content, *, state: CoderState, anchors: Sequence[Cell], mark_refs: Sequence[Cell | None],
+           known: np.ndarray, candidates: Callable[[list[list[Cell]]], np.ndarray]) -> tuple[bytes, Fold]:
+    """Code ``content`` for a receiver that holds ``known`` (classes) and ``state``.
+
+    ``anchors``: each track's previous position (the receiver holds it); ``mark_refs``: each
+    mark's reference cell; ``candidates(tracks)``: the boolean map of cells the message may
+    carry, derived from the tracks (both ends call it). Returns the payload and the counts
+    to :meth:`CoderState.fold` into the sender's state when it is delivered."""
+    if len(content.tracks) != len(anchors) or len(content.marks) != len(mark_refs):
+        raise FedmapError("a message's tracks and marks must match its anchors and references")
+    if content.cells.shape != known.shape:
+        raise FedmapError(f"a message's cells are {content.cells.shape}, the map is {known.shape}")
+    io = _Io()
+    done = _walk(io, content, anchors=anchors, mark_refs=mark_refs, known=known, candidates=candidates, state=state)
+    assert io.enc is not None
+    raw = io.enc.get_compressed().astype(">u4").tobytes().rstrip(b"\0")
+    return bytes([state.seq & 0xFF]) + raw + bytes([_check(done, state.seq)]), done.fold
+
+
+def decode(payload: bytes, *, state: CoderState, anchors: Sequence[Cell], mark_refs: Sequence[Cell | None],
+           known: np.ndarray, candidates: Callable[[list[list[Cell]]], np.ndarray]) -> Content:
+    """The :class:`Content` of an :func:`encode` payload, for the receiver's ``state`` and
+    ``known`` map; raises :class:`~fedmap.errors.RejectedUpdate` (one line) when the payload
+    does not decode against them."""
+    buf = bytes(payload)
+    if len(buf) < 2:
+        raise RejectedUpdate(f"malformed cell message: {len(buf)} bytes is shorter than its two framing bytes")
+    if buf[0] != state.seq & 0xFF:
+        raise RejectedUpdate(f"malformed cell message: coded with coder state {buf[0]}, the receiver holds "
+                             f"{state.seq & 0xFF}")
+    body = buf[1:-1]
+    body += b"\0" * (-len(body) % 4)
+    words = np.frombuffer(body, dtype=">u4").astype(np.uint32)
+    if words.size == 0:
+        words = np.zeros(1, dtype=np.uint32)
+    try:
+        done = _walk(_Io(words), None, anchors=anchors, mark_refs=mark_refs, known=known, candidates=candidates,
+                     state=state)
+    except (AssertionError, ValueError, RuntimeError, IndexError, FedmapError) as e:
+        raise RejectedUpdate(f"malformed cell message: it does not decode ({' '.join(str(e).split())})") from None
+    if _check(done, state.seq) != buf[-1]:
+        raise RejectedUpdate("malformed cell message: check byte mismatch (another state or map than the sender's)")
+    return done
