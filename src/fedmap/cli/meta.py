@@ -1,4 +1,5 @@
-"""``fedmap meta-train`` and ``fedmap ablate-init``: meta-initialisation (:mod:`fedmap.meta`)."""
+"""``fedmap meta-train``, ``fedmap ablate-init`` and ``fedmap meta-coder``: meta-initialisation
+(:mod:`fedmap.meta`)."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from fedmap.cli.ui import console, progress_bar
 from fedmap.errors import FedmapError
 from fedmap.maps.traversability import TraversabilityThresholds
 from fedmap.meta.ablation import AblationConfig, make_inits, pick_maps, run_ablation, write_ablation
+from fedmap.meta.coder import learn_coder_prior, save_coder_prior
 from fedmap.meta.collections import BUILTIN_CATEGORIES, MapCollection, earth_like, load_collection
 from fedmap.meta.reptile import MetaConfig
 from fedmap.meta.reptile import meta_train as run_meta_train
@@ -169,3 +171,30 @@ def table_of(result: dict) -> Table:
         t.add_row(name, f"{r['psnr']['mean']:.2f} ± {r['psnr']['std']:.2f}", f"{r['ssim']['mean']:.3f}",
                   f"{r['psnr_step0']['mean']:.2f}", f"{s['mean']:.2f} ± {s['std']:.2f}", f"{s['capped']}/{s['n']}")
     return t
+
+
+def meta_coder(
+    collection: str = typer.Option("builtin", help="'builtin' (Earth-like generator) or a folder of maps; never a "
+                                   "test site."),
+    layout: str = typer.Option("maps", help="Folder layout: maps, kitti, domars or dem (see fedmap.meta.collections)."),
+    categories: Optional[str] = typer.Option(None, help="Comma-separated categories to use (default: all)."),
+    per_category: int = typer.Option(4, "--per-category", help="Maps per category (generated, or a seeded subset)."),
+    max_slope: Optional[float] = typer.Option(None, "--max-slope", help="dem layout: slope limit in degrees [15]."),
+    size: int = typer.Option(128, help="Map side in cells."),
+    steps: int = typer.Option(150, help="Steps of the predictive mission run on every map."),
+    seed: int = typer.Option(0),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Where to write the prior (default: the one "
+                                       "the installed fedmap ships and reads)."),
+) -> None:
+    """Learn the predictive coder's initial state: a predictive mission on every map of a collection."""
+    coll = _collection(collection, layout=layout, size=size, per_category=per_category, categories=categories,
+                       max_slope=max_slope, seed=seed)
+    t0 = time.perf_counter()
+    with progress_bar() as progress:
+        task = progress.add_task("missions", total=coll.n_maps, loss="")
+        state = learn_coder_prior(coll, steps=steps, seed=seed,
+                                  on_map=lambda done, total: progress.update(task, completed=done))
+    path = save_coder_prior(state, out)
+    console.print(f"{coll.name}: {coll.n_maps} maps in {len(coll.categories)} categories; "
+                  f"{int(state.cells.sum()):,} cell counts, {int(state.moves.sum()):,} move counts")
+    console.print(f"coder prior: {path}  wall time {time.perf_counter() - t0:.1f} s")

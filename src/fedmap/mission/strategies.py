@@ -499,7 +499,7 @@ class Predictive(Strategy):
         super().__init__(truth, team, budget)
         n, shape = len(team), self.shape
         self.radius = radius
-        init = initial_state()
+        self.initial = init = initial_state()
         empty = np.full(shape, UNKNOWN, dtype=np.uint8)
         starts = [r.pos for r in team]
         # rover side

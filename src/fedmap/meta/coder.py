@@ -1,0 +1,82 @@
+"""The ``predictive`` coder's learned initial state: the meta-initialisation idea applied
+to the coder.
+
+:func:`learn_coder_prior` runs a ``predictive`` mission on every map of a collection (by
+default the built-in Earth-like collection of the meta-initialisation, never a test
+site), sums what every link's coder state learned (its counts at the end minus a blank
+state's), and scales each context down to at most ``total`` counts, so the shipped state
+predicts from the first message and still adapts quickly to a new site.
+:func:`save_coder_prior` writes it where :func:`fedmap.federation.streamcodec.initial_state`
+reads it (``fedmap/weights/cell_prior.npz``); ``fedmap meta coder`` does both.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Callable
+from dataclasses import replace
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from fedmap.federation.streamcodec import PRIOR_FILE, CoderState, blank_state
+from fedmap.meta.collections import MapCollection, earth_like
+from fedmap.mission.settings import MissionConfig
+from fedmap.mission.sim import run_mission
+
+#: Largest count total per context in the shipped state (a new site outweighs it quickly).
+PRIOR_TOTAL = 64
+_PARTS = ("cells", "moves", "lengths", "marks")
+
+
+def _scaled(a: np.ndarray, total: int) -> np.ndarray:
+    """Every context (last axis) with more than ``total`` counts scaled down to about
+    ``total``, keeping its proportions; a class seen at all keeps at least one count."""
+    t = a.sum(axis=-1, keepdims=True)
+    scale = np.where(t > total, total / np.maximum(t, 1), 1.0)
+    out = np.rint(a * scale).astype(np.int64)
+    return np.where((a > 0) & (out == 0), 1, out)
+
+
+def learn_coder_prior(collection: MapCollection | None = None, *, steps: int = 150, rovers: int = 4,
+                      total: int = PRIOR_TOTAL, seed: int = 0,
+                      on_map: Callable[[int, int], None] | None = None) -> CoderState:
+    """A coder state learned on ``collection`` (default: :func:`~fedmap.meta.collections.earth_like`
+    at 128², 4 maps per category). ``on_map(done, total)`` follows the progress."""
+    coll = collection if collection is not None else earth_like(size=128, per_category=4, seed=seed)
+    maps = [m for ms in coll.categories.values() for m in ms]
+    learned = blank_state()
+    config = replace(MissionConfig(), rovers=rovers, steps=steps, strategies=("predictive",), seed=seed)
+    blank = blank_state()
+    for i, truth in enumerate(maps):
+        run = run_mission(config, truth, frames=1).runs["predictive"]
+        strategy = run.strategy
+        for state in (*strategy.up_base, *strategy.down_base):  # type: ignore[attr-defined]
+            for name in _PARTS:
+                # the counts this state learned (a state folds from the shipped prior; subtract it)
+                getattr(learned, name)[...] += getattr(state, name) - getattr(strategy.initial, name)  # type: ignore[attr-defined]
+        if on_map is not None:
+            on_map(i + 1, len(maps))
+    return CoderState(*(_scaled(np.maximum(getattr(learned, n), 0) + getattr(blank, n), total) for n in _PARTS))
+
+
+def prior_path() -> Path:
+    """Where the shipped coder prior lives (inside the installed package)."""
+    return Path(str(resources.files("fedmap.weights").joinpath(PRIOR_FILE)))
+
+
+def save_coder_prior(state: CoderState, path: str | Path | None = None) -> Path:
+    """Write ``state`` as the coder prior (atomically: a crash leaves the old file whole)."""
+    out = Path(path) if path is not None else prior_path()
+    fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".npz.tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez_compressed(f, **{n: getattr(state, n).astype(np.uint16) for n in _PARTS})
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return out
