@@ -23,3 +23,14 @@ def blob_map() -> GridMap:
     c[3:9, 4:12] = IMPASSABLE
     c[14:20, 13:21] = IMPASSABLE
     return GridMap(c, 1.0, "blobs")
+
+
+def maze(n: int = 40, seed: int = 3, blocks: int = 12) -> GridMap:
+    """A free map with a few seeded walls and blocks, and a free pad at its centre (the lander's)."""
+    rng = np.random.default_rng(seed)
+    c = np.zeros((n, n), dtype=np.uint8)
+    for _ in range(blocks):
+        r0, c0 = rng.integers(0, n - 6, size=2)
+        c[r0:r0 + rng.integers(1, 6), c0:c0 + rng.integers(1, 6)] = IMPASSABLE
+    c[n // 2 - 2:n // 2 + 3, n // 2 - 2:n // 2 + 3] = FREE  # the lander's pad
+    return GridMap(c, 1.0, "test maze")

@@ -7,6 +7,7 @@ import re
 import numpy as np
 import pytest
 
+from conftest import maze
 from fedmap.errors import FedmapError
 from fedmap.federation.mapcodec import decode_map
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
@@ -19,14 +20,7 @@ from fedmap.mission.strategies import unpack_up
 
 
 def _maze(n: int = 40, seed: int = 3) -> GridMap:
-    """A free map with a few seeded walls and blocks (every free cell reachable is not needed)."""
-    rng = np.random.default_rng(seed)
-    c = np.zeros((n, n), dtype=np.uint8)
-    for _ in range(12):
-        r0, c0 = rng.integers(0, n - 6, size=2)
-        c[r0:r0 + rng.integers(1, 6), c0:c0 + rng.integers(1, 6)] = IMPASSABLE
-    c[n // 2 - 2:n // 2 + 3, n // 2 - 2:n // 2 + 3] = FREE  # the lander's pad
-    return GridMap(c, 1.0, "test maze")
+    return maze(n, seed)
 
 
 # ---------------------------------------------------------------- sensing

@@ -11,6 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from conftest import maze
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.federation import streamcodec as sc
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
@@ -174,14 +175,8 @@ def test_a_prior_learned_on_open_ground_predicts_free(tmp_path):
 
 # ---------------------------------------------------------------- the mission strategy
 
-def _maze(n: int = 48, seed: int = 3) -> GridMap:
-    rng = np.random.default_rng(seed)
-    c = np.zeros((n, n), dtype=np.uint8)
-    for _ in range(14):
-        r0, c0 = rng.integers(0, n - 6, size=2)
-        c[r0:r0 + rng.integers(1, 6), c0:c0 + rng.integers(1, 6)] = IMPASSABLE
-    c[n // 2 - 2:n // 2 + 3, n // 2 - 2:n // 2 + 3] = FREE
-    return GridMap(c, 1.0, "test maze")
+def _maze(seed: int = 3) -> GridMap:
+    return maze(48, seed, blocks=14)
 
 
 @pytest.mark.parametrize("link", [

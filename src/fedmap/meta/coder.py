@@ -25,6 +25,7 @@ from fedmap.federation.streamcodec import PRIOR_FILE, CoderState, blank_state
 from fedmap.meta.collections import MapCollection, earth_like
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.sim import run_mission
+from fedmap.mission.strategies import Predictive
 
 #: Largest count total per context in the shipped state (a new site outweighs it quickly).
 PRIOR_TOTAL = 64
@@ -51,15 +52,17 @@ def learn_coder_prior(collection: MapCollection | None = None, *, steps: int = 1
     config = replace(MissionConfig(), rovers=rovers, steps=steps, strategies=("predictive",), seed=seed)
     blank = blank_state()
     for i, truth in enumerate(maps):
-        run = run_mission(config, truth, frames=1).runs["predictive"]
-        strategy = run.strategy
-        for state in (*strategy.up_base, *strategy.down_base):  # type: ignore[attr-defined]
+        strategy = run_mission(config, truth, frames=1).runs["predictive"].strategy
+        assert isinstance(strategy, Predictive)
+        for state in (*strategy.up_base, *strategy.down_base):
             for name in _PARTS:
                 # the counts this state learned (a state folds from the shipped prior; subtract it)
-                getattr(learned, name)[...] += getattr(state, name) - getattr(strategy.initial, name)  # type: ignore[attr-defined]
+                getattr(learned, name)[...] += getattr(state, name) - getattr(strategy.initial, name)
         if on_map is not None:
             on_map(i + 1, len(maps))
-    return CoderState(*(_scaled(np.maximum(getattr(learned, n), 0) + getattr(blank, n), total) for n in _PARTS))
+    cells, moves, lengths, marks = (_scaled(np.maximum(getattr(learned, n), 0) + getattr(blank, n), total)
+                                    for n in _PARTS)
+    return CoderState(cells, moves, lengths, marks)
 
 
 def prior_path() -> Path:
