@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -9,11 +10,15 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
+from fedmap._util import atomic_write_bytes
 from fedmap.cli.ui import console, fit, fmt, progress_bar, stage_callbacks
 from fedmap.config import method_config
+from fedmap.experiments.cellstreams import cell_stream_report, markdown
 from fedmap.experiments.reproduce import F1_MEANINGS, PAPER_TABLE2, ReproduceConfig
 from fedmap.experiments.reproduce import reproduce as run_reproduce
 from fedmap.experiments.table3 import bandwidth_report
+from fedmap.maps.sources import load_source_dem, load_truth
+from fedmap.mission import load_mission
 
 
 def bandwidth(
@@ -22,9 +27,14 @@ def bandwidth(
     pairs: int = typer.Option(75, help="Random start/goal pairs for the path F1."),
     seed: int = typer.Option(0),
     federated: bool = typer.Option(True, help="Also run fedmap's federated configurations on the same map."),
+    streams: Optional[str] = typer.Option(None, help="Instead: bits per new cell on a mission's uplink stream, "
+                                          "for every cell coder ('default' or a mission TOML file)."),
     out: Path = typer.Option(Path("fedmap-out/bandwidth"), "--out", "-o", help="Output folder (replaced atomically)."),
 ) -> None:
     """Table III with real bytes: model codecs vs raw, JPEG, WebP, PNG and zstd of the map."""
+    if streams is not None:
+        _cell_streams(streams, out)
+        return
     method_config(terrain=terrain, size=size, pairs=pairs)  # validates before any work
     t0 = time.perf_counter()
     with progress_bar() as progress:
@@ -43,6 +53,31 @@ def bandwidth(
     console.print(f"paper network in fp16: {fp16['bytes']:,} B (199,683 x 2 = 399,366 B of values + "
                   f"{fp16['bytes'] - 399_366} B header)")
     console.print(f"outputs: {out}/  (report.md, bandwidth.json, rd.png); wall time {time.perf_counter() - t0:.1f} s")
+
+
+def _cell_streams(mission: str, out: Path) -> None:
+    t0 = time.perf_counter()
+    config, source, _ = load_mission(None if mission == "default" else mission)
+    with progress_bar() as progress:
+        task = progress.add_task("load terrain", total=None, loss="")
+        truth = load_truth(source, seed=config.seed)
+        elevation = load_source_dem(source, seed=config.seed).elevation if config.line_of_sight else None
+        report = cell_stream_report(config, truth, elevation=elevation,
+                                    on_stage=lambda s: progress.update(task, description=f"mission: {s}"))
+    t = Table(title=f"bits per new cell, uplink stream of the {mission} mission ({source.label})",
+              header_style="bold")
+    for col in ("coder", "messages", "cells", "bytes", "bits/cell", "bits/map cell"):
+        t.add_column(col, justify="left" if col == "coder" else "right")
+    for r in report["rows"]:
+        t.add_row(r["coder"], str(r["messages"]), f"{r['cells']:,}", f"{r['bytes']:,}", f"{r['bits_per_cell']:.3f}",
+                  f"{r['bits_per_map_cell']:.3f}")
+    console.print(t)
+    console.print("bits/cell: per cell the messages carried; bits/map cell: per cell of the base's final map "
+                  "(predictive does not resend cells a rover received, so it carries fewer)", soft_wrap=True)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out / "cell_streams.json", json.dumps(report, indent=1).encode())
+    atomic_write_bytes(out / "cell_streams.md", markdown(report, f"{mission} ({source.label})").encode())
+    console.print(f"outputs: {out}/  (cell_streams.json, cell_streams.md); wall time {time.perf_counter() - t0:.1f} s")
 
 
 def reproduce(

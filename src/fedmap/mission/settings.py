@@ -10,6 +10,7 @@ TOML layout (every key optional)::
     [link]         # LinkConfig: uplink_bytes, downlink_bytes, loss, latency, max_range, seed
     [strategies.fedmap]   # method_config keywords for a model strategy, e.g. epochs = 30
     [strategies.paper]
+    [strategies.predictive]  # the coder's parts (PREDICTIVE_OPTIONS), e.g. prior = "none"
 
 The terrain sections go through :mod:`fedmap.config` (the one builder), so a mission
 reads the same terrain sources, with the same checks, as ``fedmap run``.
@@ -48,6 +49,13 @@ DEFAULT_STRATEGIES: tuple[str, ...] = ("none", "raw", "fedmap", "central")
 #: The strategies that train a network and share it with the rovers' step of ``fedmap run``.
 MODEL_STRATEGIES: tuple[str, ...] = ("paper", "fedmap")
 MODES: tuple[str, ...] = ("frontier", "waypoints")
+#: ``[strategies.predictive]``: the parts of the predictive coder, each with its default first
+#: (the others are ablations, for measuring what each part saves): ``prior``, the coder's
+#: initial state (the shipped learned one, or none); ``mask``, which cells a message codes
+#: (those derived from the trails, or every cell the receiver lacks); ``state``, whether
+#: both ends keep the model from message to message.
+PREDICTIVE_OPTIONS: dict[str, tuple[str, ...]] = {"prior": ("learned", "none"), "mask": ("derived", "coded"),
+                                                   "state": ("persistent", "per-message")}
 
 
 def check_strategies(names) -> tuple[str, ...]:
@@ -214,8 +222,16 @@ class MissionConfig:
                 raise FedmapError(f"waypoints gives {len(wps)} lists for {self.rovers} rovers")
             object.__setattr__(self, "waypoints", wps)
         for name, kw in self.methods.items():
+            if name == "predictive":
+                check_keys(kw, PREDICTIVE_OPTIONS, "[strategies.predictive]")
+                for key, value in kw.items():
+                    if value not in PREDICTIVE_OPTIONS[key]:
+                        raise FedmapError(f"[strategies.predictive] {key} must be one of "
+                                          f"{', '.join(PREDICTIVE_OPTIONS[key])}, got {value!r}")
+                continue
             if name not in MODEL_STRATEGIES:
-                raise FedmapError(f"[strategies.{name}]: only {', '.join(MODEL_STRATEGIES)} take settings")
+                raise FedmapError(f"[strategies.{name}]: only {', '.join((*MODEL_STRATEGIES, 'predictive'))} "
+                                  "take settings")
             check_keys(kw, KEYWORDS, f"[strategies.{name}]")
 
     @property

@@ -55,6 +55,7 @@ from fedmap.federation.runner import (
 from fedmap.federation.streamcodec import initial_state
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb
 from fedmap.mission.sensing import disk_offsets
+from fedmap.mission.settings import PREDICTIVE_OPTIONS
 from fedmap.nets.model import Weights, build_model, render, set_weights
 from fedmap.pipeline import initial_weights
 
@@ -459,7 +460,7 @@ def make_strategy(name: str, truth: GridMap, team: list, budget: dict[str, int |
     if name == "raw":
         return Raw(truth, team, budget)
     if name == "predictive":
-        return Predictive(truth, team, budget, radius=radius)
+        return Predictive(truth, team, budget, radius=radius, options=methods.get(name))
     return Model(truth, team, budget, method=name, settings=dict(methods.get(name, {})), seed=seed)
 
 
@@ -495,11 +496,15 @@ class Predictive(Strategy):
     name = "predictive"
     shares = True
 
-    def __init__(self, truth: GridMap, team: list, budget: dict[str, int | None], *, radius: float) -> None:
+    def __init__(self, truth: GridMap, team: list, budget: dict[str, int | None], *, radius: float,
+                 options: dict | None = None) -> None:
         super().__init__(truth, team, budget)
         n, shape = len(team), self.shape
         self.radius = radius
-        self.initial = init = initial_state()
+        opts = {k: v[0] for k, v in PREDICTIVE_OPTIONS.items()} | dict(options or {})
+        self.derive_mask = opts["mask"] == "derived"
+        self.persist = opts["state"] == "persistent"
+        self.initial = init = initial_state() if opts["prior"] == "learned" else streamcodec.blank_state()
         empty = np.full(shape, UNKNOWN, dtype=np.uint8)
         starts = [r.pos for r in team]
         # rover side
@@ -530,8 +535,14 @@ class Predictive(Strategy):
 
     def _candidates(self, anchors: list[Cell]):
         def derive(tracks: list[list[Cell]]) -> np.ndarray:
+            if not self.derive_mask:
+                return np.ones(self.shape, dtype=bool)
             return cover([*anchors, *(p for t in tracks for p in t)], self.shape, self.radius)
         return derive
+
+    def _fold(self, state: streamcodec.CoderState, fold: streamcodec.Fold) -> None:
+        if self.persist:
+            state.fold(fold)
 
     def _rover_known(self, k: int) -> np.ndarray:
         r = self.team[k]
@@ -574,7 +585,7 @@ class Predictive(Strategy):
             ctx["used"] = False
             return
         ctx["used"] = True
-        self.up_base[k].fold(got.fold)
+        self._fold(self.up_base[k], got.fold)
         self.b_trails[k].extend(got.tracks[0])
         self.b_targets[k] = got.marks[0]
         carried = got.cells != UNKNOWN
@@ -584,7 +595,7 @@ class Predictive(Strategy):
     def uplink_acked(self, k: int, ctx: dict) -> None:
         if not ctx.get("used"):
             return
-        self.up_rover[k].fold(ctx["fold"])
+        self._fold(self.up_rover[k], ctx["fold"])
         self.r_sent[k] += ctx["n"]
         self.r_delivered[k] |= ctx["cells"] != UNKNOWN
         self.r_target[k] = ctx["target"]
@@ -637,7 +648,7 @@ class Predictive(Strategy):
         except RejectedUpdate:  # coded against a state or map this rover no longer holds
             return False
         # the rover's end
-        self.down_rover[k].fold(got.fold)
+        self._fold(self.down_rover[k], got.fold)
         carried = got.cells != UNKNOWN
         self.r_held[k] = np.where(carried, got.cells, self.r_held[k]).astype(np.uint8)
         for j, track, mark in zip(others, got.tracks, got.marks):
@@ -645,7 +656,7 @@ class Predictive(Strategy):
             self.r_targets[k][j] = mark
             self.known_reports[k][j] = (self.r_trails[k][j][-1], mark)
         # the base's end: the link-level acknowledgement
-        self.down_base[k].fold(ctx["fold"])
+        self._fold(self.down_base[k], ctx["fold"])
         self.b_held[k] = np.where(ctx["cells"] != UNKNOWN, ctx["cells"], self.b_held[k]).astype(np.uint8)
         for j, track, mark in zip(others, ctx["tracks"], ctx["marks"]):
             self.b_fwd[k][j] += len(track)
