@@ -17,8 +17,7 @@ import time
 from pathlib import Path
 
 from fedmap.experiments.cellstreams import cell_stream_report, markdown
-from fedmap.maps.sources import load_source_dem, load_truth
-from fedmap.mission import load_mission
+from fedmap.mission import load_mission, mission_terrain
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -34,9 +33,8 @@ def main() -> None:
     for name in args.missions:
         t0 = time.perf_counter()
         config, source, _ = load_mission(None if name == "default" else ROOT / name)
-        truth = load_truth(source, seed=config.seed)
-        elevation = load_source_dem(source, seed=config.seed).elevation if config.line_of_sight else None
-        report = cell_stream_report(config, truth, elevation=elevation)
+        truth, elevation, prior = mission_terrain(config, source)
+        report = cell_stream_report(config, truth, elevation=elevation, prior=prior)
         title = f"{name} ({source.label}, {truth.shape[0]}x{truth.shape[1]}, {config.rovers} rovers, " \
                 f"{config.steps} steps)"
         table = markdown(report, title)

@@ -17,8 +17,7 @@ from fedmap.experiments.cellstreams import cell_stream_report, markdown
 from fedmap.experiments.reproduce import F1_MEANINGS, PAPER_TABLE2, ReproduceConfig
 from fedmap.experiments.reproduce import reproduce as run_reproduce
 from fedmap.experiments.table3 import bandwidth_report
-from fedmap.maps.sources import load_source_dem, load_truth
-from fedmap.mission import load_mission
+from fedmap.mission import load_mission, mission_terrain
 
 
 def bandwidth(
@@ -60,9 +59,8 @@ def _cell_streams(mission: str, out: Path) -> None:
     config, source, _ = load_mission(None if mission == "default" else mission)
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
-        truth = load_truth(source, seed=config.seed)
-        elevation = load_source_dem(source, seed=config.seed).elevation if config.line_of_sight else None
-        report = cell_stream_report(config, truth, elevation=elevation,
+        truth, elevation, prior = mission_terrain(config, source)
+        report = cell_stream_report(config, truth, elevation=elevation, prior=prior,
                                     on_stage=lambda s: progress.update(task, description=f"mission: {s}"))
     t = Table(title=f"bits per new cell, uplink stream of the {mission} mission ({source.label})",
               header_style="bold")

@@ -15,8 +15,7 @@ from fedmap._util import to_json
 from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import console, fit, progress_bar, terrain_line
 from fedmap.config import dumps_toml
-from fedmap.maps.sources import load_source_dem, load_truth
-from fedmap.mission import load_mission, run_mission
+from fedmap.mission import load_mission, mission_terrain, run_mission
 from fedmap.mission.report import table_rows, verdict, write_mission
 from fedmap.mission.settings import MISSION_SECTIONS, parse_sets
 from fedmap.mission.sim import start_pocket_warning
@@ -44,11 +43,10 @@ def mission(
                                          overrides=[*parse_sets(set_), settings or {}])
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
-        truth = load_truth(source, seed=cfg.seed)
+        truth, elevation, prior = mission_terrain(cfg, source)
         for warning in (truth.meta.get("warning"), start_pocket_warning(truth, cfg)):
             if warning:
                 console.print(f"warning: {warning}", soft_wrap=True)  # one line, however wide
-        elevation = load_source_dem(source, seed=cfg.seed).elevation if cfg.line_of_sight else None
 
         def on_strategy(name: str) -> None:
             nonlocal task
@@ -57,7 +55,7 @@ def mission(
         def on_step(name: str, step: int, coverage: float) -> None:
             progress.update(task, completed=step, loss=f"coverage {coverage:.0%}")
 
-        result = run_mission(cfg, truth, elevation=elevation, on_strategy=on_strategy, on_step=on_step)
+        result = run_mission(cfg, truth, elevation=elevation, prior=prior, on_strategy=on_strategy, on_step=on_step)
         task = progress.add_task("write outputs", total=None, loss="")
         title = f"{source.label}, {truth.shape[0]}x{truth.shape[1]}"
         write_mission(result, out, title=title, settings=resolved, animation=animation,
@@ -73,7 +71,8 @@ def mission(
     console.print(fit(t))
     console.print(terrain_line(source.label, truth, source.thresholds))
     console.print("50/80/95 %: first step the team's coverage reached it; F1>=.9: first step a rover's belief gave "
-                  "strict A* path F1 >= 0.9; cov., acc.: coverage and mean belief accuracy at the end; glob.F1: the "
+                  "strict A* path F1 >= 0.9; cov., acc.: coverage and mean belief accuracy at the end; f.free: share of the cells "
+                  "a rover plans on as free that are impassable; glob.F1: the "
                   "base's map, strict; team up/down B: bytes of the whole team over the mission; up lost/over: "
                   "uplink messages that did not arrive, by why. All columns: report.md.")
     console.print(verdict(result).replace("**", ""))
@@ -84,7 +83,8 @@ def mission(
 
 #: Columns of the console table (report.md has them all) -> their short headers.
 _CONSOLE = {"strategy": "strategy", "steps to 50 %": "50 %", "steps to 80 %": "80 %", "steps to 95 %": "95 %",
-            "belief F1≥0.9 at": "F1>=.9", "coverage": "cov.", "belief acc.": "acc.", "global F1": "glob.F1",
+            "belief F1≥0.9 at": "F1>=.9", "coverage": "cov.", "belief acc.": "acc.", "false-free": "f.free",
+            "global F1": "glob.F1",
             "team bytes up": "team up B", "team bytes down": "team down B", "uplinks not delivered": "up lost/over"}
 
 

@@ -96,11 +96,12 @@ def _lzma(data: bytes) -> bytes:
 
 
 def cell_stream_report(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray | None = None,
-                       on_stage: Callable[[str], None] | None = None) -> dict:
+                       prior: np.ndarray | None = None, on_stage: Callable[[str], None] | None = None) -> dict:
     """The bits-per-new-cell table of one mission (see the module docstring)."""
     say = on_stage or (lambda _s: None)
     say("raw")
-    raw = run_mission(replace(config, strategies=("raw",)), truth, elevation=elevation, frames=1).runs["raw"].strategy
+    raw = run_mission(replace(config, strategies=("raw",)), truth, elevation=elevation, prior=prior,
+                      frames=1).runs["raw"].strategy
     assert isinstance(raw, Raw)
     messages = [decode_map(unpack_up(p)[3], expected_shape=truth.shape) for _, _, p in raw.received]
     bodies = [len(unpack_up(p)[3]) for _, _, p in raw.received]
@@ -119,7 +120,7 @@ def cell_stream_report(config: MissionConfig, truth: GridMap, *, elevation: np.n
     for label, opts in VARIANTS.items():
         say(label)
         c = replace(config, strategies=("predictive",), methods={**config.methods, "predictive": opts})
-        run = run_mission(c, truth, elevation=elevation, frames=1).runs["predictive"]
+        run = run_mission(c, truth, elevation=elevation, prior=prior, frames=1).runs["predictive"]
         s = run.strategy
         assert isinstance(s, Predictive)
         up = [m for m in run.ledger if m.direction == "up" and m.status == "delivered"]

@@ -14,7 +14,7 @@ sharing are compared on the same mission.
 
 from fedmap.mission.link import StarTopology, Topology
 from fedmap.mission.settings import STRATEGIES, LinkConfig, MissionConfig, load_mission
-from fedmap.mission.sim import MissionResult, MissionSummary, StrategyRun, TimeSeries, run_mission
+from fedmap.mission.sim import MissionResult, MissionSummary, StrategyRun, TimeSeries, mission_terrain, run_mission
 
 __all__ = ["STRATEGIES", "LinkConfig", "MissionConfig", "MissionResult", "MissionSummary", "StarTopology",
-           "StrategyRun", "TimeSeries", "Topology", "load_mission", "run_mission"]
+           "StrategyRun", "TimeSeries", "Topology", "load_mission", "mission_terrain", "run_mission"]

@@ -72,6 +72,7 @@ COLUMNS: dict[str, tuple[Callable[[MissionSummary], Any], int]] = {
     "coverage": (lambda s: s.final_coverage, 3),
     "redundant": (lambda s: s.final_redundant, 3),
     "belief acc.": (lambda s: s.final_belief_accuracy_mean, 3),
+    "false-free": (lambda s: s.final_false_free_mean, 3),
     "belief F1": (lambda s: s.final_belief_f1_mean, 2),
     "global PSNR": (lambda s: s.final_global_psnr, 2),
     "global SSIM": (lambda s: s.final_global_ssim, 3),
@@ -168,8 +169,13 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         "Final values at the last step; *steps to* and *at* columns are the first step a level was reached "
         f"(`-`: never). Path F1 is strict (A*, {c.eval_pairs} seeded start/goal pairs, UNKNOWN impassable), "
         "scored at step 0, at every sync and at the last step; belief columns average the rovers; *belief acc. at step 0* "
-        "is before any message (a model strategy's starts from its initial model's rendering). Bytes are the "
+        "is before any message (a model strategy's starts from its initial model's rendering). *false-free*: the "
+        "share of the cells a rover plans on as FREE (its belief, and the prior where it has no observation) that "
+        "are impassable in the truth, mean over the rovers: hazards it would drive into. Bytes are the "
         "whole team's, summed over the rovers and the mission; *not delivered* counts messages by why.", "",
+        *([f"Prior: orbital, the DEM {c.prior.factor}x coarser, held by every rover and the base before the mission "
+           "and never sent (no bytes on the link); rovers plan paths on it where they have no observation.", ""]
+          if c.prior.kind == "orbital" else []),
         side_by_side(result),
         verdict(result), "",
         f"Wall time: {result.seconds:.1f} s ("

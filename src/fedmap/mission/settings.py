@@ -8,6 +8,7 @@ TOML layout (every key optional)::
     [thresholds]   # exactly as `fedmap run`
     [mission]      # MissionConfig: rovers, steps, sync_every, speed, sensor_radius, ...
     [link]         # LinkConfig: uplink_bytes, downlink_bytes, loss, latency, max_range, seed
+    [prior]        # PriorConfig: kind (none | orbital), factor
     [strategies.fedmap]   # method_config keywords for a model strategy, e.g. epochs = 30
     [strategies.paper]
     [strategies.predictive]  # the coder's parts (PREDICTIVE_OPTIONS), e.g. prior = "none"
@@ -45,7 +46,7 @@ from fedmap.maps.sources import TerrainSource
 #: Every sharing strategy, from the lower bound to the upper bound.
 STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive", "paper", "fedmap", "central")
 #: The strategies a mission runs unless told otherwise (``paper`` is slow: an option).
-DEFAULT_STRATEGIES: tuple[str, ...] = ("none", "raw", "fedmap", "central")
+DEFAULT_STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive", "fedmap", "central")
 #: The strategies that train a network and share it with the rovers' step of ``fedmap run``.
 MODEL_STRATEGIES: tuple[str, ...] = ("paper", "fedmap")
 MODES: tuple[str, ...] = ("frontier", "waypoints")
@@ -122,6 +123,35 @@ class LinkConfig:
         return asdict(self)
 
 
+PRIOR_KINDS: tuple[str, ...] = ("none", "orbital")
+
+
+@dataclass(frozen=True)
+class PriorConfig:
+    """What every agent and the base know before the mission (``[prior]``).
+
+    ``orbital``: the site's DEM block-averaged ``factor`` times and classified at that
+    resolution (:func:`fedmap.maps.orbital.orbital_prior`), as an orbiter would map it.
+    Every rover and the base hold it before the mission starts; it is never sent, so it
+    costs no bytes on the link. Rovers plan their paths on it where they have no
+    observation (a prior IMPASSABLE cell is avoided, unless no path exists otherwise); it
+    is never an observation: beliefs, coverage, sharing and target choice ignore it.
+    """
+
+    kind: str = setting("none", help="none, or orbital: the DEM block-averaged factor times, for planning",
+                        choices=PRIOR_KINDS, cli="--prior")
+    factor: int = setting(8, help="How many times coarser the orbital prior is than the map", cli="--prior-factor")
+
+    def __post_init__(self) -> None:
+        if self.kind not in PRIOR_KINDS:
+            raise FedmapError(f"unknown prior kind {self.kind!r}{suggest(self.kind, PRIOR_KINDS)}")
+        if isinstance(self.factor, bool) or not isinstance(self.factor, int) or self.factor < 2:
+            raise FedmapError(f"prior factor must be an integer >= 2, got {self.factor!r}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
 @dataclass(frozen=True)
 class MissionConfig:
     """One mission: the team, the clock, sensing, planning, the link and the strategies.
@@ -184,6 +214,7 @@ class MissionConfig:
                                           "comma-separated", choices=STRATEGIES)
     eval_pairs: int = setting(40, help="Start/goal pairs of the path F1 (scored at step 0, every sync and the end)")
     link: LinkConfig = wiring(default_factory=LinkConfig)
+    prior: PriorConfig = wiring(default_factory=PriorConfig)
     methods: dict = wiring(default_factory=dict)
     seed: int = wiring(0)
 
@@ -243,7 +274,7 @@ class MissionConfig:
 
 
 #: The tables of a mission file besides the run config's ``seed``, ``[terrain]`` and ``[thresholds]``.
-MISSION_SECTIONS: dict[str, type] = {"mission": MissionConfig, "link": LinkConfig}
+MISSION_SECTIONS: dict[str, type] = {"mission": MissionConfig, "link": LinkConfig, "prior": PriorConfig}
 _RUN_PART = ("seed", "terrain", "thresholds")
 
 
@@ -305,15 +336,19 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
     methods = data.get("strategies", {})
     try:
         config = _schema.build(MissionConfig, data.get("mission", {}), link=_schema.build(LinkConfig, data.get("link", {})),
-                               methods=methods, seed=resolved["seed"])
+                               prior=_schema.build(PriorConfig, data.get("prior", {})), methods=methods,
+                               seed=resolved["seed"])
     except TypeError as exc:  # a wrong type reaching a comparison
         raise FedmapError(f"bad mission setting: {exc}") from exc
     if config.line_of_sight and source.kind == "map":
         raise FedmapError("line of sight needs the terrain's elevation (a DEM, tiles or built-in source, not a class map)")
+    if config.prior.kind == "orbital" and source.kind == "map":
+        raise FedmapError("an orbital prior needs the terrain's elevation (a DEM, tiles or built-in source, not a "
+                          "class map)")
     out = {"seed": resolved["seed"], "terrain": {k: v for k, v in source.to_dict().items() if k != "thresholds"},
            "thresholds": used_thresholds(resolved["thresholds"]), "mission": {k: v for k, v in asdict(config).items()
-                                                            if k not in ("link", "methods", "seed")},
-           "link": config.link.to_dict(), "strategies": methods}
+                                                            if k not in ("link", "prior", "methods", "seed")},
+           "link": config.link.to_dict(), "prior": config.prior.to_dict(), "strategies": methods}
     return config, source, out
 
 

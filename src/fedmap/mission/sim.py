@@ -34,7 +34,9 @@ from fedmap.errors import FedmapError
 from fedmap.evaluation.paths import path_f1
 from fedmap.evaluation.scores import MapScores, score_map
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
+from fedmap.maps.orbital import orbital_prior
 from fedmap.maps.planning import path_is_valid
+from fedmap.maps.sources import TerrainSource, load_source_dem, load_truth
 from fedmap.mission.frontiers import choose_target, plan_path
 from fedmap.mission.link import DOWN, UP, Link, Message, StarTopology
 from fedmap.mission.sensing import disk_offsets, footprint
@@ -96,6 +98,9 @@ class TimeSeries:
     coverage: tuple[float, ...]  #: share of cells any rover has observed
     redundant: tuple[float, ...]  #: share of cells two or more rovers have observed
     accuracy: tuple[tuple[float, ...], ...]  #: per rover: share of its belief's cells equal to the truth (UNKNOWN wrong)
+    #: per rover: share of the cells it plans on as FREE (its belief, and the prior where it
+    #: has none) that are impassable in the truth: the hazards it would drive into
+    false_free: tuple[tuple[float, ...], ...]
     distance: tuple[tuple[float, ...], ...]  #: per rover: distance driven, cells
     bytes_up: tuple[tuple[int, ...], ...]  #: per rover: bytes it spent on the uplink
     bytes_down: tuple[tuple[int, ...], ...]  #: per rover: bytes the base spent on its downlink
@@ -108,7 +113,8 @@ class TimeSeries:
     def to_dict(self) -> dict[str, Any]:
         """The ``series`` of ``metrics.json``."""
         return {"step": list(self.step), "coverage": list(self.coverage), "redundant": list(self.redundant),
-                "accuracy": [list(a) for a in self.accuracy], "distance": [list(d) for d in self.distance],
+                "accuracy": [list(a) for a in self.accuracy], "false_free": [list(f) for f in self.false_free],
+                "distance": [list(d) for d in self.distance],
                 "bytes_up_per_rover": [list(b) for b in self.bytes_up],
                 "bytes_down_per_rover": [list(b) for b in self.bytes_down],
                 "up_delivered": list(self.up_delivered), "up_dropped": list(self.up_dropped),
@@ -129,6 +135,7 @@ class MissionSummary:
     final_coverage: float  #: share of cells any rover observed
     final_redundant: float  #: share of cells two or more rovers observed
     final_belief_accuracy_mean: float  #: belief accuracy (share of cells), mean over the rovers
+    final_false_free_mean: float  #: false-free rate (TimeSeries.false_free), mean over the rovers
     final_distance_total: float  #: distance driven by the whole team, cells
     final_global_psnr: float  #: the base's global map: PSNR, dB
     final_global_ssim: float  #: the base's global map: SSIM
@@ -149,6 +156,7 @@ class MissionSummary:
             "first_belief_f1_step_per_rover": list(self.first_belief_f1_step_per_rover),
             "final": {"coverage": self.final_coverage, "redundant": self.final_redundant,
                       "belief_accuracy_mean": self.final_belief_accuracy_mean,
+                      "false_free_mean": self.final_false_free_mean,
                       "distance_total": self.final_distance_total, "global_psnr": self.final_global_psnr,
                       "global_ssim": self.final_global_ssim, "global_accuracy": self.final_global_accuracy,
                       "global_f1": self.final_global_f1, "global_f1_tolerant": self.final_global_f1_tolerant,
@@ -305,6 +313,7 @@ class _StepRow:
     coverage: float
     redundant: float
     accuracy: tuple[float, ...]
+    false_free: tuple[float, ...]
     distance: tuple[float, ...]
     bytes_up: tuple[int, ...]
     bytes_down: tuple[int, ...]
@@ -335,8 +344,8 @@ def _series(rows: list[_StepRow], evals: list[_EvalRow]) -> TimeSeries:
                     belief_f1=tuple(e.belief_f1 for e in evals))
     return TimeSeries(step=tuple(r.step for r in rows), coverage=tuple(r.coverage for r in rows),
                       redundant=tuple(r.redundant for r in rows), accuracy=tuple(r.accuracy for r in rows),
-                      distance=tuple(r.distance for r in rows), bytes_up=tuple(r.bytes_up for r in rows),
-                      bytes_down=tuple(r.bytes_down for r in rows),
+                      false_free=tuple(r.false_free for r in rows), distance=tuple(r.distance for r in rows),
+                      bytes_up=tuple(r.bytes_up for r in rows), bytes_down=tuple(r.bytes_down for r in rows),
                       up_delivered=tuple(r.up_delivered for r in rows), up_dropped=tuple(r.up_dropped for r in rows),
                       down_delivered=tuple(r.down_delivered for r in rows),
                       down_dropped=tuple(r.down_dropped for r in rows), eval=ev)
@@ -347,8 +356,9 @@ class _Run:
 
     def __init__(self, name: str, config: MissionConfig, truth: GridMap, elevation: np.ndarray | None,
                  starts: list[Cell], base: Cell, waypoints: list[list[Cell]], scorer: _Scorer,
-                 frame_every: int) -> None:
+                 frame_every: int, prior: np.ndarray | None = None) -> None:
         self.name, self.config, self.truth, self.elevation = name, config, truth, elevation
+        self.prior = prior
         self.scorer, self.frame_every = scorer, frame_every
         shape = truth.shape
         self.team = [Rover(s, np.full(shape, UNKNOWN, dtype=np.uint8), np.full(shape, -1, dtype=np.int64),
@@ -400,9 +410,16 @@ class _Run:
                              others=self.strategy.others(k), allowed=self.allowed, excluded=r.excluded,
                              heading=heading)
 
+    def planning_map(self, belief: np.ndarray) -> np.ndarray:
+        """What a rover plans its path on: its belief, and the prior where it has no observation."""
+        if self.prior is None:
+            return belief
+        return np.where(belief == UNKNOWN, self.prior, belief).astype(np.uint8)
+
     def plan(self, k: int, belief: np.ndarray) -> None:
         r = self.team[k]
-        passable = (belief == FREE) | (belief == UNKNOWN)
+        on = self.planning_map(belief)
+        passable = (on == FREE) | (on == UNKNOWN)
         if (not r.replan and r.path and not self._target_done(r, belief)
                 and path_is_valid(passable, [r.pos, *r.path])):
             return
@@ -413,7 +430,9 @@ class _Run:
             target = self._pick(k, belief)
             if target is None:
                 return
-            path = plan_path(belief, r.pos, target)
+            path = plan_path(on, r.pos, target)
+            if not path and on is not belief:  # the prior is a guess: never let it trap a rover
+                path = plan_path(belief, r.pos, target)
             if path:
                 r.target, r.path = target, path
                 return
@@ -504,9 +523,12 @@ class _Run:
             if m.status == "delivered" and not ok:
                 continue  # still on its way
             (delivered if ok else dropped)[m.direction] += 1
+        free = [self.planning_map(b) == FREE for b in beliefs]
         self.rows.append(_StepRow(
             step=t, coverage=float((n_seen > 0).mean()), redundant=float((n_seen > 1).mean()),
-            accuracy=tuple(float((b == truth).mean()) for b in beliefs), distance=tuple(r.distance for r in self.team),
+            accuracy=tuple(float((b == truth).mean()) for b in beliefs),
+            false_free=tuple(float((f & (truth == IMPASSABLE)).sum() / max(int(f.sum()), 1)) for f in free),
+            distance=tuple(r.distance for r in self.team),
             bytes_up=tuple(up), bytes_down=tuple(down), up_delivered=delivered[UP], up_dropped=dropped[UP],
             down_delivered=delivered[DOWN], down_dropped=dropped[DOWN]))
         if evaluate:
@@ -567,6 +589,7 @@ def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig) 
         final_coverage=series.coverage[-1],
         final_redundant=series.redundant[-1],
         final_belief_accuracy_mean=float(np.mean(series.accuracy[-1])),
+        final_false_free_mean=float(np.mean(series.false_free[-1])),
         final_distance_total=float(np.sum(series.distance[-1])),
         final_global_psnr=ev.psnr[-1],
         final_global_ssim=ev.ssim[-1],
@@ -580,13 +603,28 @@ def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig) 
     )
 
 
+def mission_terrain(config: MissionConfig, source: TerrainSource) -> tuple[GridMap, np.ndarray | None,
+                                                                           np.ndarray | None]:
+    """``(truth, elevation, prior)`` of a mission on ``source``: the elevation when line of
+    sight needs it, the orbital prior when ``[prior]`` asks for one (else None each)."""
+    truth = load_truth(source, seed=config.seed)
+    needs_dem = config.line_of_sight or config.prior.kind == "orbital"
+    dem = load_source_dem(source, seed=config.seed) if needs_dem else None
+    elevation = dem.elevation if dem is not None and config.line_of_sight else None
+    prior = orbital_prior(dem, source.thresholds, config.prior.factor) if dem is not None and \
+        config.prior.kind == "orbital" else None
+    return truth, elevation, prior
+
+
 def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray | None = None,
-                on_strategy: Callable[[str], None] | None = None,
+                prior: np.ndarray | None = None, on_strategy: Callable[[str], None] | None = None,
                 on_step: Callable[[str, int, float], None] | None = None,
                 frames: int = 60) -> MissionResult:
     """Run every strategy of ``config`` on the same mission over ``truth``.
 
-    ``elevation`` (metres, the truth's grid) is needed for ``line_of_sight``.
+    ``elevation`` (metres, the truth's grid) is needed for ``line_of_sight``; ``prior``
+    (classes, the truth's grid) is what every rover plans on where it has no observation
+    (:class:`~fedmap.mission.settings.PriorConfig`; :func:`mission_terrain` builds both).
     ``on_strategy(name)`` announces each strategy and ``on_step(name, step, coverage)``
     follows it (progress bars); ``frames`` bounds the animation's frames per strategy.
     """
@@ -595,6 +633,8 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
         raise FedmapError("line of sight needs the terrain's elevation (a DEM or built-in source, not a class map)")
     if elevation is not None and np.shape(elevation) != truth.shape:
         raise FedmapError(f"elevation grid {np.shape(elevation)} does not match the map {truth.shape}")
+    if prior is not None and np.shape(prior) != truth.shape:
+        raise FedmapError(f"prior map {np.shape(prior)} does not match the map {truth.shape}")
     starts, base = place_starts(truth, config)
     waypoints = plan_waypoints(truth, config) if config.mode == "waypoints" else [[] for _ in starts]
     scorer = _Scorer(truth, config.eval_pairs, config.seed)
@@ -603,7 +643,8 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     for name in config.strategies:
         if on_strategy is not None:
             on_strategy(name)
-        runs[name] = _Run(name, config, truth, elevation, starts, base, waypoints, scorer, frame_every).run(on_step)
+        runs[name] = _Run(name, config, truth, elevation, starts, base, waypoints, scorer, frame_every,
+                          prior).run(on_step)
     return MissionResult(config, truth, starts, base, runs, time.perf_counter() - t0)
 
 
