@@ -6,7 +6,7 @@ sharing are compared on the same mission.
 * :mod:`~fedmap.mission.frontiers`: frontier cells and coordinated target choice on a belief map;
 * :mod:`~fedmap.mission.link`: the seeded link (budgets, loss, latency), its :class:`Topology`
   (who reaches the base: :class:`StarTopology`, within range) and its ledger;
-* :mod:`~fedmap.mission.strategies`: none, raw, paper, fedmap, central;
+* :mod:`~fedmap.mission.strategies`: none, raw, predictive, paper, fedmap, central;
 * :mod:`~fedmap.mission.sim`: :func:`run_mission`, the step loop and its typed results
   (:class:`StrategyRun`: a :class:`TimeSeries` and a :class:`MissionSummary` per strategy);
 * :mod:`~fedmap.mission.report`: ``metrics.json``, ``report.md``, plots and the animation.

@@ -181,7 +181,7 @@ class Frame:
 class StrategyRun:
     """One strategy's mission: time series, summary, ledger, and what the animation draws."""
 
-    name: str  #: the strategy (none, raw, paper, fedmap, central)
+    name: str  #: the strategy (none, raw, predictive, paper, fedmap, central)
     series: TimeSeries  #: per step (0 to steps) and per evaluation step
     summary: MissionSummary  #: first steps a level was reached, and the final values
     ledger: list[Message]  #: one entry per message, with its bytes and its fate
