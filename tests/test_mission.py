@@ -307,3 +307,57 @@ def test_a_rover_profile_applies_in_a_mission_as_in_a_run(tmp_path):
     assert out["thresholds"] == run
     mer = rover_profile("mer").to_dict()
     assert out["thresholds"]["max_step_m"] == mer["max_step_m"] and out["thresholds"]["max_slope_deg"] == 12.0
+
+
+# ---------------------------------------------------------------- knowing vs guessing
+
+
+def _executed_by_hand(truth: np.ndarray, pred: np.ndarray, n_pairs: int, seed: int) -> float:
+    """Executed path success, step by step: drive the path planned on ``pred`` on ``truth``."""
+    from fedmap.maps.planning import astar, sample_pairs
+    pt, pp = truth == FREE, pred == FREE
+    ok = total = 0
+    for s, g in sample_pairs(pt, n_pairs, seed=seed):
+        if astar(pt, s, g) is None:
+            continue
+        total += 1
+        path = astar(pp, s, g)
+        if path is None or path[-1] != g:
+            continue
+        cells_ok = all(pt[c] for c in path)
+        steps_ok = all(max(abs(b[0] - a[0]), abs(b[1] - a[1])) == 1 and
+                       (a[0] == b[0] or a[1] == b[1] or (pt[b[0], a[1]] and pt[a[0], b[1]]))
+                       for a, b in zip(path, path[1:]))
+        ok += cells_ok and steps_ok
+    return ok / total if total else 1.0
+
+
+def test_executed_path_success_counts_paths_that_drive_safely_to_the_goal():
+    from fedmap.evaluation.paths import path_f1
+    truth = _maze(40, 8).classes
+    assert path_f1(truth, truth, n_pairs=30, seed=2).success == 1.0
+    wrong = truth.copy()
+    wrong[truth == IMPASSABLE] = FREE  # believes every hazard is free ground: paths cut through them
+    unknown = np.where(np.arange(40)[None, :] < 20, truth, UNKNOWN).astype(np.uint8)  # half the map unknown
+    for pred in (wrong, unknown):
+        got = path_f1(truth, pred, n_pairs=30, seed=2).success
+        assert got == pytest.approx(_executed_by_hand(truth, pred, 30, 2))
+    assert path_f1(truth, wrong, n_pairs=30, seed=2).success < 1.0
+
+
+def test_beliefs_are_scored_on_observed_and_unobserved_cells_apart():
+    config = MissionConfig(rovers=2, steps=30, sync_every=5, sensor_radius=4.0, strategies=("none", "raw"),
+                           eval_pairs=5, link=LinkConfig(loss=0.0))
+    result = run_mission(config, _maze(40, 9), frames=1)
+    truth = result.truth.classes
+    for name, run in result.runs.items():
+        s = run.strategy
+        seen = np.stack([r.local != UNKNOWN for r in s.team]).any(axis=0)
+        for k in range(config.rovers):
+            b = s.belief(k)
+            assert run.series.accuracy_observed[-1][k] == pytest.approx((b == truth)[seen].mean())
+            assert run.series.accuracy_unobserved[-1][k] == 0.0  # sharing observations only: nothing guessed
+        assert run.summary.final_path_success_mean == pytest.approx(np.mean(run.series.eval.belief_success[-1]))
+    # raw shares every observation, so its rovers know what the team observed
+    assert np.mean(result.runs["raw"].series.accuracy_observed[-1]) > np.mean(
+        result.runs["none"].series.accuracy_observed[-1])

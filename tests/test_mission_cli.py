@@ -45,7 +45,7 @@ def test_mission_cli_writes_every_output(tmp_path, capsys):
     report = (out / "report.md").read_text()
     for name in ("none", "raw", "central"):
         assert f"| {name} |" in report
-    for png in ("coverage.png", "f1.png", "accuracy_bytes.png"):
+    for png in ("coverage.png", "f1.png", "accuracy_bytes.png", "knowing.png"):
         with Image.open(out / png) as im:
             assert im.size[0] > 100
     with Image.open(out / "mission_raw.gif") as gif:

@@ -76,7 +76,7 @@ def mission(
                   "base's map, strict; team up/down B: bytes of the whole team over the mission; up lost/over: "
                   "uplink messages that did not arrive, by why. All columns: report.md.")
     console.print(verdict(result).replace("**", ""))
-    console.print(f"outputs: {out}/  (metrics.json, report.md, coverage.png, f1.png, accuracy_bytes.png"
+    console.print(f"outputs: {out}/  (metrics.json, report.md, coverage.png, f1.png, accuracy_bytes.png, knowing.png"
                   f"{', mission_<strategy>.gif' if animation else ''})")
     console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
 

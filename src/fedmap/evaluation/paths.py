@@ -83,6 +83,12 @@ class PathScores:
     mean_length_ratio: float | None
     unknown_passable: bool
     paper: PaperScores
+    #: pairs where the truth has a path and the path planned on the learned map, driven on
+    #: the truth, reaches the goal without entering an impassable cell
+    executed: int
+    #: ``executed`` over the pairs where the truth has a path (1.0 when it has none): the
+    #: share of paths a rover planning on this map would drive safely to the goal
+    success: float
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -150,6 +156,10 @@ def path_f1(
     The tolerant variant counts a learned path as correct when it is collision-free on
     the true map and at most ``(1 + length_tolerance)`` times the true path's length.
 
+    ``success`` is the executed reading: over the pairs the truth connects, the share
+    whose learned path, driven on the truth, reaches the goal without entering an
+    impassable cell (whatever its length).
+
     ``paper`` (:class:`PaperScores`) reads the paper's text literally, from the same plans
     of the same pairs: TP and TN as above, FP only where the truth has no path, FN only
     where the learned map has none; a pair where both maps have a path but the paths differ
@@ -168,8 +178,12 @@ def path_f1(
     tol_tp = tol_fp = tol_fn = 0
     pap_fp = pap_fn = differ = 0  # the literal reading: its TP and TN are the strict ones
     ratios = []
+    executed = reachable = 0
     for (s, g), true_path in truth_paths(pt, n_pairs, seed):
         pred_path = astar(pp, s, g) if (lp[s] and lp[s] == lp[g]) else None
+        if true_path is not None:
+            reachable += 1
+            executed += pred_path is not None and path_is_valid(pt, pred_path)
         if true_path is None and pred_path is None:
             tn += 1
             continue
@@ -201,4 +215,4 @@ def path_f1(
     tolerant = TolerantScores(length_tolerance, tol_tp, tol_fp, tol_fn, tp_, tr_, tf_)
     paper = PaperScores(tp, pap_fp, pap_fn, tn, differ, *_prf(tp, pap_fp, pap_fn))
     return PathScores(n_pairs, tp, fp, fn, tn, p, r, f, tolerant, float(np.mean(ratios)) if ratios else None,
-                      unknown_passable, paper)
+                      unknown_passable, paper, executed, executed / reachable if reachable else 1.0)

@@ -5,7 +5,8 @@
 * ``report.md``: the strategies side by side (:func:`side_by_side`);
 * ``coverage.png`` (coverage vs step), ``f1.png`` (the base's global map and the best
   rover belief, strict path F1 vs step), ``accuracy_bytes.png`` (mean belief accuracy
-  vs cumulative bytes per rover, both directions);
+  vs cumulative bytes per rover, both directions), ``knowing.png`` (accuracy on observed
+  and on unobserved cells, false-free rate, executed path success, vs step);
 * ``mission_<strategy>.gif`` (and ``.mp4`` when ``ffmpeg`` is on the PATH): the truth,
   every rover's belief with its path, position and sensor footprint, and the global map.
 """
@@ -72,8 +73,11 @@ COLUMNS: dict[str, tuple[Callable[[MissionSummary], Any], int]] = {
     "coverage": (lambda s: s.final_coverage, 3),
     "redundant": (lambda s: s.final_redundant, 3),
     "belief acc.": (lambda s: s.final_belief_accuracy_mean, 3),
+    "acc. observed": (lambda s: s.final_accuracy_observed_mean, 3),
+    "acc. unobserved": (lambda s: s.final_accuracy_unobserved_mean, 3),
     "false-free": (lambda s: s.final_false_free_mean, 3),
     "belief F1": (lambda s: s.final_belief_f1_mean, 2),
+    "path success": (lambda s: s.final_path_success_mean, 2),
     "global PSNR": (lambda s: s.final_global_psnr, 2),
     "global SSIM": (lambda s: s.final_global_ssim, 3),
     "global F1": (lambda s: s.final_global_f1, 2),
@@ -169,7 +173,12 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         "Final values at the last step; *steps to* and *at* columns are the first step a level was reached "
         f"(`-`: never). Path F1 is strict (A*, {c.eval_pairs} seeded start/goal pairs, UNKNOWN impassable), "
         "scored at step 0, at every sync and at the last step; belief columns average the rovers; *belief acc. at step 0* "
-        "is before any message (a model strategy's starts from its initial model's rendering). *false-free*: the "
+        "is before any message (a model strategy's starts from its initial model's rendering). "
+        "*acc. observed* / *acc. unobserved*: belief accuracy on the cells some rover observed (knowing) and on "
+        "those no rover observed (guessing: a strategy that shares only observations leaves them UNKNOWN and "
+        "scores 0). *path success*: the share of the pairs "
+        "the truth connects whose path, planned on a rover's belief and driven on the truth, reaches the goal "
+        "without entering an impassable cell, mean over the rovers. *false-free*: the "
         "share of the cells a rover plans on as FREE (its belief, and the prior where it has no observation) that "
         "are impassable in the truth, mean over the rovers: hazards it would drive into. Bytes are the "
         "whole team's, summed over the rovers and the mission; *not delivered* counts messages by why.", "",
@@ -180,7 +189,7 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         verdict(result), "",
         f"Wall time: {result.seconds:.1f} s ("
         + ", ".join(f"{n} {r.seconds:.1f} s" for n, r in result.runs.items()) + ").", "",
-        "Plots: `coverage.png`, `f1.png`, `accuracy_bytes.png`; animations: "
+        "Plots: `coverage.png`, `f1.png`, `accuracy_bytes.png`, `knowing.png`; animations: "
         + (", ".join(f"`{name}`" for name in animations) if animations else "none (not asked for)") + ".", "",
     ]
     return "\n".join(lines)
@@ -241,6 +250,24 @@ def plot_accuracy_bytes(result: MissionResult) -> bytes:
     ax.set_xscale("symlog", linthresh=100)
     ax.set_xlim(left=0)
     ax.legend()
+    return _png(fig)
+
+
+def plot_knowing(result: MissionResult) -> bytes:
+    """Knowing vs guessing, per strategy over the mission: belief accuracy on the cells some
+    rover observed, on those nobody observed, the false-free rate, and executed path success."""
+    fig, axes = _pyplot().subplots(1, 4, figsize=(16, 3.6))
+    for i, (name, run) in enumerate(result.runs.items()):
+        s, ev = run.series, run.series.eval
+        axes[0].plot(s.step, [float(np.mean(a)) for a in s.accuracy_observed], label=name, color=f"C{i}")
+        axes[1].plot(s.step, [float(np.mean(a)) for a in s.accuracy_unobserved], label=name, color=f"C{i}")
+        axes[2].plot(s.step, [float(np.mean(f)) for f in s.false_free], label=name, color=f"C{i}")
+        axes[3].plot(ev.step, [float(np.mean(f)) for f in ev.belief_success], marker=".", label=name, color=f"C{i}")
+    axes[0].set(xlabel="step", ylabel="mean over the rovers", ylim=(0, 1.02), title="Accuracy on observed cells")
+    axes[1].set(xlabel="step", ylim=(0, 1.02), title="Accuracy on cells nobody observed")
+    axes[2].set(xlabel="step", ylim=(0, None), title="False-free rate (hazards planned as FREE)")
+    axes[3].set(xlabel="step", ylim=(0, 1.02), title="Executed path success")
+    axes[0].legend()
     return _png(fig)
 
 
@@ -351,6 +378,7 @@ def write_mission(result: MissionResult, out_dir: str | Path, *, title: str, set
         atomic_write_bytes(tmp / "coverage.png", plot_coverage(result))
         atomic_write_bytes(tmp / "f1.png", plot_f1(result))
         atomic_write_bytes(tmp / "accuracy_bytes.png", plot_accuracy_bytes(result))
+        atomic_write_bytes(tmp / "knowing.png", plot_knowing(result))
         for name, text in (extra or {}).items():
             atomic_write_bytes(tmp / name, text.encode())
         if animation:

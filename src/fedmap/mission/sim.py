@@ -31,7 +31,7 @@ import numpy as np
 from scipy import ndimage
 
 from fedmap.errors import FedmapError
-from fedmap.evaluation.paths import path_f1
+from fedmap.evaluation.paths import PathScores, path_f1
 from fedmap.evaluation.scores import MapScores, score_map
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.orbital import orbital_prior
@@ -79,11 +79,16 @@ class EvalSeries:
     f1: tuple[float, ...]  #: strict path F1 of the base's global map
     f1_tolerant: tuple[float, ...]  #: tolerant path F1 of the base's global map
     belief_f1: tuple[tuple[float, ...], ...]  #: per rover: strict path F1 of its belief
+    #: per rover: executed path success of its belief: the share of the pairs the truth
+    #: connects whose path planned on the belief, driven on the truth, reaches the goal
+    #: without entering an impassable cell
+    belief_success: tuple[tuple[float, ...], ...]
 
     def to_dict(self) -> dict[str, list]:
         return {"step": list(self.step), "psnr": list(self.psnr), "ssim": list(self.ssim),
                 "accuracy": list(self.accuracy), "f1": list(self.f1), "f1_tolerant": list(self.f1_tolerant),
-                "belief_f1": [list(f) for f in self.belief_f1]}
+                "belief_f1": [list(f) for f in self.belief_f1],
+                "belief_success": [list(f) for f in self.belief_success]}
 
 
 @dataclass(frozen=True)
@@ -98,6 +103,11 @@ class TimeSeries:
     coverage: tuple[float, ...]  #: share of cells any rover has observed
     redundant: tuple[float, ...]  #: share of cells two or more rovers have observed
     accuracy: tuple[tuple[float, ...], ...]  #: per rover: share of its belief's cells equal to the truth (UNKNOWN wrong)
+    #: per rover: its belief's accuracy on the cells some rover has observed (knowing)
+    accuracy_observed: tuple[tuple[float, ...], ...]
+    #: per rover: its belief's accuracy on the cells no rover has observed (guessing; UNKNOWN
+    #: is wrong, so a strategy that shares only observations scores 0 here)
+    accuracy_unobserved: tuple[tuple[float, ...], ...]
     #: per rover: share of the cells it plans on as FREE (its belief, and the prior where it
     #: has none) that are impassable in the truth: the hazards it would drive into
     false_free: tuple[tuple[float, ...], ...]
@@ -113,7 +123,10 @@ class TimeSeries:
     def to_dict(self) -> dict[str, Any]:
         """The ``series`` of ``metrics.json``."""
         return {"step": list(self.step), "coverage": list(self.coverage), "redundant": list(self.redundant),
-                "accuracy": [list(a) for a in self.accuracy], "false_free": [list(f) for f in self.false_free],
+                "accuracy": [list(a) for a in self.accuracy],
+                "accuracy_observed": [list(a) for a in self.accuracy_observed],
+                "accuracy_unobserved": [list(a) for a in self.accuracy_unobserved],
+                "false_free": [list(f) for f in self.false_free],
                 "distance": [list(d) for d in self.distance],
                 "bytes_up_per_rover": [list(b) for b in self.bytes_up],
                 "bytes_down_per_rover": [list(b) for b in self.bytes_down],
@@ -136,6 +149,9 @@ class MissionSummary:
     final_redundant: float  #: share of cells two or more rovers observed
     final_belief_accuracy_mean: float  #: belief accuracy (share of cells), mean over the rovers
     final_false_free_mean: float  #: false-free rate (TimeSeries.false_free), mean over the rovers
+    final_accuracy_observed_mean: float  #: belief accuracy on the cells observed, mean over the rovers
+    final_accuracy_unobserved_mean: float  #: belief accuracy on the cells nobody observed, mean over the rovers
+    final_path_success_mean: float  #: executed path success of the beliefs (EvalSeries.belief_success), mean
     final_distance_total: float  #: distance driven by the whole team, cells
     final_global_psnr: float  #: the base's global map: PSNR, dB
     final_global_ssim: float  #: the base's global map: SSIM
@@ -157,6 +173,9 @@ class MissionSummary:
             "final": {"coverage": self.final_coverage, "redundant": self.final_redundant,
                       "belief_accuracy_mean": self.final_belief_accuracy_mean,
                       "false_free_mean": self.final_false_free_mean,
+                      "accuracy_observed_mean": self.final_accuracy_observed_mean,
+                      "accuracy_unobserved_mean": self.final_accuracy_unobserved_mean,
+                      "path_success_mean": self.final_path_success_mean,
                       "distance_total": self.final_distance_total, "global_psnr": self.final_global_psnr,
                       "global_ssim": self.final_global_ssim, "global_accuracy": self.final_global_accuracy,
                       "global_f1": self.final_global_f1, "global_f1_tolerant": self.final_global_f1_tolerant,
@@ -284,7 +303,7 @@ class _Scorer:
     def __init__(self, truth: GridMap, pairs: int, seed: int) -> None:
         self.truth, self.pairs, self.seed = truth, pairs, seed
         self.full: dict[bytes, MapScores] = {}
-        self.f1: dict[bytes, float] = {}
+        self.paths: dict[bytes, PathScores] = {}
 
     @staticmethod
     def _key(classes: np.ndarray) -> bytes:
@@ -295,14 +314,15 @@ class _Scorer:
         if key not in self.full:
             s = score_map(self.truth.classes, classes, pairs=self.pairs, seed=self.seed)
             self.full[key] = s
-            self.f1[key] = s.path.f1
+            self.paths[key] = s.path
         return self.full[key]
 
-    def strict_f1(self, classes: np.ndarray) -> float:
+    def path(self, classes: np.ndarray) -> PathScores:
+        """Strict path scores of a map (F1, and the executed success rate)."""
         key = self._key(classes)
-        if key not in self.f1:
-            self.f1[key] = path_f1(self.truth.classes, classes, n_pairs=self.pairs, seed=self.seed).f1
-        return self.f1[key]
+        if key not in self.paths:
+            self.paths[key] = path_f1(self.truth.classes, classes, n_pairs=self.pairs, seed=self.seed)
+        return self.paths[key]
 
 
 @dataclass(frozen=True)
@@ -313,6 +333,8 @@ class _StepRow:
     coverage: float
     redundant: float
     accuracy: tuple[float, ...]
+    accuracy_observed: tuple[float, ...]
+    accuracy_unobserved: tuple[float, ...]
     false_free: tuple[float, ...]
     distance: tuple[float, ...]
     bytes_up: tuple[int, ...]
@@ -334,6 +356,7 @@ class _EvalRow:
     f1: float
     f1_tolerant: float
     belief_f1: tuple[float, ...]
+    belief_success: tuple[float, ...]
 
 
 def _series(rows: list[_StepRow], evals: list[_EvalRow]) -> TimeSeries:
@@ -341,14 +364,22 @@ def _series(rows: list[_StepRow], evals: list[_EvalRow]) -> TimeSeries:
     ev = EvalSeries(step=tuple(e.step for e in evals), psnr=tuple(e.psnr for e in evals),
                     ssim=tuple(e.ssim for e in evals), accuracy=tuple(e.accuracy for e in evals),
                     f1=tuple(e.f1 for e in evals), f1_tolerant=tuple(e.f1_tolerant for e in evals),
-                    belief_f1=tuple(e.belief_f1 for e in evals))
+                    belief_f1=tuple(e.belief_f1 for e in evals), belief_success=tuple(e.belief_success for e in evals))
     return TimeSeries(step=tuple(r.step for r in rows), coverage=tuple(r.coverage for r in rows),
                       redundant=tuple(r.redundant for r in rows), accuracy=tuple(r.accuracy for r in rows),
+                      accuracy_observed=tuple(r.accuracy_observed for r in rows),
+                      accuracy_unobserved=tuple(r.accuracy_unobserved for r in rows),
                       false_free=tuple(r.false_free for r in rows), distance=tuple(r.distance for r in rows),
                       bytes_up=tuple(r.bytes_up for r in rows), bytes_down=tuple(r.bytes_down for r in rows),
                       up_delivered=tuple(r.up_delivered for r in rows), up_dropped=tuple(r.up_dropped for r in rows),
                       down_delivered=tuple(r.down_delivered for r in rows),
                       down_dropped=tuple(r.down_dropped for r in rows), eval=ev)
+
+
+def _share(hit: np.ndarray, where: np.ndarray) -> float:
+    """The share of the ``where`` cells that are ``hit`` (1.0 when there are none: nothing to get wrong)."""
+    n = int(where.sum())
+    return float((hit & where).sum() / n) if n else 1.0
 
 
 class _Run:
@@ -527,6 +558,8 @@ class _Run:
         self.rows.append(_StepRow(
             step=t, coverage=float((n_seen > 0).mean()), redundant=float((n_seen > 1).mean()),
             accuracy=tuple(float((b == truth).mean()) for b in beliefs),
+            accuracy_observed=tuple(_share(b == truth, n_seen > 0) for b in beliefs),
+            accuracy_unobserved=tuple(_share(b == truth, n_seen == 0) for b in beliefs),
             false_free=tuple(float((f & (truth == IMPASSABLE)).sum() / max(int(f.sum()), 1)) for f in free),
             distance=tuple(r.distance for r in self.team),
             bytes_up=tuple(up), bytes_down=tuple(down), up_delivered=delivered[UP], up_dropped=dropped[UP],
@@ -535,7 +568,8 @@ class _Run:
             g = self.scorer.scores(s.global_map())
             self.evals.append(_EvalRow(step=t, psnr=g.psnr, ssim=g.ssim, accuracy=g.accuracy, f1=g.path.f1,
                                        f1_tolerant=g.path.tolerant.f1,
-                                       belief_f1=tuple(self.scorer.strict_f1(b) for b in beliefs)))
+                                       belief_f1=tuple(self.scorer.path(b).f1 for b in beliefs),
+                                       belief_success=tuple(self.scorer.path(b).success for b in beliefs)))
         if t % self.frame_every == 0 or t == self.config.steps:
             self.frames.append(Frame(step=t, beliefs=beliefs, global_map=s.global_map().copy(),
                                      positions=self.positions(), trail_len=[len(r.trail) for r in self.team]))
@@ -590,6 +624,9 @@ def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig) 
         final_redundant=series.redundant[-1],
         final_belief_accuracy_mean=float(np.mean(series.accuracy[-1])),
         final_false_free_mean=float(np.mean(series.false_free[-1])),
+        final_accuracy_observed_mean=float(np.mean(series.accuracy_observed[-1])),
+        final_accuracy_unobserved_mean=float(np.mean(series.accuracy_unobserved[-1])),
+        final_path_success_mean=float(np.mean(ev.belief_success[-1])),
         final_distance_total=float(np.sum(series.distance[-1])),
         final_global_psnr=ev.psnr[-1],
         final_global_ssim=ev.ssim[-1],
