@@ -350,7 +350,7 @@ def test_beliefs_are_scored_on_observed_and_unobserved_cells_apart():
                            eval_pairs=5, link=LinkConfig(loss=0.0))
     result = run_mission(config, _maze(40, 9), frames=1)
     truth = result.truth.classes
-    for name, run in result.runs.items():
+    for run in result.runs.values():
         s = run.strategy
         seen = np.stack([r.local != UNKNOWN for r in s.team]).any(axis=0)
         for k in range(config.rovers):
