@@ -722,7 +722,10 @@ def decode(data: bytes, reference: Weights | None = None) -> Weights:
                 content = memoryview(zstandard.ZstdDecompressor().decompress(content))
             except zstandard.ZstdError as e:
                 raise _Malformed(f"zstd: {e}") from None
-        return _decode_content(KINDS[codec], flags, content, reference)
+        # a scale that overflows decodes to inf, as a NaN sent in fp32 decodes to NaN: the
+        # receiver's finiteness check (runner.base_step, rover_step) drops such an update
+        with np.errstate(over="ignore", invalid="ignore"):
+            return _decode_content(KINDS[codec], flags, content, reference)
     except _Malformed as e:
         raise RejectedUpdate(f"malformed payload: {e}") from None
 

@@ -30,6 +30,8 @@ import io
 import json
 import re
 import shutil
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -97,16 +99,25 @@ def read_checkpoint(path: Path) -> BaseState:
         blob = (path / "arrays.npz").read_bytes()
     except (OSError, ValueError) as e:
         raise FedmapError(f"checkpoint {path} is incomplete or unreadable ({type(e).__name__})") from None
-    if hashlib.sha256(blob).hexdigest() != meta.get("arrays_sha256"):
+    if not isinstance(meta, dict) or hashlib.sha256(blob).hexdigest() != meta.get("arrays_sha256"):
         raise FedmapError(f"checkpoint {path} is damaged: arrays.npz does not match its recorded hash")
-    with np.load(io.BytesIO(blob), allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files}
-    held = {n: arrays[f"held/{n}"] for n in meta["names"]}  # payload order, as the run had it
-    moments = {w: {n: arrays[f"{w}/{n}"] for n in meta["names"]} for w in meta["moments"]}
-    down = {k[len("down/"):]: v for k, v in arrays.items() if k.startswith("down/")} or None
-    history = [RoundRecord.from_dict(r) for r in meta["history"]]
-    return BaseState(int(meta["round"]), held, moments, down, history, (int(meta["shape"][0]), int(meta["shape"][1])),
-                     dict(meta["run_config"]))
+    try:
+        with np.load(io.BytesIO(blob), allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        names = meta["names"]
+        held = {n: arrays[f"held/{n}"] for n in names}  # payload order, as the run had it
+        moments = {w: {n: arrays[f"{w}/{n}"] for n in names} for w in meta["moments"]}
+        down = {k[len("down/"):]: v for k, v in arrays.items() if k.startswith("down/")} or None
+        history = [RoundRecord.from_dict(r) for r in meta["history"]]
+        shape = (int(meta["shape"][0]), int(meta["shape"][1]))
+        state = BaseState(int(meta["round"]), held, moments, down, history, shape, dict(meta["run_config"]))
+    except FedmapError as e:
+        raise FedmapError(f"checkpoint {path} is damaged: {e}") from None
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError, OSError, EOFError, NotImplementedError,
+            zipfile.BadZipFile, zlib.error) as e:
+        what = f"missing {e}" if isinstance(e, KeyError) else " ".join(str(e).split()) or type(e).__name__
+        raise FedmapError(f"checkpoint {path} is damaged ({type(e).__name__}: {what})") from None
+    return state
 
 
 def checkpoints(run_dir: Path) -> list[tuple[int, Path]]:
