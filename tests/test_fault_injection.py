@@ -188,10 +188,11 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
         for k in range(4):
             rovers.start(f"rover{k}", _rover_argv(proxy.port, k, tmp_path, certs, fault=faults.get(k)),
                          env=flower_env(tmp_path / f"home{k}"), log=tmp_path / f"rover{k}.log")
+        # each stops at its first answer from the link; the wait only bounds a loaded machine's start-up
         for name, argv in (("unregistered", _rover_argv(proxy.port, 0, tmp_path, certs, key=certs / "rover4",
-                                                        max_wait=10)),
+                                                        max_wait=30)),
                            ("wrong-ca", _rover_argv(proxy.port, 1, tmp_path, certs, root_cert=other / "ca.crt",
-                                                    max_wait=10))):
+                                                    max_wait=30))):
             bad[name] = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                          env=flower_env(tmp_path / f"home-{name}"))
 
@@ -277,7 +278,9 @@ def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     for r in m["rounds"]:
         aggregated = {int(k) for k in r["aggregation_counts"]}
         assert r["dropped"] == {} and sorted(r["missing"]) == sorted(set(range(4)) - aggregated)
-        assert all(why == "no reply before the round's deadline" for why in r["missing_why"].values()), r["missing_why"]
+        # a cut link loses a reply: none came before the deadline, or its body never arrived
+        assert all(why == "no reply before the round's deadline" or why.startswith("reply lost on the link (")
+                   for why in r["missing_why"].values()), r["missing_why"]
     assert proxy.counts["dropped"] >= 5
     print("proxy:", proxy.counts)  # the README's fault table
     print("missing:", [r["missing"] for r in m["rounds"]])

@@ -50,6 +50,13 @@ from fedmap.nets.model import Weights
 app = ServerApp()
 
 
+#: What Flower says when a reply's message arrived but its body (the objects) did not: the
+#: link dropped mid-transfer. Recorded as :data:`LOST_REPLY`, a missing rover like one
+#: whose reply never came.
+_REPLY_LOST = "Reply message objects are unavailable"
+LOST_REPLY = "reply lost on the link"
+
+
 class FedmapStrategy(Strategy):
     """fedmap's rounds on Flower: payloads in, ``base_step`` aggregation, broadcast out.
 
@@ -162,6 +169,8 @@ class FedmapStrategy(Strategy):
             if msg.has_error():  # the ClientApp crashed or the node went away: nothing delivered
                 pid = self.node_partition.get(node)
                 reason = f"Flower error {msg.error.code}: {msg.error.reason}".splitlines()[0]
+                if _REPLY_LOST in msg.error.reason:  # the link dropped while the reply's body was on its way
+                    reason = f"{LOST_REPLY} ({reason})"
                 if pid is None:
                     node_errors[str(node)] = reason
                 else:
