@@ -119,7 +119,7 @@ def test_a_rover_killed_mid_round_leaves_three(flower_home):
 def test_a_killed_rover_restarted_rejoins_with_an_update_codec(flower_home):
     """Real processes: rover 3 is killed (SIGKILL) as round 2 goes out and started again at
     once, with an ``update-int4+zstd`` downlink. Its state is gone: it misses round 2 (its
-    old node never replies), joins round 3 as a new node, is sent a dense keyframe, and the
+    old node never replies), joins round 3 as a new node, is sent a keyframe, and the
     final model equals the in-process runner with the same participation."""
     run = {**RUN, "rounds": 3, "downlink": "update-int4+zstd", "deadline": 120.0}
     events = []
@@ -136,7 +136,7 @@ def test_a_killed_rover_restarted_rejoins_with_an_update_codec(flower_home):
     assert sorted(r1["aggregation_counts"]) == sorted(r3["aggregation_counts"]) == ["0", "1", "2", "3"]
     assert sorted(r2["aggregation_counts"]) == ["0", "1", "2"] and r2["missing"] == [3]
     # the broadcast of round r's model is booked in round r's record: rovers 0-2 got round 2's
-    # model as an update, the restarted rover (no model) got it as a dense keyframe
+    # model as an update, the restarted rover (no model) got it as a keyframe
     assert not r1.get("keyframes") and r2["keyframes"] == [3] and not r3.get("keyframes")
     assert r2["downlink_bytes"]["3"] > 4 * max(r2["downlink_bytes"][str(k)] for k in range(3))
     init, ref = _reference_with(maps, run, absent={2: [3]}, restarted={3: [3]})

@@ -12,6 +12,7 @@ from fedmap.explore import explore
 from fedmap.federation.aggregate import FedAvg, weighted_average
 from fedmap.federation.codecs import Encoder, decode
 from fedmap.federation.runner import (
+    KEYFRAME,
     Broadcaster,
     FederationConfig,
     agent_seed,
@@ -116,10 +117,12 @@ def test_rejoin_with_an_update_downlink_trains_from_the_global_model(tiny_net, b
 
     monkeypatch.setattr(runner_mod, "rover_step", spy)
     globals_: dict[int, str] = {}
+    models: dict[int, dict] = {}
     cfg = FederationConfig(rounds=4, local=LOCAL, seed=3, uplink="update-int8", downlink="update-int4+zstd")
     kw = {"absent": {2: [1]}} if event == "absent" else {"restarted": {3: [1]}}
     res = run_federation(init, tiny_net, maps, cfg,
-                         on_round=lambda rec, w: globals_.update({rec.round: model_version(w)}),
+                         on_round=lambda rec, w: (globals_.update({rec.round: model_version(w)}),
+                                                  models.update({rec.round: {k: v.copy() for k, v in w.items()}})),
                          **kw)
     for r in (2, 3, 4):
         for k in range(4):
@@ -127,7 +130,7 @@ def test_rejoin_with_an_update_downlink_trains_from_the_global_model(tiny_net, b
                 assert started[(r, k)] == globals_[r - 1], (r, k)
     assert all(not rec.dropped for rec in res.history)
     assert res.history[1].keyframes == [1]  # round 2's model reached rover 1 as a keyframe
-    key = len(Encoder("fp32").encode(res.weights))
+    key = len(Encoder(KEYFRAME).encode(models[res.history[1].round]))  # that round's model, whole
     assert res.history[1].downlink_bytes[1] == key > res.history[1].downlink_bytes[0]
     rows = [r for r in res.ledger() if r["round"] == 2 and r["direction"] == "downlink"]
-    assert {r["agent"]: r["codec"] for r in rows}[1] == "fp32 keyframe"
+    assert {r["agent"]: r["codec"] for r in rows}[1] == f"{KEYFRAME} keyframe"

@@ -61,7 +61,7 @@ class FedmapStrategy(Strategy):
     """fedmap's rounds on Flower: payloads in, ``base_step`` aggregation, broadcast out.
 
     What each rover is sent comes from :class:`~fedmap.federation.runner.Broadcaster`: the
-    round's broadcast to a rover that holds the model it is relative to, a dense keyframe to
+    round's broadcast to a rover that holds the model it is relative to, a keyframe to
     any other (it missed a round, restarted, or its node is new). Every reply reports the
     version of the model the rover holds; an update made from another model than the base's
     is dropped, never decoded against the wrong reference.

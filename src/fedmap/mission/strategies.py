@@ -25,7 +25,7 @@ targets with it.
   runner's (:class:`Model`): update codecs are relative to the model both ends hold, so
   the base aggregates only updates made from its current model (others are dropped as
   stale) and sends a rover that holds anything but the previous model a *keyframe*: the
-  whole model, dense fp32 (:data:`fedmap.federation.runner.KEYFRAME`, exact).
+  whole model, exact (:data:`fedmap.federation.runner.KEYFRAME`: fp32, zstd-compressed).
 * ``central``: an oracle; every rover and the base see every observation at once, free.
 """
 
