@@ -260,14 +260,17 @@ def test_fedmap_strategy_is_one_round_of_fedmap_run():
     assert sorted(up) == sorted(b + UP_HEADER for b in fed.history[0].uplink_bytes.values())
 
 
-def test_lost_broadcasts_cost_keyframes_and_rovers_stay_in_step_with_the_base():
+@pytest.mark.parametrize("kept, catch_up", [(0, "keyframe"), (8, "chain")])
+def test_lost_broadcasts_cost_keyframes_or_chains_and_rovers_stay_in_step_with_the_base(kept, catch_up):
+    """Without a window a rover that missed a broadcast gets a keyframe; with one, the chain
+    of broadcasts it missed (smaller than the keyframe here)."""
     truth = _maze(32)
     cfg = _small(rovers=2, steps=16, sync_every=2, strategies=("fedmap",), link=LinkConfig(loss=0.4, seed=1),
-                 methods={"fedmap": {"epochs": 5}})
+                 methods={"fedmap": {"epochs": 5, "versions_kept": kept}})
     run = run_mission(cfg, truth).runs["fedmap"]
     strat = run.strategy
     kinds = {(m.kind, m.status) for m in run.ledger if m.direction == "down"}
-    assert ("keyframe", "delivered") in kinds and ("broadcast", "lost") in kinds
+    assert (catch_up, "delivered") in kinds and ("broadcast", "lost") in kinds
     for k in range(2):
         if strat.rover_version[k] == strat.bc.version:  # the same version is the same weights
             for name, w in strat.base_held.items():
@@ -361,3 +364,37 @@ def test_beliefs_are_scored_on_observed_and_unobserved_cells_apart():
     # raw shares every observation, so its rovers know what the team observed
     assert np.mean(result.runs["raw"].series.accuracy_observed[-1]) > np.mean(
         result.runs["none"].series.accuracy_observed[-1])
+
+
+def test_a_keyframe_over_the_budget_arrives_in_chunks_over_the_rounds(monkeypatch):
+    from fedmap.mission import strategies
+    completed: list[tuple[int, str]] = []
+    real = strategies.Model._receive_chunk
+
+    def spy(self, k, version, reports, body):
+        before = self.rover_version[k]
+        ok = real(self, k, version, reports, body)
+        if self.rover_version[k] != before:
+            completed.append((k, self.rover_version[k]))
+        return ok
+
+    monkeypatch.setattr(strategies.Model, "_receive_chunk", spy)
+    truth = _maze(32)
+    budget = 1500
+    cfg = _small(rovers=2, steps=24, sync_every=2, strategies=("fedmap",),
+                 link=LinkConfig(loss=0.3, seed=2, downlink_bytes=budget),
+                 methods={"fedmap": {"epochs": 5, "versions_kept": 8}})
+    run = run_mission(cfg, truth).runs["fedmap"]
+    strat = run.strategy
+    down = [m for m in run.ledger if m.direction == "down"]
+    assert all(m.bytes <= budget for m in down)
+    assert any(m.kind == "keyframe chunk" and m.status == "delivered" for m in down)
+    assert any(m.kind == "keyframe chunk" and m.status == "lost" for m in down)  # and a lost one was sent again
+    assert len(strat.bc.keyframe()) > budget  # it never fitted in one message
+    for k in range(2):  # whatever a rover holds is a model the base held, bit for bit
+        if strat.rover_version[k] == strat.bc.version:
+            for name, w in strat.base_held.items():
+                np.testing.assert_array_equal(strat.rover_held[k][name], w)
+    # rovers that missed a broadcast were resynchronised by keyframes put together from chunks
+    assert completed
+    assert strat.rounds_aggregated >= 1

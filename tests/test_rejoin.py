@@ -134,3 +134,40 @@ def test_rejoin_with_an_update_downlink_trains_from_the_global_model(tiny_net, b
     assert res.history[1].downlink_bytes[1] == key > res.history[1].downlink_bytes[0]
     rows = [r for r in res.ledger() if r["round"] == 2 and r["direction"] == "downlink"]
     assert {r["agent"]: r["codec"] for r in rows}[1] == f"{KEYFRAME} keyframe"
+
+
+def test_a_window_serves_the_chain_of_missed_broadcasts_and_rebases_old_updates():
+    from fedmap.federation.aggregate import FedAvg
+    from fedmap.federation.runner import base_step, pack_chain, unpack_chain
+    rng = np.random.default_rng(0)
+    models = [{"w": rng.normal(size=600).astype(np.float32), "b": rng.normal(size=40).astype(np.float32)}
+              for _ in range(5)]
+    enc = Encoder("update-int8")  # a chain of 3 int8 broadcasts is smaller than the fp32 keyframe
+    bc = Broadcaster(models[0], window=3)
+    held = [models[0]]  # what base and rovers hold after each broadcast
+    for m in models[1:]:
+        p = enc.encode(m, reference=held[-1])
+        held.append(decode(p, reference=held[-1]))
+        bc.advance(held[-1], p)
+    assert sorted(bc.window) == sorted(model_version(m) for m in held[1:4])  # the last 3 older models
+    d = bc.for_rover(model_version(held[1]))  # three broadcasts behind
+    assert d.kind == "chain" and len(unpack_chain(d.payload)) == 3
+    got = apply_downlink(held[1], d.kind, d.payload, d.reference)
+    assert model_version(got) == bc.version  # exactly the base's model
+    assert bc.for_rover(model_version(held[3])).kind == "broadcast"
+    assert bc.for_rover(model_version(held[0])).kind == "keyframe"  # out of the window
+    with pytest.raises(RejectedUpdate, match="stale model"):
+        apply_downlink(held[2], d.kind, d.payload, d.reference)
+    with pytest.raises(RejectedUpdate, match="malformed chain"):
+        unpack_chain(pack_chain([b"ab", b"cde"])[:-1])
+    # an update made from an older model in the window is applied as a delta: held + (u - its model)
+    old = held[2]
+    u = {"w": old["w"] + 0.5, "b": old["b"] - 1.0}
+    payload = Encoder("update-fp32").encode(u, reference=old)
+    step = base_step(FedAvg(), bc.held, {0: payload}, {0: 1.0}, Encoder("fp32"),
+                     versions={0: model_version(old)}, window=bc.window)
+    for n in ("w", "b"):
+        np.testing.assert_allclose(step.held[n], bc.held[n] + (u[n] - old[n]), rtol=0, atol=1e-6)
+    # without the window the same update is dropped as stale
+    with pytest.raises(FedmapError, match="stale reference"):
+        base_step(FedAvg(), bc.held, {0: payload}, {0: 1.0}, Encoder("fp32"), versions={0: model_version(old)})

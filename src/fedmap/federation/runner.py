@@ -32,6 +32,7 @@ delivers and byte counts are ``len()`` of what it carries.
 from __future__ import annotations
 
 import hashlib
+import struct
 import time
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import asdict, dataclass
@@ -68,10 +69,16 @@ class FederationConfig:
     uplink: str = setting("fp32", help="Rover -> base payload codec: fp32, fp16, bf16, int8, int4, topk:0.01, "
                           "update-int4, ... (+zstd)")
     downlink: str = setting("fp32", help="Base -> rover payload codec (the uplink's grammar)")
+    versions_kept: int = setting(0, help="Older models the base keeps: a rover behind by up to this many gets the chain "
+                          "of broadcasts when cheaper than a keyframe, and its update is applied as a delta (0: "
+                          "updates only from the current model)")
 
     def __post_init__(self) -> None:
         if self.rounds < 1:
             raise FedmapError(f"rounds must be >= 1, got {self.rounds}")
+        k = self.versions_kept
+        if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k <= 255:
+            raise FedmapError(f"versions_kept must be a whole number of models from 0 to 255, got {k!r}")
         CodecSpec.parse(self.uplink)
         CodecSpec.parse(self.downlink)
         self.make_aggregator()
@@ -283,7 +290,9 @@ class Downlink:
 
     ``kind`` is ``"none"`` (the rover already holds the current model, or round 1 where every
     rover rebuilds the initial model), ``"broadcast"`` (the round's payload, relative to the
-    model of version ``reference``) or ``"keyframe"`` (the dense current model).
+    model of version ``reference``), ``"chain"`` (the broadcasts from the model of version
+    ``reference`` to the current one, in order: :func:`pack_chain`) or ``"keyframe"`` (the
+    whole current model).
     """
 
     kind: str
@@ -295,42 +304,112 @@ class Broadcaster:
     """The base station's downlink: the current global model, the last broadcast and what it
     is relative to, and the keyframe for rovers that hold anything else.
 
+    With a ``window`` of W >= 1 older models, the base keeps the last W models and the
+    broadcasts between them: a rover that holds any of them gets the chain of broadcasts to
+    the current model when that is smaller than a keyframe, and :func:`base_step` (given
+    :attr:`window`) applies an update made from any of them as a delta. ``window=0`` (the
+    default) is the protocol without a window: the broadcast for a rover that holds the
+    previous model, a keyframe for any other, updates only from the current model.
+
     Parameters
     ----------
     held : Weights or None
         The model every rover starts from (None when the base does not know it yet: then
         round 1 sends nothing and the rovers' reported versions are checked once it is known).
+    window : int
+        Older models kept (see above).
     """
 
-    def __init__(self, held: Weights | None) -> None:
+    def __init__(self, held: Weights | None, *, window: int = 0) -> None:
+        if isinstance(window, bool) or not isinstance(window, int) or window < 0:
+            raise FedmapError(f"the version window must be a whole number >= 0, got {window!r}")
+        self.keep = max(window, 1)
+        self.windowed = window > 0
         self.held: Weights | None = None
         self.version = ""
-        self.last: bytes | None = None  # the last broadcast payload ...
-        self.last_reference = ""  # ... and the version it decodes against
+        #: the last broadcasts, oldest first: (version it decodes against, that model, payload)
+        self.past: list[tuple[str, Weights, bytes]] = []
         self._keyframe: bytes | None = None
         if held is not None:
             self.reset(held)
+
+    @property
+    def last(self) -> bytes | None:
+        """The last broadcast payload (None before the first)."""
+        return self.past[-1][2] if self.past else None
+
+    @property
+    def last_reference(self) -> str:
+        """The version the last broadcast decodes against."""
+        return self.past[-1][0] if self.past else ""
+
+    @property
+    def window(self) -> dict[str, Weights]:
+        """The older models an update may be made from (version -> weights; empty without a window)."""
+        return {v: w for v, w, _ in self.past} if self.windowed else {}
 
     def reset(self, held: Weights) -> None:
         """Hold ``held`` with no broadcast to build on (start, or resume from a checkpoint):
         every rover that does not hold exactly ``held`` gets a keyframe."""
         self.held, self.version = held, model_version(held)
-        self.last, self.last_reference, self._keyframe = None, "", None
+        self.past, self._keyframe = [], None
 
     def advance(self, held: Weights, payload: bytes) -> None:
         """The round's broadcast ``payload`` (relative to the model held so far) decodes to ``held``."""
-        self.last, self.last_reference = payload, self.version
+        assert self.held is not None
+        self.past = [*self.past, (self.version, self.held, payload)][-self.keep:]
         self.held, self.version, self._keyframe = held, model_version(held), None
+
+    def keyframe(self) -> bytes:
+        """The whole current model (:data:`KEYFRAME` codec)."""
+        assert self.held is not None
+        if self._keyframe is None:
+            self._keyframe = Encoder(KEYFRAME).encode(self.held)
+        return self._keyframe
 
     def for_rover(self, version: str | None) -> Downlink:
         """What a rover that holds model ``version`` (None: unknown) must be sent."""
         if self.held is None or version == self.version:
             return Downlink("none", b"")
-        if self.last is not None and version == self.last_reference:
-            return Downlink("broadcast", self.last, self.last_reference)
-        if self._keyframe is None:
-            self._keyframe = Encoder(KEYFRAME).encode(self.held)
-        return Downlink("keyframe", self._keyframe)
+        refs = [v for v, _, _ in self.past]
+        if version in refs:
+            i = refs.index(version)
+            if i == len(refs) - 1:
+                return Downlink("broadcast", self.past[-1][2], version)
+            chain = pack_chain([p for _, _, p in self.past[i:]])
+            if len(chain) < len(self.keyframe()):
+                return Downlink("chain", chain, version)
+        return Downlink("keyframe", self.keyframe())
+
+
+_CHAIN = struct.Struct("<4sB")
+_CHAIN_MAGIC = b"FMCH"
+
+
+def pack_chain(payloads: list[bytes]) -> bytes:
+    """Broadcasts to apply in order, as one payload: magic, count, then each length (u32) and payload."""
+    if not 1 <= len(payloads) <= 255:
+        raise FedmapError(f"a chain holds 1 to 255 broadcasts, not {len(payloads)}")
+    return _CHAIN.pack(_CHAIN_MAGIC, len(payloads)) + b"".join(struct.pack("<I", len(p)) + p for p in payloads)
+
+
+def unpack_chain(data: bytes) -> list[bytes]:
+    """The broadcasts of a :func:`pack_chain` payload (one-line RejectedUpdate when malformed)."""
+    buf = bytes(data)
+    if len(buf) < _CHAIN.size or buf[:4] != _CHAIN_MAGIC:
+        raise RejectedUpdate("malformed chain: bad magic or too short")
+    n, off, out = buf[4], _CHAIN.size, []
+    for _ in range(n):
+        if off + 4 > len(buf):
+            raise RejectedUpdate("malformed chain: truncated")
+        (length,) = struct.unpack_from("<I", buf, off)
+        if off + 4 + length > len(buf):
+            raise RejectedUpdate("malformed chain: truncated")
+        out.append(buf[off + 4:off + 4 + length])
+        off += 4 + length
+    if off != len(buf) or not out:
+        raise RejectedUpdate("malformed chain: bytes after its last broadcast, or none")
+    return out
 
 
 def apply_downlink(held: Weights, kind: str, payload: bytes, reference: str = "") -> Weights:
@@ -343,12 +422,14 @@ def apply_downlink(held: Weights, kind: str, payload: bytes, reference: str = ""
         return held
     if kind == "keyframe":
         return decode(payload)
-    if kind != "broadcast":
+    if kind not in ("broadcast", "chain"):
         raise RejectedUpdate(f"unknown downlink kind {kind!r}")
     have = model_version(held)
     if have != reference:
-        raise RejectedUpdate(f"stale model: this rover holds version {have}, the broadcast is relative to {reference}")
-    return decode(payload, reference=held)
+        raise RejectedUpdate(f"stale model: this rover holds version {have}, the {kind} is relative to {reference}")
+    for p in unpack_chain(payload) if kind == "chain" else [payload]:
+        held = decode(p, reference=held)
+    return held
 
 
 def total_local_steps(local_maps: list[GridMap], config: FederationConfig) -> int:
@@ -403,6 +484,7 @@ def base_step(
     dropped: dict[int, str] | None = None,
     round_label: int | None = None,
     versions: Mapping[int, str] | None = None,
+    window: Mapping[str, Weights] | None = None,
 ) -> BaseStep:
     """The base station's part of a round: decode, aggregate, encode and decode the broadcast.
 
@@ -411,23 +493,31 @@ def base_step(
     order; a payload that does not decode is dropped with its reason. ``dropped`` holds
     agents already lost earlier in the round (they are kept in the result). ``versions``
     (agent -> :func:`model_version` of the model it trained from, as the rover reports it):
-    an update made from any model but ``held`` is dropped, never decoded against ``held``.
-    Raises :class:`FedmapError` when no update is left.
+    an update made from any model but ``held`` is dropped, never decoded against ``held``,
+    unless that model is in ``window`` (version -> weights, :attr:`Broadcaster.window`):
+    then it is decoded against its own model and applied as a delta, ``held + (update -
+    its model)``. Raises :class:`FedmapError` when no update is left.
     """
     dropped = dict(dropped or {})
     updates, used = [], {}
     current = model_version(held) if versions is not None else ""
+    window = window or {}
     for k in sorted(payloads):
+        made_from = held
         if versions is not None and versions.get(k) != current:
-            dropped[k] = (f"stale reference: its update is relative to model version {versions.get(k) or 'unknown'}, "
-                          f"the base holds {current}")
-            continue
+            if versions.get(k) not in window:
+                dropped[k] = (f"stale reference: its update is relative to model version "
+                              f"{versions.get(k) or 'unknown'}, the base holds {current}")
+                continue
+            made_from = window[versions[k]]
         try:
-            update = decode(payloads[k], reference=held)
+            update = decode(payloads[k], reference=made_from)
             _check_fits(update, held)
         except RejectedUpdate as e:
             dropped[k] = str(e)
             continue
+        if made_from is not held:  # rebased: the rover's change, applied to the current model
+            update = {n: (held[n] + (update[n] - made_from[n])).astype(held[n].dtype) for n in held}
         updates.append(update)
         used[k] = counts[k]
     if not updates:
@@ -488,7 +578,7 @@ def run_federation(
     up_spec, down_spec = CodecSpec.parse(config.uplink), CodecSpec.parse(config.downlink)
     held = init_held(init_weights)  # the initial model is known to all
     down_enc = Encoder(down_spec)
-    bc = Broadcaster(held)
+    bc = Broadcaster(held, window=config.versions_kept)
     rover_held = [held for _ in local_maps]  # what each rover holds
     up_encs = [Encoder(up_spec) for _ in local_maps]  # residuals live on the rovers
     model = build_model(net_config)
@@ -519,7 +609,7 @@ def run_federation(
         counts: dict[int, float] = {k: local_maps[k].n_known for k in payloads}
         versions = {k: model_version(rover_held[k]) for k in payloads}
         step = base_step(aggregator, held, payloads, counts, down_enc, dropped=dropped, round_label=r + 1,
-                         versions=versions)
+                         versions=versions, window=bc.window)
         held = step.held  # the base continues from the decoded broadcast, as the rovers will
         bc.advance(held, step.downlink)
         rec = round_record(r + 1, step, losses, {k: len(p) for k, p in payloads.items()}, up_spec, down_spec,

@@ -87,7 +87,8 @@ class FedmapStrategy(Strategy):
         self.up_spec, self.down_spec = CodecSpec.parse(fed.uplink), CodecSpec.parse(fed.downlink)
         self.down_encoder = Encoder(self.down_spec)
         self.held: Weights | None = None  # what the base holds; the initial model until round 1 ends
-        self.broadcaster = Broadcaster(None)  # the initial model is built once the team's size is known
+        # the initial model is built once the team's size is known
+        self.broadcaster = Broadcaster(None, window=fed.versions_kept)
         self.shape: tuple[int, int] | None = truth_shape(settings)
         self.history: list[RoundRecord] = []
         self.node_partition: dict[int, int] = {}  # Flower node id -> rover index
@@ -219,7 +220,7 @@ class FedmapStrategy(Strategy):
             self.held = initial_weights(s, self.shape[0])
             self.broadcaster.reset(self.held)
         step = base_step(self.aggregator, self.held, payloads, counts, self.down_encoder, dropped=dropped,
-                         round_label=server_round, versions=versions)
+                         round_label=server_round, versions=versions, window=self.broadcaster.window)
         self.held = step.held
         self.broadcaster.advance(step.held, step.downlink)
         flower = FlowerRound(missing_why=dict(sorted(missing_why.items())), node_errors=node_errors,

@@ -62,7 +62,8 @@ from fedmap.pipeline import initial_weights
 _UP = struct.Struct("<8shhhh")  # model version (8 bytes), row, col, target row, target col
 _DOWN = struct.Struct("<B8sB")  # kind, reference model version (8 bytes), rovers reported
 _REPORT = struct.Struct("<Bhhhh")  # rover, row, col, target row, target col
-_KINDS = ("map", "broadcast", "keyframe")
+_KINDS = ("map", "broadcast", "keyframe", "chain", "chunk")
+_CHUNK = struct.Struct("<HHI")  # chunk index, chunk count, bytes of the whole keyframe
 #: Bytes of the uplink header (before the payload proper).
 UP_HEADER = _UP.size
 Cell = tuple[int, int]
@@ -70,7 +71,8 @@ Cell = tuple[int, int]
 #: The presets' 100 local epochs fit a map from scratch in one round; at a sync a rover
 #: starts from the global model and has observed ``sync_every`` more steps, so both model
 #: strategies train 50 epochs per sync (the same compute for both).
-MISSION_DEFAULTS: dict[str, dict] = {"paper": {"epochs": 50}, "fedmap": {"epochs": 50}}
+MISSION_DEFAULTS: dict[str, dict] = {"paper": {"epochs": 50, "versions_kept": 8},
+                                     "fedmap": {"epochs": 50, "versions_kept": 8}}
 #: Torch threads while a mission trains or renders. The models are small and trained one
 #: after another; on a shared 2-core machine two OpenMP threads per process spin against
 #: other processes and made one GridNet fit 20x slower than one thread (measured: 17-23 s
@@ -361,12 +363,14 @@ class Model(Strategy):
         self.up_update = CodecSpec.parse(self.fed.uplink).update
         self.up_encs = [Encoder(self.fed.uplink) for _ in team]  # residuals live on the rovers
         self.down_enc = Encoder(self.fed.downlink)
-        self.bc = Broadcaster(init)  # the base's model, its last broadcast and keyframe
+        self.bc = Broadcaster(init, window=self.fed.versions_kept)  # the base's models, broadcasts and keyframe
         self.versions: dict[str, np.ndarray] = {}  # model version -> rendered classes (cache)
         self.rover_held: list[Weights] = [init for _ in team]
         self.rover_version = [self.bc.version for _ in team]
         self.acked_version: list[str | None] = [self.bc.version for _ in team]  # what the base knows each rover holds
         self.inbox: dict[int, tuple[str, bytes, float]] = {}
+        self.sending: dict[int, dict] = {}  # base: rover -> the keyframe it is sending in chunks
+        self.receiving: dict[int, dict] = {}  # rover -> the chunks of a keyframe it has
         self.rounds_aggregated = 0
         self.dropped: list[DroppedUpdate] = []
         self.losses: list[dict] = []
@@ -420,7 +424,7 @@ class Model(Strategy):
             try:
                 with torch_threads():
                     step = base_step(self.aggregator, self.base_held, payloads, counts, self.down_enc,
-                                     round_label=round_no, versions=versions)
+                                     round_label=round_no, versions=versions, window=self.bc.window)
             except FedmapError as e:  # every update was dropped (e.g. stale): no new model this round
                 self.dropped.append(DroppedUpdate(round_no, -1, str(e)))
             else:
@@ -429,17 +433,44 @@ class Model(Strategy):
                 self.bc.advance(step.held, step.downlink)
                 self.rounds_aggregated += 1
         out = {}
+        b = self.budget["down"]
         for k in range(len(self.team)):
             d = self.bc.for_rover(self.acked_version[k])
             if d.kind == "none":
+                self.sending.pop(k, None)
                 continue  # it holds the current model
             payload = pack_down(d.kind, d.reference, self.base_reports, d.payload)
-            b = self.budget["down"]
-            out[k] = Outgoing(payload if b is None or len(payload) <= b else None, d.kind, {})
+            if b is None or len(payload) <= b:
+                self.sending.pop(k, None)
+                out[k] = Outgoing(payload, d.kind, {})
+            else:
+                out[k] = self._chunk(k, b)
         return out
+
+    def _chunk(self, k: int, budget: int) -> Outgoing:
+        """The next chunk of a keyframe too big for one round's budget. A transfer keeps the
+        model it started with while that model is in the base's window (then the rover
+        catches up from it with a broadcast or chain), and restarts with the current model
+        once it is not."""
+        t = self.sending.get(k)
+        if t is None or not (t["version"] == self.bc.version or t["version"] in self.bc.window):
+            data = self.bc.keyframe()
+            size = budget - len(pack_down("chunk", self.bc.version, self.base_reports, b"")) - _CHUNK.size
+            if size <= 0:
+                return Outgoing(None, "keyframe", {})
+            t = {"version": self.bc.version, "data": data, "size": size, "n": -(-len(data) // size), "have": set()}
+            if t["n"] > 0xFFFF:
+                return Outgoing(None, "keyframe", {})
+            self.sending[k] = t
+        i = min(set(range(t["n"])) - t["have"])  # the first chunk not delivered yet (a lost one again)
+        part = t["data"][i * t["size"]:(i + 1) * t["size"]]
+        body = _CHUNK.pack(i, t["n"], len(t["data"])) + part
+        return Outgoing(pack_down("chunk", t["version"], self.base_reports, body), "keyframe chunk", {})
 
     def receive_downlink(self, k: int, payload: bytes, ctx: dict) -> bool:
         kind, reference, reports, body = unpack_down(payload)
+        if kind == "chunk":
+            return self._receive_chunk(k, reference, reports, body)
         try:
             w = apply_downlink(self.rover_held[k], kind, body, reference)
         except RejectedUpdate:  # relative to a model this rover does not hold
@@ -447,6 +478,31 @@ class Model(Strategy):
         self.rover_held[k], self.rover_version[k] = w, model_version(w)
         self.acked_version[k] = self.rover_version[k]  # the link-level acknowledgement
         self.known_reports[k].update(reports)
+        return True
+
+    def _receive_chunk(self, k: int, version: str, reports: dict, body: bytes) -> bool:
+        i, n, total = _CHUNK.unpack_from(body)
+        r = self.receiving.get(k)
+        if r is None or (r["version"], r["n"], r["total"]) != (version, n, total):
+            r = self.receiving[k] = {"version": version, "n": n, "total": total, "parts": {}}
+        r["parts"][i] = body[_CHUNK.size:]
+        self.known_reports[k].update(reports)
+        t = self.sending.get(k)
+        if t is not None and t["version"] == version:
+            t["have"].add(i)  # the link-level acknowledgement of this chunk
+        if len(r["parts"]) < n:
+            return True
+        del self.receiving[k]
+        blob = b"".join(r["parts"][j] for j in range(n))
+        try:
+            w = apply_downlink(self.rover_held[k], "keyframe", blob)
+        except RejectedUpdate:
+            return False
+        if len(blob) != total or model_version(w) != version:
+            return False
+        self.rover_held[k], self.rover_version[k] = w, version
+        self.acked_version[k] = version
+        self.sending.pop(k, None)
         return True
 
 
