@@ -366,7 +366,7 @@ def test_beliefs_are_scored_on_observed_and_unobserved_cells_apart():
         result.runs["none"].series.accuracy_observed[-1])
 
 
-def test_a_keyframe_over_the_budget_arrives_in_chunks_over_the_rounds(monkeypatch):
+def test_a_downlink_over_the_budget_arrives_in_chunks_over_the_rounds(monkeypatch):
     from fedmap.mission import strategies
     completed: list[tuple[int, str]] = []
     real = strategies.Model._receive_chunk
@@ -380,7 +380,7 @@ def test_a_keyframe_over_the_budget_arrives_in_chunks_over_the_rounds(monkeypatc
 
     monkeypatch.setattr(strategies.Model, "_receive_chunk", spy)
     truth = _maze(32)
-    budget = 1500
+    budget = 400
     cfg = _small(rovers=2, steps=24, sync_every=2, strategies=("fedmap",),
                  link=LinkConfig(loss=0.3, seed=2, downlink_bytes=budget),
                  methods={"fedmap": {"epochs": 5, "versions_kept": 8}})
@@ -388,13 +388,27 @@ def test_a_keyframe_over_the_budget_arrives_in_chunks_over_the_rounds(monkeypatc
     strat = run.strategy
     down = [m for m in run.ledger if m.direction == "down"]
     assert all(m.bytes <= budget for m in down)
-    assert any(m.kind == "keyframe chunk" and m.status == "delivered" for m in down)
-    assert any(m.kind == "keyframe chunk" and m.status == "lost" for m in down)  # and a lost one was sent again
-    assert len(strat.bc.keyframe()) > budget  # it never fitted in one message
+    assert any(m.kind.endswith(" chunk") and m.status == "delivered" for m in down)
+    assert any(m.kind.endswith(" chunk") and m.status == "lost" for m in down)  # and a lost one was sent again
     for k in range(2):  # whatever a rover holds is a model the base held, bit for bit
         if strat.rover_version[k] == strat.bc.version:
             for name, w in strat.base_held.items():
                 np.testing.assert_array_equal(strat.rover_held[k][name], w)
-    # rovers that missed a broadcast were resynchronised by keyframes put together from chunks
+    # rovers that missed a broadcast were resynchronised by downlinks put together from chunks
     assert completed
     assert strat.rounds_aggregated >= 1
+
+
+def test_rate_control_sends_the_best_update_that_fits_rather_than_nothing():
+    truth = _maze(32)
+    cfg = _small(rovers=2, steps=12, sync_every=2, strategies=("fedmap",),
+                 link=LinkConfig(loss=0.0, uplink_bytes=700, downlink_bytes=900), methods={"fedmap": {"epochs": 5}})
+    run = run_mission(cfg, truth).runs["fedmap"]
+    up = [m for m in run.ledger if m.direction == "up"]
+    assert all(m.status == "delivered" and 0 < m.bytes <= 700 for m in up)  # none over budget
+    assert any(m.kind.startswith("update top-k") for m in up)  # the codec's own update did not fit
+    down = [m for m in run.ledger if m.direction == "down"]
+    assert all(m.bytes <= 900 for m in down) and not any(m.status == "over budget" for m in down)
+    s = run.strategy
+    for k in range(2):  # on a perfect link every rover ends holding the base's model, bit for bit
+        assert s.rover_version[k] == s.bc.version

@@ -209,6 +209,9 @@ class StrategyRun:
     seconds: float  #: wall time of this strategy's run, seconds
     #: the strategy's :attr:`~fedmap.mission.strategies.Strategy.dropped` (None: it sends no model updates)
     dropped_updates: tuple[DroppedUpdate, ...] | None = None
+    #: model strategies: at every sync, before training, how many models behind the base each rover is
+    #: (``{"round": r, "lag": [...]}``; None in ``lag``: it holds none the base still keeps)
+    model_lag: tuple[dict, ...] | None = None
     strategy: Strategy | None = None  # the final state (for inspection; not written)
 
     def to_dict(self) -> dict[str, Any]:
@@ -217,6 +220,8 @@ class StrategyRun:
                                "series": self.series.to_dict(), "ledger": [m.to_dict() for m in self.ledger]}
         if self.dropped_updates is not None:
             out["dropped_updates"] = [d.to_dict() for d in self.dropped_updates]
+        if self.model_lag is not None:
+            out["model_lag"] = list(self.model_lag)
         return out
 
 
@@ -501,6 +506,7 @@ class _Run:
         s = self.strategy
         if not s.shares:
             return
+        s.at_sync(round_no)
         positions = self.positions()
         reachable = self.topology.reachable(positions)
         for k in range(len(self.team)):
@@ -595,7 +601,9 @@ class _Run:
         dropped = self.strategy.dropped
         return StrategyRun(self.name, series, summarise(series, self.link.ledger, c), self.link.ledger, self.frames,
                            [list(r.trail) for r in self.team], seconds,
-                           dropped_updates=None if dropped is None else tuple(dropped), strategy=self.strategy)
+                           dropped_updates=None if dropped is None else tuple(dropped),
+                           model_lag=None if self.strategy.lags is None else tuple(self.strategy.lags),
+                           strategy=self.strategy)
 
 
 def first_step(steps: Sequence[int], values: Sequence[float], level: float) -> int | None:

@@ -46,6 +46,7 @@ from fedmap.federation.codecs import CodecSpec, Encoder
 from fedmap.federation.mapcodec import decode_map, encode_map
 from fedmap.federation.runner import (
     Broadcaster,
+    Downlink,
     apply_downlink,
     base_step,
     init_held,
@@ -56,14 +57,14 @@ from fedmap.federation.streamcodec import initial_state
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb
 from fedmap.mission.sensing import disk_offsets
 from fedmap.mission.settings import PREDICTIVE_OPTIONS
-from fedmap.nets.model import Weights, build_model, render, set_weights
+from fedmap.nets.model import Weights, build_model, get_weights, render, set_weights
 from fedmap.pipeline import initial_weights
 
 _UP = struct.Struct("<8shhhh")  # model version (8 bytes), row, col, target row, target col
 _DOWN = struct.Struct("<B8sB")  # kind, reference model version (8 bytes), rovers reported
 _REPORT = struct.Struct("<Bhhhh")  # rover, row, col, target row, target col
 _KINDS = ("map", "broadcast", "keyframe", "chain", "chunk")
-_CHUNK = struct.Struct("<HHI")  # chunk index, chunk count, bytes of the whole keyframe
+_CHUNK = struct.Struct("<B8sHHI")  # what is chunked (kind), the version it gives, chunk index, count, whole bytes
 #: Bytes of the uplink header (before the payload proper).
 UP_HEADER = _UP.size
 Cell = tuple[int, int]
@@ -73,6 +74,9 @@ Cell = tuple[int, int]
 #: strategies train 50 epochs per sync (the same compute for both).
 MISSION_DEFAULTS: dict[str, dict] = {"paper": {"epochs": 50, "versions_kept": 8},
                                      "fedmap": {"epochs": 50, "versions_kept": 8}}
+#: Rate control: the top-k fractions a model strategy tries, largest first, when an update in
+#: its own codec does not fit the uplink budget (values int8, zstd, with error feedback).
+RATE_FRACTIONS: tuple[float, ...] = (0.1, 0.03, 0.01, 0.003, 0.001, 0.0003)
 #: Torch threads while a mission trains or renders. The models are small and trained one
 #: after another; on a shared 2-core machine two OpenMP threads per process spin against
 #: other processes and made one GridNet fit 20x slower than one thread (measured: 17-23 s
@@ -162,6 +166,9 @@ class Strategy:
     #: strategy that sends no model updates, so has none to drop (``metrics.json`` then has
     #: no ``dropped_updates``).
     dropped: list[DroppedUpdate] | None = None
+    #: Model strategies: at every sync, how many models behind the base each rover is (None
+    #: for a strategy without models).
+    lags: list[dict] | None = None
 
     def __init__(self, truth: GridMap, team: list, budget: dict[str, int | None]) -> None:
         self.truth = truth
@@ -212,6 +219,9 @@ class Strategy:
     def receive_downlink(self, k: int, payload: bytes, ctx: dict) -> bool:
         """Apply a delivered downlink; False when it could not be used (stale)."""
         return False
+
+    def at_sync(self, round_no: int) -> None:
+        """Called at every sync, before the rovers' uplinks of round ``round_no``."""
 
     def _report(self, k: int) -> tuple[Cell, Cell | None]:
         r = self.team[k]
@@ -362,6 +372,8 @@ class Model(Strategy):
         self.aggregator = self.fed.make_aggregator()
         self.up_update = CodecSpec.parse(self.fed.uplink).update
         self.up_encs = [Encoder(self.fed.uplink) for _ in team]  # residuals live on the rovers
+        self.rate_state: list[Weights | None] = [None for _ in team]  # the rate-controlled top-k's residual
+        self.down_rate_state: Weights | None = None  # the base's rate-controlled broadcasts' residual
         self.down_enc = Encoder(self.fed.downlink)
         self.bc = Broadcaster(init, window=self.fed.versions_kept)  # the base's models, broadcasts and keyframe
         self.versions: dict[str, np.ndarray] = {}  # model version -> rendered classes (cache)
@@ -369,7 +381,9 @@ class Model(Strategy):
         self.rover_version = [self.bc.version for _ in team]
         self.acked_version: list[str | None] = [self.bc.version for _ in team]  # what the base knows each rover holds
         self.inbox: dict[int, tuple[str, bytes, float]] = {}
-        self.sending: dict[int, dict] = {}  # base: rover -> the keyframe it is sending in chunks
+        self.order = [self.bc.version]  # every model the base has held, in order
+        self.lags: list[dict] = []  # at every sync: how many models behind each rover is
+        self.sending: dict[int, dict] = {}  # base: rover -> the downlink it is sending in chunks
         self.receiving: dict[int, dict] = {}  # rover -> the chunks of a keyframe it has
         self.rounds_aggregated = 0
         self.dropped: list[DroppedUpdate] = []
@@ -396,6 +410,7 @@ class Model(Strategy):
     def uplink(self, k: int, round_no: int) -> Outgoing | None:
         r = self.team[k]
         local = self.truth.with_classes(r.local, f"rover {k}")
+        before = self.up_encs[k].state()
         try:
             with torch_threads():
                 body, loss = rover_step(self.model, local, self.rover_held[k], self.up_encs[k], self.fed,
@@ -404,10 +419,27 @@ class Model(Strategy):
             self.dropped.append(DroppedUpdate(round_no, k, str(e)))
             return None
         self.losses.append({"round": round_no, "rover": k, "loss": loss})
-        payload = pack_up(self.rover_version[k], r.pos, r.target, body)
+        kind = "update" if self.up_update else "model"
+        payload: bytes | None = pack_up(self.rover_version[k], r.pos, r.target, body)
         b = self.budget["up"]
-        return Outgoing(payload if b is None or len(payload) <= b else None, "update" if self.up_update else "model",
-                        {"known": local.n_known})
+        if b is not None and payload is not None and len(payload) > b:  # rate control: the best update that fits
+            self.up_encs[k].restore(before)  # the update that did not fit was not sent
+            payload, kind = self._fitted_update(k, r, b)
+        return Outgoing(payload, kind, {"known": local.n_known})
+
+    def _fitted_update(self, k: int, r, budget: int) -> tuple[bytes | None, str]:
+        """Top-k of the update just trained (the model's weights now), with error feedback,
+        at the largest of :data:`RATE_FRACTIONS` that fits ``budget`` (None: none fits). The
+        rover's top-k encoder keeps its own residual, carried from one sync to the next."""
+        w = get_weights(self.model)
+        for fraction in RATE_FRACTIONS:
+            enc = Encoder(f"topk:{fraction},values=int8+zstd")
+            enc.restore(self.rate_state[k])
+            payload = pack_up(self.rover_version[k], r.pos, r.target, enc.encode(w, reference=self.rover_held[k]))
+            if len(payload) <= budget:
+                self.rate_state[k] = enc.state()
+                return payload, f"update top-k {fraction:g}"
+        return None, "update"
 
     def receive_uplink(self, k: int, payload: bytes, ctx: dict, round_no: int) -> None:
         version, pos, target, body = unpack_up(payload)
@@ -423,14 +455,14 @@ class Model(Strategy):
         if payloads:
             try:
                 with torch_threads():
-                    step = base_step(self.aggregator, self.base_held, payloads, counts, self.down_enc,
-                                     round_label=round_no, versions=versions, window=self.bc.window)
+                    step = self._aggregate(round_no, payloads, counts, versions)
             except FedmapError as e:  # every update was dropped (e.g. stale): no new model this round
                 self.dropped.append(DroppedUpdate(round_no, -1, str(e)))
             else:
                 for k, why in step.dropped.items():
                     self.dropped.append(DroppedUpdate(round_no, k, why))
                 self.bc.advance(step.held, step.downlink)
+                self.order.append(self.bc.version)
                 self.rounds_aggregated += 1
         out = {}
         b = self.budget["down"]
@@ -444,28 +476,61 @@ class Model(Strategy):
                 self.sending.pop(k, None)
                 out[k] = Outgoing(payload, d.kind, {})
             else:
-                out[k] = self._chunk(k, b)
+                out[k] = self._chunk(k, d, b)
         return out
 
-    def _chunk(self, k: int, budget: int) -> Outgoing:
-        """The next chunk of a keyframe too big for one round's budget. A transfer keeps the
-        model it started with while that model is in the base's window (then the rover
-        catches up from it with a broadcast or chain), and restarts with the current model
-        once it is not."""
+    def _aggregate(self, round_no: int, payloads: dict, counts: dict, versions: dict):
+        """:func:`base_step`, with rate control: when the broadcast in the downlink codec does
+        not fit the downlink budget, the largest top-k fraction of :data:`RATE_FRACTIONS` that
+        fits (values int8, zstd, the base's own error feedback). The base continues from the
+        decoded broadcast either way, so every rover that decodes it holds the same model."""
+        before = self.down_enc.state()
+        step = base_step(self.aggregator, self.base_held, payloads, counts, self.down_enc, round_label=round_no,
+                         versions=versions, window=self.bc.window)
+        b = self.budget["down"]
+        room = None if b is None else b - len(pack_down("broadcast", self.bc.version, self.base_reports, b""))
+        if room is None or len(step.downlink) <= room:
+            return step
+        self.down_enc.restore(before)  # the broadcast that did not fit was not sent
+        for fraction in RATE_FRACTIONS:
+            enc = Encoder(f"topk:{fraction},values=int8+zstd")
+            enc.restore(self.down_rate_state)
+            step = base_step(self.aggregator, self.base_held, payloads, counts, enc, round_label=round_no,
+                             versions=versions, window=self.bc.window)
+            if len(step.downlink) <= room:
+                self.down_rate_state = enc.state()
+                return step
+        return step  # none fits: the smallest, in chunks
+
+    def _chunk(self, k: int, d: Downlink, budget: int) -> Outgoing:
+        """The next chunk of a downlink ``d`` too big for one round's budget. A transfer keeps
+        what it started with while the model it gives is in the base's window (the rover then
+        catches up from there with a broadcast or chain) and the rover still holds what it
+        decodes against; else it restarts with ``d``."""
         t = self.sending.get(k)
-        if t is None or not (t["version"] == self.bc.version or t["version"] in self.bc.window):
-            data = self.bc.keyframe()
-            size = budget - len(pack_down("chunk", self.bc.version, self.base_reports, b"")) - _CHUNK.size
-            if size <= 0:
-                return Outgoing(None, "keyframe", {})
-            t = {"version": self.bc.version, "data": data, "size": size, "n": -(-len(data) // size), "have": set()}
-            if t["n"] > 0xFFFF:
-                return Outgoing(None, "keyframe", {})
+        usable = t is not None and (t["version"] == self.bc.version or t["version"] in self.bc.window) and \
+            (t["kind"] == "keyframe" or t["reference"] == self.acked_version[k])
+        if t is None or not usable:
+            size = budget - len(pack_down("chunk", d.reference, self.base_reports, b"")) - _CHUNK.size
+            n = -(-len(d.payload) // size) if size > 0 else 0
+            if size <= 0 or n > 0xFFFF:
+                return Outgoing(None, d.kind, {})
+            t = {"kind": d.kind, "reference": d.reference, "version": self.bc.version, "data": d.payload,
+                 "size": size, "n": n, "have": set()}
             self.sending[k] = t
         i = min(set(range(t["n"])) - t["have"])  # the first chunk not delivered yet (a lost one again)
         part = t["data"][i * t["size"]:(i + 1) * t["size"]]
-        body = _CHUNK.pack(i, t["n"], len(t["data"])) + part
-        return Outgoing(pack_down("chunk", t["version"], self.base_reports, body), "keyframe chunk", {})
+        body = _CHUNK.pack(_KINDS.index(t["kind"]), _v(t["version"]), i, t["n"], len(t["data"])) + part
+        return Outgoing(pack_down("chunk", t["reference"], self.base_reports, body), f"{t['kind']} chunk", {})
+
+    def lag(self, k: int) -> int | None:
+        """How many models behind the base's current one rover ``k`` is (None: it holds none
+        the base has held in this run)."""
+        v = self.rover_version[k]
+        return len(self.order) - 1 - self.order.index(v) if v in self.order else None
+
+    def at_sync(self, round_no: int) -> None:
+        self.lags.append({"round": round_no, "lag": [self.lag(k) for k in range(len(self.team))]})
 
     def receive_downlink(self, k: int, payload: bytes, ctx: dict) -> bool:
         kind, reference, reports, body = unpack_down(payload)
@@ -480,22 +545,24 @@ class Model(Strategy):
         self.known_reports[k].update(reports)
         return True
 
-    def _receive_chunk(self, k: int, version: str, reports: dict, body: bytes) -> bool:
-        i, n, total = _CHUNK.unpack_from(body)
+    def _receive_chunk(self, k: int, reference: str, reports: dict, body: bytes) -> bool:
+        kind_i, raw_version, i, n, total = _CHUNK.unpack_from(body)
+        kind, version = _KINDS[kind_i], _unv(raw_version)
+        key = (kind, reference, version, n, total)
         r = self.receiving.get(k)
-        if r is None or (r["version"], r["n"], r["total"]) != (version, n, total):
-            r = self.receiving[k] = {"version": version, "n": n, "total": total, "parts": {}}
+        if r is None or r["key"] != key:
+            r = self.receiving[k] = {"key": key, "parts": {}}
         r["parts"][i] = body[_CHUNK.size:]
         self.known_reports[k].update(reports)
         t = self.sending.get(k)
-        if t is not None and t["version"] == version:
+        if t is not None and (t["kind"], t["reference"], t["version"], t["n"], len(t["data"])) == key:
             t["have"].add(i)  # the link-level acknowledgement of this chunk
         if len(r["parts"]) < n:
             return True
         del self.receiving[k]
         blob = b"".join(r["parts"][j] for j in range(n))
         try:
-            w = apply_downlink(self.rover_held[k], "keyframe", blob)
+            w = apply_downlink(self.rover_held[k], kind, blob, reference)
         except RejectedUpdate:
             return False
         if len(blob) != total or model_version(w) != version:
