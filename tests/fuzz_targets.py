@@ -130,7 +130,12 @@ def _decode_stream(data: bytes) -> object:
 
 @cache
 def _scratch() -> Path:
-    return Path(tempfile.mkdtemp(prefix="fedmap-fuzz-"))
+    """A scratch folder for the file readers' inputs, removed when the process ends."""
+    import atexit
+    import shutil
+    path = Path(tempfile.mkdtemp(prefix="fedmap-fuzz-"))
+    atexit.register(shutil.rmtree, path, ignore_errors=True)
+    return path
 
 
 def checkpoint_folder(root: Path) -> Path:
@@ -179,6 +184,20 @@ def _arrays_sample() -> bytes:
     return (checkpoint_folder(_scratch() / "sample") / "arrays.npz").read_bytes()
 
 
+def _chain_sample() -> bytes:
+    from fedmap.federation.codecs import Encoder
+    from fedmap.federation.runner import pack_chain
+    a, b, c = _weights(0), _weights(1), _weights(2)
+    enc = Encoder("update-int8+zstd")
+    return pack_chain([enc.encode(b, reference=a), Encoder("update-int8+zstd").encode(c, reference=b)])
+
+
+def _apply_chain(data: bytes) -> object:
+    from fedmap.federation.runner import apply_downlink, model_version
+    held = _weights(0)
+    return apply_downlink(held, "chain", data, model_version(held))
+
+
 _ROS_YAML = b"image: map.pgm\nresolution: 0.05\norigin: [-10.0, -10.0, 0.0]\nnegate: 0\noccupied_thresh: 0.65\n" \
             b"free_thresh: 0.196\nmode: trinary\n"
 
@@ -211,6 +230,7 @@ TARGETS: dict[str, Target] = {t.name: t for t in (
                                                                                        reference=_classes(1)),
            crc=True),
     Target("predictive message", _decode_stream, _stream_sample),
+    Target("chain of broadcasts", _apply_chain, _chain_sample),
     Target("checkpoint state.json", _read_checkpoint_state, _checkpoint_state_sample),
     Target("checkpoint arrays.npz", _read_checkpoint_arrays, _arrays_sample),
     Target("ROS map YAML", _parse_ros, lambda: _ROS_YAML),

@@ -284,7 +284,7 @@ def test_json_keeps_existing_keys_and_appends_the_literal_reading():
     d = m.to_dict()
     assert list(d) == ["psnr", "ssim", "accuracy", "iou_free", "iou_impassable", "path", "paper_other_unknown"]
     assert list(d["path"]) == ["pairs", "tp", "fp", "fn", "tn", "precision", "recall", "f1", "tolerant",
-                               "mean_length_ratio", "unknown_passable", "paper"]
+                               "mean_length_ratio", "unknown_passable", "paper", "executed", "success"]
     assert list(d["path"]["paper"]) == ["tp", "fp", "fn", "tn", "differ", "precision", "recall", "f1"]
     assert list(d["paper_other_unknown"]) == ["unknown_passable", "tp", "fp", "fn", "tn", "differ", "precision",
                                               "recall", "f1"]
