@@ -84,3 +84,20 @@ def test_a_damaged_checkpoint_state_is_a_one_line_error(tmp_path: Path):
         with pytest.raises(FedmapError, match="checkpoint") as e:
             read_checkpoint(folder)
         assert "\n" not in str(e.value)
+
+
+def test_a_table_declaring_more_scales_than_its_body_holds_is_refused_before_allocating():
+    """Found by ``benchmarks/fuzz_link.py`` (case 75,536): a mutated int8 payload declared a
+    tensor of shape (28,391,276,056, 0), zero entries but 28 billion per-channel scales, and
+    the decoder tried to allocate 212 GiB for them."""
+    target = TARGETS["payload int8+zstd"]
+    rng = np.random.default_rng([0, 75536])
+    rng.random()  # the benchmark's draw between random bytes and a mutation
+    payload = mutate(target.sample(), rng, crc=target.crc)
+    tracemalloc.start()
+    try:
+        assert run_case(target, payload) == "rejected"
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < ALLOC_BOUND

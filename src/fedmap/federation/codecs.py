@@ -436,6 +436,8 @@ def _decode_table(r: _Reader) -> _Layout:
         except UnicodeDecodeError:
             raise _Malformed("tensor name is not UTF-8") from None
         shape = tuple(r.varint() for _ in range(r.u8()))
+        if any(d > 8 * _MAX_CONTENT for d in shape):
+            raise _Malformed(f"a tensor of shape {shape} is implausible")
         total += math.prod(shape)
         if total > 8 * _MAX_CONTENT:
             raise _Malformed(f"{total} entries is implausible")
@@ -779,6 +781,11 @@ def _decode_content(kind: str, flags: int, content: memoryview, reference: Weigh
         delta = np.zeros(n, dtype=np.float32)
         delta[idx] = vals
     else:
+        if kind in _QMAX:  # the scales come first: a table that declares more than the body holds is malformed
+            per_channel = bool(flags & _F_PER_CHANNEL)
+            rows = sum(sh[0] if per_channel and len(sh) >= 2 else 1 for sh in layout.shapes)
+            if 4 * rows > r.rest():
+                raise _Malformed(f"{rows} scales do not fit in a body of {r.rest()} bytes")
         seg = layout.segments(bool(flags & _F_PER_CHANNEL)) if kind in _QMAX else None
         n_scales = 0 if seg is None else len(seg)
         width = {"fp32": 4 * n, "fp16": 2 * n, "bf16": 2 * n, "int8": n, "int4": (n + 1) // 2}[kind]
