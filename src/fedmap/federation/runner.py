@@ -334,16 +334,6 @@ class Broadcaster:
             self.reset(held)
 
     @property
-    def last(self) -> bytes | None:
-        """The last broadcast payload (None before the first)."""
-        return self.past[-1][2] if self.past else None
-
-    @property
-    def last_reference(self) -> str:
-        """The version the last broadcast decodes against."""
-        return self.past[-1][0] if self.past else ""
-
-    @property
     def window(self) -> dict[str, Weights]:
         """The older models an update may be made from (version -> weights; empty without a window)."""
         return {v: w for v, w, _ in self.past} if self.windowed else {}

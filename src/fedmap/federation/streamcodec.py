@@ -13,7 +13,8 @@ nothing: its counts, its headers, and the mask of *which* cells are new. Here:
   (:attr:`CoderState.seq`, one byte); a receiver holding another state rejects it.
 * **It starts learned.** :func:`initial_state` starts from counts learned offline on the
   Earth-like map collections of the meta-initialisation (never on a test site), shipped
-  in ``fedmap/weights/cell_prior.npz``; :func:`learn_prior` retrains them.
+  in ``fedmap/weights/cell_prior.npz``; :func:`fedmap.meta.coder.learn_coder_prior`
+  retrains them (``fedmap meta-coder``).
 * **The mask is derived where it can be.** A message carries *tracks* (positions, each an
   8-neighbour step from the previous, coded as moves in context of the previous move),
   and the cells it may carry (the *candidates*) are derived by the caller from the
@@ -37,7 +38,7 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 
 import constriction
@@ -64,6 +65,8 @@ ALPHA = 0.25
 #: model keeps adapting to the site instead of freezing.
 COUNT_LIMIT = 1 << 12
 PRIOR_FILE = "cell_prior.npz"
+#: The count arrays of a :class:`CoderState` (and of a :class:`Fold`), as the prior file names them.
+PARTS: tuple[str, ...] = ("cells", "moves", "lengths", "marks")
 
 
 @dataclass
@@ -81,19 +84,18 @@ class CoderState:
     seq: int = 0
 
     def copy(self) -> CoderState:
-        return CoderState(self.cells.copy(), self.moves.copy(), self.lengths.copy(), self.marks.copy(), self.seq)
+        return replace(self, **{n: getattr(self, n).copy() for n in PARTS})
 
     def fold(self, delta: Fold) -> None:
         """Add an acknowledged message's counts (both ends, once per delivered message)."""
-        for name in ("cells", "moves", "lengths", "marks"):
+        for name in PARTS:
             a = getattr(self, name)
             a += getattr(delta, name)
             _halve(a, COUNT_LIMIT)
         self.seq += 1
 
     def same_as(self, other: CoderState) -> bool:
-        return self.seq == other.seq and all(np.array_equal(getattr(self, n), getattr(other, n))
-                                             for n in ("cells", "moves", "lengths", "marks"))
+        return self.seq == other.seq and all(np.array_equal(getattr(self, n), getattr(other, n)) for n in PARTS)
 
 
 def _halve(a: np.ndarray, limit: int) -> None:
@@ -126,14 +128,15 @@ def blank_state() -> CoderState:
 
 
 def initial_state() -> CoderState:
-    """The shipped learned initial state (:func:`learn_prior`), or a blank one without it."""
+    """The shipped learned initial state (:func:`fedmap.meta.coder.learn_coder_prior`), or a
+    blank one without it."""
     path = resources.files("fedmap.weights").joinpath(PRIOR_FILE)
     if not path.is_file():
         return blank_state()
     with path.open("rb") as f, np.load(f) as z:
-        s = CoderState(*(z[n].astype(np.int64) for n in ("cells", "moves", "lengths", "marks")))
+        s = CoderState(*(z[n].astype(np.int64) for n in PARTS))
     b = blank_state()
-    if any(getattr(s, n).shape != getattr(b, n).shape for n in ("cells", "moves", "lengths", "marks")):
+    if any(getattr(s, n).shape != getattr(b, n).shape for n in PARTS):
         raise FedmapError(f"{PRIOR_FILE} does not match this fedmap's coder (reinstall fedmap)")
     return s
 

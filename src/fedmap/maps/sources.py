@@ -211,6 +211,12 @@ def _nearest_classes(classes: np.ndarray, size: int) -> np.ndarray:
 
 def load_truth(source: TerrainSource, *, seed: int = 0) -> GridMap:
     """The ground-truth traversability map of a source (see the module docstring)."""
+    return load_terrain(source, seed=seed, with_dem=False)[0]
+
+
+def load_terrain(source: TerrainSource, *, seed: int = 0, with_dem: bool = True) -> tuple[GridMap, Dem | None]:
+    """``(truth, dem)``: the truth as :func:`load_truth` gives it and, with ``with_dem``, the
+    DEM it was classified from (None for a ``map`` source, or without ``with_dem``), read once."""
     if source.kind == "map":
         grid = load_map(source.path, pixel_size=source.options.get("pixel_size"))
         (r0, r1), (c0, c1) = _square_box(grid.shape, source.crop)
@@ -221,6 +227,6 @@ def load_truth(source: TerrainSource, *, seed: int = 0) -> GridMap:
             transform = scale_transform(transform, classes.shape, (source.size, source.size))
             classes = _nearest_classes(classes, source.size)
         return GridMap(classes, px, grid.source, {**grid.meta, "crop": [r0, r1, c0, c1]}, transform=transform,
-                       crs=grid.crs)
+                       crs=grid.crs), None
     dem = load_source_dem(source, seed=seed)
-    return dem_to_traversability(dem, source.thresholds)
+    return dem_to_traversability(dem, source.thresholds), dem if with_dem else None

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fedmap.federation.streamcodec import PRIOR_FILE, CoderState, blank_state
+from fedmap.federation.streamcodec import PARTS, PRIOR_FILE, CoderState, blank_state
 from fedmap.meta.collections import MapCollection, earth_like
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.sim import run_mission
@@ -29,7 +29,6 @@ from fedmap.mission.strategies import Predictive
 
 #: Largest count total per context in the shipped state (a new site outweighs it quickly).
 PRIOR_TOTAL = 64
-_PARTS = ("cells", "moves", "lengths", "marks")
 
 
 def _scaled(a: np.ndarray, total: int) -> np.ndarray:
@@ -50,18 +49,16 @@ def learn_coder_prior(collection: MapCollection | None = None, *, steps: int = 1
     maps = [m for ms in coll.categories.values() for m in ms]
     learned = blank_state()
     config = replace(MissionConfig(), rovers=rovers, steps=steps, strategies=("predictive",), seed=seed)
-    blank = blank_state()
     for i, truth in enumerate(maps):
         strategy = run_mission(config, truth, frames=1).runs["predictive"].strategy
         assert isinstance(strategy, Predictive)
         for state in (*strategy.up_base, *strategy.down_base):
-            for name in _PARTS:
+            for name in PARTS:
                 # the counts this state learned (a state folds from the shipped prior; subtract it)
                 getattr(learned, name)[...] += getattr(state, name) - getattr(strategy.initial, name)
         if on_map is not None:
             on_map(i + 1, len(maps))
-    cells, moves, lengths, marks = (_scaled(np.maximum(getattr(learned, n), 0) + getattr(blank, n), total)
-                                    for n in _PARTS)
+    cells, moves, lengths, marks = (_scaled(np.maximum(getattr(learned, n), 0), total) for n in PARTS)
     return CoderState(cells, moves, lengths, marks)
 
 
@@ -76,7 +73,7 @@ def save_coder_prior(state: CoderState, path: str | Path | None = None) -> Path:
     fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".npz.tmp")
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(f, **{n: getattr(state, n).astype(np.uint16) for n in _PARTS})
+            np.savez_compressed(f, **{n: getattr(state, n).astype(np.uint16) for n in PARTS})
         os.chmod(tmp, 0o644)
         os.replace(tmp, out)
     except BaseException:

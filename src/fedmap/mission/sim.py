@@ -36,7 +36,7 @@ from fedmap.evaluation.scores import MapScores, score_map
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.orbital import orbital_prior
 from fedmap.maps.planning import path_is_valid
-from fedmap.maps.sources import TerrainSource, load_source_dem, load_truth
+from fedmap.maps.sources import TerrainSource, load_terrain
 from fedmap.mission.frontiers import choose_target, plan_path
 from fedmap.mission.link import DOWN, UP, Link, Message, StarTopology
 from fedmap.mission.sensing import disk_offsets, footprint
@@ -652,9 +652,8 @@ def mission_terrain(config: MissionConfig, source: TerrainSource) -> tuple[GridM
                                                                            np.ndarray | None]:
     """``(truth, elevation, prior)`` of a mission on ``source``: the elevation when line of
     sight needs it, the orbital prior when ``[prior]`` asks for one (else None each)."""
-    truth = load_truth(source, seed=config.seed)
     needs_dem = config.line_of_sight or config.prior.kind == "orbital"
-    dem = load_source_dem(source, seed=config.seed) if needs_dem else None
+    truth, dem = load_terrain(source, seed=config.seed, with_dem=needs_dem)
     elevation = dem.elevation if dem is not None and config.line_of_sight else None
     prior = orbital_prior(dem, source.thresholds, config.prior.factor) if dem is not None and \
         config.prior.kind == "orbital" else None

@@ -32,9 +32,10 @@ targets with it.
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -68,6 +69,7 @@ _CHUNK = struct.Struct("<B8sHHI")  # what is chunked (kind), the version it give
 #: Bytes of the uplink header (before the payload proper).
 UP_HEADER = _UP.size
 Cell = tuple[int, int]
+T = TypeVar("T")
 #: Settings a mission lays over a model strategy's preset (``[strategies.<name>]`` wins).
 #: The presets' 100 local epochs fit a map from scratch in one round; at a sync a rover
 #: starts from the global model and has observed ``sync_every`` more steps, so both model
@@ -255,24 +257,16 @@ class Central(Strategy):
 def _cut_to_budget(make, stamps: np.ndarray, candidates: np.ndarray, budget: int | None) -> tuple[bytes | None,
                                                                                                    np.ndarray]:
     """The payload of the most candidate cells that fits: every candidate cell stamped at or
-    after a cut-off, the earliest cut-off that fits (binary search). ``make(mask)`` builds
-    the payload of a cell mask. Returns ``(payload or None, mask sent)``."""
-    full = make(candidates)
-    if budget is None or len(full) <= budget:
-        return full, candidates
+    after a cut-off, the earliest cut-off that fits (:func:`_largest_fitting`). ``make(mask)``
+    builds the payload of a cell mask. Returns ``(payload or None, mask sent)``."""
     cuts = np.unique(stamps[candidates])  # ascending: an earlier cut sends more
-    lo, hi, best = 0, len(cuts) - 1, None
-    while lo <= hi:  # the smallest index whose payload fits
-        mid = (lo + hi) // 2
-        mask = candidates & (stamps >= cuts[mid])
-        p = make(mask)
-        if len(p) <= budget:
-            best, hi = (p, mask), mid - 1
-        else:
-            lo = mid + 1
-    if best is None:
-        return None, np.zeros_like(candidates)
-    return best
+
+    def at(m: int) -> tuple[bytes, np.ndarray]:  # m + 1 cut-offs, the newest first
+        mask = candidates if m == len(cuts) - 1 else candidates & (stamps >= cuts[len(cuts) - 1 - m])
+        return make(mask), mask
+
+    _, made = _largest_fitting(at, len(cuts) - 1, budget)
+    return (None, np.zeros_like(candidates)) if made is None else made
 
 
 class Raw(Strategy):
@@ -384,7 +378,7 @@ class Model(Strategy):
         self.order = [self.bc.version]  # every model the base has held, in order
         self.lags: list[dict] = []  # at every sync: how many models behind each rover is
         self.sending: dict[int, dict] = {}  # base: rover -> the downlink it is sending in chunks
-        self.receiving: dict[int, dict] = {}  # rover -> the chunks of a keyframe it has
+        self.receiving: dict[int, dict] = {}  # rover -> the chunks of a downlink it has so far
         self.rounds_aggregated = 0
         self.dropped: list[DroppedUpdate] = []
         self.losses: list[dict] = []
@@ -428,18 +422,18 @@ class Model(Strategy):
         return Outgoing(payload, kind, {"known": local.n_known})
 
     def _fitted_update(self, k: int, r, budget: int) -> tuple[bytes | None, str]:
-        """Top-k of the update just trained (the model's weights now), with error feedback,
-        at the largest of :data:`RATE_FRACTIONS` that fits ``budget`` (None: none fits). The
-        rover's top-k encoder keeps its own residual, carried from one sync to the next."""
+        """Top-k of the update just trained (the model's weights now), rate-controlled
+        (:func:`_rate_controlled`) to ``budget`` (None: none fits). The rover's top-k encoder
+        keeps its own residual, carried from one sync to the next."""
         w = get_weights(self.model)
-        for fraction in RATE_FRACTIONS:
-            enc = Encoder(f"topk:{fraction},values=int8+zstd")
-            enc.restore(self.rate_state[k])
-            payload = pack_up(self.rover_version[k], r.pos, r.target, enc.encode(w, reference=self.rover_held[k]))
-            if len(payload) <= budget:
-                self.rate_state[k] = enc.state()
-                return payload, f"update top-k {fraction:g}"
-        return None, "update"
+        payload, label, state = _rate_controlled(
+            self.rate_state[k],
+            lambda enc: pack_up(self.rover_version[k], r.pos, r.target, enc.encode(w, reference=self.rover_held[k])),
+            lambda p: len(p) <= budget)
+        if state is None:
+            return None, "update"
+        self.rate_state[k] = state
+        return payload, f"update {label}"
 
     def receive_uplink(self, k: int, payload: bytes, ctx: dict, round_no: int) -> None:
         version, pos, target, body = unpack_up(payload)
@@ -492,15 +486,14 @@ class Model(Strategy):
         if room is None or len(step.downlink) <= room:
             return step
         self.down_enc.restore(before)  # the broadcast that did not fit was not sent
-        for fraction in RATE_FRACTIONS:
-            enc = Encoder(f"topk:{fraction},values=int8+zstd")
-            enc.restore(self.down_rate_state)
-            step = base_step(self.aggregator, self.base_held, payloads, counts, enc, round_label=round_no,
-                             versions=versions, window=self.bc.window)
-            if len(step.downlink) <= room:
-                self.down_rate_state = enc.state()
-                return step
-        return step  # none fits: the smallest, in chunks
+        step, _, state = _rate_controlled(
+            self.down_rate_state,
+            lambda enc: base_step(self.aggregator, self.base_held, payloads, counts, enc, round_label=round_no,
+                                  versions=versions, window=self.bc.window),
+            lambda st: len(st.downlink) <= room)
+        if state is not None:
+            self.down_rate_state = state
+        return step  # when none fits: the smallest, in chunks
 
     def _chunk(self, k: int, d: Downlink, budget: int) -> Outgoing:
         """The next chunk of a downlink ``d`` too big for one round's budget. A transfer keeps
@@ -571,6 +564,21 @@ class Model(Strategy):
         self.acked_version[k] = version
         self.sending.pop(k, None)
         return True
+
+
+def _rate_controlled(state: Weights | None, attempt: Callable[[Encoder], T],
+                     fits: Callable[[T], bool]) -> tuple[T, str, Weights | None]:
+    """Rate control: ``attempt`` with a top-k encoder (int8 values, zstd, its error feedback
+    restored from ``state``) at each of :data:`RATE_FRACTIONS`, largest first. Returns the
+    first result that ``fits``, its codec label and the encoder's new state; or, when none
+    fits, the last (smallest) result, its label and None (the state is left as it was)."""
+    for fraction in RATE_FRACTIONS:
+        enc = Encoder(f"topk:{fraction},values=int8+zstd")
+        enc.restore(state)
+        out = attempt(enc)
+        if fits(out):
+            return out, f"top-k {fraction:g}", enc.state()
+    return out, f"top-k {fraction:g}", None
 
 
 def make_strategy(name: str, truth: GridMap, team: list, budget: dict[str, int | None], *, methods: dict,
@@ -693,10 +701,10 @@ class Predictive(Strategy):
                                                mark_refs=[self.r_target[k]], known=known, candidates=derive)
             return payload, fold, cells
 
-        n = _longest_fitting(lambda n: len(make(n)[0]), len(pending), self.budget["up"])
+        n, made = _largest_fitting(make, len(pending), self.budget["up"])
         if n is None:
             return Outgoing(None, "cells", {})
-        payload, fold, cells = make(n)
+        payload, fold, cells = made
         return Outgoing(payload, "cells", {"n": n, "fold": fold, "cells": cells, "target": r.target})
 
     def receive_uplink(self, k: int, payload: bytes, ctx: dict, round_no: int) -> None:
@@ -752,11 +760,11 @@ class Predictive(Strategy):
                                                    known=known, candidates=derive)
                 return payload, fold, share, cells
 
-            n = _longest_fitting(lambda n: len(make(n)[0]), longest, self.budget["down"])
+            n, made = _largest_fitting(make, longest, self.budget["down"])
             if n is None:
                 out[k] = Outgoing(None, "map", {})
                 continue
-            payload, fold, share, cells = make(n)
+            payload, fold, share, cells = made
             out[k] = Outgoing(payload, "map", {"fold": fold, "tracks": share, "cells": cells, "marks": marks,
                                                "others": others})
         return out
@@ -787,16 +795,23 @@ class Predictive(Strategy):
         return True
 
 
-def _longest_fitting(size, longest: int, budget: int | None) -> int | None:
-    """The largest ``n`` in ``0..longest`` whose ``size(n)`` fits ``budget`` (binary search;
-    sizes grow with ``n``), or None when even ``n = 0`` does not fit."""
-    if budget is None or size(longest) <= budget:
-        return longest
-    lo, hi, best = 0, longest - 1, None
+def _largest_fitting(make, longest: int, budget: int | None) -> tuple[int | None, Any]:
+    """The largest ``n`` in ``0..longest`` whose ``made = make(n)`` fits ``budget`` (``made``
+    is a payload or a tuple that starts with one; sizes grow with ``n``), by binary search
+    after trying ``longest``: ``(n, made)``, or ``(None, None)`` when even ``n = 0`` does not fit."""
+    def size(made) -> int:
+        return len(made[0] if isinstance(made, tuple) else made)
+
+    full = make(longest)
+    if budget is None or size(full) <= budget:
+        return longest, full
+    lo, hi = 0, longest - 1
+    best: tuple[int | None, Any] = (None, None)
     while lo <= hi:
         mid = (lo + hi) // 2
-        if size(mid) <= budget:
-            best, lo = mid, mid + 1
+        made = make(mid)
+        if size(made) <= budget:
+            best, lo = (mid, made), mid + 1
         else:
             hi = mid - 1
     return best
