@@ -721,7 +721,13 @@ def decode(data: bytes, reference: Weights | None = None) -> Weights:
                 size = zstandard.frame_content_size(content)
                 if size < 0 or size > _MAX_CONTENT:
                     raise _Malformed("zstd frame without a plausible content size")
-                content = memoryview(zstandard.ZstdDecompressor().decompress(content))
+                # streamed: memory grows with what the frame really decodes to, not with the size
+                # its header claims (a damaged header claiming 1.5 GB made one-shot decompress
+                # allocate it all before failing)
+                inflated = zstandard.ZstdDecompressor().decompressobj().decompress(bytes(content))
+                if len(inflated) != size:
+                    raise _Malformed(f"zstd frame decoded to {len(inflated)} bytes, its header says {size}")
+                content = memoryview(inflated)
             except zstandard.ZstdError as e:
                 raise _Malformed(f"zstd: {e}") from None
         # a scale that overflows decodes to inf, as a NaN sent in fp32 decodes to NaN: the
