@@ -186,7 +186,9 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
     def start(rovers: Processes) -> None:
         faults = {2: "bitflip@1", 3: "nan@2"}
         for k in range(4):
-            rovers.start(f"rover{k}", _rover_argv(proxy.port, k, tmp_path, certs, fault=faults.get(k)),
+            # a rover keeps reconnecting for 60 s: on a loaded machine 30 s was once too short to come
+            # back after the 3 s cut (rover 0 gave up and missed round 2)
+            rovers.start(f"rover{k}", _rover_argv(proxy.port, k, tmp_path, certs, fault=faults.get(k), max_wait=60),
                          env=flower_env(tmp_path / f"home{k}"), log=tmp_path / f"rover{k}.log")
         # each stops at its first answer from the link; the wait only bounds a loaded machine's start-up
         for name, argv in (("unregistered", _rover_argv(proxy.port, 0, tmp_path, certs, key=certs / "rover4",
