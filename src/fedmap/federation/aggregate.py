@@ -110,6 +110,53 @@ def coverage_average(global_w: Weights, updates: list[Weights], counts: list[flo
     return out
 
 
+def metropolis_weight(degree_a: int, degree_b: int) -> float:
+    """Metropolis-Hastings weight of the edge between two agents of degrees ``degree_a`` and
+    ``degree_b`` (Xiao & Boyd 2004): ``1 / (1 + max(d_a, d_b))``. With every agent keeping
+    ``1 - sum`` of its edges' weights for itself, the mixing matrix is symmetric and doubly
+    stochastic, so repeated mixing on a connected graph converges to the plain average."""
+    if degree_a < 1 or degree_b < 1:
+        raise FedmapError(f"an edge joins agents of degree >= 1, got {degree_a} and {degree_b}")
+    return 1.0 / (1.0 + max(degree_a, degree_b))
+
+
+def metropolis_mix(own: Weights, neighbours: list[tuple[Weights, float]], *,
+                   untouched: Weights | None = None) -> Weights:
+    """One decentralised averaging step (DSGD-style gossip) at one agent:
+    ``w <- (1 - sum_j m_j) w + sum_j m_j w_j`` over the ``neighbours``' ``(w_j, m_j)``
+    (their Metropolis weights, :func:`metropolis_weight`), in float64, cast to float32.
+
+    With ``untouched`` (the model every agent started from), the step is coverage-aware
+    as :func:`coverage_average` is: per entry, the weights are renormalised over the agents
+    (itself included) whose entry differs from ``untouched``; an entry none of them touched
+    keeps the agent's own value. For a dense network that every agent trains this is the
+    plain step."""
+    m = np.asarray([mj for _, mj in neighbours], dtype=np.float64)
+    if (m < 0).any() or m.sum() > 1 + 1e-12:
+        raise FedmapError(f"Metropolis weights must be non-negative and sum to at most 1, got {m.tolist()}")
+    self_w = 1.0 - float(m.sum())
+    out: Weights = {}
+    for k, v in own.items():
+        mine = np.asarray(v, dtype=np.float64)
+        if untouched is None:
+            acc = self_w * mine
+            for (w, mj) in neighbours:
+                acc = acc + mj * np.asarray(w[k], dtype=np.float64)
+            out[k] = acc.astype(np.float32)
+            continue
+        base = np.asarray(untouched[k], dtype=np.float64)
+        touched = mine != base
+        num = np.where(touched, self_w * mine, 0.0)
+        den = np.where(touched, self_w, 0.0)
+        for (w, mj) in neighbours:
+            wk = np.asarray(w[k], dtype=np.float64)
+            t = wk != base
+            num += np.where(t, mj * wk, 0.0)
+            den += np.where(t, mj, 0.0)
+        out[k] = np.where(den > 0, num / np.maximum(den, 1e-300), mine).astype(np.float32)
+    return out
+
+
 @dataclass
 class CoverageAvg:
     """FedAvg per parameter entry over the agents that touched it; stateless."""
