@@ -18,6 +18,26 @@ to a message, in this order:
 
 The sender learns at arrival time whether its message got through (a link-level
 acknowledgement, not counted in the bytes).
+
+**Peer topologies** (``[link] topology``). On ``mesh`` and ``leader`` every agent (the
+rovers, and the lander as an agent that never moves unless ``lander_agent = false``) can
+talk to every other agent within ``peer_range`` cells (:class:`MeshTopology`). A peer
+message's ledger entry has ``direction = "peer"``, its sender in ``rover`` (:data:`BASE`
+for the lander) and its receiver in ``to``; each hop of a relayed message is its own entry.
+
+* **Drops.** Each link (star: rover-base; peer: each pair of agents) is *down* for a whole
+  round with probability ``drop``: the first ``random()`` of
+  ``default_rng(SeedSequence([seed, round, a + 1, b + 1, 3]))`` with ``a < b`` the two
+  agents (:data:`BASE` is -1, so the lander is 0 there) compared ``< drop``. A message on a
+  link that is down is not sent (``link down``, 0 bytes). RAMEN's protocol (every link
+  dropped independently each round with probability p) is ``drop = p``.
+* **Loss** of a peer message (one hop ``a -> b``) is drawn as above from
+  ``SeedSequence([seed, round, a + 1, b + 1, 2])`` (directed: ``a`` is the sender).
+* **Leaders** (``leader``): at every sync the links that are up split the agents into
+  connected groups; each group's leader is the lander when it is in the group, else its
+  lowest-numbered rover (:func:`elect_leaders`). Members reach their leader along the
+  shortest route of links that are up (:func:`route`, ties to the lower-numbered agent),
+  every hop relayed, costing its bytes, and drawn for loss on its own; latency is per hop.
 """
 
 from __future__ import annotations
@@ -31,7 +51,7 @@ import numpy as np
 
 from fedmap.mission.settings import LinkConfig
 
-UP, DOWN = "up", "down"
+UP, DOWN, PEER = "up", "down", "peer"
 Cell = tuple[int, int]
 #: The base station's index among the agents of a :class:`Topology` (rovers are 0, 1, ...).
 BASE = -1
@@ -93,6 +113,107 @@ class StarTopology:
         return np.hypot(rows - self.base[0], cols - self.base[1]) <= self.max_range + RANGE_SLACK
 
 
+@dataclass(frozen=True)
+class MeshTopology:
+    """Every agent talks directly to every agent within ``peer_range`` cells of it
+    (Euclidean; None: no limit). The agents are the rovers (0, 1, ...) and, when
+    ``lander_agent``, the lander at ``base`` as :data:`BASE`."""
+
+    base: Cell
+    peer_range: float | None = None
+    lander_agent: bool = True
+
+    def agents(self, n_rovers: int) -> tuple[int, ...]:
+        """Every agent, the lander (:data:`BASE`) first when it is one."""
+        return ((BASE,) if self.lander_agent else ()) + tuple(range(n_rovers))
+
+    def position(self, agent: int, positions: Sequence[Cell]) -> Cell:
+        return self.base if agent == BASE else positions[agent]
+
+    def in_range(self, a: int, b: int, positions: Sequence[Cell]) -> bool:
+        if self.peer_range is None:
+            return True
+        pa, pb = self.position(a, positions), self.position(b, positions)
+        return math.hypot(pa[0] - pb[0], pa[1] - pb[1]) <= self.peer_range + RANGE_SLACK
+
+    def neighbours(self, agent: int, positions: Sequence[Cell]) -> tuple[int, ...]:
+        return tuple(b for b in self.agents(len(positions)) if b != agent and self.in_range(agent, b, positions))
+
+    def pairs(self, positions: Sequence[Cell]) -> list[tuple[int, int]]:
+        """Every pair of agents in range of each other, ``(a, b)`` with ``a < b``, in order."""
+        ags = self.agents(len(positions))
+        return [(a, b) for i, a in enumerate(ags) for b in ags[i + 1:] if self.in_range(a, b, positions)]
+
+    def reachable(self, positions: Sequence[Cell]) -> tuple[bool, ...]:
+        """For every rover: is it connected to the lander, over any number of hops?"""
+        if not self.lander_agent:
+            return tuple(False for _ in positions)
+        group = next(g for g in components(self.agents(len(positions)), self.pairs(positions)) if BASE in g)
+        return tuple(k in group for k in range(len(positions)))
+
+    def region(self, shape: tuple[int, int]) -> np.ndarray | None:
+        return None
+
+
+def components(agents: Sequence[int], pairs: Sequence[tuple[int, int]]) -> list[tuple[int, ...]]:
+    """The connected groups of ``agents`` over the undirected ``pairs``, each sorted, in the
+    order of their lowest agent (:data:`BASE` sorts first)."""
+    parent = {a: a for a in agents}
+
+    def root(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for a, b in pairs:
+        ra, rb = root(a), root(b)
+        if ra != rb:
+            parent[max(ra, rb)] = min(ra, rb)
+    groups: dict[int, list[int]] = {}
+    for a in sorted(agents):
+        groups.setdefault(root(a), []).append(a)
+    return [tuple(g) for _, g in sorted(groups.items())]
+
+
+def elect_leaders(groups: Sequence[tuple[int, ...]]) -> dict[int, int]:
+    """Every agent's leader: in each group, the lander (:data:`BASE`) when it is in the
+    group, else the lowest-numbered rover. Deterministic: it depends only on who is in the
+    group, never on order, time or the strategy."""
+    out = {}
+    for g in groups:
+        leader = BASE if BASE in g else min(g)
+        out.update({a: leader for a in g})
+    return out
+
+
+def route(a: int, b: int, pairs: Sequence[tuple[int, int]]) -> list[int] | None:
+    """The shortest route from ``a`` to ``b`` over the undirected ``pairs`` (``[a, ..., b]``;
+    breadth first, lower-numbered neighbours first, so it is deterministic), or None."""
+    nbrs: dict[int, list[int]] = {}
+    for x, y in pairs:
+        nbrs.setdefault(x, []).append(y)
+        nbrs.setdefault(y, []).append(x)
+    prev: dict[int, int | None] = {a: None}
+    frontier = [a]
+    while frontier and b not in prev:
+        nxt = []
+        for x in frontier:
+            for y in sorted(nbrs.get(x, ())):
+                if y not in prev:
+                    prev[y] = x
+                    nxt.append(y)
+        frontier = nxt
+    if b not in prev:
+        return None
+    out = [b]
+    while out[-1] != a:
+        p = prev[out[-1]]
+        assert p is not None
+        out.append(p)
+    return out[::-1]
+
+
 @dataclass
 class Message:
     """One entry of the ledger."""
@@ -103,8 +224,23 @@ class Message:
     direction: str  # "up" or "down"
     kind: str  # what the payload is (e.g. "cells", "update", "keyframe")
     bytes: int  # bytes spent on the link (0 when not sent)
-    status: str  # delivered | lost | over budget | out of range | stale | rejected
+    status: str  # delivered | lost | over budget | out of range | link down | stale | rejected
     arrival: int | None = None
+    to: int | None = None  # peer messages: the receiver (rover index, or BASE); None on the star
+
+    @property
+    def sender(self) -> int:
+        """Who spent the bytes: the rover on a star uplink or any peer message it sends, else
+        the base (:data:`BASE`)."""
+        return self.rover if self.direction in (UP, PEER) else BASE
+
+    @property
+    def rover_side(self) -> int:
+        """The rover whose account the bytes are charged to: the sender, or the receiving rover
+        of a message the base (or lander) sent."""
+        if self.direction == PEER:
+            return self.rover if self.rover != BASE else (self.to if self.to is not None else BASE)
+        return self.rover
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -121,6 +257,9 @@ class Link:
         self.config = config
         self.topology = topology
         self.ledger: list[Message] = []
+        #: messages offered on a link that was up (in range, not down), counting every hop:
+        #: the denominator of "bytes per link per round"
+        self.slots = 0
 
     def lost(self, round_no: int, rover: int, direction: str) -> bool:
         """The seeded loss draw of one message (see the module docstring)."""
@@ -129,6 +268,52 @@ class Link:
         d = 0 if direction == UP else 1
         rng = np.random.default_rng(np.random.SeedSequence([self.config.seed, round_no, rover, d]))
         return bool(rng.random() < self.config.loss)
+
+    def down(self, round_no: int, a: int, b: int, step: int | None = None) -> bool:
+        """Whether the link between agents ``a`` and ``b`` is down for this round: a link of the
+        lander at a ``step`` inside ``lander_cut``, or the seeded draw (module docstring)."""
+        cut = self.config.lander_cut
+        if cut is not None and step is not None and BASE in (a, b) and cut[0] <= step < cut[1]:
+            return True
+        if self.config.drop <= 0:
+            return False
+        lo, hi = sorted((a, b))
+        rng = np.random.default_rng(np.random.SeedSequence([self.config.seed, round_no, lo + 1, hi + 1, 3]))
+        return bool(rng.random() < self.config.drop)
+
+    def lost_hop(self, round_no: int, a: int, b: int) -> bool:
+        """The seeded loss draw of one peer message (one hop) from ``a`` to ``b``."""
+        if self.config.loss <= 0:
+            return False
+        rng = np.random.default_rng(np.random.SeedSequence([self.config.seed, round_no, a + 1, b + 1, 2]))
+        return bool(rng.random() < self.config.loss)
+
+    def up_pairs(self, round_no: int, step: int, positions: Sequence[Cell]) -> list[tuple[int, int]]:
+        """The peer links that are up this round: in range, and not down."""
+        assert isinstance(self.topology, MeshTopology)
+        return [(a, b) for a, b in self.topology.pairs(positions) if not self.down(round_no, a, b, step)]
+
+    def send_route(self, payload: bytes | None, path: Sequence[int], *, round_no: int, step: int, kind: str,
+                   budget: int | None) -> Message:
+        """Offer a peer message along ``path`` (``[sender, relays..., receiver]``, over links
+        that are up): one ledger entry per hop, each hop drawn for loss, ``latency`` steps per
+        hop. Returns the last hop's entry (``arrival`` set when the receiver got it)."""
+        if payload is None or (budget is not None and len(payload) > budget):
+            msg = Message(round_no, step, path[0], PEER, kind, 0, "over budget", to=path[-1])
+            self.ledger.append(msg)
+            self.slots += 1
+            return msg
+        t = step
+        for a, b in zip(path, path[1:]):
+            self.slots += 1
+            if self.lost_hop(round_no, a, b):
+                msg = Message(round_no, t, a, PEER, kind, len(payload), "lost", to=b)
+                self.ledger.append(msg)
+                return msg
+            msg = Message(round_no, t, a, PEER, kind, len(payload), "delivered", t + self.config.latency, to=b)
+            self.ledger.append(msg)
+            t += self.config.latency
+        return msg
 
     def budget(self, direction: str) -> int | None:
         return self.config.uplink_bytes if direction == UP else self.config.downlink_bytes
@@ -146,6 +331,8 @@ class Link:
         """
         if not self.topology.reachable(positions)[rover]:
             msg = Message(round_no, step, rover, direction, kind, 0, "out of range")
+        elif self.down(round_no, rover, BASE, step):
+            msg = Message(round_no, step, rover, direction, kind, 0, "link down")
         elif payload is None or not self.fits(len(payload), direction):
             msg = Message(round_no, step, rover, direction, kind, 0, "over budget")
         elif self.lost(round_no, rover, direction):
@@ -153,5 +340,7 @@ class Link:
         else:
             msg = Message(round_no, step, rover, direction, kind, len(payload), "delivered",
                           step + self.config.latency)
+        if msg.status != "out of range" and msg.status != "link down":
+            self.slots += 1
         self.ledger.append(msg)
         return msg
