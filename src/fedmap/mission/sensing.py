@@ -82,3 +82,29 @@ def footprint(pos: tuple[int, int], shape: tuple[int, int], radius: float, *,
     mask = np.zeros(shape, dtype=bool)
     mask[rr[keep], cc[keep]] = True
     return mask
+
+
+def block_classes(classes: np.ndarray, factor: int, unknown: int) -> np.ndarray:
+    """The class of every ``factor`` x ``factor`` block of ``classes`` (blocks aligned to
+    the map's origin; the last ones may be cut by the map's edge): the class of its cells
+    when they all have the same one, else ``unknown`` (a mixed block)."""
+    c = np.asarray(classes)
+    h, w = c.shape
+    bh, bw = -(-h // factor), -(-w // factor)
+    pad = np.full((bh * factor, bw * factor), -1, dtype=np.int16)
+    pad[:h, :w] = c
+    blocks = pad.reshape(bh, factor, bw, factor).transpose(0, 2, 1, 3).reshape(bh, bw, -1)
+    first = blocks.max(axis=2)  # the class (padding is -1, below every class)
+    uniform = ((blocks == first[..., None]) | (blocks == -1)).all(axis=2)
+    return np.where(uniform, first, unknown).astype(np.uint8)
+
+
+def coarse_footprint(pos: tuple[int, int], shape: tuple[int, int], radius: float, factor: int) -> np.ndarray:
+    """Boolean ``shape`` mask of the cells of every ``factor`` x ``factor`` block whose
+    centre is within ``radius`` cells of ``pos`` (a coarse camera's footprint)."""
+    h, w = shape
+    bh, bw = -(-h // factor), -(-w // factor)
+    cr = np.arange(bh) * factor + (factor - 1) / 2
+    cc = np.arange(bw) * factor + (factor - 1) / 2
+    near = (cr[:, None] - pos[0]) ** 2 + (cc[None, :] - pos[1]) ** 2 <= radius**2 + 1e-9
+    return np.repeat(np.repeat(near, factor, axis=0), factor, axis=1)[:h, :w]

@@ -9,6 +9,7 @@ TOML layout (every key optional)::
     [mission]      # MissionConfig: rovers, steps, sync_every, speed, sensor_radius, ...
     [link]         # LinkConfig: uplink_bytes, downlink_bytes, loss, latency, max_range, seed
     [prior]        # PriorConfig: kind (none | orbital), factor
+    [helicopter]   # HelicopterConfig: speed, sensor_radius, resolution, flight_budget, recharge
     [strategies.fedmap]   # method_config keywords for a model strategy, e.g. epochs = 30
     [strategies.paper]
     [strategies.predictive]  # the coder's parts (PREDICTIVE_OPTIONS), e.g. prior = "none"
@@ -44,11 +45,16 @@ from fedmap.errors import FedmapError
 from fedmap.maps.sources import TerrainSource
 
 #: Every sharing strategy, from the lower bound to the upper bound.
-STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive", "paper", "fedmap", "central")
+STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive", "paper", "fedmap", "gossip", "central")
 #: The strategies a mission runs unless told otherwise (``paper`` is slow: an option).
 DEFAULT_STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive", "fedmap", "central")
 #: The strategies that train a network and share it with the rovers' step of ``fedmap run``.
 MODEL_STRATEGIES: tuple[str, ...] = ("paper", "fedmap")
+#: The strategies that run on every topology (``[link] topology``); the others need the
+#: base station of the ``star`` topology.
+PEER_STRATEGIES: tuple[str, ...] = ("none", "raw", "gossip", "central")
+#: Who talks to whom (:mod:`fedmap.mission.link`).
+TOPOLOGIES: tuple[str, ...] = ("star", "mesh", "leader")
 MODES: tuple[str, ...] = ("frontier", "waypoints")
 #: ``[strategies.predictive]``: the parts of the predictive coder, each with its default first
 #: (the others are ablations, for measuring what each part saves): ``prior``, the coder's
@@ -106,9 +112,33 @@ class LinkConfig:
     latency: int = setting(0, help="Steps a message takes, each way")
     max_range: float | None = setting(None, help="Link range from the base station, cells (unset: unlimited)")
     seed: int = setting(0, help="The link's own seed (its loss draws)", cli="--link-seed")
+    topology: str = setting("star", help="star: every rover talks to the base; mesh: agents within peer_range talk "
+                            "peer to peer; leader: each connected group elects a leader that plays the base",
+                            choices=TOPOLOGIES, cli="--topology")
+    peer_range: float | None = setting(None, help="mesh, leader: range of a peer link, cells (unset: unlimited)")
+    peer_bytes: int | None = setting(None, help="mesh: budget per link per direction per round, bytes (unset: "
+                                     "unlimited)")
+    drop: float = setting(0.0, help="Probability that a link is down for a whole round, drawn per link and round",
+                          cli="--drop")
+    lander_cut: tuple[int, int] | None = setting(None, help="[from, to): steps during which every link of the "
+                                                 "lander (base station) is down (unset: none)")
+    lander_agent: bool = setting(True, help="mesh, leader: the lander takes part as an agent that never moves "
+                                 "(false: a team without a base station)", cli="--lander-agent/--no-lander-agent")
 
     def __post_init__(self) -> None:
-        for name in ("uplink_bytes", "downlink_bytes"):
+        if self.topology not in TOPOLOGIES:
+            raise FedmapError(f"unknown topology {self.topology!r}{suggest(self.topology, TOPOLOGIES)}")
+        if not (isinstance(self.drop, (int, float)) and not isinstance(self.drop, bool) and 0.0 <= self.drop < 1.0):
+            raise FedmapError(f"link drop must be a probability in [0, 1), got {self.drop!r}")
+        if self.peer_range is not None and not (math.isfinite(self.peer_range) and self.peer_range > 0):
+            raise FedmapError(f"link peer_range must be a positive number of cells (or unset), got {self.peer_range!r}")
+        if self.lander_cut is not None:
+            cut = self.lander_cut
+            if (not isinstance(cut, (list, tuple)) or len(cut) != 2
+                    or not all(isinstance(v, int) and not isinstance(v, bool) for v in cut) or not 0 <= cut[0] < cut[1]):
+                raise FedmapError(f"link lander_cut must be [from, to) steps with 0 <= from < to, got {cut!r}")
+            object.__setattr__(self, "lander_cut", (int(cut[0]), int(cut[1])))
+        for name in ("uplink_bytes", "downlink_bytes", "peer_bytes"):
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 0):
                 raise FedmapError(f"link {name} must be a non-negative number of bytes (or unset), got {v!r}")
@@ -147,6 +177,38 @@ class PriorConfig:
             raise FedmapError(f"unknown prior kind {self.kind!r}{suggest(self.kind, PRIOR_KINDS)}")
         if isinstance(self.factor, bool) or not isinstance(self.factor, int) or self.factor < 2:
             raise FedmapError(f"prior factor must be an integer >= 2, got {self.factor!r}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class HelicopterConfig:
+    """The helicopters of a team (``[helicopter]``; how many: ``[mission] helicopters``).
+
+    A helicopter starts at the lander and flies over any terrain, ``speed`` cells a step
+    (8-connected moves). From every cell it enters it sees the blocks of ``resolution`` x
+    ``resolution`` cells whose centre is within ``sensor_radius`` cells, coarsely: a block
+    whose cells are all of one class is observed as that class, a mixed block stays unknown
+    (its coarse camera cannot resolve it); the cells it observes are marked as coarse. A
+    sortie lasts at most ``flight_budget`` steps in the air; it then must be on a landing
+    site (the lander, or a cell it observed free), where it stays ``recharge`` steps.
+    """
+
+    speed: int = setting(6, help="Cells flown per step", cli="--heli-speed")
+    sensor_radius: float = setting(16.0, help="Footprint radius, cells", cli="--heli-radius")
+    resolution: int = setting(4, help="How many times coarser than the map it sees (block side, cells)",
+                              cli="--heli-resolution")
+    flight_budget: int = setting(30, help="Steps in the air per sortie", cli="--heli-flight-budget")
+    recharge: int = setting(20, help="Steps on the ground between sorties", cli="--heli-recharge")
+
+    def __post_init__(self) -> None:
+        for name, low in (("speed", 1), ("resolution", 1), ("flight_budget", 2), ("recharge", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise FedmapError(f"helicopter {name} must be an integer >= {low}, got {v!r}")
+        if not (math.isfinite(self.sensor_radius) and self.sensor_radius >= 1.5):
+            raise FedmapError(f"helicopter sensor_radius must be >= 1.5 cells, got {self.sensor_radius!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -192,6 +254,7 @@ class MissionConfig:
     """
 
     rovers: int = setting(4, help="Number of rovers")
+    helicopters: int = setting(0, help="Number of helicopters, after the rovers in the team ([helicopter] sets them)")
     steps: int = setting(150, help="Mission steps")
     sync_every: int = setting(10, help="Steps between sync rounds")
     speed: int = setting(2, help="Cells driven per step")
@@ -215,6 +278,7 @@ class MissionConfig:
     eval_pairs: int = setting(40, help="Start/goal pairs of the path F1 (scored at step 0, every sync and the end)")
     link: LinkConfig = wiring(default_factory=LinkConfig)
     prior: PriorConfig = wiring(default_factory=PriorConfig)
+    helicopter: HelicopterConfig = wiring(default_factory=HelicopterConfig)
     methods: dict = wiring(default_factory=dict)
     seed: int = wiring(0)
 
@@ -225,6 +289,7 @@ class MissionConfig:
                 raise FedmapError(f"{name} must be an integer >= {low}, got {v!r}")
 
         whole("rovers", 1)
+        whole("helicopters", 0)
         whole("steps", 1)
         whole("sync_every", 1)
         whole("speed", 1)
@@ -238,6 +303,13 @@ class MissionConfig:
         if self.mode not in MODES:
             raise FedmapError(f"unknown mode {self.mode!r}{suggest(self.mode, MODES)}")
         object.__setattr__(self, "strategies", check_strategies(self.strategies))
+        if self.link.topology != "star":
+            if self.strategies == DEFAULT_STRATEGIES:  # the defaults that run on a peer topology
+                object.__setattr__(self, "strategies", PEER_STRATEGIES)
+            for s in self.strategies:
+                if s not in PEER_STRATEGIES:
+                    raise FedmapError(f"strategy {s!r} needs the star topology's base station; on a "
+                                      f"{self.link.topology} topology run {', '.join(PEER_STRATEGIES)}")
         if self.lander is not None:
             object.__setattr__(self, "lander", _cell(self.lander, "lander"))
         if self.base is not None:
@@ -260,8 +332,8 @@ class MissionConfig:
                         raise FedmapError(f"[strategies.predictive] {key} must be one of "
                                           f"{', '.join(PREDICTIVE_OPTIONS[key])}, got {value!r}")
                 continue
-            if name not in MODEL_STRATEGIES:
-                raise FedmapError(f"[strategies.{name}]: only {', '.join((*MODEL_STRATEGIES, 'predictive'))} "
+            if name not in (*MODEL_STRATEGIES, "gossip"):
+                raise FedmapError(f"[strategies.{name}]: only {', '.join((*MODEL_STRATEGIES, 'gossip', 'predictive'))} "
                                   "take settings")
             check_keys(kw, KEYWORDS, f"[strategies.{name}]")
 
@@ -274,7 +346,8 @@ class MissionConfig:
 
 
 #: The tables of a mission file besides the run config's ``seed``, ``[terrain]`` and ``[thresholds]``.
-MISSION_SECTIONS: dict[str, type] = {"mission": MissionConfig, "link": LinkConfig, "prior": PriorConfig}
+MISSION_SECTIONS: dict[str, type] = {"mission": MissionConfig, "link": LinkConfig, "prior": PriorConfig,
+                                     "helicopter": HelicopterConfig}
 _RUN_PART = ("seed", "terrain", "thresholds")
 
 
@@ -336,7 +409,8 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
     methods = data.get("strategies", {})
     try:
         config = _schema.build(MissionConfig, data.get("mission", {}), link=_schema.build(LinkConfig, data.get("link", {})),
-                               prior=_schema.build(PriorConfig, data.get("prior", {})), methods=methods,
+                               prior=_schema.build(PriorConfig, data.get("prior", {})),
+                               helicopter=_schema.build(HelicopterConfig, data.get("helicopter", {})), methods=methods,
                                seed=resolved["seed"])
     except TypeError as exc:  # a wrong type reaching a comparison
         raise FedmapError(f"bad mission setting: {exc}") from exc
@@ -347,8 +421,10 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
                           "class map)")
     out = {"seed": resolved["seed"], "terrain": {k: v for k, v in source.to_dict().items() if k != "thresholds"},
            "thresholds": used_thresholds(resolved["thresholds"]), "mission": {k: v for k, v in asdict(config).items()
-                                                            if k not in ("link", "prior", "methods", "seed")},
-           "link": config.link.to_dict(), "prior": config.prior.to_dict(), "strategies": methods}
+                                                            if k not in ("link", "prior", "helicopter", "methods",
+                                                                         "seed")},
+           "link": config.link.to_dict(), "prior": config.prior.to_dict(), "helicopter": config.helicopter.to_dict(),
+           "strategies": methods}
     return config, source, out
 
 

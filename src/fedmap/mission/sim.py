@@ -38,8 +38,21 @@ from fedmap.maps.orbital import orbital_prior
 from fedmap.maps.planning import path_is_valid
 from fedmap.maps.sources import TerrainSource, load_terrain
 from fedmap.mission.frontiers import choose_target, plan_path
-from fedmap.mission.link import DOWN, UP, Link, Message, StarTopology
-from fedmap.mission.sensing import disk_offsets, footprint
+from fedmap.mission.link import (
+    BASE,
+    DOWN,
+    UP,
+    Link,
+    MeshTopology,
+    Message,
+    StarTopology,
+    Topology,
+    components,
+    elect_leaders,
+    route,
+)
+from fedmap.mission.peers import ModelGossip, PeerStrategy, RawGossip
+from fedmap.mission.sensing import block_classes, coarse_footprint, disk_offsets, footprint
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.strategies import DroppedUpdate, Strategy, make_strategy
 
@@ -64,6 +77,12 @@ class Rover:
     waypoints: list[Cell] = field(default_factory=list)
     excluded: set = field(default_factory=set)
     replan: bool = True
+    kind: str = "rover"  #: rover, or helicopter (its observations are coarse: HelicopterConfig)
+    flight: int = 0  #: helicopter: steps in the air this sortie
+    charging: int = 0  #: helicopter: steps left on the ground before it may take off
+    returning: bool = False  #: helicopter: heading for a landing site
+    #: helicopter: every landing, ``(step, cell, steps flown that sortie, "lander" or "observed free")``
+    landings: list = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -161,6 +180,9 @@ class MissionSummary:
     final_belief_f1_mean: float  #: strict path F1 of the rovers' beliefs, mean over the rovers
     bytes_up: int  #: uplink bytes of the whole team (sum over the rovers)
     bytes_down: int  #: downlink bytes of the whole team (sum over the rovers)
+    #: mean bytes per message offered on a link that was up (in range, not down), each hop of a
+    #: relayed message counted: one message per link, direction and round, as RAMEN reports it
+    bytes_per_link_round: float
     messages: dict[str, int]  #: ledger entries per ``<direction>_<status>``, e.g. ``up_lost``
 
     def to_dict(self) -> dict[str, Any]:
@@ -181,6 +203,7 @@ class MissionSummary:
                       "global_f1": self.final_global_f1, "global_f1_tolerant": self.final_global_f1_tolerant,
                       "belief_f1_mean": self.final_belief_f1_mean},
             "team_bytes": {"up": self.bytes_up, "down": self.bytes_down},
+            "bytes_per_link_round": self.bytes_per_link_round,
             "messages": dict(self.messages),
         }
 
@@ -194,6 +217,8 @@ class Frame:
     global_map: np.ndarray  #: the base's global map (classes)
     positions: list[Cell]  #: every rover's cell
     trail_len: list[int]  #: how much of each rover's trail it has driven (cells of the trail)
+    links: tuple[tuple[int, int], ...] = ()  #: peer topologies: the links up at the last sync (agents; -1: lander)
+    leaders: tuple[int, ...] = ()  #: leader topology: the agents leading at the last sync
 
 
 @dataclass(frozen=True)
@@ -400,12 +425,31 @@ class _Run:
         self.team = [Rover(s, np.full(shape, UNKNOWN, dtype=np.uint8), np.full(shape, -1, dtype=np.int64),
                            trail=[s], waypoints=list(w) if config.mode == "waypoints" else [])
                      for s, w in zip(starts, waypoints)]
-        self.topology = StarTopology(base, config.link.max_range)
-        self.link = Link(config.link, self.topology)
+        self.team += [Rover(base, np.full(shape, UNKNOWN, dtype=np.uint8), np.full(shape, -1, dtype=np.int64),
+                            trail=[base], kind="helicopter") for _ in range(config.helicopters)]
+        hc = config.helicopter
+        f = hc.resolution
+        self.coarse = np.repeat(np.repeat(block_classes(truth.classes, f, UNKNOWN), f, axis=0), f,
+                                axis=1)[:shape[0], :shape[1]] if config.helicopters else None
+        lc = config.link
+        self.topology: Topology = StarTopology(base, lc.max_range) if lc.topology == "star" else \
+            MeshTopology(base, lc.peer_range, lc.lander_agent)
+        self.base = base
+        self.link = Link(lc, self.topology)
         self.origin = (float(np.mean([s[0] for s in starts])), float(np.mean([s[1] for s in starts])))
-        budget = {"up": config.link.uplink_bytes, "down": config.link.downlink_bytes}
-        self.strategy: Strategy = make_strategy(name, truth, self.team, budget, methods=config.methods,
-                                                seed=config.seed, radius=config.sensor_radius)
+        budget = {"up": lc.uplink_bytes, "down": lc.downlink_bytes, "peer": lc.peer_bytes}
+        lander_agent = lc.lander_agent or lc.topology == "star"
+        self.strategy: Strategy
+        if name == "gossip":
+            self.strategy = ModelGossip(truth, self.team, budget, base=base, lander_agent=lander_agent,
+                                        settings=dict(config.methods.get(name, {})), seed=config.seed)
+        elif name == "raw" and lc.topology != "star":
+            self.strategy = RawGossip(truth, self.team, budget, base=base, lander_agent=lander_agent)
+        else:
+            self.strategy = make_strategy(name, truth, self.team, budget, methods=config.methods,
+                                          seed=config.seed, radius=config.sensor_radius)
+        self.links: tuple[tuple[int, int], ...] = ()
+        self.leaders: tuple[int, ...] = ()
         self.allowed = self.topology.region(shape) if config.stay_in_range else None
         self.queue: list = []
         self.seq = 0
@@ -417,6 +461,14 @@ class _Run:
     def sense(self, k: int, t: int) -> None:
         r = self.team[k]
         c = self.config
+        if r.kind == "helicopter":
+            assert self.coarse is not None
+            hc = c.helicopter
+            seen = coarse_footprint(r.pos, self.truth.shape, hc.sensor_radius, hc.resolution) & (self.coarse != UNKNOWN)
+            new = seen & (r.local == UNKNOWN)
+            r.local[new] = self.coarse[new]
+            r.obs_step[new] = t
+            return
         mask = footprint(r.pos, self.truth.shape, c.sensor_radius,
                          elevation=self.elevation if c.line_of_sight else None, height_m=c.sensor_height_m)
         new = mask & (r.local == UNKNOWN)
@@ -441,7 +493,7 @@ class _Run:
                                    or r.waypoints[0] == r.pos):
                 r.waypoints.pop(0)
             return r.waypoints[0] if r.waypoints else None
-        heading = (*self.origin, 2 * math.pi * k / len(self.team))
+        heading = (*self.origin, 2 * math.pi * k / self.config.rovers)
         return choose_target(belief, r.pos, radius=self.config.sensor_radius, unknown_cost=self.config.unknown_cost,
                              others=self.strategy.others(k), allowed=self.allowed, excluded=r.excluded,
                              heading=heading)
@@ -474,8 +526,81 @@ class _Run:
                 return
             r.excluded.add(target)
 
+    def fly(self, k: int, t: int) -> None:
+        """One step of a helicopter: see :class:`~fedmap.mission.settings.HelicopterConfig`.
+
+        Its rule keeps ``flight + ceil(d / speed) <= flight_budget`` at every step, ``d``
+        the Chebyshev distance to its nearest landing site: a step that would break it is
+        flown towards that site instead (8-connected moves shorten it by one cell each), and
+        it lands on arriving there. The loop checks the budget and the site and stops with
+        an error if the rule ever broke."""
+        r, hc = self.team[k], self.config.helicopter
+        if r.charging > 0:
+            r.charging -= 1
+            return
+        sites = r.local == FREE
+        sites[self.base] = True
+        dist = ndimage.distance_transform_cdt(~sites, metric="chessboard")
+        budget, speed = hc.flight_budget, hc.speed
+
+        def after(goal: Cell) -> Cell:
+            dr, dc = goal[0] - r.pos[0], goal[1] - r.pos[1]
+            n = min(speed, max(abs(dr), abs(dc)))
+            return (r.pos[0] + int(np.clip(dr, -n, n)), r.pos[1] + int(np.clip(dc, -n, n)))
+
+        def affordable(cell: Cell) -> bool:
+            return r.flight + 1 + -(-int(dist[cell]) // speed) <= budget
+
+        if not r.returning:
+            belief = self.strategy.belief(k)
+            if r.target is None or self._target_done(r, belief) or r.pos == r.target:
+                flyer = np.where(belief == UNKNOWN, UNKNOWN, FREE).astype(np.uint8)
+                reach = dist * 2 <= speed * (budget - 2)
+                r.target = choose_target(flyer, r.pos, radius=hc.sensor_radius, unknown_cost=1.0,
+                                         others=self.strategy.others(k), allowed=reach)
+            if r.target is None or not affordable(after(r.target)):
+                r.returning = True
+                r.target = None
+        if r.returning and dist[r.pos] == 0:  # on a site: land (or stay landed) this step
+            if r.flight > 0:
+                self._land(k, t)
+            r.returning = False
+            return
+        if r.returning:
+            near = np.argwhere(sites)
+            d = np.maximum(np.abs(near[:, 0] - r.pos[0]), np.abs(near[:, 1] - r.pos[1]))
+            i = int(np.lexsort((near[:, 1], near[:, 0], d))[0])
+            goal = (int(near[i, 0]), int(near[i, 1]))
+        else:
+            assert r.target is not None
+            goal = r.target
+        for _ in range(speed):
+            if r.pos == goal:
+                break
+            nxt = (r.pos[0] + int(np.sign(goal[0] - r.pos[0])), r.pos[1] + int(np.sign(goal[1] - r.pos[1])))
+            r.distance += math.hypot(nxt[0] - r.pos[0], nxt[1] - r.pos[1])
+            r.pos = nxt
+            r.trail.append(nxt)
+            self.sense(k, t)
+        r.flight += 1
+        if r.flight > budget:
+            raise RuntimeError(f"helicopter {k} flew {r.flight} steps, over its budget of {budget}")
+        if r.returning and r.pos == goal:
+            self._land(k, t)
+
+    def _land(self, k: int, t: int) -> None:
+        r = self.team[k]
+        site = "lander" if r.pos == self.base else "observed free"
+        if site != "lander" and r.local[r.pos] != FREE:
+            raise RuntimeError(f"helicopter {k} landed on {r.pos}, which is not a landing site")
+        r.landings.append((t, r.pos, r.flight, site))
+        r.flight, r.charging, r.returning = 0, self.config.helicopter.recharge, False
+
     def drive(self, k: int, t: int) -> None:
         r = self.team[k]
+        if r.kind == "helicopter":
+            self.fly(k, t)
+            return
         for _ in range(self.config.speed):
             belief = self.strategy.belief(k)
             self.plan(k, belief)
@@ -506,6 +631,9 @@ class _Run:
         s = self.strategy
         if not s.shares:
             return
+        if isinstance(s, PeerStrategy):
+            self.peer_sync(t, round_no, s)
+            return
         s.at_sync(round_no)
         positions = self.positions()
         reachable = self.topology.reachable(positions)
@@ -523,11 +651,88 @@ class _Run:
                 self._push(msg.arrival, "up", k, out.payload, out.ctx, round_no)
         self._push(t + self.config.link.latency, "base", round_no)
 
+    def peer_pairs(self, round_no: int, step: int) -> list[tuple[int, int]]:
+        """The links up this round: star, each rover in range of the base; else every pair of
+        agents in range of each other; either way, less the links down this round."""
+        positions = self.positions()
+        if isinstance(self.topology, MeshTopology):
+            return self.link.up_pairs(round_no, step, positions)
+        reach = self.topology.reachable(positions)
+        return [(BASE, k) for k in range(len(self.team))
+                if reach[k] and not self.link.down(round_no, k, BASE, step)]
+
+    def _budget(self, a: int, b: int, role: str) -> int | None:
+        lc = self.config.link
+        if lc.topology == "mesh":
+            return lc.peer_bytes
+        if lc.topology == "star":
+            return lc.uplink_bytes if b == BASE else lc.downlink_bytes
+        return lc.uplink_bytes if role == "up" else lc.downlink_bytes
+
+    def _offer(self, s: PeerStrategy, path: list[int], t: int, round_no: int, role: str) -> int:
+        """Offer agent ``path[0]``'s message to ``path[-1]`` along ``path``; its arrival step (or t)."""
+        a, b = path[0], path[-1]
+        budget = self._budget(a, b, role)
+        out = s.peer_message(a, b, round_no, t, budget)
+        msg = self.link.send_route(out.payload, path, round_no=round_no, step=t, kind=out.kind, budget=budget)
+        if msg.arrival is not None and msg.to == b:
+            self._push(msg.arrival, "peer", a, b, out.payload, out.ctx, round_no, msg)
+            return msg.arrival
+        return t
+
+    def peer_sync(self, t: int, round_no: int, s: PeerStrategy) -> None:
+        """A round on a peer topology (or ``gossip`` on the star): see :mod:`fedmap.mission.peers`."""
+        s.at_sync(round_no)
+        pairs = self.peer_pairs(round_no, t)
+        self.links = tuple(pairs)
+        lat = self.config.link.latency
+        if self.config.link.topology != "leader":
+            self.leaders = ()
+            s.peer_links(round_no, pairs)
+            for a, b in pairs:
+                self._offer(s, [a, b], t, round_no, "peer")
+                self._offer(s, [b, a], t, round_no, "peer")
+            self._push(t + lat, "peer_round", round_no)
+            return
+        mesh = self.topology
+        assert isinstance(mesh, MeshTopology)
+        leader = elect_leaders(components(mesh.agents(len(self.team)), pairs))
+        self.leaders = tuple(sorted(set(leader.values())))
+        routes = {m: route(m, ld, pairs) for m, ld in leader.items() if m != ld}
+        s.peer_links(round_no, [(m, leader[m]) for m in routes])
+        hops = max((len(r) - 1 for r in routes.values() if r), default=0)
+        for _m, r in routes.items():
+            assert r is not None
+            self._offer(s, r, t, round_no, "up")
+        self._push(t + lat * hops, "lead", round_no, routes, hops)
+
     def deliver(self, t: int) -> None:
         s = self.strategy
         while self.queue and self.queue[0][0] <= t:
             due, _, kind, data = heapq.heappop(self.queue)
-            if kind == "up":
+            if kind == "peer":
+                a, b, payload, ctx, round_no, msg = data
+                assert isinstance(s, PeerStrategy)
+                if s.receive_peer(b, a, payload, ctx, round_no, due):
+                    s.peer_acked(a, b, ctx)
+                    if b != BASE:
+                        self.team[b].replan = True
+                else:
+                    msg.status = "stale"
+            elif kind == "lead":  # leaders have what their members sent: they mix, and answer
+                round_no, routes, hops = data
+                assert isinstance(s, PeerStrategy)
+                s.peer_round(round_no)
+                for _m, r in routes.items():
+                    self._offer(s, r[::-1], due, round_no, "down")
+                self._push(due + self.config.link.latency * hops, "peer_round", round_no)
+            elif kind == "peer_round":
+                (round_no,) = data
+                assert isinstance(s, PeerStrategy)
+                s.peer_round(round_no)
+                for r in self.team:
+                    r.replan = True
+            elif kind == "up":
                 k, payload, ctx, round_no = data
                 s.receive_uplink(k, payload, ctx, round_no)
                 s.uplink_acked(k, ctx)
@@ -555,11 +760,13 @@ class _Run:
         up, down = [0] * n, [0] * n
         delivered, dropped = {UP: 0, DOWN: 0}, {UP: 0, DOWN: 0}
         for m in self.link.ledger:
-            (up if m.direction == UP else down)[m.rover] += m.bytes
+            side = UP if m.sender != BASE else DOWN
+            if m.rover_side != BASE:
+                (up if side == UP else down)[m.rover_side] += m.bytes
             ok = m.status == "delivered" and (m.arrival is None or m.arrival <= t)
             if m.status == "delivered" and not ok:
                 continue  # still on its way
-            (delivered if ok else dropped)[m.direction] += 1
+            (delivered if ok else dropped)[side] += 1
         free = [self.planning_map(b) == FREE for b in beliefs]
         self.rows.append(_StepRow(
             step=t, coverage=float((n_seen > 0).mean()), redundant=float((n_seen > 1).mean()),
@@ -578,7 +785,8 @@ class _Run:
                                        belief_success=tuple(self.scorer.path(b).success for b in beliefs)))
         if t % self.frame_every == 0 or t == self.config.steps:
             self.frames.append(Frame(step=t, beliefs=beliefs, global_map=s.global_map().copy(),
-                                     positions=self.positions(), trail_len=[len(r.trail) for r in self.team]))
+                                     positions=self.positions(), trail_len=[len(r.trail) for r in self.team],
+                                     links=self.links, leaders=self.leaders))
 
     def run(self, on_step: Callable[[str, int, float], None] | None = None) -> StrategyRun:
         t0 = time.perf_counter()
@@ -599,7 +807,8 @@ class _Run:
         seconds = time.perf_counter() - t0
         series = _series(self.rows, self.evals)
         dropped = self.strategy.dropped
-        return StrategyRun(self.name, series, summarise(series, self.link.ledger, c), self.link.ledger, self.frames,
+        return StrategyRun(self.name, series, summarise(series, self.link.ledger, c, self.link.slots),
+                           self.link.ledger, self.frames,
                            [list(r.trail) for r in self.team], seconds,
                            dropped_updates=None if dropped is None else tuple(dropped),
                            model_lag=None if self.strategy.lags is None else tuple(self.strategy.lags),
@@ -614,7 +823,7 @@ def first_step(steps: Sequence[int], values: Sequence[float], level: float) -> i
     return None
 
 
-def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig) -> MissionSummary:
+def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig, slots: int = 0) -> MissionSummary:
     """Steps to the coverage levels, first step a belief reaches :data:`F1_GOAL`, finals, bytes."""
     ev = series.eval
     per_rover_f1 = tuple(first_step(ev.step, [f[k] for f in ev.belief_f1], F1_GOAL) for k in range(config.rovers))
@@ -644,6 +853,7 @@ def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig) 
         final_belief_f1_mean=float(np.mean(ev.belief_f1[-1])),
         bytes_up=int(np.sum(series.bytes_up[-1])),
         bytes_down=int(np.sum(series.bytes_down[-1])),
+        bytes_per_link_round=sum(m.bytes for m in ledger) / slots if slots else 0.0,
         messages=dict(sorted(status.items())),
     )
 
