@@ -83,6 +83,7 @@ class Rover:
     returning: bool = False  #: helicopter: heading for a landing site
     #: helicopter: every landing, ``(step, cell, steps flown that sortie, "lander" or "observed free")``
     landings: list = field(default_factory=list)
+    airborne: list = field(default_factory=list)  #: helicopter: per step from step 1, whether it flew
 
 
 @dataclass(frozen=True)
@@ -535,6 +536,7 @@ class _Run:
         it lands on arriving there. The loop checks the budget and the site and stops with
         an error if the rule ever broke."""
         r, hc = self.team[k], self.config.helicopter
+        r.airborne.append(False)
         if r.charging > 0:
             r.charging -= 1
             return
@@ -583,6 +585,7 @@ class _Run:
             r.trail.append(nxt)
             self.sense(k, t)
         r.flight += 1
+        r.airborne[-1] = True
         if r.flight > budget:
             raise RuntimeError(f"helicopter {k} flew {r.flight} steps, over its budget of {budget}")
         if r.returning and r.pos == goal:
