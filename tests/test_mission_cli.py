@@ -222,3 +222,25 @@ def test_a_start_in_a_small_pocket_is_flagged(tmp_path, capsys):
                             "--no-animation", "-o", tmp_path / "m"], capsys)
     assert rc == 0, err
     assert "warning: the rovers start on free ground of 25 cells" in " ".join(stdout.split())
+
+
+@pytest.mark.parametrize("preset", ["ramen", "cadre-mesh", "scout"])
+def test_peer_and_helicopter_presets_run_and_report(preset, tmp_path, capsys):
+    out = tmp_path / preset
+    rc, stdout, err = _run(["--preset", preset, *TINY, "--strategies", "none,raw", "-o", out], capsys)
+    assert rc == 0, err
+    metrics = json.loads((out / "metrics.json").read_text())
+    raw = metrics["strategies"]["raw"]
+    report = (out / "report.md").read_text()
+    cfg, _, _ = load_mission(preset=preset)
+    if cfg.link.topology != "star":
+        assert "B/link/rnd" in stdout and "Topology: **" in report
+        peer = [m for m in raw["ledger"] if m["direction"] == "peer"]
+        assert peer and len(peer) == len(raw["ledger"])
+        offered = [m for m in peer if m["status"] not in ("link down",)]
+        # bytes per link per round: the ledger's bytes over the messages offered on links that were up
+        assert raw["summary"]["bytes_per_link_round"] == pytest.approx(sum(m["bytes"] for m in peer) / len(offered))
+    else:
+        assert "Helicopters: 1" in report
+        with Image.open(out / "mission_raw.gif") as gif:  # truth | 2 rovers + 1 helicopter | global
+            assert gif.size[0] == 2 * (5 * 64 + 4 * 2)

@@ -16,7 +16,7 @@ from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import console, fit, progress_bar, terrain_line
 from fedmap.config import dumps_toml
 from fedmap.mission import load_mission, mission_terrain, run_mission
-from fedmap.mission.report import table_rows, verdict, write_mission
+from fedmap.mission.report import global_meaning, has_peers, table_rows, verdict, write_mission
 from fedmap.mission.settings import MISSION_SECTIONS, parse_sets
 from fedmap.mission.sim import start_pocket_warning
 from fedmap.pipeline import PipelineConfig
@@ -63,18 +63,24 @@ def mission(
         progress.update(task, total=1, completed=1)
     header, rows = table_rows(result)
     t = Table(title=f"mission on {title}: strategies side by side", header_style="bold")
-    keep = [i for i, h in enumerate(header) if h in _CONSOLE]
+    peer = has_peers(result)
+    keep = [i for i, h in enumerate(header) if h in _CONSOLE or (peer and h in _CONSOLE_PEER)]
+    if peer:  # on a peer topology the uplink column is empty: its messages are peer messages
+        keep = [i for i in keep if header[i] != "uplinks not delivered"]
+    names = {**_CONSOLE, **_CONSOLE_PEER}
     for i in keep:
-        t.add_column(_CONSOLE[header[i]], justify="left" if i == 0 else "right", no_wrap=True)
+        t.add_column(names[header[i]], justify="left" if i == 0 else "right", no_wrap=True)
     for r in rows:
         t.add_row(*(r[i] for i in keep))
     console.print(fit(t))
     console.print(terrain_line(source.label, truth, source.thresholds))
     console.print("50/80/95 %: first step the team's coverage reached it; F1>=.9: first step a rover's belief gave "
                   "strict A* path F1 >= 0.9; cov., acc.: coverage and mean belief accuracy at the end; f.free: share of the cells "
-                  "a rover plans on as free that are impassable; glob.F1: the "
-                  "base's map, strict; team up/down B: bytes of the whole team over the mission; up lost/over: "
-                  "uplink messages that did not arrive, by why. All columns: report.md.")
+                  f"a rover plans on as free that are impassable; glob.F1: {global_meaning(result)}, strict; team "
+                  "up/down B: bytes of the whole team over the mission (a rover's sends; the base's or lander's sends)"
+                  + ("; B/link/rnd: mean bytes per message on a link that was up; peer lost: peer messages that did "
+                     "not arrive, by why" if peer else "; up lost/over: uplink messages that did not arrive, by why")
+                  + ". All columns: report.md.")
     console.print(verdict(result).replace("**", ""))
     console.print(f"outputs: {out}/  (metrics.json, report.md, coverage.png, f1.png, accuracy_bytes.png, knowing.png"
                   f"{', mission_<strategy>.gif' if animation else ''})")
@@ -86,6 +92,8 @@ _CONSOLE = {"strategy": "strategy", "steps to 50 %": "50 %", "steps to 80 %": "8
             "belief F1≥0.9 at": "F1>=.9", "coverage": "cov.", "belief acc.": "acc.", "false-free": "f.free",
             "global F1": "glob.F1",
             "team bytes up": "team up B", "team bytes down": "team down B", "uplinks not delivered": "up lost/over"}
+#: Console columns of a mission with peer messages (mesh, leader, gossip).
+_CONSOLE_PEER = {"B/link/round": "B/link/rnd", "peer messages not delivered": "peer lost"}
 
 
 def _toml_ready(d: dict) -> dict:

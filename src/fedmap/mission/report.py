@@ -22,9 +22,11 @@ from typing import Any
 
 import numpy as np
 from PIL import Image
+from skimage.draw import line as draw_line
 
 from fedmap._util import AtomicDir, atomic_write_bytes
 from fedmap.maps.grid import PALETTE
+from fedmap.mission.link import BASE
 from fedmap.mission.sensing import disk_offsets
 from fedmap.mission.sim import COVERAGE_LEVELS, F1_GOAL, MissionResult, MissionSummary
 from fedmap.outputs import write_metrics
@@ -84,14 +86,15 @@ COLUMNS: dict[str, tuple[Callable[[MissionSummary], Any], int]] = {
     "global tol.F1": (lambda s: s.final_global_f1_tolerant, 2),
     "team bytes up": (lambda s: s.bytes_up, 0),
     "team bytes down": (lambda s: s.bytes_down, 0),
+    "B/link/round": (lambda s: round(s.bytes_per_link_round), 0),
 }
 
 #: Ledger statuses of a message that did not arrive, in the order the report names them.
-UNDELIVERED = ("over budget", "lost", "stale", "out of range", "rejected")
+UNDELIVERED = ("over budget", "lost", "stale", "out of range", "link down", "rejected")
 
 
 def undelivered(summary: MissionSummary, direction: str) -> str:
-    """``"30 over budget, 2 lost"``: the messages of one direction (``up`` / ``down``) that
+    """``"30 over budget, 2 lost"``: the messages of one direction (``up``, ``down``, ``peer``) that
     did not arrive, by why (``-``: none)."""
     parts = [f"{summary.messages[f'{direction}_{st}']} {st}" for st in UNDELIVERED
              if summary.messages.get(f"{direction}_{st}")]
@@ -136,13 +139,32 @@ def verdict(result: MissionResult) -> str:
 def table_rows(result: MissionResult) -> tuple[list[str], list[list[str]]]:
     """Header and one row per strategy of the side-by-side table (final values, the belief
     accuracy at step 0 before any message, and the messages that did not arrive)."""
-    header = ["strategy", *COLUMNS, "belief acc. at step 0", "uplinks not delivered", "downlinks not delivered"]
+    peer = has_peers(result)
+    header = ["strategy", *COLUMNS, "belief acc. at step 0", "uplinks not delivered", "downlinks not delivered",
+              *(["peer messages not delivered"] if peer else [])]
     rows = []
     for name, run in result.runs.items():
         rows.append([name, *(_fmt(get(run.summary), nd) for get, nd in COLUMNS.values()),
                      _fmt(float(np.mean(run.series.accuracy[0])), 3),
-                     undelivered(run.summary, "up"), undelivered(run.summary, "down")])
+                     undelivered(run.summary, "up"), undelivered(run.summary, "down"),
+                     *([undelivered(run.summary, "peer")] if peer else [])])
     return header, rows
+
+
+def has_peers(result: MissionResult) -> bool:
+    """Whether the mission has peer messages: a mesh or leader topology, or ``gossip``."""
+    return result.config.link.topology != "star" or any(
+        m.direction == "peer" for r in result.runs.values() for m in r.ledger)
+
+
+def global_meaning(result: MissionResult) -> str:
+    """What the "global map" of this mission is."""
+    link = result.config.link
+    if link.topology == "star":
+        return "the base station's map"
+    if link.lander_agent:
+        return "the lander's map (an agent of the mesh)"
+    return "the map every rover agrees on (no base station: each cell all beliefs hold with the same class)"
 
 
 def side_by_side(result: MissionResult) -> str:
@@ -169,7 +191,27 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         f"a sync every {c.sync_every} steps ({len(c.sync_steps)} rounds).", "",
         f"Link (seed {link.seed}): uplink {budget(link.uplink_bytes)} and downlink {budget(link.downlink_bytes)} per "
         f"rover per round, loss {link.loss:g}, latency {link.latency} step(s), range "
-        f"{'unlimited' if link.max_range is None else f'{link.max_range:g} cells'}.", "",
+        f"{'unlimited' if link.max_range is None else f'{link.max_range:g} cells'}"
+        + (f", each link down for a round with probability {link.drop:g}" if link.drop else "")
+        + (f", the lander's links down in steps {link.lander_cut[0]}-{link.lander_cut[1] - 1}" if link.lander_cut else "")
+        + ".", "",
+        *([f"Topology: **{link.topology}**: agents within "
+           f"{'any distance' if link.peer_range is None else f'{link.peer_range:g} cells'} of each other talk directly"
+           + ("; at every sync each connected group elects a leader (the lander if in the group, else its "
+              "lowest-numbered rover) that plays the base for the group, members reaching it over relays"
+              if link.topology == "leader" else "; every link that is up exchanges both ways at every sync")
+           + (f"; budget per link per direction per round {budget(link.peer_bytes)}" if link.topology == "mesh" else "")
+           + ". The lander is " + ("an agent that never moves" if link.lander_agent else "not an agent: there is no "
+                                   "base station") + ". *B/link/round*: mean bytes per message offered on a link that "
+           "was up (in range, not down), each relay hop counted, as RAMEN reports per link per round.", ""]
+          if link.topology != "star" else []),
+        *([f"Helicopters: {c.helicopters} (after the rovers), {c.helicopter.speed} cells per step over any terrain, "
+           f"seeing {c.helicopter.resolution}x{c.helicopter.resolution}-cell blocks within "
+           f"{c.helicopter.sensor_radius:g} cells (a block of one class is observed, a mixed block stays unknown), "
+           f"{c.helicopter.flight_budget} steps per sortie and {c.helicopter.recharge} steps recharging, landing at "
+           "the lander or on cells it observed free. Belief columns and *F1≥ at* cover the rovers and helicopters; "
+           "*belief F1≥0.9 at* is the first rover's.", ""] if c.helicopters else []),
+        f"*global* columns score {global_meaning(result)}.", "",
         "Final values at the last step; *steps to* and *at* columns are the first step a level was reached "
         f"(`-`: never). Path F1 is strict (A*, {c.eval_pairs} seeded start/goal pairs, UNKNOWN impassable), "
         "scored at step 0, at every sync and at the last step; belief columns average the rovers; *belief acc. at step 0* "
@@ -311,15 +353,26 @@ def frames_rgb(result: MissionResult, name: str, *, scale: int = 2) -> list[np.n
             _mark(img, [pos], (0.0, 0.0, 0.0))
             panels.append(img)
         g = _panel(f.global_map)
+        where = {**dict(enumerate(f.positions)), BASE: result.base}
+        for a, b in f.links:  # the links up at the last sync: white lines
+            rr, cc = draw_line(*where[a], *where[b])
+            _mark(g, np.stack([rr, cc], axis=1), (1.0, 1.0, 1.0), 0.7)
         for k, pos in enumerate(f.positions):
             _mark(g, [pos], _COLOURS[k % len(_COLOURS)])
         _mark(g, [result.base], (0.0, 0.0, 0.0))
+        for a in f.leaders:  # who leads: a black ring
+            ring8 = np.asarray(where[a]) + np.array([(-2, -2), (-2, 0), (-2, 2), (0, -2), (0, 2), (2, -2), (2, 0),
+                                                     (2, 2)])
+            ring8 = ring8[(ring8[:, 0] >= 0) & (ring8[:, 0] < h) & (ring8[:, 1] >= 0) & (ring8[:, 1] < w)]
+            _mark(g, ring8, (0.0, 0.0, 0.0))
         panels.append(g)
         row = np.concatenate([x for p in panels for x in (p, gap)][:-1], axis=1)
         frame = (np.clip(row, 0, 1) * 255).astype(np.uint8)
         up, down = (sum(b[f.step]) for b in (run.series.bytes_up, run.series.bytes_down))
         out.append(_labelled(np.repeat(np.repeat(frame, scale, axis=0), scale, axis=1),
-                             ["truth", *(f"rover {k}" for k in range(len(f.beliefs))), "global map"],
+                             ["truth", *(f"{'rover' if k < result.config.rovers else 'helicopter'} {k}"
+                                         for k in range(len(f.beliefs))),
+                              "global map" + (", links, leaders" if f.leaders else ", links" if f.links else "")],
                              (w + 2) * scale,
                              f"{name}  step {f.step}/{result.config.steps}  team bytes so far: {up:,} up, {down:,} down"
                              "   green free, red impassable, grey unknown"))
