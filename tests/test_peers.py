@@ -291,3 +291,36 @@ def test_a_helicopter_keeps_its_flight_budget_and_lands_on_landing_sites(budget,
         blocks = block_classes(truth.classes, heli.resolution, UNKNOWN)
         rr, cc = np.nonzero(seen)
         assert (blocks[rr // heli.resolution, cc // heli.resolution] != UNKNOWN).all()
+
+
+def test_admm_consensus_step_is_the_minimiser():
+    from scipy.optimize import minimize
+
+    from fedmap.federation.aggregate import admm_consensus
+    rng = np.random.default_rng(1)
+    for rho in (1e-3, 0.1, 2.0):
+        p = rng.normal(size=4)
+        mids = [rng.normal(size=4) for _ in range(int(rng.integers(1, 4)))]
+
+        def objective(t, p=p, mids=mids, rho=rho):
+            return float(t @ p + rho * sum(((t - m) ** 2).sum() for m in mids))
+
+        ref = minimize(objective, np.zeros(4), method="BFGS", options={"gtol": 1e-10}).x
+        np.testing.assert_allclose(admm_consensus(p, mids, rho), ref, rtol=1e-4, atol=1e-4)
+
+
+def test_admm_runs_on_a_mesh_and_keeps_duals_per_link():
+    truth = maze(32, seed=4)
+    cfg = _mission(link=dict(topology="mesh", loss=0.0), strategies=("none", "admm"), steps=20,
+                   methods={"admm": {"epochs": 10}})
+    res = run_mission(cfg, truth)
+    s = res.runs["admm"].strategy
+    # a complete mesh of the lander and 3 rovers: every agent holds a dual per neighbour
+    assert sorted(s.dual) == sorted((i, j) for i in range(4) for j in (BASE, 0, 1, 2)
+                                    if j != (BASE if i == 3 else i))
+    # the shared model tells every rover cells it never observed, rightly (none's beliefs know only their own)
+    for k, r in enumerate(s.team):
+        told = (s.belief(k) == truth.classes) & (r.local == UNKNOWN)
+        assert told.sum() > 0.05 * truth.classes.size
+    none = res.runs["none"].strategy
+    assert all(((none.belief(k) != UNKNOWN) == (r.local != UNKNOWN)).all() for k, r in enumerate(none.team))

@@ -157,6 +157,15 @@ def metropolis_mix(own: Weights, neighbours: list[tuple[Weights, float]], *,
     return out
 
 
+def admm_consensus(dual: np.ndarray, midpoints: list[np.ndarray], rho: float) -> np.ndarray:
+    """The minimiser of C-ADMM's primal objective without a data term (an agent with no map):
+    ``argmin_theta <theta, dual> + rho sum_j ||theta - m_j||^2 = (sum_j m_j - dual / (2 rho)) / J``
+    with ``m_j`` the ``midpoints`` ``(theta_i + theta_j) / 2`` of its ``J`` links."""
+    if not midpoints or rho <= 0:
+        raise FedmapError("the consensus step needs at least one link and rho > 0")
+    return (np.sum(midpoints, axis=0) - np.asarray(dual, dtype=np.float64) / (2 * rho)) / len(midpoints)
+
+
 @dataclass
 class CoverageAvg:
     """FedAvg per parameter entry over the agents that touched it; stateless."""

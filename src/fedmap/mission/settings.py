@@ -45,14 +45,16 @@ from fedmap.errors import FedmapError
 from fedmap.maps.sources import TerrainSource
 
 #: Every sharing strategy, from the lower bound to the upper bound.
-STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive", "paper", "fedmap", "gossip", "central")
+STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive", "paper", "fedmap", "gossip", "admm", "central")
 #: The strategies a mission runs unless told otherwise (``paper`` is slow: an option).
 DEFAULT_STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive", "fedmap", "central")
 #: The strategies that train a network and share it with the rovers' step of ``fedmap run``.
 MODEL_STRATEGIES: tuple[str, ...] = ("paper", "fedmap")
 #: The strategies that run on every topology (``[link] topology``); the others need the
 #: base station of the ``star`` topology.
-PEER_STRATEGIES: tuple[str, ...] = ("none", "raw", "gossip", "central")
+PEER_STRATEGIES: tuple[str, ...] = ("none", "raw", "gossip", "admm", "central")
+#: The strategies a peer topology runs unless told otherwise (``admm`` is an option).
+PEER_DEFAULTS: tuple[str, ...] = ("none", "raw", "gossip", "central")
 #: Who talks to whom (:mod:`fedmap.mission.link`).
 TOPOLOGIES: tuple[str, ...] = ("star", "mesh", "leader")
 MODES: tuple[str, ...] = ("frontier", "waypoints")
@@ -305,7 +307,7 @@ class MissionConfig:
         object.__setattr__(self, "strategies", check_strategies(self.strategies))
         if self.link.topology != "star":
             if self.strategies == DEFAULT_STRATEGIES:  # the defaults that run on a peer topology
-                object.__setattr__(self, "strategies", PEER_STRATEGIES)
+                object.__setattr__(self, "strategies", PEER_DEFAULTS)
             for s in self.strategies:
                 if s not in PEER_STRATEGIES:
                     raise FedmapError(f"strategy {s!r} needs the star topology's base station; on a "
@@ -332,9 +334,9 @@ class MissionConfig:
                         raise FedmapError(f"[strategies.predictive] {key} must be one of "
                                           f"{', '.join(PREDICTIVE_OPTIONS[key])}, got {value!r}")
                 continue
-            if name not in (*MODEL_STRATEGIES, "gossip"):
-                raise FedmapError(f"[strategies.{name}]: only {', '.join((*MODEL_STRATEGIES, 'gossip', 'predictive'))} "
-                                  "take settings")
+            trained = (*MODEL_STRATEGIES, "gossip", "admm")
+            if name not in trained:
+                raise FedmapError(f"[strategies.{name}]: only {', '.join((*trained, 'predictive'))} take settings")
             check_keys(kw, KEYWORDS, f"[strategies.{name}]")
 
     @property

@@ -51,7 +51,7 @@ from fedmap.mission.link import (
     elect_leaders,
     route,
 )
-from fedmap.mission.peers import ModelGossip, PeerStrategy, RawGossip
+from fedmap.mission.peers import Admm, ModelGossip, PeerStrategy, RawGossip
 from fedmap.mission.sensing import block_classes, coarse_footprint, disk_offsets, footprint
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.strategies import DroppedUpdate, Strategy, make_strategy
@@ -441,9 +441,10 @@ class _Run:
         budget = {"up": lc.uplink_bytes, "down": lc.downlink_bytes, "peer": lc.peer_bytes}
         lander_agent = lc.lander_agent or lc.topology == "star"
         self.strategy: Strategy
-        if name == "gossip":
-            self.strategy = ModelGossip(truth, self.team, budget, base=base, lander_agent=lander_agent,
-                                        settings=dict(config.methods.get(name, {})), seed=config.seed)
+        if name in ("gossip", "admm"):
+            self.strategy = (ModelGossip if name == "gossip" else Admm)(
+                truth, self.team, budget, base=base, lander_agent=lander_agent,
+                settings=dict(config.methods.get(name, {})), seed=config.seed)
         elif name == "raw" and lc.topology != "star":
             self.strategy = RawGossip(truth, self.team, budget, base=base, lander_agent=lander_agent)
         else:

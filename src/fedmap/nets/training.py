@@ -139,10 +139,14 @@ def fit(
     *,
     seed: int = 0,
     on_step: Callable[[int, float], None] | None = None,
+    penalty: Callable[[], torch.Tensor] | None = None,
 ) -> list[float]:
     """Train ``model`` in place on ``grid``; returns the loss of every step.
 
     ``on_step(step, loss)`` is called after each optimiser step (progress bars hook here).
+    ``penalty()``, when given, is added to the data loss at every step (a term on the
+    model's parameters, e.g. the augmented Lagrangian of decentralised ADMM); the losses
+    returned include it.
 
     With ``config.precision == "bf16"`` the Fourier MLP's matrix products run in bfloat16
     (autocast) on features cached once in bfloat16; the sigmoid, the loss, the gradients'
@@ -183,6 +187,8 @@ def fit(
             with torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
                 pred = head(x)
             loss = _loss(pred.float(), y, wt)
+            if penalty is not None:
+                loss = loss + penalty()
             loss.backward()
             opt.step()
             losses.append(loss.item())
