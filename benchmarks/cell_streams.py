@@ -33,7 +33,7 @@ def main() -> None:
     for name in args.missions:
         t0 = time.perf_counter()
         config, source, _ = load_mission(None if name == "default" else ROOT / name)
-        truth, elevation, prior = mission_terrain(config, source)
+        truth, elevation, prior, _ = mission_terrain(config, source)
         report = cell_stream_report(config, truth, elevation=elevation, prior=prior)
         title = f"{name} ({source.label}, {truth.shape[0]}x{truth.shape[1]}, {config.rovers} rovers, " \
                 f"{config.steps} steps)"

@@ -44,7 +44,7 @@ def test_prior_settings_are_checked():
         orbital_prior(Dem(np.zeros((16, 16), np.float32), 1.0, "flat"), None, 8)
     config, source, resolved = load_mission(None, overrides=[{"prior": {"kind": "orbital", "factor": 4}}])
     assert config.prior == PriorConfig("orbital", 4) and resolved["prior"] == {"kind": "orbital", "factor": 4}
-    truth, elevation, prior = mission_terrain(config, source)
+    truth, elevation, prior, _ = mission_terrain(config, source)
     assert elevation is None and prior is not None and prior.shape == truth.shape
 
 

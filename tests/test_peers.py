@@ -324,3 +324,45 @@ def test_admm_runs_on_a_mesh_and_keeps_duals_per_link():
         assert told.sum() > 0.05 * truth.classes.size
     none = res.runs["none"].strategy
     assert all(((none.belief(k) != UNKNOWN) == (r.local != UNKNOWN)).all() for k, r in enumerate(none.team))
+
+
+# -- per-rover traversability profiles -------------------------------------------------------
+
+def test_each_rover_plans_on_its_own_profile_and_is_scored_on_it():
+    from fedmap.evaluation.paths import path_f1
+    from fedmap.mission import load_mission, mission_terrain
+
+    cfg, source, _ = load_mission(mission={"rovers": 3, "steps": 60, "sync_every": 10, "eval_pairs": 10,
+                                           "profiles": "cadre,team,msl", "strategies": "raw"},
+                                  terrain={"kind": "builtin", "terrain": "mars"}, size=64)
+    assert cfg.profiles == ("cadre", "team", "msl")
+    truth, elevation, prior, profiles = mission_terrain(cfg, source)
+    assert sorted(profiles) == ["cadre", "msl"]
+    # the rovers' limits (cadre 20 deg, msl 30 deg) are looser than the shared 15 deg: each sees more free ground
+    for name in ("cadre", "msl"):
+        assert (profiles[name] == FREE).sum() > (truth.classes == FREE).sum()
+    res = run_mission(cfg, truth, elevation=elevation, prior=prior, profiles=profiles)
+    run = res.runs["raw"]
+    s = run.strategy
+    own = [profiles["cadre"], truth.classes, profiles["msl"]]
+    for k, r in enumerate(s.team):
+        assert all(own[k][c] == FREE for c in r.trail), f"rover {k} entered a cell its own profile forbids"
+        # its belief F1 is scored against the truth under its own profile, on its own view
+        view = s.belief(k) if r.own is None else np.where(r.own != UNKNOWN, r.own, s.belief(k))
+        want = path_f1(own[k], view, n_pairs=cfg.eval_pairs, seed=cfg.seed).f1
+        assert run.series.eval.belief_f1[-1][k] == pytest.approx(want)
+    # the msl rover drives where the shared map says impassable: its own limits allow it
+    msl = s.team[2]
+    assert any(truth.classes[c] == IMPASSABLE for c in msl.trail)
+    # shared classes follow [thresholds]: what the base holds is the shared truth's
+    g = s.global_map()
+    assert (g[g != UNKNOWN] == truth.classes[g != UNKNOWN]).all()
+
+
+def test_profiles_are_checked():
+    with pytest.raises(FedmapError, match="did you mean 'cadre'"):
+        MissionConfig(rovers=2, profiles=("cadre", "cadr"))
+    with pytest.raises(FedmapError, match="2 profiles for 3 rovers"):
+        MissionConfig(rovers=3, profiles=("cadre", "msl"))
+    with pytest.raises(FedmapError, match="no classes given"):
+        run_mission(MissionConfig(rovers=1, steps=2, profiles=("msl",), strategies=("none",)), maze(16))

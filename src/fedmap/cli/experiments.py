@@ -59,7 +59,7 @@ def _cell_streams(mission: str, out: Path) -> None:
     config, source, _ = load_mission(None if mission == "default" else mission)
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
-        truth, elevation, prior = mission_terrain(config, source)
+        truth, elevation, prior, _ = mission_terrain(config, source)
         report = cell_stream_report(config, truth, elevation=elevation, prior=prior,
                                     on_stage=lambda s: progress.update(task, description=f"mission: {s}"))
     t = Table(title=f"bits per new cell, uplink stream of the {mission} mission ({source.label})",

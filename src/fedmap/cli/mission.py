@@ -43,7 +43,7 @@ def mission(
                                          overrides=[*parse_sets(set_), settings or {}])
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
-        truth, elevation, prior = mission_terrain(cfg, source)
+        truth, elevation, prior, profiles = mission_terrain(cfg, source)
         for warning in (truth.meta.get("warning"), start_pocket_warning(truth, cfg)):
             if warning:
                 console.print(f"warning: {warning}", soft_wrap=True)  # one line, however wide
@@ -55,7 +55,8 @@ def mission(
         def on_step(name: str, step: int, coverage: float) -> None:
             progress.update(task, completed=step, loss=f"coverage {coverage:.0%}")
 
-        result = run_mission(cfg, truth, elevation=elevation, prior=prior, on_strategy=on_strategy, on_step=on_step)
+        result = run_mission(cfg, truth, elevation=elevation, prior=prior, profiles=profiles,
+                             on_strategy=on_strategy, on_step=on_step)
         task = progress.add_task("write outputs", total=None, loss="")
         title = f"{source.label}, {truth.shape[0]}x{truth.shape[1]}"
         write_mission(result, out, title=title, settings=resolved, animation=animation,

@@ -211,6 +211,11 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
            f"{c.helicopter.flight_budget} steps per sortie and {c.helicopter.recharge} steps recharging, landing at "
            "the lander or on cells it observed free. Belief columns and *F1≥ at* cover the rovers and helicopters; "
            "*belief F1≥0.9 at* is the first rover's.", ""] if c.helicopters else []),
+        *([f"Rover profiles: {', '.join(f'rover {k} {p}' for k, p in enumerate(c.profiles))}. The shared classes "
+           "(what every strategy sends, the global map, coverage and accuracy) follow the mission's `[thresholds]` "
+           "(`team`). Each rover classifies the cells it observes itself under its own limits too and plans on "
+           "those; elsewhere it plans on the shared classes. Its belief F1 and false-free rate are scored against "
+           "the truth under its own profile.", ""] if c.profiles else []),
         f"*global* columns score {global_meaning(result)}.", "",
         "Final values at the last step; *steps to* and *at* columns are the first step a level was reached "
         f"(`-`: never). Path F1 is strict (A*, {c.eval_pairs} seeded start/goal pairs, UNKNOWN impassable), "

@@ -43,6 +43,7 @@ from fedmap.config import (
 )
 from fedmap.errors import FedmapError
 from fedmap.maps.sources import TerrainSource
+from fedmap.maps.traversability import ROVER_NAMES
 
 #: Every sharing strategy, from the lower bound to the upper bound.
 STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive", "paper", "fedmap", "gossip", "admm", "central")
@@ -55,6 +56,8 @@ MODEL_STRATEGIES: tuple[str, ...] = ("paper", "fedmap")
 PEER_STRATEGIES: tuple[str, ...] = ("none", "raw", "gossip", "admm", "central")
 #: The strategies a peer topology runs unless told otherwise (``admm`` is an option).
 PEER_DEFAULTS: tuple[str, ...] = ("none", "raw", "gossip", "central")
+#: A rover's own traversability profile: the shared ``[thresholds]`` (``team``) or a named rover.
+PROFILES: tuple[str, ...] = ("team", *ROVER_NAMES)
 #: Who talks to whom (:mod:`fedmap.mission.link`).
 TOPOLOGIES: tuple[str, ...] = ("star", "mesh", "leader")
 MODES: tuple[str, ...] = ("frontier", "waypoints")
@@ -257,6 +260,9 @@ class MissionConfig:
 
     rovers: int = setting(4, help="Number of rovers")
     helicopters: int = setting(0, help="Number of helicopters, after the rovers in the team ([helicopter] sets them)")
+    profiles: tuple[str, ...] = setting(
+        (), help="One traversability profile per rover, comma-separated (team: the shared thresholds; or a "
+        "rover: cadre, mer, msl); each plans on its own (unset: all follow the shared thresholds)", choices=PROFILES)
     steps: int = setting(150, help="Mission steps")
     sync_every: int = setting(10, help="Steps between sync rounds")
     speed: int = setting(2, help="Cells driven per step")
@@ -321,6 +327,14 @@ class MissionConfig:
             if len(starts) != self.rovers:
                 raise FedmapError(f"starts gives {len(starts)} cells for {self.rovers} rovers")
             object.__setattr__(self, "starts", starts)
+        if self.profiles:
+            profiles = tuple(self.profiles)
+            if len(profiles) != self.rovers:
+                raise FedmapError(f"profiles gives {len(profiles)} profiles for {self.rovers} rovers")
+            for name in profiles:
+                if name not in PROFILES:
+                    raise FedmapError(f"unknown rover profile {name!r}{suggest(name, PROFILES)}")
+            object.__setattr__(self, "profiles", profiles)
         if self.waypoints is not None:
             wps = tuple(tuple(_cell(c, f"waypoint of rover {k}") for c in w) for k, w in enumerate(self.waypoints))
             if len(wps) != self.rovers:
@@ -398,8 +412,9 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
                **({"seed": seed} if seed is not None else {})}]
     for layer in layers:
         m = layer.get("mission", {})
-        if isinstance(m.get("strategies"), str):  # "none,raw" from the command line
-            m["strategies"] = [x.strip() for x in m["strategies"].split(",") if x.strip()]
+        for key in ("strategies", "profiles"):
+            if isinstance(m.get(key), str):  # "none,raw" from the command line
+                m[key] = [x.strip() for x in m[key].split(",") if x.strip()]
         check_mission_file(layer, "the command-line options")
         data = merge(data, layer)
     run_part = {k: data[k] for k in _RUN_PART if k in data}
@@ -418,6 +433,9 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
         raise FedmapError(f"bad mission setting: {exc}") from exc
     if config.line_of_sight and source.kind == "map":
         raise FedmapError("line of sight needs the terrain's elevation (a DEM, tiles or built-in source, not a class map)")
+    if config.profiles and source.kind == "map":
+        raise FedmapError("rover profiles need the terrain's elevation (a DEM, tiles or built-in source, not a class "
+                          "map)")
     if config.prior.kind == "orbital" and source.kind == "map":
         raise FedmapError("an orbital prior needs the terrain's elevation (a DEM, tiles or built-in source, not a "
                           "class map)")

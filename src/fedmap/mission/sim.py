@@ -37,6 +37,7 @@ from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.orbital import orbital_prior
 from fedmap.maps.planning import path_is_valid
 from fedmap.maps.sources import TerrainSource, load_terrain
+from fedmap.maps.traversability import dem_to_traversability, rover_profile
 from fedmap.mission.frontiers import choose_target, plan_path
 from fedmap.mission.link import (
     BASE,
@@ -81,6 +82,8 @@ class Rover:
     flight: int = 0  #: helicopter: steps in the air this sortie
     charging: int = 0  #: helicopter: steps left on the ground before it may take off
     returning: bool = False  #: helicopter: heading for a landing site
+    #: with a profile of its own: the classes it observed under its own limits (None: it has none)
+    own: np.ndarray | None = None
     #: helicopter: every landing, ``(step, cell, steps flown that sortie, "lander" or "observed free")``
     landings: list = field(default_factory=list)
     airborne: list = field(default_factory=list)  #: helicopter: per step from step 1, whether it flew
@@ -418,7 +421,8 @@ class _Run:
 
     def __init__(self, name: str, config: MissionConfig, truth: GridMap, elevation: np.ndarray | None,
                  starts: list[Cell], base: Cell, waypoints: list[list[Cell]], scorer: _Scorer,
-                 frame_every: int, prior: np.ndarray | None = None) -> None:
+                 frame_every: int, prior: np.ndarray | None = None,
+                 profiles: dict[str, np.ndarray] | None = None) -> None:
         self.name, self.config, self.truth, self.elevation = name, config, truth, elevation
         self.prior = prior
         self.scorer, self.frame_every = scorer, frame_every
@@ -451,6 +455,14 @@ class _Run:
             self.strategy = make_strategy(name, truth, self.team, budget, methods=config.methods,
                                           seed=config.seed, radius=config.sensor_radius)
         self.links: tuple[tuple[int, int], ...] = ()
+        # each rover's own classes of the terrain (None: it follows the shared thresholds), and its scorer
+        names = list(config.profiles) if config.profiles else ["team"] * config.rovers
+        names += ["team"] * config.helicopters
+        self.own_truth = [None if p == "team" else (profiles or {})[p] for p in names]
+        self.own_scorer = [scorer if p == "team" else _Scorer(truth.with_classes((profiles or {})[p], p),
+                                                            config.eval_pairs, config.seed) for p in names]
+        for r, t in zip(self.team, self.own_truth):
+            r.own = None if t is None else np.full(shape, UNKNOWN, dtype=np.uint8)
         self.leaders: tuple[int, ...] = ()
         self.allowed = self.topology.region(shape) if config.stay_in_range else None
         self.queue: list = []
@@ -476,6 +488,9 @@ class _Run:
         new = mask & (r.local == UNKNOWN)
         r.local[new] = self.truth.classes[new]
         r.obs_step[new] = t
+        own = self.own_truth[k]
+        if r.own is not None and own is not None:
+            r.own[new] = own[new]
 
     def _target_done(self, r: Rover, belief: np.ndarray) -> bool:
         if r.target is None or r.pos == r.target:
@@ -500,15 +515,24 @@ class _Run:
                              others=self.strategy.others(k), allowed=self.allowed, excluded=r.excluded,
                              heading=heading)
 
-    def planning_map(self, belief: np.ndarray) -> np.ndarray:
-        """What a rover plans its path on: its belief, and the prior where it has no observation."""
+    def own_view(self, k: int, belief: np.ndarray) -> np.ndarray:
+        """Rover ``k``'s belief with the cells it observed itself in its own classes (its
+        profile's limits); the shared classes elsewhere."""
+        own = self.team[k].own
+        return belief if own is None else np.where(own != UNKNOWN, own, belief).astype(np.uint8)
+
+    def planning_map(self, belief: np.ndarray, k: int | None = None) -> np.ndarray:
+        """What a rover plans its path on: its belief (its own classes where it has them), and
+        the prior where it has no observation."""
+        if k is not None:
+            belief = self.own_view(k, belief)
         if self.prior is None:
             return belief
         return np.where(belief == UNKNOWN, self.prior, belief).astype(np.uint8)
 
     def plan(self, k: int, belief: np.ndarray) -> None:
         r = self.team[k]
-        on = self.planning_map(belief)
+        on = self.planning_map(belief, k)
         passable = (on == FREE) | (on == UNKNOWN)
         if (not r.replan and r.path and not self._target_done(r, belief)
                 and path_is_valid(passable, [r.pos, *r.path])):
@@ -521,8 +545,8 @@ class _Run:
             if target is None:
                 return
             path = plan_path(on, r.pos, target)
-            if not path and on is not belief:  # the prior is a guess: never let it trap a rover
-                path = plan_path(belief, r.pos, target)
+            if not path and self.prior is not None:  # the prior is a guess: never let it trap a rover
+                path = plan_path(self.own_view(k, belief), r.pos, target)
             if path:
                 r.target, r.path = target, path
                 return
@@ -611,10 +635,11 @@ class _Run:
             if not r.path:
                 return
             nxt = r.path[0]
-            if belief[nxt] == IMPASSABLE:  # revealed on the way: replan next time
+            if self.own_view(k, belief)[nxt] == IMPASSABLE:  # revealed on the way: replan next time
                 r.replan = True
                 return
-            if self.truth.classes[nxt] == IMPASSABLE:
+            own = self.own_truth[k]
+            if (self.truth.classes if own is None else own)[nxt] == IMPASSABLE:
                 raise RuntimeError(f"rover {k} would enter impassable cell {nxt}: the planner broke its contract")
             r.path.pop(0)
             r.distance += math.hypot(nxt[0] - r.pos[0], nxt[1] - r.pos[1])
@@ -771,13 +796,14 @@ class _Run:
             if m.status == "delivered" and not ok:
                 continue  # still on its way
             (delivered if ok else dropped)[side] += 1
-        free = [self.planning_map(b) == FREE for b in beliefs]
+        free = [self.planning_map(b, k) == FREE for k, b in enumerate(beliefs)]
         self.rows.append(_StepRow(
             step=t, coverage=float((n_seen > 0).mean()), redundant=float((n_seen > 1).mean()),
             accuracy=tuple(float((b == truth).mean()) for b in beliefs),
             accuracy_observed=tuple(_share(b == truth, n_seen > 0) for b in beliefs),
             accuracy_unobserved=tuple(_share(b == truth, n_seen == 0) for b in beliefs),
-            false_free=tuple(float((f & (truth == IMPASSABLE)).sum() / max(int(f.sum()), 1)) for f in free),
+            false_free=tuple(float((f & ((truth if o is None else o) == IMPASSABLE)).sum() / max(int(f.sum()), 1))
+                             for f, o in zip(free, self.own_truth)),
             distance=tuple(r.distance for r in self.team),
             bytes_up=tuple(up), bytes_down=tuple(down), up_delivered=delivered[UP], up_dropped=dropped[UP],
             down_delivered=delivered[DOWN], down_dropped=dropped[DOWN]))
@@ -785,8 +811,10 @@ class _Run:
             g = self.scorer.scores(s.global_map())
             self.evals.append(_EvalRow(step=t, psnr=g.psnr, ssim=g.ssim, accuracy=g.accuracy, f1=g.path.f1,
                                        f1_tolerant=g.path.tolerant.f1,
-                                       belief_f1=tuple(self.scorer.path(b).f1 for b in beliefs),
-                                       belief_success=tuple(self.scorer.path(b).success for b in beliefs)))
+                                       belief_f1=tuple(self.own_scorer[k].path(self.own_view(k, b)).f1
+                                                       for k, b in enumerate(beliefs)),
+                                       belief_success=tuple(self.own_scorer[k].path(self.own_view(k, b)).success
+                                                            for k, b in enumerate(beliefs))))
         if t % self.frame_every == 0 or t == self.config.steps:
             self.frames.append(Frame(step=t, beliefs=beliefs, global_map=s.global_map().copy(),
                                      positions=self.positions(), trail_len=[len(r.trail) for r in self.team],
@@ -863,26 +891,32 @@ def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig, 
 
 
 def mission_terrain(config: MissionConfig, source: TerrainSource) -> tuple[GridMap, np.ndarray | None,
-                                                                           np.ndarray | None]:
-    """``(truth, elevation, prior)`` of a mission on ``source``: the elevation when line of
-    sight needs it, the orbital prior when ``[prior]`` asks for one (else None each)."""
-    needs_dem = config.line_of_sight or config.prior.kind == "orbital"
+                                                                           np.ndarray | None, dict[str, np.ndarray]]:
+    """``(truth, elevation, prior, profiles)`` of a mission on ``source``: the elevation when
+    line of sight needs it, the orbital prior when ``[prior]`` asks for one (else None each),
+    and the classes of the terrain under each rover profile of ``[mission] profiles`` but
+    ``team`` (``{profile: classes}``, empty when there are none)."""
+    own = sorted({p for p in config.profiles if p != "team"})
+    needs_dem = config.line_of_sight or config.prior.kind == "orbital" or bool(own)
     truth, dem = load_terrain(source, seed=config.seed, with_dem=needs_dem)
     elevation = dem.elevation if dem is not None and config.line_of_sight else None
     prior = orbital_prior(dem, source.thresholds, config.prior.factor) if dem is not None and \
         config.prior.kind == "orbital" else None
-    return truth, elevation, prior
+    profiles = {p: dem_to_traversability(dem, rover_profile(p)).classes for p in own} if dem is not None else {}
+    return truth, elevation, prior, profiles
 
 
 def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray | None = None,
-                prior: np.ndarray | None = None, on_strategy: Callable[[str], None] | None = None,
+                prior: np.ndarray | None = None, profiles: dict[str, np.ndarray] | None = None,
+                on_strategy: Callable[[str], None] | None = None,
                 on_step: Callable[[str, int, float], None] | None = None,
                 frames: int = 60) -> MissionResult:
     """Run every strategy of ``config`` on the same mission over ``truth``.
 
     ``elevation`` (metres, the truth's grid) is needed for ``line_of_sight``; ``prior``
     (classes, the truth's grid) is what every rover plans on where it has no observation
-    (:class:`~fedmap.mission.settings.PriorConfig`; :func:`mission_terrain` builds both).
+    (:class:`~fedmap.mission.settings.PriorConfig`); ``profiles`` the classes of the terrain under
+    each rover profile of ``config.profiles`` but ``team`` (:func:`mission_terrain` builds all three).
     ``on_strategy(name)`` announces each strategy and ``on_step(name, step, coverage)``
     follows it (progress bars); ``frames`` bounds the animation's frames per strategy.
     """
@@ -893,6 +927,14 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
         raise FedmapError(f"elevation grid {np.shape(elevation)} does not match the map {truth.shape}")
     if prior is not None and np.shape(prior) != truth.shape:
         raise FedmapError(f"prior map {np.shape(prior)} does not match the map {truth.shape}")
+    own = {p for p in config.profiles if p != "team"}
+    profiles = profiles or {}
+    if own - set(profiles):
+        raise FedmapError(f"no classes given for rover profile(s) {', '.join(sorted(own - set(profiles)))}: pass "
+                          "profiles= (mission_terrain builds them)")
+    for name, classes in profiles.items():
+        if np.shape(classes) != truth.shape:
+            raise FedmapError(f"profile {name!r} classes {np.shape(classes)} do not match the map {truth.shape}")
     starts, base = place_starts(truth, config)
     waypoints = plan_waypoints(truth, config) if config.mode == "waypoints" else [[] for _ in starts]
     scorer = _Scorer(truth, config.eval_pairs, config.seed)
@@ -902,7 +944,7 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
         if on_strategy is not None:
             on_strategy(name)
         runs[name] = _Run(name, config, truth, elevation, starts, base, waypoints, scorer, frame_every,
-                          prior).run(on_step)
+                          prior, profiles).run(on_step)
     return MissionResult(config, truth, starts, base, runs, time.perf_counter() - t0)
 
 
