@@ -341,9 +341,13 @@ def frames_rgb(result: MissionResult, name: str, *, scale: int = 2) -> list[np.n
     band naming the panels and above one with the step, the team's bytes so far and the legend."""
     run = result.runs[name]
     h, w = result.truth.shape
-    ring = disk_offsets(result.config.sensor_radius)
-    d2 = (ring ** 2).sum(axis=1)
-    edge = ring[d2 > (result.config.sensor_radius - 1) ** 2]
+    def rim(radius: float) -> np.ndarray:  # the footprint's outline
+        ring = disk_offsets(radius)
+        return ring[(ring ** 2).sum(axis=1) > (radius - 1) ** 2]
+
+    c = result.config
+    edges = [rim(c.sensor_radius if k < c.rovers else c.helicopter.sensor_radius)
+             for k in range(c.rovers + c.helicopters)]
     out = []
     gap = np.ones((h, 2, 3), dtype=np.float32)
     for f in run.frames:
@@ -352,7 +356,7 @@ def frames_rgb(result: MissionResult, name: str, *, scale: int = 2) -> list[np.n
             img = _panel(belief)
             colour = _COLOURS[k % len(_COLOURS)]
             _mark(img, run.trails[k][:n], colour, 0.6)
-            fp = edge + np.asarray(pos)
+            fp = edges[k] + np.asarray(pos)
             fp = fp[(fp[:, 0] >= 0) & (fp[:, 0] < h) & (fp[:, 1] >= 0) & (fp[:, 1] < w)]
             _mark(img, fp, (1.0, 1.0, 1.0), 0.8)
             _mark(img, [pos], (0.0, 0.0, 0.0))
