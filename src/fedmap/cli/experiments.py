@@ -10,10 +10,12 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from fedmap._util import atomic_write_bytes
+from fedmap._util import AtomicDir, atomic_write_bytes
 from fedmap.cli.ui import console, fit, fmt, progress_bar, stage_callbacks
 from fedmap.config import method_config
+from fedmap.errors import FedmapError
 from fedmap.experiments.cellstreams import cell_stream_report, markdown
+from fedmap.experiments.elevation import elevation_markdown, elevation_rd, plot_rd, terrain_sources
 from fedmap.experiments.reproduce import F1_MEANINGS, PAPER_TABLE2, ReproduceConfig
 from fedmap.experiments.reproduce import reproduce as run_reproduce
 from fedmap.experiments.table3 import bandwidth_report
@@ -28,11 +30,18 @@ def bandwidth(
     federated: bool = typer.Option(True, help="Also run fedmap's federated configurations on the same map."),
     streams: Optional[str] = typer.Option(None, help="Instead: bits per new cell on a mission's uplink stream, "
                                           "for every cell coder ('default' or a mission TOML file)."),
+    layer: str = typer.Option("classes", help="classes: Table III on the class map; elevation: the heights' rate-distortion (lossless, LERC, JPEG XL, JPEG 2000, neural) on the built-in terrains (and --data's)."),
+    data: Optional[Path] = typer.Option(None, help="--layer elevation: a folder laid out like the project's shared/data, for the Gale, Hadley and Columbia Glacier DEMs."),
     out: Path = typer.Option(Path("fedmap-out/bandwidth"), "--out", "-o", help="Output folder (replaced atomically)."),
 ) -> None:
     """Table III with real bytes: model codecs vs raw, JPEG, WebP, PNG and zstd of the map."""
     if streams is not None:
         _cell_streams(streams, out)
+        return
+    if layer not in ("classes", "elevation"):
+        raise FedmapError(f"unknown layer {layer!r}; choose classes or elevation")
+    if layer == "elevation":
+        _elevation(data, out, pairs=pairs, seed=seed)
         return
     method_config(terrain=terrain, size=size, pairs=pairs)  # validates before any work
     t0 = time.perf_counter()
@@ -52,6 +61,32 @@ def bandwidth(
     console.print(f"paper network in fp16: {fp16['bytes']:,} B (199,683 x 2 = 399,366 B of values + "
                   f"{fp16['bytes'] - 399_366} B header)")
     console.print(f"outputs: {out}/  (report.md, bandwidth.json, rd.png); wall time {time.perf_counter() - t0:.1f} s")
+
+
+def _elevation(data: Path | None, out: Path, *, pairs: int, seed: int) -> None:
+    t0 = time.perf_counter()
+    if data is not None and not data.is_dir():
+        raise FedmapError(f"--data {data} is not a folder")
+    sources = terrain_sources(None if data is None else str(data))
+    with progress_bar() as progress:
+        task = progress.add_task("elevation: coding", total=None, loss="")
+        report = elevation_rd(sources, pairs=pairs, seed=seed,
+                              on_point=lambda what: progress.update(task, description=f"elevation: {what}"))
+    t = Table(title="sharing an elevation layer: neural against JPEG XL (matched RMSE) and LERC (matched max error)",
+              header_style="bold")
+    for col in ("terrain", "best neural / JPEG XL bytes", "best neural+residual / LERC bytes"):
+        t.add_column(col, justify="left" if col == "terrain" else "right")
+    for name, sm in report["summary"].items():
+        t.add_row(name, fmt(sm["best_neural_vs_jxl"]), fmt(sm["best_neural_residual_vs_lerc"]))
+    console.print(t)
+    console.print("below 1: the neural payload takes fewer bytes than the standard codec at the same error. "
+                  "All points: elevation.json, report.md, rd_elevation.png", soft_wrap=True)
+    with AtomicDir(out) as tmp:
+        (tmp / "elevation.json").write_text(json.dumps(report, indent=1))
+        (tmp / "rd_elevation.png").write_bytes(plot_rd(report))
+        (tmp / "report.md").write_text(elevation_markdown(report))
+    console.print(f"outputs: {out}/  (report.md, elevation.json, rd_elevation.png); wall time "
+                  f"{time.perf_counter() - t0:.1f} s")
 
 
 def _cell_streams(mission: str, out: Path) -> None:
