@@ -1,4 +1,4 @@
-"""Tests for the named layers of fedmap.maps.grid.GridMap (today only "classes")."""
+"""Tests for the named layers of fedmap.maps.grid.GridMap ("classes", and an optional "elevation")."""
 
 from __future__ import annotations
 
@@ -17,9 +17,13 @@ def _map(shape=(12, 17), seed=0) -> GridMap:
                    transform=Affine(0.5, 0.0, 100.0, 0.0, -0.5, 200.0))
 
 
-def test_classes_is_the_only_known_layer():
-    assert LAYERS == ("classes",)
+def test_classes_is_always_a_layer_and_elevation_only_when_present():
+    assert LAYERS == ("classes", "elevation")
     assert list(_map().layers) == ["classes"]
+    z = np.linspace(0, 1, 12 * 17).reshape(12, 17)
+    g = _map().with_layer("elevation", z)
+    assert list(g.layers) == ["classes", "elevation"] and g.layers["elevation"] is g.elevation
+    assert g.elevation.dtype == np.float32 and np.allclose(g.elevation, z)
 
 
 def test_layers_classes_is_the_same_data_as_classes():
@@ -54,8 +58,25 @@ def test_with_layer_keeps_class_checks():
 
 
 def test_with_layer_unknown_name_is_refused():
-    with pytest.raises(FedmapError, match="'elevation'.*classes"):
-        _map().with_layer("elevation", np.zeros((12, 17), np.float32))
+    with pytest.raises(FedmapError, match="'slope'.*"):
+        _map().with_layer("slope", np.zeros((12, 17), np.float32))
+
+
+def test_elevation_layer_checks_and_travels_with_the_classes():
+    grid = _map()
+    with pytest.raises(FedmapError, match="'elevation' has shape 3x3, but the map is 12x17"):
+        grid.with_layer("elevation", np.zeros((3, 3)))
+    with pytest.raises(FedmapError, match="infinite"):
+        grid.with_layer("elevation", np.full(grid.shape, np.inf))
+    with pytest.raises(FedmapError, match="heights in metres"):
+        grid.with_layer("elevation", np.full(grid.shape, "x"))
+    z = np.full(grid.shape, np.nan)
+    z[2:5, 3:9] = 12.5
+    g = grid.with_layer("elevation", z)
+    assert grid.elevation is None  # the original untouched
+    moved = g.with_classes(np.zeros(grid.shape, np.uint8))
+    assert moved.elevation is g.elevation  # carried along
+    assert np.isnan(moved.layer("elevation")[0, 0]) and moved.layer("elevation")[3, 4] == 12.5
 
 
 def test_with_layer_returns_a_new_map_with_the_rest_kept():

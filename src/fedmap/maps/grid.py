@@ -6,8 +6,8 @@ as the network's target a map is rendered in the paper's colours (free = green,
 impassable = red, unknown = grey 0.5); a network's RGB output goes back to classes by
 nearest colour.
 
-A map holds *named layers* (:data:`LAYERS`); today the class array is its only layer,
-``"classes"`` (see :class:`GridMap`).
+A map holds *named layers* (:data:`LAYERS`): the class array ``"classes"``, always, and
+optionally ``"elevation"`` (metres, NaN where unknown; see :class:`GridMap`).
 """
 
 from __future__ import annotations
@@ -38,9 +38,7 @@ PALETTE = np.array(
 )
 
 #: Names of the layers a :class:`GridMap` can hold, canonical layer first.
-#: An ``"elevation"`` layer (metres, float, NaN = unknown) goes here next, beside
-#: ``"classes"``; see :class:`GridMap` for what else it needs.
-LAYERS: tuple[str, ...] = ("classes",)
+LAYERS: tuple[str, ...] = ("classes", "elevation")
 
 
 @dataclass
@@ -66,22 +64,19 @@ class GridMap:
     Layers
     ------
     A map holds named ``(H, W)`` layers on one grid, all sharing ``pixel_size``,
-    ``transform`` and ``crs``; :data:`LAYERS` lists the names a map can hold. Today the
-    only layer is ``"classes"``, stored in the ``classes`` field, which stays the
-    canonical accessor. :attr:`layers` is a read-only mapping name -> array over the
+    ``transform`` and ``crs``; :data:`LAYERS` lists the names a map can hold. ``"classes"``
+    is stored in the ``classes`` field, which stays the canonical accessor; the optional
+    ``"elevation"`` (metres, float32, NaN = unknown) in the keyword field ``elevation``.
+    :attr:`layers` is a read-only mapping name -> array over the
     same arrays (no copies: ``grid.layers["classes"] is grid.classes``),
     :meth:`layer` fetches one by name (a one-line :class:`FedmapError` names a missing
     layer and the available ones) and :meth:`with_layer` returns a new map with one
     layer replaced, after checking its shape matches the map's and the layer's own
-    rules (``classes``: integer codes FREE, IMPASSABLE, UNKNOWN, stored as uint8).
-
-    An ``"elevation"`` layer (metres, float, NaN = unknown), shared by all agents while
-    each derives its own ``classes`` from it with its own rover profile, would be added
-    as: a name in :data:`LAYERS`; an optional keyword field ``elevation`` after ``crs``
-    (so construction sites stay unchanged), listed in :attr:`layers` when present; its
-    check in :meth:`with_layer` (2-D float, finite or NaN); and carried along by
-    :meth:`with_classes`. The layer lives here in ``maps/``; mission sensing observes
-    it (as it observes ``classes`` today); federation and its codecs carry it.
+    rules (``classes``: integer codes FREE, IMPASSABLE, UNKNOWN, stored as uint8;
+    ``elevation``: real heights, NaN where unknown, never infinite, stored as float32).
+    :meth:`with_classes` carries the elevation along. An agent can derive its own classes
+    from the elevation with its own rover profile
+    (:func:`fedmap.maps.traversability.dem_to_traversability`).
     """
 
     classes: np.ndarray
@@ -90,6 +85,7 @@ class GridMap:
     meta: dict = field(default_factory=dict)
     transform: Affine | None = None
     crs: str | None = None
+    elevation: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         c = np.asarray(self.classes)
@@ -102,6 +98,8 @@ class GridMap:
         self.classes = c.astype(np.uint8, copy=False)
         if not np.isfinite(self.pixel_size) or self.pixel_size <= 0:
             raise FedmapError(f"pixel size must be a positive number of metres, got {self.pixel_size}")
+        if self.elevation is not None:
+            self.elevation = check_elevation(self.elevation, self.classes.shape)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -111,7 +109,10 @@ class GridMap:
     def layers(self) -> Mapping[str, np.ndarray]:
         """The map's layers, name -> ``(H, W)`` array, read-only; the arrays are the
         map's own (``layers["classes"] is classes``)."""
-        return MappingProxyType({"classes": self.classes})
+        out = {"classes": self.classes}
+        if self.elevation is not None:
+            out["elevation"] = self.elevation
+        return MappingProxyType(out)
 
     def layer(self, name: str) -> np.ndarray:
         """The layer ``name``; a one-line error names it and the layers this map has."""
@@ -140,7 +141,7 @@ class GridMap:
     def with_classes(self, classes: np.ndarray, source: str | None = None) -> GridMap:
         """A copy with new classes and the same metadata and georeferencing."""
         return GridMap(classes, self.pixel_size, self.source if source is None else source, dict(self.meta),
-                       transform=self.transform, crs=self.crs)
+                       transform=self.transform, crs=self.crs, elevation=self.elevation)
 
     def with_layer(self, name: str, array: np.ndarray, source: str | None = None) -> GridMap:
         """A new map with layer ``name`` set to ``array`` and everything else kept.
@@ -153,7 +154,10 @@ class GridMap:
         a = np.asarray(array)
         if a.shape != self.shape:
             raise FedmapError(f"layer {name!r} has shape {_shape(a.shape)}, but the map is {_shape(self.shape)}")
-        # Only "classes" so far; each new layer in LAYERS gets its own check and field here.
+        if name == "elevation":
+            out = self.with_classes(self.classes, source)
+            out.elevation = check_elevation(a, self.shape)
+            return out
         return self.with_classes(check_classes(a, f"layer {name!r}"), source)
 
 
@@ -172,6 +176,20 @@ def check_classes(classes: np.ndarray, what: str = "class map") -> np.ndarray:
     if a.min() < 0 or a.max() > UNKNOWN:
         raise FedmapError(f"{what} must hold classes 0, 1, 2 (free, impassable, unknown), got {a.min()}..{a.max()}")
     return a.astype(np.uint8, copy=False)
+
+
+def check_elevation(elevation: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``elevation`` as a float32 layer of ``shape`` (metres, NaN = unknown); a one-line
+    error when it has another shape, is not real, or holds infinite heights."""
+    a = np.asarray(elevation)
+    if a.shape != shape:
+        raise FedmapError(f"layer 'elevation' has shape {_shape(a.shape)}, but the map is {_shape(shape)}")
+    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        raise FedmapError(f"layer 'elevation' must hold heights in metres, got {a.dtype}")
+    a = a.astype(np.float32, copy=False)
+    if np.isinf(a).any():
+        raise FedmapError("layer 'elevation' holds infinite heights (unknown cells must be NaN)")
+    return a
 
 
 def render_classes(classes: np.ndarray) -> np.ndarray:
