@@ -366,3 +366,72 @@ def test_profiles_are_checked():
         MissionConfig(rovers=3, profiles=("cadre", "msl"))
     with pytest.raises(FedmapError, match="no classes given"):
         run_mission(MissionConfig(rovers=1, steps=2, profiles=("msl",), strategies=("none",)), maze(16))
+
+
+# -- the elevation layer in a mission ------------------------------------------------------------
+
+def _elevation_mission(noise: float, q: float, strategies=("raw",)):
+    from fedmap.mission import load_mission, mission_terrain
+
+    cfg, source, _ = load_mission(mission={"rovers": 3, "steps": 40, "sync_every": 10, "eval_pairs": 10,
+                                           "profiles": "cadre,team,msl", "strategies": ",".join(strategies),
+                                           "layers": "classes,elevation", "elevation_noise_m": noise,
+                                           "elevation_q_m": q},
+                                  terrain={"kind": "builtin", "terrain": "moon"}, size=64)
+    truth, elevation, prior, profiles = mission_terrain(cfg, source)
+    res = run_mission(cfg, truth, elevation=elevation, prior=prior, profiles=profiles,
+                      thresholds=source.thresholds)
+    return cfg, truth, elevation, profiles, res
+
+
+def test_shared_exact_heights_let_each_rover_derive_its_own_classes():
+    from scipy import ndimage
+
+    cfg, truth, elevation, profiles, res = _elevation_mission(noise=0.0, q=0.0)
+    s = res.runs["raw"].strategy
+    for r in s.team:
+        seen = np.isfinite(r.heights)
+        assert np.array_equal(r.heights[seen], elevation[seen])  # exact sensing
+        assert (seen == (r.local != UNKNOWN)).all()
+    z = s.global_heights()
+    held = np.isfinite(z)
+    assert held.any() and np.array_equal(z[held], elevation[held])  # exact sharing (q = 0)
+    assert res.runs["raw"].summary.final_height_rmse_m == 0.0
+    own = [profiles["cadre"], truth.classes, profiles["msl"]]
+    for k in range(cfg.rovers):
+        # where every cell within 2 of a cell has a height, the classes it derives are its profile's truth
+        r = s.team[k]
+        zk = np.where(np.isfinite(r.heights), r.heights, s.heights(k))
+        inner = ndimage.binary_erosion(np.isfinite(zk), np.ones((5, 5)), border_value=0)
+        received = inner & (r.local == UNKNOWN)
+        assert received.any(), f"rover {k} received no heights to derive from"
+        view = _run_view(res, "raw", k)
+        assert np.array_equal(view[received], own[k][received])
+
+
+def _run_view(res, name, k):
+    """The rover's own view rebuilt from scratch: derived classes over shared heights, own cells on top."""
+    from fedmap.maps.dem import Dem
+    from fedmap.maps.traversability import dem_to_traversability, rover_profile
+
+    s = res.runs[name].strategy
+    r = s.team[k]
+    profile = res.config.profiles[k]
+    z = np.where(np.isfinite(r.heights), r.heights, s.heights(k))
+    derived = dem_to_traversability(Dem(z, res.truth.pixel_size), None if profile == "team" else
+                                    rover_profile(profile)).classes
+    return np.where(derived != UNKNOWN, derived, s.belief(k))
+
+
+def test_height_noise_is_seeded_and_measured():
+    _, _, elevation, _, a = _elevation_mission(noise=0.2, q=0.01)
+    _, _, _, _, b = _elevation_mission(noise=0.2, q=0.01)
+    ra, rb = a.runs["raw"].strategy.team[0], b.runs["raw"].strategy.team[0]
+    assert np.array_equal(ra.heights, rb.heights, equal_nan=True)  # the same seed, the same noise
+    seen = np.isfinite(ra.heights)
+    err = ra.heights[seen] - elevation[seen]
+    assert 0.15 < float(np.std(err)) < 0.25 and abs(float(np.mean(err))) < 0.05
+    # what the base holds is what the rovers measured, quantised to 1 cm
+    z = a.runs["raw"].strategy.global_heights()
+    assert 0.15 < a.runs["raw"].summary.final_height_rmse_m < 0.25
+    assert np.isfinite(z).sum() > 0

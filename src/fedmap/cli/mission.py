@@ -56,6 +56,7 @@ def mission(
             progress.update(task, completed=step, loss=f"coverage {coverage:.0%}")
 
         result = run_mission(cfg, truth, elevation=elevation, prior=prior, profiles=profiles,
+                             thresholds=source.thresholds,
                              on_strategy=on_strategy, on_step=on_step)
         task = progress.add_task("write outputs", total=None, loss="")
         title = f"{source.label}, {truth.shape[0]}x{truth.shape[1]}"

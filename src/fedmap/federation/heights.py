@@ -6,8 +6,8 @@ Every payload starts with one header, then the NaN mask, then the codec's body::
     mask: the NaN cells, packed bits, zstd (0 bytes when there is none)
 
 ``z0`` and ``step`` map a height to the integer a codec stores, ``round((z - z0) / step)``.
-The known cells are coded; the unknown ones are filled with ``z0`` before coding and set
-back to NaN on decoding.
+The known cells are coded; each unknown one is filled with the last known height before it
+in its row (``z0`` before the first) before coding, and set back to NaN on decoding.
 
 * ``lossless`` (``param`` = ``q``, metres): heights quantised to a step of ``q``, then
   zstd of the row-wise first differences (int32). The error is at most ``q / 2``. With
@@ -92,7 +92,7 @@ class HeightCodec:
         h, w = z.shape
         z0 = float(z[known].min()) if known.any() else 0.0
         top = float(z[known].max()) if known.any() else 0.0
-        filled = np.where(known, z, z0)
+        filled = _forward_fill(z, known, z0)
         mask = b"" if known.all() else _zstd(np.packbits(~known).tobytes())
         if self.kind == "lossless" and self.param == 0:
             step = 0.0
@@ -161,6 +161,18 @@ class HeightCodec:
         except Exception as exc:  # the bindings raise their own error types on damaged data
             raise RejectedUpdate(f"height payload: damaged {kind} body ({type(exc).__name__})") from exc
         return np.where(known, z, np.nan)
+
+
+def _forward_fill(z: np.ndarray, known: np.ndarray, default: float) -> np.ndarray:
+    """``z`` with each unknown cell set to the last known height before it in its row
+    (``default`` before the first), so row differences are 0 across unknown stretches."""
+    if known.all():
+        return z
+    h, w = z.shape
+    idx = np.where(known, np.arange(w)[None, :], -1)
+    np.maximum.accumulate(idx, axis=1, out=idx)
+    out = z[np.arange(h)[:, None], np.maximum(idx, 0)]
+    return np.where(idx >= 0, out, default)
 
 
 def residual_encode(z: np.ndarray, prediction: np.ndarray, max_error: float) -> bytes:

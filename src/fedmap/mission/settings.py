@@ -42,6 +42,7 @@ from fedmap.config import (
     with_rover_profile,
 )
 from fedmap.errors import FedmapError
+from fedmap.maps.grid import LAYERS
 from fedmap.maps.sources import TerrainSource
 from fedmap.maps.traversability import ROVER_NAMES
 
@@ -268,6 +269,10 @@ class MissionConfig:
     speed: int = setting(2, help="Cells driven per step")
     sensor_radius: float = setting(8.0, help="Sensor range, cells")
     line_of_sight: bool = setting(False, help="Observe only cells in line of sight over the DEM")
+    layers: tuple[str, ...] = setting(("classes",), help="Map layers the rovers observe and raw shares, "
+                                      "comma-separated: classes, or classes,elevation", choices=LAYERS)
+    elevation_noise_m: float = setting(0.0, help="elevation layer: std of the rovers' height noise, metres (seeded)")
+    elevation_q_m: float = setting(0.01, help="elevation layer: the step raw quantises shared heights to, metres")
     sensor_height_m: float = setting(1.5, help="Sensor height above the ground for line of sight, metres")
     lander: tuple[int, int] | None = setting(None, help="[row, col] the team starts from (unset: the map centre)")
     starts: tuple[tuple[int, int], ...] | None = setting(None, help="One [row, col] start per rover (overrides "
@@ -327,6 +332,17 @@ class MissionConfig:
             if len(starts) != self.rovers:
                 raise FedmapError(f"starts gives {len(starts)} cells for {self.rovers} rovers")
             object.__setattr__(self, "starts", starts)
+        layers = tuple(self.layers)
+        for name in layers:
+            if name not in LAYERS:
+                raise FedmapError(f"unknown map layer {name!r}{suggest(name, LAYERS)}")
+        if "classes" not in layers:
+            raise FedmapError("a mission's layers must include classes (e.g. classes,elevation)")
+        object.__setattr__(self, "layers", layers)
+        if not (math.isfinite(self.elevation_noise_m) and self.elevation_noise_m >= 0):
+            raise FedmapError(f"elevation_noise_m must be >= 0, got {self.elevation_noise_m!r}")
+        if not (math.isfinite(self.elevation_q_m) and self.elevation_q_m >= 0):
+            raise FedmapError(f"elevation_q_m must be >= 0 (0: exact float32), got {self.elevation_q_m!r}")
         if self.profiles:
             profiles = tuple(self.profiles)
             if len(profiles) != self.rovers:
@@ -412,7 +428,7 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
                **({"seed": seed} if seed is not None else {})}]
     for layer in layers:
         m = layer.get("mission", {})
-        for key in ("strategies", "profiles"):
+        for key in ("strategies", "profiles", "layers"):
             if isinstance(m.get(key), str):  # "none,raw" from the command line
                 m[key] = [x.strip() for x in m[key].split(",") if x.strip()]
         check_mission_file(layer, "the command-line options")
@@ -433,6 +449,9 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
         raise FedmapError(f"bad mission setting: {exc}") from exc
     if config.line_of_sight and source.kind == "map":
         raise FedmapError("line of sight needs the terrain's elevation (a DEM, tiles or built-in source, not a class map)")
+    if "elevation" in config.layers and source.kind == "map":
+        raise FedmapError("an elevation layer needs the terrain's elevation (a DEM, tiles or built-in source, not a "
+                          "class map)")
     if config.profiles and source.kind == "map":
         raise FedmapError("rover profiles need the terrain's elevation (a DEM, tiles or built-in source, not a class "
                           "map)")

@@ -24,7 +24,7 @@ import heapq
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -33,11 +33,12 @@ from scipy import ndimage
 from fedmap.errors import FedmapError
 from fedmap.evaluation.paths import PathScores, path_f1
 from fedmap.evaluation.scores import MapScores, score_map
+from fedmap.maps.dem import Dem
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.orbital import orbital_prior
 from fedmap.maps.planning import path_is_valid
 from fedmap.maps.sources import TerrainSource, load_terrain
-from fedmap.maps.traversability import dem_to_traversability, rover_profile
+from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, rover_profile
 from fedmap.mission.frontiers import choose_target, plan_path
 from fedmap.mission.link import (
     BASE,
@@ -84,6 +85,9 @@ class Rover:
     returning: bool = False  #: helicopter: heading for a landing site
     #: with a profile of its own: the classes it observed under its own limits (None: it has none)
     own: np.ndarray | None = None
+    #: with an elevation layer: the heights it observed (metres, its noise included; NaN elsewhere)
+    heights: np.ndarray | None = None
+    n_sensed: int = 0  #: how many times it has sensed (seeds its height noise)
     #: helicopter: every landing, ``(step, cell, steps flown that sortie, "lander" or "observed free")``
     landings: list = field(default_factory=list)
     airborne: list = field(default_factory=list)  #: helicopter: per step from step 1, whether it flew
@@ -188,6 +192,10 @@ class MissionSummary:
     #: relayed message counted: one message per link, direction and round, as RAMEN reports it
     bytes_per_link_round: float
     messages: dict[str, int]  #: ledger entries per ``<direction>_<status>``, e.g. ``up_lost``
+    #: with an elevation layer: RMSE (metres) of the heights the base holds, on the cells it
+    #: holds, against the true elevation, and the share of the map's cells it holds (None: no layer)
+    final_height_rmse_m: float | None = None
+    final_height_coverage: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The ``summary`` of ``metrics.json``."""
@@ -209,6 +217,8 @@ class MissionSummary:
             "team_bytes": {"up": self.bytes_up, "down": self.bytes_down},
             "bytes_per_link_round": self.bytes_per_link_round,
             "messages": dict(self.messages),
+            **({"elevation": {"rmse_m": self.final_height_rmse_m, "coverage": self.final_height_coverage}}
+               if self.final_height_rmse_m is not None else {}),
         }
 
 
@@ -422,7 +432,8 @@ class _Run:
     def __init__(self, name: str, config: MissionConfig, truth: GridMap, elevation: np.ndarray | None,
                  starts: list[Cell], base: Cell, waypoints: list[list[Cell]], scorer: _Scorer,
                  frame_every: int, prior: np.ndarray | None = None,
-                 profiles: dict[str, np.ndarray] | None = None) -> None:
+                 profiles: dict[str, np.ndarray] | None = None,
+                 thresholds: TraversabilityThresholds | None = None) -> None:
         self.name, self.config, self.truth, self.elevation = name, config, truth, elevation
         self.prior = prior
         self.scorer, self.frame_every = scorer, frame_every
@@ -453,7 +464,8 @@ class _Run:
             self.strategy = RawGossip(truth, self.team, budget, base=base, lander_agent=lander_agent)
         else:
             self.strategy = make_strategy(name, truth, self.team, budget, methods=config.methods,
-                                          seed=config.seed, radius=config.sensor_radius)
+                                          seed=config.seed, radius=config.sensor_radius,
+                                          height_q=config.elevation_q_m if "elevation" in config.layers else None)
         self.links: tuple[tuple[int, int], ...] = ()
         # each rover's own classes of the terrain (None: it follows the shared thresholds), and its scorer
         names = list(config.profiles) if config.profiles else ["team"] * config.rovers
@@ -463,6 +475,13 @@ class _Run:
                                                             config.eval_pairs, config.seed) for p in names]
         for r, t in zip(self.team, self.own_truth):
             r.own = None if t is None else np.full(shape, UNKNOWN, dtype=np.uint8)
+        # the elevation layer: what each rover measures, and the thresholds it derives its classes with
+        self.with_heights = "elevation" in config.layers
+        if self.with_heights:
+            for r in self.team[:config.rovers]:
+                r.heights = np.full(shape, np.nan, dtype=np.float32)
+        self.own_thresholds = [thresholds if p == "team" else rover_profile(p) for p in names]
+        self._derived: dict[int, tuple[tuple, np.ndarray]] = {}
         self.leaders: tuple[int, ...] = ()
         self.allowed = self.topology.region(shape) if config.stay_in_range else None
         self.queue: list = []
@@ -491,6 +510,13 @@ class _Run:
         own = self.own_truth[k]
         if r.own is not None and own is not None:
             r.own[new] = own[new]
+        if r.heights is not None and self.elevation is not None:
+            r.n_sensed += 1
+            z = self.elevation[new]
+            if c.elevation_noise_m > 0:
+                rng = np.random.default_rng(np.random.SeedSequence([c.seed, k, r.n_sensed, 5]))
+                z = z + rng.normal(0.0, c.elevation_noise_m, size=z.shape)
+            r.heights[new] = z
 
     def _target_done(self, r: Rover, belief: np.ndarray) -> bool:
         if r.target is None or r.pos == r.target:
@@ -517,9 +543,36 @@ class _Run:
 
     def own_view(self, k: int, belief: np.ndarray) -> np.ndarray:
         """Rover ``k``'s belief with the cells it observed itself in its own classes (its
-        profile's limits); the shared classes elsewhere."""
-        own = self.team[k].own
-        return belief if own is None else np.where(own != UNKNOWN, own, belief).astype(np.uint8)
+        profile's limits); with an elevation layer, the classes it derives with its own
+        limits from the heights it holds (its own and those shared with it) where they
+        allow it; the shared classes elsewhere."""
+        r = self.team[k]
+        view = belief
+        if r.heights is not None:
+            derived = self.derived(k)
+            view = np.where(derived != UNKNOWN, derived, view)
+            view = np.where(r.local != UNKNOWN, r.local if r.own is None else r.own, view)
+        elif r.own is not None:
+            view = np.where(r.own != UNKNOWN, r.own, view)
+        return view.astype(np.uint8, copy=False)
+
+    def derived(self, k: int) -> np.ndarray:
+        """The classes rover ``k`` derives, with its own thresholds, from every height it
+        holds (cached until they change)."""
+        r = self.team[k]
+        assert r.heights is not None
+        key = (r.n_sensed, self.strategy.heights_version(k))
+        hit = self._derived.get(k)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        shared = self.strategy.heights(k)
+        z = r.heights if shared is None else np.where(np.isfinite(r.heights), r.heights, shared)
+        if np.isfinite(z).any() and min(z.shape) >= 3:
+            out = dem_to_traversability(Dem(z, self.truth.pixel_size), self.own_thresholds[k]).classes
+        else:
+            out = np.full(z.shape, UNKNOWN, dtype=np.uint8)
+        self._derived[k] = (key, out)
+        return out
 
     def planning_map(self, belief: np.ndarray, k: int | None = None) -> np.ndarray:
         """What a rover plans its path on: its belief (its own classes where it has them), and
@@ -839,7 +892,14 @@ class _Run:
         seconds = time.perf_counter() - t0
         series = _series(self.rows, self.evals)
         dropped = self.strategy.dropped
-        return StrategyRun(self.name, series, summarise(series, self.link.ledger, c, self.link.slots),
+        summary = summarise(series, self.link.ledger, c, self.link.slots)
+        z = self.strategy.global_heights()
+        if z is not None and self.elevation is not None:
+            held = np.isfinite(z)
+            err = (z[held] - self.elevation[held]).astype(np.float64)
+            summary = replace(summary, final_height_rmse_m=float(np.sqrt(np.mean(err ** 2))) if held.any() else 0.0,
+                              final_height_coverage=float(held.mean()))
+        return StrategyRun(self.name, series, summary,
                            self.link.ledger, self.frames,
                            [list(r.trail) for r in self.team], seconds,
                            dropped_updates=None if dropped is None else tuple(dropped),
@@ -897,9 +957,10 @@ def mission_terrain(config: MissionConfig, source: TerrainSource) -> tuple[GridM
     and the classes of the terrain under each rover profile of ``[mission] profiles`` but
     ``team`` (``{profile: classes}``, empty when there are none)."""
     own = sorted({p for p in config.profiles if p != "team"})
-    needs_dem = config.line_of_sight or config.prior.kind == "orbital" or bool(own)
+    layer = "elevation" in config.layers
+    needs_dem = config.line_of_sight or config.prior.kind == "orbital" or bool(own) or layer
     truth, dem = load_terrain(source, seed=config.seed, with_dem=needs_dem)
-    elevation = dem.elevation if dem is not None and config.line_of_sight else None
+    elevation = dem.elevation if dem is not None and (config.line_of_sight or layer) else None
     prior = orbital_prior(dem, source.thresholds, config.prior.factor) if dem is not None and \
         config.prior.kind == "orbital" else None
     profiles = {p: dem_to_traversability(dem, rover_profile(p)).classes for p in own} if dem is not None else {}
@@ -908,6 +969,7 @@ def mission_terrain(config: MissionConfig, source: TerrainSource) -> tuple[GridM
 
 def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray | None = None,
                 prior: np.ndarray | None = None, profiles: dict[str, np.ndarray] | None = None,
+                thresholds: TraversabilityThresholds | None = None,
                 on_strategy: Callable[[str], None] | None = None,
                 on_step: Callable[[str, int, float], None] | None = None,
                 frames: int = 60) -> MissionResult:
@@ -916,13 +978,17 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     ``elevation`` (metres, the truth's grid) is needed for ``line_of_sight``; ``prior``
     (classes, the truth's grid) is what every rover plans on where it has no observation
     (:class:`~fedmap.mission.settings.PriorConfig`); ``profiles`` the classes of the terrain under
-    each rover profile of ``config.profiles`` but ``team`` (:func:`mission_terrain` builds all three).
+    each rover profile of ``config.profiles`` but ``team`` (:func:`mission_terrain` builds all three);
+    ``thresholds`` the team's limits, with which a ``team`` rover derives classes from an
+    elevation layer (None: the defaults; the truth must have been classified with them).
     ``on_strategy(name)`` announces each strategy and ``on_step(name, step, coverage)``
     follows it (progress bars); ``frames`` bounds the animation's frames per strategy.
     """
     t0 = time.perf_counter()
     if config.line_of_sight and elevation is None:
         raise FedmapError("line of sight needs the terrain's elevation (a DEM or built-in source, not a class map)")
+    if "elevation" in config.layers and elevation is None:
+        raise FedmapError("an elevation layer needs the terrain's elevation (a DEM or built-in source, not a class map)")
     if elevation is not None and np.shape(elevation) != truth.shape:
         raise FedmapError(f"elevation grid {np.shape(elevation)} does not match the map {truth.shape}")
     if prior is not None and np.shape(prior) != truth.shape:
@@ -944,7 +1010,7 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
         if on_strategy is not None:
             on_strategy(name)
         runs[name] = _Run(name, config, truth, elevation, starts, base, waypoints, scorer, frame_every,
-                          prior, profiles).run(on_step)
+                          prior, profiles, thresholds).run(on_step)
     return MissionResult(config, truth, starts, base, runs, time.perf_counter() - t0)
 
 

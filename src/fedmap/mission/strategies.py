@@ -15,7 +15,10 @@ targets with it.
   overlays every delivered map on its global map (observations are truth, so they never
   conflict) and sends each rover the global map coded *against the last global map that
   rover acknowledged* (unchanged cells cost almost nothing); over budget it sends the
-  cells it merged most recently that fit.
+  cells it merged most recently that fit. With an elevation layer (``[mission] layers``)
+  both directions also carry the heights of the same cells, quantised to
+  ``elevation_q_m`` (:class:`~fedmap.federation.heights.HeightCodec` ``lossless``), after
+  the class map; ``central`` shares every rover's heights too, the other strategies none.
 * ``paper`` / ``fedmap``: the preset's network (:func:`fedmap.config.method_config`),
   trained and aggregated by the same :func:`~fedmap.federation.runner.rover_step` and
   :func:`~fedmap.federation.runner.base_step` as ``fedmap run``. A rover trains from the
@@ -44,6 +47,7 @@ from fedmap.config import method_config
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.federation import streamcodec
 from fedmap.federation.codecs import CodecSpec, Encoder
+from fedmap.federation.heights import HeightCodec
 from fedmap.federation.mapcodec import decode_map, encode_map
 from fedmap.federation.runner import (
     Broadcaster,
@@ -66,6 +70,7 @@ _DOWN = struct.Struct("<B8sB")  # kind, reference model version (8 bytes), rover
 _REPORT = struct.Struct("<Bhhhh")  # rover, row, col, target row, target col
 _KINDS = ("map", "broadcast", "keyframe", "chain", "chunk")
 _CHUNK = struct.Struct("<B8sHHI")  # what is chunked (kind), the version it gives, chunk index, count, whole bytes
+_LEN = struct.Struct("<I")  # the class map's length, before the heights (elevation layer)
 #: Bytes of the uplink header (before the payload proper).
 UP_HEADER = _UP.size
 Cell = tuple[int, int]
@@ -186,6 +191,19 @@ class Strategy:
         """The latest global map rover ``k`` holds (classes)."""
         return np.full(self.shape, UNKNOWN, dtype=np.uint8)
 
+    def heights(self, k: int) -> np.ndarray | None:
+        """The heights rover ``k`` holds from others (metres, NaN elsewhere), or None when
+        this strategy shares no elevation."""
+        return None
+
+    def heights_version(self, k: int) -> int:
+        """A counter that changes whenever :meth:`heights` of rover ``k`` does."""
+        return 0
+
+    def global_heights(self) -> np.ndarray | None:
+        """The heights the base station holds (NaN elsewhere), or None without them."""
+        return None
+
     def belief(self, k: int) -> np.ndarray:
         """Rover ``k``'s own observations laid over the global map it holds."""
         local = self.team[k].local
@@ -244,6 +262,21 @@ class Central(Strategy):
             out = np.where(r.local != UNKNOWN, r.local, out)
         return out
 
+    def heights(self, k: int) -> np.ndarray | None:
+        zs = [r.heights for r in self.team if r.heights is not None]
+        if not zs:
+            return None
+        out = np.full(self.shape, np.nan, dtype=np.float32)
+        for z in zs:
+            out = np.where(np.isfinite(z), z, out)
+        return out
+
+    def heights_version(self, k: int) -> int:
+        return sum(int(np.isfinite(r.heights).sum()) for r in self.team if r.heights is not None)
+
+    def global_heights(self) -> np.ndarray | None:
+        return self.heights(0)
+
     def others(self, k: int) -> list[Cell]:
         out = []
         for j, r in enumerate(self.team):
@@ -275,9 +308,16 @@ class Raw(Strategy):
     name = "raw"
     shares = True
 
-    def __init__(self, truth: GridMap, team: list, budget: dict[str, int | None]) -> None:
+    def __init__(self, truth: GridMap, team: list, budget: dict[str, int | None], *,
+                 height_q: float | None = None) -> None:
         super().__init__(truth, team, budget)
         empty = np.full(self.shape, UNKNOWN, dtype=np.uint8)
+        #: with an elevation layer: the step heights are quantised to (None: classes only)
+        self.height_codec = None if height_q is None else HeightCodec("lossless", height_q)
+        nan = np.full(self.shape, np.nan, dtype=np.float32)
+        self._held_z = [nan.copy() for _ in team]
+        self._z_version = [0 for _ in team]
+        self.base_z = nan.copy()
         self.delivered = [np.zeros(self.shape, dtype=bool) for _ in team]  # cells the base has from each rover
         self._held = [empty.copy() for _ in team]
         self.base = empty.copy()
@@ -288,15 +328,37 @@ class Raw(Strategy):
     def held(self, k: int) -> np.ndarray:
         return self._held[k]
 
+    def heights(self, k: int) -> np.ndarray | None:
+        return None if self.height_codec is None else self._held_z[k]
+
+    def heights_version(self, k: int) -> int:
+        return self._z_version[k]
+
+    def global_heights(self) -> np.ndarray | None:
+        return None if self.height_codec is None else self.base_z
+
     def global_map(self) -> np.ndarray:
         return self.base
+
+    def _body(self, classes: bytes, z: np.ndarray | None, mask: np.ndarray) -> bytes:
+        """The class map, and with an elevation layer the heights of the same cells after it."""
+        if self.height_codec is None or z is None:
+            return classes
+        return _LEN.pack(len(classes)) + classes + self.height_codec.encode(np.where(mask, z, np.nan))
+
+    def _split(self, body: bytes) -> tuple[bytes, np.ndarray | None]:
+        if self.height_codec is None:
+            return body, None
+        (n,) = _LEN.unpack_from(body)
+        return body[_LEN.size:_LEN.size + n], HeightCodec.decode(body[_LEN.size + n:])
 
     def uplink(self, k: int, round_no: int) -> Outgoing | None:
         r = self.team[k]
         pending = (r.local != UNKNOWN) & ~self.delivered[k]
 
         def make(mask: np.ndarray) -> bytes:
-            return pack_up("", r.pos, r.target, encode_map(np.where(mask, r.local, UNKNOWN).astype(np.uint8)))
+            classes = encode_map(np.where(mask, r.local, UNKNOWN).astype(np.uint8))
+            return pack_up("", r.pos, r.target, self._body(classes, r.heights, mask & (r.local != UNKNOWN)))
 
         budget = self.budget["up"]
         payload, sent = _cut_to_budget(make, r.obs_step, pending, budget)
@@ -307,7 +369,10 @@ class Raw(Strategy):
 
     def receive_uplink(self, k: int, payload: bytes, ctx: dict, round_no: int) -> None:
         _, pos, target, body = unpack_up(payload)
-        cells = decode_map(body, expected_shape=self.shape)
+        classes, z = self._split(body)
+        cells = decode_map(classes, expected_shape=self.shape)
+        if z is not None:
+            self.base_z = np.where(np.isfinite(z), z, self.base_z).astype(np.float32)
         self.received.append((round_no, k, payload))
         new = (cells != UNKNOWN) & (self.base == UNKNOWN)
         self.base = np.where(cells != UNKNOWN, cells, self.base).astype(np.uint8)
@@ -321,7 +386,8 @@ class Raw(Strategy):
 
             def make(mask: np.ndarray, ref: np.ndarray = ref) -> bytes:
                 m = np.where(mask | (ref != UNKNOWN), self.base, UNKNOWN).astype(np.uint8)
-                return pack_down("map", "", self.base_reports, encode_map(m, reference=ref))
+                body = self._body(encode_map(m, reference=ref), self.base_z, mask & np.isfinite(self.base_z))
+                return pack_down("map", "", self.base_reports, body)
 
             candidates = (self.base != UNKNOWN) & (ref == UNKNOWN)
             payload, sent = _cut_to_budget(make, self.base_stamp, candidates, self.budget["down"])
@@ -331,10 +397,14 @@ class Raw(Strategy):
 
     def receive_downlink(self, k: int, payload: bytes, ctx: dict) -> bool:
         _, _, reports, body = unpack_down(payload)
+        classes, z = self._split(body)
         try:
-            m = decode_map(body, reference=self._held[k], expected_shape=self.shape)
+            m = decode_map(classes, reference=self._held[k], expected_shape=self.shape)
         except RejectedUpdate:  # coded against a map this rover no longer holds
             return False
+        if z is not None and np.isfinite(z).any():
+            self._held_z[k] = np.where(np.isfinite(z), z, self._held_z[k]).astype(np.float32)
+            self._z_version[k] += 1
         self._held[k] = m
         self.acked[k] = ctx["map"]
         self.known_reports[k].update(reports)
@@ -582,14 +652,15 @@ def _rate_controlled(state: Weights | None, attempt: Callable[[Encoder], T],
 
 
 def make_strategy(name: str, truth: GridMap, team: list, budget: dict[str, int | None], *, methods: dict,
-                  seed: int, radius: float) -> Strategy:
-    """A fresh strategy of ``name`` for one run."""
+                  seed: int, radius: float, height_q: float | None = None) -> Strategy:
+    """A fresh strategy of ``name`` for one run (``height_q``: share heights at that step,
+    with an elevation layer; ``raw`` and ``central`` do)."""
     if name == "none":
         return Strategy(truth, team, budget)
     if name == "central":
         return Central(truth, team, budget)
     if name == "raw":
-        return Raw(truth, team, budget)
+        return Raw(truth, team, budget, height_q=height_q)
     if name == "predictive":
         return Predictive(truth, team, budget, radius=radius, options=methods.get(name))
     return Model(truth, team, budget, method=name, settings=dict(methods.get(name, {})), seed=seed)
