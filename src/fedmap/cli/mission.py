@@ -66,10 +66,10 @@ def mission(
     header, rows = table_rows(result)
     t = Table(title=f"mission on {title}: strategies side by side", header_style="bold")
     peer = has_peers(result)
-    keep = [i for i, h in enumerate(header) if h in _CONSOLE or (peer and h in _CONSOLE_PEER)]
+    keep = [i for i, h in enumerate(header) if h in _CONSOLE or (peer and h in _CONSOLE_PEER) or h in _CONSOLE_HEIGHTS]
     if peer:  # on a peer topology the uplink column is empty: its messages are peer messages
         keep = [i for i in keep if header[i] != "uplinks not delivered"]
-    names = {**_CONSOLE, **_CONSOLE_PEER}
+    names = {**_CONSOLE, **_CONSOLE_PEER, **_CONSOLE_HEIGHTS}
     for i in keep:
         t.add_column(names[header[i]], justify="left" if i == 0 else "right", no_wrap=True)
     for r in rows:
@@ -94,6 +94,8 @@ _CONSOLE = {"strategy": "strategy", "steps to 50 %": "50 %", "steps to 80 %": "8
             "belief F1≥0.9 at": "F1>=.9", "coverage": "cov.", "belief acc.": "acc.", "false-free": "f.free",
             "global F1": "glob.F1",
             "team bytes up": "team up B", "team bytes down": "team down B", "uplinks not delivered": "up lost/over"}
+#: Console columns of a mission with an elevation layer.
+_CONSOLE_HEIGHTS = {"base height RMSE m": "z RMSE m"}
 #: Console columns of a mission with peer messages (mesh, leader, gossip).
 _CONSOLE_PEER = {"B/link/round": "B/link/rnd", "peer messages not delivered": "peer lost"}
 

@@ -140,14 +140,18 @@ def table_rows(result: MissionResult) -> tuple[list[str], list[list[str]]]:
     """Header and one row per strategy of the side-by-side table (final values, the belief
     accuracy at step 0 before any message, and the messages that did not arrive)."""
     peer = has_peers(result)
+    heights = "elevation" in result.config.layers
     header = ["strategy", *COLUMNS, "belief acc. at step 0", "uplinks not delivered", "downlinks not delivered",
-              *(["peer messages not delivered"] if peer else [])]
+              *(["peer messages not delivered"] if peer else []),
+              *(["base height RMSE m", "base height coverage"] if heights else [])]
     rows = []
     for name, run in result.runs.items():
-        rows.append([name, *(_fmt(get(run.summary), nd) for get, nd in COLUMNS.values()),
+        s = run.summary
+        rows.append([name, *(_fmt(get(s), nd) for get, nd in COLUMNS.values()),
                      _fmt(float(np.mean(run.series.accuracy[0])), 3),
-                     undelivered(run.summary, "up"), undelivered(run.summary, "down"),
-                     *([undelivered(run.summary, "peer")] if peer else [])])
+                     undelivered(s, "up"), undelivered(s, "down"),
+                     *([undelivered(s, "peer")] if peer else []),
+                     *([_fmt(s.final_height_rmse_m, 3), _fmt(s.final_height_coverage, 3)] if heights else [])])
     return header, rows
 
 
@@ -211,6 +215,12 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
            f"{c.helicopter.flight_budget} steps per sortie and {c.helicopter.recharge} steps recharging, landing at "
            "the lander or on cells it observed free. Belief columns and *F1≥ at* cover the rovers and helicopters; "
            "*belief F1≥0.9 at* is the first rover's.", ""] if c.helicopters else []),
+        *([f"Layers: classes and elevation. Rovers measure heights with noise of std {c.elevation_noise_m:g} m; "
+           f"`raw` shares them with the classes, quantised to {c.elevation_q_m:g} m "
+           "(0: exact float32), and `central` pools them; the other strategies share classes only. Each rover "
+           "derives its own classes from every height it holds, with its own limits, and plans on them. "
+           "*base height RMSE*: the heights the base holds against the true elevation, on the cells it holds.", ""]
+          if "elevation" in c.layers else []),
         *([f"Rover profiles: {', '.join(f'rover {k} {p}' for k, p in enumerate(c.profiles))}. The shared classes "
            "(what every strategy sends, the global map, coverage and accuracy) follow the mission's `[thresholds]` "
            "(`team`). Each rover classifies the cells it observes itself under its own limits too and plans on "
