@@ -364,6 +364,7 @@ def test_profiles_are_checked():
         MissionConfig(rovers=2, profiles=("cadre", "cadr"))
     with pytest.raises(FedmapError, match="2 profiles for 3 rovers"):
         MissionConfig(rovers=3, profiles=("cadre", "msl"))
+    assert MissionConfig(rovers=3, profiles=("msl",)).rover_profiles == ("msl", "msl", "msl")  # one for all
     with pytest.raises(FedmapError, match="no classes given"):
         run_mission(MissionConfig(rovers=1, steps=2, profiles=("msl",), strategies=("none",)), maze(16))
 
@@ -416,7 +417,7 @@ def _run_view(res, name, k):
 
     s = res.runs[name].strategy
     r = s.team[k]
-    profile = res.config.profiles[k]
+    profile = res.config.rover_profiles[k]
     z = np.where(np.isfinite(r.heights), r.heights, s.heights(k))
     derived = dem_to_traversability(Dem(z, res.truth.pixel_size), None if profile == "team" else
                                     rover_profile(profile)).classes

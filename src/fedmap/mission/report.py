@@ -221,7 +221,7 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
            "derives its own classes from every height it holds, with its own limits, and plans on them. "
            "*base height RMSE*: the heights the base holds against the true elevation, on the cells it holds.", ""]
           if "elevation" in c.layers else []),
-        *([f"Rover profiles: {', '.join(f'rover {k} {p}' for k, p in enumerate(c.profiles))}. The shared classes "
+        *([f"Rover profiles: {', '.join(f'rover {k} {p}' for k, p in enumerate(c.rover_profiles))}. The shared classes "
            "(what every strategy sends, the global map, coverage and accuracy) follow the mission's `[thresholds]` "
            "(`team`). Each rover classifies the cells it observes itself under its own limits too and plans on "
            "those; elsewhere it plans on the shared classes. Its belief F1 and false-free rate are scored against "

@@ -262,8 +262,9 @@ class MissionConfig:
     rovers: int = setting(4, help="Number of rovers")
     helicopters: int = setting(0, help="Number of helicopters, after the rovers in the team ([helicopter] sets them)")
     profiles: tuple[str, ...] = setting(
-        (), help="One traversability profile per rover, comma-separated (team: the shared thresholds; or a "
-        "rover: cadre, mer, msl); each plans on its own (unset: all follow the shared thresholds)", choices=PROFILES)
+        (), help="One traversability profile per rover, comma-separated, or one for all (team: the shared "
+        "thresholds; or a rover: cadre, mer, msl); each plans on its own (unset: all follow the shared "
+        "thresholds)", choices=PROFILES)
     steps: int = setting(150, help="Mission steps")
     sync_every: int = setting(10, help="Steps between sync rounds")
     speed: int = setting(2, help="Cells driven per step")
@@ -336,8 +337,8 @@ class MissionConfig:
         for name in layers:
             if name not in LAYERS:
                 raise FedmapError(f"unknown map layer {name!r}{suggest(name, LAYERS)}")
-        if "classes" not in layers:
-            raise FedmapError("a mission's layers must include classes (e.g. classes,elevation)")
+        # classes are always a layer (GridMap's canonical one): "elevation" alone means both
+        layers = tuple(n for n in LAYERS if n in layers)
         object.__setattr__(self, "layers", layers)
         if not (math.isfinite(self.elevation_noise_m) and self.elevation_noise_m >= 0):
             raise FedmapError(f"elevation_noise_m must be >= 0, got {self.elevation_noise_m!r}")
@@ -345,7 +346,7 @@ class MissionConfig:
             raise FedmapError(f"elevation_q_m must be >= 0 (0: exact float32), got {self.elevation_q_m!r}")
         if self.profiles:
             profiles = tuple(self.profiles)
-            if len(profiles) != self.rovers:
+            if len(profiles) not in (1, self.rovers):  # one per rover, or one for all
                 raise FedmapError(f"profiles gives {len(profiles)} profiles for {self.rovers} rovers")
             for name in profiles:
                 if name not in PROFILES:
@@ -368,6 +369,12 @@ class MissionConfig:
             if name not in trained:
                 raise FedmapError(f"[strategies.{name}]: only {', '.join((*trained, 'predictive'))} take settings")
             check_keys(kw, KEYWORDS, f"[strategies.{name}]")
+
+    @property
+    def rover_profiles(self) -> tuple[str, ...]:
+        """Every rover's profile (``profiles`` given once applies to all; unset: ``team``)."""
+        p = self.profiles or ("team",)
+        return p * self.rovers if len(p) == 1 else p
 
     @property
     def sync_steps(self) -> list[int]:

@@ -468,8 +468,7 @@ class _Run:
                                           height_q=config.elevation_q_m if "elevation" in config.layers else None)
         self.links: tuple[tuple[int, int], ...] = ()
         # each rover's own classes of the terrain (None: it follows the shared thresholds), and its scorer
-        names = list(config.profiles) if config.profiles else ["team"] * config.rovers
-        names += ["team"] * config.helicopters
+        names = [*config.rover_profiles, *(["team"] * config.helicopters)]
         self.own_truth = [None if p == "team" else (profiles or {})[p] for p in names]
         self.own_scorer = [scorer if p == "team" else _Scorer(truth.with_classes((profiles or {})[p], p),
                                                             config.eval_pairs, config.seed) for p in names]
