@@ -130,3 +130,38 @@ def test_classes_rederived_from_a_lossless_share_are_the_truths_under_every_prof
             want = dem_to_traversability(dem, profile).classes
             got = dem_to_traversability(received, profile).classes
             assert np.array_equal(got, want), (dem.source, profile)
+
+
+def test_federated_height_grids_merge_into_the_union_of_what_the_rovers_saw():
+    from fedmap.federation.heightfed import federate_heights, grid_resolutions
+    from fedmap.maps.grid import GridMap
+
+    z = _surface(3, shape=(32, 32)).astype(np.float64)
+    z = np.where(np.isfinite(z), z, 30.0)
+    halves = [np.zeros(z.shape, bool), np.zeros(z.shape, bool)]
+    halves[0][:, :16], halves[1][:, 16:] = True, True
+    maps = [GridMap(np.where(m, 0, 2).astype(np.uint8), 1.0).with_layer("elevation", np.where(m, z, np.nan))
+            for m in halves]
+    hf = federate_heights(maps, steps=300)
+    assert hf.resolutions == grid_resolutions(32) == (32,)
+    err = np.abs(hf.heights - z)
+    # fp16 of heights normalised by the team's std: a few mm at ~30 m
+    assert err.max() < 0.02
+    assert hf.uplink_bytes > 2 * 32 * 16 and hf.downlink_bytes > 0 and hf.reference_bytes > 0
+    with pytest.raises(FedmapError, match="elevation layer"):
+        federate_heights([GridMap(np.zeros((8, 8), np.uint8), 1.0)])
+
+
+def test_a_run_with_an_elevation_layer_reports_its_heights():
+    from fedmap.config import method_config
+    from fedmap.maps.grid import GridMap
+    from fedmap.pipeline import run_pipeline
+
+    cfg = method_config("fedmap", size=64, **{"explore.layers": ["classes", "elevation"], "evaluate.central": False})
+    res = run_pipeline(cfg)
+    e = res.metrics["elevation"]
+    assert e["observed"]["rmse_m"] < 0.01 and e["bytes"]["uplink"] > 0
+    assert e["rederived_classes"]["path"]["f1"] >= 0.95
+    # a class map has no heights: a one-line error, before any work
+    with pytest.raises(FedmapError, match="elevation"):
+        run_pipeline(cfg, truth=GridMap(res.truth.classes, res.truth.pixel_size))

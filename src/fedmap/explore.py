@@ -26,8 +26,9 @@ import numpy as np
 from scipy import ndimage
 
 from fedmap._schema import setting
+from fedmap._util import suggest
 from fedmap.errors import FedmapError
-from fedmap.maps.grid import UNKNOWN, GridMap
+from fedmap.maps.grid import LAYERS, UNKNOWN, GridMap
 from fedmap.maps.planning import astar, passable_mask
 
 EXPLORE_MODES = ("quadrants", "strips", "grid", "traverse")
@@ -41,8 +42,16 @@ class ExploreConfig:
     mode: str = setting("quadrants", help="Exploration", choices=EXPLORE_MODES, cli="--explore")
     overlap: int = setting(0, help="Cells of overlap between neighbouring rovers' blocks")
     sensor_radius: float = setting(12.0, help="traverse: cells a rover observes around its path")
+    layers: tuple[str, ...] = setting(("classes",), help="Map layers the rovers observe and share, comma-separated: "
+                                      "classes, or classes,elevation (the heights, federated as a height grid)",
+                                      choices=LAYERS)
 
     def __post_init__(self) -> None:
+        layers = tuple(self.layers)
+        for name in layers:
+            if name not in LAYERS:
+                raise FedmapError(f"unknown map layer {name!r}{suggest(name, LAYERS)}")
+        object.__setattr__(self, "layers", layers)  # classes are always observed; "elevation" adds the heights
         if isinstance(self.agents, bool) or not isinstance(self.agents, int) or self.agents < 1:
             raise FedmapError(f"agents must be an integer >= 1, got {self.agents!r}")
         if self.mode not in EXPLORE_MODES:
@@ -51,8 +60,15 @@ class ExploreConfig:
             raise FedmapError(f"overlap must be >= 0 and sensor_radius positive, got {self.overlap}, {self.sensor_radius}")
 
     def local_maps(self, truth: GridMap, *, seed: int) -> list[GridMap]:
-        """One local map per rover (:func:`explore`) with these settings."""
-        return explore(truth, self.agents, self.mode, seed=seed, overlap=self.overlap, sensor_radius=self.sensor_radius)
+        """One local map per rover (:func:`explore`) with these settings; with an elevation
+        layer each carries the truth's heights of the cells it observed (NaN elsewhere)."""
+        maps = explore(truth, self.agents, self.mode, seed=seed, overlap=self.overlap, sensor_radius=self.sensor_radius)
+        if "elevation" not in self.layers:
+            return maps
+        if truth.elevation is None:
+            raise FedmapError("an elevation layer needs the terrain's elevation (a DEM, tiles or built-in source, "
+                              "not a class map)")
+        return [m.with_layer("elevation", np.where(m.known, truth.elevation, np.nan)) for m in maps]
 
 
 def _grid_shape(n: int) -> tuple[int, int]:

@@ -19,11 +19,13 @@ from fedmap._schema import setting, wiring
 from fedmap.errors import FedmapError
 from fedmap.evaluation.scores import EvaluateConfig, MapScores
 from fedmap.explore import ExploreConfig
+from fedmap.federation.heightfed import HEIGHT_CODEC, federate_heights
 from fedmap.federation.runner import FederationConfig, FederationResult, RoundRecord, run_federation, total_local_steps
+from fedmap.maps.dem import Dem
 from fedmap.maps.grid import GridMap, check_same_frame, classes_from_rgb
-from fedmap.maps.sources import TerrainSource, load_truth
+from fedmap.maps.sources import TerrainSource, load_terrain, load_truth
 from fedmap.maps.terrain import TERRAIN_KINDS
-from fedmap.maps.traversability import TraversabilityThresholds
+from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
 from fedmap.nets.init import ModelConfig
 from fedmap.nets.init import initial_model as build_initial_model
 from fedmap.nets.model import CoordNet, GridNet, Weights, build_model, get_weights, render, set_weights
@@ -138,6 +140,9 @@ class PipelineResult:
     central_steps: int | None = None  #: its training steps (rounds x local epochs)
     timings: dict = field(default_factory=dict)  #: stage -> seconds
     central_classes: np.ndarray | None = None  #: the centralised bound's class map
+    #: with ``[explore] layers`` holding elevation: the federated heights' scores and bytes
+    #: (:func:`fedmap.federation.heightfed.federate_heights`), else None
+    elevation: dict | None = None
 
     @property
     def metrics(self) -> dict:
@@ -155,6 +160,8 @@ class PipelineResult:
         }
         if self.central_scores is not None:
             out["central"] = {"steps": self.central_steps, **self.central_scores.to_dict()}
+        if self.elevation is not None:
+            out["elevation"] = self.elevation
         return out
 
 
@@ -180,8 +187,15 @@ def run_pipeline(
     timings: dict[str, float] = {}
     t = time.perf_counter()
     stage("terrain", 0)
+    if truth is None and "elevation" in config.explore.layers:
+        truth, dem = load_terrain(config.terrain, seed=config.seed, with_dem=True)
+        if dem is not None:
+            truth = truth.with_layer("elevation", dem.elevation)
     if truth is None:
         truth = load_truth(config.terrain, seed=config.seed)
+    if "elevation" in config.explore.layers and truth.elevation is None:
+        raise FedmapError("an elevation layer needs the terrain's elevation (a DEM, tiles or built-in source, "
+                          "not a class map)")
     if local_maps is None:
         local_maps = build_local_maps(config, truth)
     elif check_same_frame(local_maps) != truth.shape:
@@ -223,5 +237,26 @@ def run_pipeline(
         central_classes = classes_from_rgb(render(central, h, w))
         central_scores = config.score(truth, central_classes)
         timings["central_s"] = time.perf_counter() - t
+    elevation = None
+    if "elevation" in config.explore.layers:
+        t = time.perf_counter()
+        stage("elevation: height grids", 0)
+        elevation = _elevation(config, truth, local_maps)
+        timings["elevation_s"] = time.perf_counter() - t
     return PipelineResult(config, truth, local_maps, model, global_rgb, global_classes, refined, fed, global_scores,
-                          refined_scores, agent_scores, central_scores, steps, timings, central_classes)
+                          refined_scores, agent_scores, central_scores, steps, timings, central_classes, elevation)
+
+
+def _elevation(config: PipelineConfig, truth: GridMap, local_maps: list[GridMap]) -> dict:
+    """Federate the rovers' heights and score them: RMSE and max error, the bytes both ways
+    (and a lossless 1 cm share's, for comparison), and the path F1 of the classes re-derived
+    from the federated heights with the run's thresholds."""
+    assert truth.elevation is not None  # run_pipeline checked it before any work
+    hf = federate_heights(local_maps, seed=config.seed)
+    z = truth.elevation.astype(np.float64)
+    observed = np.any([m.known for m in local_maps], axis=0)
+    derived = dem_to_traversability(Dem(hf.heights.astype(np.float32), truth.pixel_size), config.thresholds).classes
+    return {"method": "height grid", "resolutions": list(hf.resolutions), "codec": HEIGHT_CODEC,
+            **hf.scores(z, observed), "bytes": {"uplink": hf.uplink_bytes, "downlink": hf.downlink_bytes,
+                                                "lossless_1cm_uplink": hf.reference_bytes},
+            "rederived_classes": config.score(truth, derived).to_dict()}

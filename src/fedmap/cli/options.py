@@ -79,6 +79,10 @@ def _panel(s: _schema.Setting) -> str:
     return f"Settings of \\[{s.section}]" if s.section else "Settings"
 
 
+#: Generated options whose setting is a list: their comma-separated value is split.
+_LISTS: set[str] = set()
+
+
 def parameters(settings: Iterable[_schema.Setting], *, presets: bool = False,
                skip: Iterable[str] = ()) -> list[inspect.Parameter]:
     """One keyword parameter (a typer option) per setting that takes one value, but for
@@ -96,6 +100,8 @@ def parameters(settings: Iterable[_schema.Setting], *, presets: bool = False,
             kind = Path
         option = typer.Option(None, *_decls(s, kind), help=help_ + ".", rich_help_panel=_panel(s))
         name = f"{_PREFIX}{s.section}__{s.name}"
+        if s.types == (list,):
+            _LISTS.add(name)
         out.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option,
                                      annotation=Optional[kind]))  # noqa: UP045  (typer reads Optional)
     return out
@@ -143,6 +149,8 @@ def with_settings(params: list[inspect.Parameter], *, terrain: bool = False
                 section, name = p.name.removeprefix(_PREFIX).split("__", 1)
                 if isinstance(value, Path):
                     value = str(value.resolve())
+                if p.name in _LISTS and isinstance(value, str):  # "classes,elevation"
+                    value = [v.strip() for v in value.split(",") if v.strip()]
                 settings = merge(settings, {section: {name: value}} if section else {name: value})
             return func(**kwargs, settings=settings)
 

@@ -67,6 +67,13 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
     b = result.federation.total_bytes()
     console.print(f"link: {b.uplink:,} B uplink ({fed.uplink}), {b.downlink:,} B downlink ({fed.downlink}) in "
                   f"total; {b.uplink_per_agent_round:,.0f} B per rover per round uplink")
+    if result.elevation is not None:
+        e = result.elevation
+        console.print(f"elevation: height grids {e['resolutions']}, {e['codec']}: RMSE {e['observed']['rmse_m']:.4f} m "
+                      f"(max {e['observed']['max_error_m']:.4f} m) on the observed cells, {e['bytes']['uplink']:,} B "
+                      f"uplink (a lossless 1 cm share: {e['bytes']['lossless_1cm_uplink']:,} B), "
+                      f"{e['bytes']['downlink']:,} B downlink; classes re-derived from it: strict path F1 "
+                      f"{e['rederived_classes']['path']['f1']:.2f}", soft_wrap=True)
     console.print(f"outputs: {out}/  (config.toml, metrics.json, figure.png, global_model.safetensors, maps)")
     console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
 

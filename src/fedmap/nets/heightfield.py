@@ -156,6 +156,58 @@ def decode_heightnet(payload: bytes) -> np.ndarray:
     return out.reshape(h, w) * float(meta["std"]) + float(meta["mean"])
 
 
+class HeightGrid(nn.Module):
+    """fedmap's GridNet with an elevation head: trainable one-channel grids at ``resolutions``
+    (bilinear, corners aligned to the map's corners), summed into one normalised height.
+    A grid entry only moves where its cells have data, so coverage-aware averaging
+    (:func:`~fedmap.federation.aggregate.coverage_average`) merges the rovers' fits into
+    their union."""
+
+    def __init__(self, resolutions: tuple[int, ...]) -> None:
+        super().__init__()
+        if not resolutions or min(resolutions) < 2:
+            raise FedmapError(f"a height grid needs resolutions >= 2, got {resolutions}")
+        self.resolutions = tuple(int(r) for r in resolutions)
+        self.grids = nn.ParameterList([nn.Parameter(torch.zeros(1, 1, r, r)) for r in self.resolutions])
+
+    def forward(self, coords: torch.Tensor) -> torch.Tensor:  # (N, 2) in (0, 1)^2 -> (N,)
+        g = (coords * 2 - 1).flip(-1).view(1, -1, 1, 2)  # grid_sample takes (x, y) = (col, row)
+        out = torch.zeros(coords.shape[0])
+        for p in self.grids:
+            out = out + nn.functional.grid_sample(p, g, mode="bilinear", align_corners=False).view(-1)
+        return out
+
+
+def fit_height_grid(model: HeightGrid, z: np.ndarray, *, mean: float, std: float, steps: int = 300,
+                    lr: float = 0.1) -> list[float]:
+    """Train ``model`` in place on the known cells of ``z`` (normalised by ``mean``/``std``,
+    the team's, so every rover's grid is on one scale); full batch, Adam."""
+    z = np.asarray(z, dtype=np.float64)
+    known = np.isfinite(z)
+    if not known.any():
+        raise RejectedUpdate("no known height to train on")
+    coords = _coords(*z.shape)[torch.from_numpy(known.reshape(-1))]
+    target = torch.from_numpy(((z[known] - mean) / std).astype(np.float32))
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    losses = []
+    for _ in range(steps):
+        opt.zero_grad(set_to_none=True)
+        loss = torch.mean((model(coords) - target) ** 2)
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    if not np.isfinite(losses[-1]):
+        raise RejectedUpdate("the height grid's training diverged")
+    return losses
+
+
+def render_height_grid(model: HeightGrid, shape: tuple[int, int], *, mean: float, std: float) -> np.ndarray:
+    """The heights (metres) a height grid renders on a ``shape`` map."""
+    with torch.no_grad():
+        out = model(_coords(*shape)).numpy().astype(np.float64)
+    return out.reshape(shape) * std + mean
+
+
 def render_fit(fit: HeightFit) -> np.ndarray:
     """What the receiver decodes from :func:`encode_heightnet` of ``fit`` (the int8 weights)."""
     return decode_heightnet(encode_heightnet(fit))
