@@ -412,3 +412,34 @@ def test_rate_control_sends_the_best_update_that_fits_rather_than_nothing():
     s = run.strategy
     for k in range(2):  # on a perfect link every rover ends holding the base's model, bit for bit
         assert s.rover_version[k] == s.bc.version
+
+
+def test_training_on_what_changed_selects_the_new_cells_and_a_seeded_replay_sample():
+    from fedmap.mission.strategies import MIN_REPLAY
+
+    truth = maze(40, seed=2)
+    base = dict(rovers=2, steps=30, sync_every=10, speed=2, sensor_radius=4.0, eval_pairs=8,
+                strategies=("fedmap",), methods={"fedmap": {"epochs": 5}}, link=LinkConfig(loss=0.0))
+    whole = run_mission(MissionConfig(**base), truth).runs["fedmap"].strategy
+    changed = run_mission(MissionConfig(**base, train_on="changed", replay=0.5), truth).runs["fedmap"].strategy
+    # the whole map: every known cell at every sync (fedmap's preset trains masked)
+    for rec in whole.trained_cells:
+        assert rec["cells"] > 0
+    # round 1 trains on the whole map; later rounds on the new cells and a replay sample
+    first = [r for r in changed.trained_cells if r["round"] == 1]
+    assert first and all(r["cells"] > 0 for r in first)
+    later = [r for r in changed.trained_cells if r["round"] > 1]
+    assert later
+    for rec in later:
+        k = rec["rover"]
+        r = changed.team[k]
+        # from the record of when each cell was first observed: the new cells are those observed
+        # after the last cell it had at the previous sync, up to this sync; the rest replay
+        prev, hi = (rec["round"] - 1) * 10, rec["round"] * 10
+        seen = r.obs_step[(r.obs_step >= 0) & (r.obs_step <= prev)]
+        since = int(seen.max())
+        new = int(((r.obs_step > since) & (r.obs_step <= hi)).sum())
+        old = int(((r.obs_step >= 0) & (r.obs_step <= since)).sum())
+        assert rec["cells"] == new + min(old, max(int(np.ceil(0.5 * new)), MIN_REPLAY))
+    with pytest.raises(FedmapError, match="did you mean 'changed'"):
+        MissionConfig(train_on="chanegd")

@@ -83,3 +83,27 @@ def test_config_validation():
         TrainConfig(epochs=-1)
     with pytest.raises(FedmapError):
         TrainConfig(batch=1)
+
+
+def test_training_on_a_selection_is_training_on_the_map_with_the_rest_unknown(tiny_net, blob_map):
+    """``select`` keeps only those cells: with masked training that is the same as a map whose
+    other cells are UNKNOWN (an independent way to say "train on these cells only"; without
+    BatchNorm, whose batch statistics would see the unknown rows)."""
+    from dataclasses import replace
+
+    net = replace(tiny_net, batchnorm=False)
+    rng = np.random.default_rng(0)
+    select = rng.random(blob_map.shape) < 0.3
+    cfg = TrainConfig(epochs=5, lr=1e-2, masked=True, precision="fp32")
+    a, b = build_model(net, seed=0), build_model(net, seed=0)
+    init = get_weights(a)
+    la = fit(a, blob_map, cfg, seed=3, select=select)
+    lb = fit(b, blob_map.with_classes(np.where(select, blob_map.classes, UNKNOWN)), cfg, seed=3)
+    np.testing.assert_allclose(la, lb, rtol=1e-5)
+    for k, v in get_weights(a).items():
+        np.testing.assert_allclose(v, get_weights(b)[k], rtol=1e-5, atol=1e-6)
+    assert any(not np.array_equal(v, init[k]) for k, v in get_weights(a).items())
+    with pytest.raises(FedmapError, match="selection"):
+        fit(a, blob_map, cfg, select=select[:-1])
+    with pytest.raises(RejectedUpdate, match="no selected cell"):
+        fit(a, blob_map, cfg, select=np.zeros(blob_map.shape, bool))

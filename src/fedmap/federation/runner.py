@@ -436,6 +436,7 @@ def rover_step(
     round_idx: int,
     agent: int,
     on_step: Callable[[int, float], None] | None = None,
+    select: np.ndarray | None = None,
 ) -> tuple[bytes, float | None]:
     """One rover's part of a round: start from ``held``, fit, check, encode.
 
@@ -444,10 +445,12 @@ def rover_step(
     :func:`agent_seed` ``(config.seed, round_idx, agent)``. Returns the uplink payload
     (relative to ``held`` for update codecs) and the last training loss. Raises
     :class:`~fedmap.errors.RejectedUpdate` when training diverges or the weights are not
-    finite; any other error is a mistake that stops the run.
+    finite; any other error is a mistake that stops the run. ``select`` restricts training to
+    some cells (:func:`~fedmap.nets.training.fit`).
     """
     set_weights(model, held)
-    steps = fit(model, local, config.local, seed=agent_seed(config.seed, round_idx, agent), on_step=on_step)
+    steps = fit(model, local, config.local, seed=agent_seed(config.seed, round_idx, agent), on_step=on_step,
+                select=select)
     w = get_weights(model)
     if not all(np.isfinite(v).all() for v in w.values()):
         raise RejectedUpdate("update holds NaN or infinite weights")

@@ -62,6 +62,8 @@ PROFILES: tuple[str, ...] = ("team", *ROVER_NAMES)
 #: Who talks to whom (:mod:`fedmap.mission.link`).
 TOPOLOGIES: tuple[str, ...] = ("star", "mesh", "leader")
 MODES: tuple[str, ...] = ("frontier", "waypoints")
+#: What a model strategy's rover trains on at a sync (``[mission] train_on``).
+TRAIN_ON: tuple[str, ...] = ("map", "changed")
 #: ``[strategies.predictive]``: the parts of the predictive coder, each with its default first
 #: (the others are ablations, for measuring what each part saves): ``prior``, the coder's
 #: initial state (the shipped learned one, or none); ``mask``, which cells a message codes
@@ -289,6 +291,11 @@ class MissionConfig:
     unknown_cost: float = setting(1.5, help="Cost of an unknown cell relative to a known free one when rating targets")
     strategies: tuple[str, ...] = setting(DEFAULT_STRATEGIES, help="Ways of sharing to run side by side, "
                                           "comma-separated", choices=STRATEGIES)
+    train_on: str = setting("map", help="Model strategies: what a rover trains on at a sync: map (its whole map) or "
+                            "changed (the cells it observed since its last sync, and a replay sample of the rest)",
+                            choices=TRAIN_ON)
+    replay: float = setting(1.0, help="train_on = changed: the replay sample's size, as a multiple of the changed "
+                            "cells")
     eval_pairs: int = setting(40, help="Start/goal pairs of the path F1 (scored at step 0, every sync and the end)")
     link: LinkConfig = wiring(default_factory=LinkConfig)
     prior: PriorConfig = wiring(default_factory=PriorConfig)
@@ -314,6 +321,10 @@ class MissionConfig:
                               f"got {self.sensor_radius!r}")
         if not (math.isfinite(self.unknown_cost) and self.unknown_cost >= 1):
             raise FedmapError(f"unknown_cost must be >= 1, got {self.unknown_cost!r}")
+        if self.train_on not in TRAIN_ON:
+            raise FedmapError(f"unknown train_on {self.train_on!r}{suggest(self.train_on, TRAIN_ON)}")
+        if not (math.isfinite(self.replay) and self.replay >= 0):
+            raise FedmapError(f"replay must be >= 0, got {self.replay!r}")
         if self.mode not in MODES:
             raise FedmapError(f"unknown mode {self.mode!r}{suggest(self.mode, MODES)}")
         object.__setattr__(self, "strategies", check_strategies(self.strategies))

@@ -465,7 +465,8 @@ class _Run:
         else:
             self.strategy = make_strategy(name, truth, self.team, budget, methods=config.methods,
                                           seed=config.seed, radius=config.sensor_radius,
-                                          height_q=config.elevation_q_m if "elevation" in config.layers else None)
+                                          height_q=config.elevation_q_m if "elevation" in config.layers else None,
+                                          train_on=config.train_on, replay=config.replay)
         self.links: tuple[tuple[int, int], ...] = ()
         # each rover's own classes of the terrain (None: it follows the shared thresholds), and its scorer
         names = [*config.rover_profiles, *(["team"] * config.helicopters)]

@@ -34,6 +34,7 @@ targets with it.
 
 from __future__ import annotations
 
+import math
 import struct
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -84,6 +85,8 @@ MISSION_DEFAULTS: dict[str, dict] = {"paper": {"epochs": 50, "versions_kept": 8}
 #: Rate control: the top-k fractions a model strategy tries, largest first, when an update in
 #: its own codec does not fit the uplink budget (values int8, zstd, with error feedback).
 RATE_FRACTIONS: tuple[float, ...] = (0.1, 0.03, 0.01, 0.003, 0.001, 0.0003)
+#: ``train_on = "changed"``: the fewest replayed cells a sync trains on (when little changed).
+MIN_REPLAY = 256
 #: Torch threads while a mission trains or renders. The models are small and trained one
 #: after another; on a shared 2-core machine two OpenMP threads per process spin against
 #: other processes and made one GridNet fit 20x slower than one thread (measured: 17-23 s
@@ -425,9 +428,12 @@ class Model(Strategy):
     shares = True
 
     def __init__(self, truth: GridMap, team: list, budget: dict[str, int | None], *, method: str,
-                 settings: dict, seed: int) -> None:
+                 settings: dict, seed: int, train_on: str = "map", replay: float = 1.0) -> None:
         super().__init__(truth, team, budget)
         self.name = method
+        self.train_on, self.replay, self.seed = train_on, replay, seed
+        self.last_trained = [-1 for _ in team]  # the step each rover last trained at (-1: never)
+        self.trained_cells: list[dict] = []  # per training: round, rover, cells trained on
         pc = method_config(method, **{**MISSION_DEFAULTS.get(method, {}), **settings, "seed": seed})
         self.fed = pc.federation
         self.net_config = pc.model.network(self.shape[0])
@@ -475,10 +481,11 @@ class Model(Strategy):
         r = self.team[k]
         local = self.truth.with_classes(r.local, f"rover {k}")
         before = self.up_encs[k].state()
+        select = self._selection(k, round_no)
         try:
             with torch_threads():
                 body, loss = rover_step(self.model, local, self.rover_held[k], self.up_encs[k], self.fed,
-                                        round_idx=round_no - 1, agent=k)
+                                        round_idx=round_no - 1, agent=k, select=select)
         except RejectedUpdate as e:
             self.dropped.append(DroppedUpdate(round_no, k, str(e)))
             return None
@@ -490,6 +497,27 @@ class Model(Strategy):
             self.up_encs[k].restore(before)  # the update that did not fit was not sent
             payload, kind = self._fitted_update(k, r, b)
         return Outgoing(payload, kind, {"known": local.n_known})
+
+    def _selection(self, k: int, round_no: int) -> np.ndarray | None:
+        """``train_on = "changed"``: the cells rover ``k`` observed since it last trained, and
+        a seeded replay sample of ``replay`` times as many of the rest it trains on (known
+        cells for a masked preset, every cell for the paper's); None: its whole map."""
+        r = self.team[k]
+        since = self.last_trained[k]
+        self.last_trained[k] = int(r.obs_step.max())
+        if self.train_on == "map" or since < 0:
+            self.trained_cells.append({"round": round_no, "rover": k, "cells": int((r.local != UNKNOWN).sum())
+                                       if self.fed.local.masked else int(r.local.size)})
+            return None
+        changed = r.obs_step > since
+        pool = np.flatnonzero(((r.local != UNKNOWN) if self.fed.local.masked else np.ones(r.local.shape, bool))
+                              & ~changed)
+        n = min(len(pool), max(int(math.ceil(self.replay * int(changed.sum()))), MIN_REPLAY))
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, round_no, k, 9]))
+        select = changed.copy()
+        select.reshape(-1)[rng.choice(pool, size=n, replace=False)] = True
+        self.trained_cells.append({"round": round_no, "rover": k, "cells": int(select.sum())})
+        return select
 
     def _fitted_update(self, k: int, r, budget: int) -> tuple[bytes | None, str]:
         """Top-k of the update just trained (the model's weights now), rate-controlled
@@ -652,7 +680,8 @@ def _rate_controlled(state: Weights | None, attempt: Callable[[Encoder], T],
 
 
 def make_strategy(name: str, truth: GridMap, team: list, budget: dict[str, int | None], *, methods: dict,
-                  seed: int, radius: float, height_q: float | None = None) -> Strategy:
+                  seed: int, radius: float, height_q: float | None = None, train_on: str = "map",
+                  replay: float = 1.0) -> Strategy:
     """A fresh strategy of ``name`` for one run (``height_q``: share heights at that step,
     with an elevation layer; ``raw`` and ``central`` do)."""
     if name == "none":
@@ -663,7 +692,8 @@ def make_strategy(name: str, truth: GridMap, team: list, budget: dict[str, int |
         return Raw(truth, team, budget, height_q=height_q)
     if name == "predictive":
         return Predictive(truth, team, budget, radius=radius, options=methods.get(name))
-    return Model(truth, team, budget, method=name, settings=dict(methods.get(name, {})), seed=seed)
+    return Model(truth, team, budget, method=name, settings=dict(methods.get(name, {})), seed=seed,
+                 train_on=train_on, replay=replay)
 
 
 def cover(positions, shape: tuple[int, int], radius: float) -> np.ndarray:

@@ -140,13 +140,15 @@ def fit(
     seed: int = 0,
     on_step: Callable[[int, float], None] | None = None,
     penalty: Callable[[], torch.Tensor] | None = None,
+    select: np.ndarray | None = None,
 ) -> list[float]:
     """Train ``model`` in place on ``grid``; returns the loss of every step.
 
     ``on_step(step, loss)`` is called after each optimiser step (progress bars hook here).
     ``penalty()``, when given, is added to the data loss at every step (a term on the
     model's parameters, e.g. the augmented Lagrangian of decentralised ADMM); the losses
-    returned include it.
+    returned include it. ``select`` (boolean, the map's shape), when given, restricts
+    training to those cells (e.g. what changed since the last sync and a replay sample).
 
     With ``config.precision == "bf16"`` the Fourier MLP's matrix products run in bfloat16
     (autocast) on features cached once in bfloat16; the sigmoid, the loss, the gradients'
@@ -155,6 +157,15 @@ def fit(
     """
     keep_freed_memory()
     coords, target, weight = map_targets(grid, masked=config.masked)
+    if select is not None:
+        if np.shape(select) != grid.shape:
+            raise FedmapError(f"training selection {np.shape(select)} does not match the map {grid.shape}")
+        keep = torch.from_numpy(np.asarray(select, dtype=bool).reshape(-1))
+        if config.masked:
+            keep &= weight > 0
+        coords, target, weight = coords[keep], target[keep], weight[keep]
+        if not keep.any():
+            raise RejectedUpdate(f"map {grid.source!r} has no selected cell to train on")
     if config.masked and not weight.any():
         raise RejectedUpdate(f"map {grid.source!r} has no known cell to train on")
     bf16 = False
