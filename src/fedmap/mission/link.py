@@ -64,11 +64,10 @@ class Topology(Protocol):
 
     The link asks it whether a rover's message can reach the base; the mission asks it
     where a rover may go and still reach the base (``stay_in_range``). :class:`StarTopology`
-    (every rover talks only to the base, within range of it) is the mission's one
-    implementation. A mesh topology (rovers relay for each other, peer to peer, within
-    range of each other) or a leader topology (an elected rover relays the team's traffic)
-    would be another implementation of this protocol: the link, strategies and mission
-    loop only ask it, and compute no reachability themselves.
+    (every rover talks only to the base, within range of it) and :class:`MeshTopology`
+    (agents within range of each other talk peer to peer; the ``leader`` topology elects
+    leaders over it) implement it: the link, strategies and mission loop only ask it, and
+    compute no reachability themselves.
     """
 
     def neighbours(self, agent: int, positions: Sequence[Cell]) -> tuple[int, ...]:
