@@ -449,8 +449,9 @@ def rover_step(
     some cells (:func:`~fedmap.nets.training.fit`).
     """
     set_weights(model, held)
-    steps = fit(model, local, config.local, seed=agent_seed(config.seed, round_idx, agent), on_step=on_step,
-                select=select)
+    seed = agent_seed(config.seed, round_idx, agent)
+    steps = (fit(model, local, config.local, seed=seed, on_step=on_step) if select is None else
+             fit(model, local, config.local, seed=seed, on_step=on_step, select=select))
     w = get_weights(model)
     if not all(np.isfinite(v).all() for v in w.values()):
         raise RejectedUpdate("update holds NaN or infinite weights")
