@@ -436,3 +436,26 @@ def test_height_noise_is_seeded_and_measured():
     z = a.runs["raw"].strategy.global_heights()
     assert 0.15 < a.runs["raw"].summary.final_height_rmse_m < 0.25
     assert np.isfinite(z).sum() > 0
+
+
+def test_under_leaders_each_admm_agent_takes_one_primal_step_per_round():
+    from fedmap.mission import peers
+
+    calls: list[tuple[int, int]] = []
+    original = peers.Admm._primal
+
+    def counting(self, i, round_no, p_sum, mids):
+        calls.append((round_no, i))
+        return original(self, i, round_no, p_sum, mids)
+
+    truth = maze(32, seed=4)
+    cfg = _mission(link=dict(topology="leader", loss=0.0, peer_range=100.0), strategies=("admm",), steps=20,
+                   methods={"admm": {"epochs": 3}})
+    peers.Admm._primal = counting
+    try:
+        run_mission(cfg, truth)
+    finally:
+        peers.Admm._primal = original
+    assert calls and len(calls) == len(set(calls))  # never twice in one round
+    assert {r for r, _ in calls} == set(range(1, len(cfg.sync_steps) + 1))
+    assert {i for _, i in calls} == {0, 1, 2}  # the lander (the leader) takes the exact step instead

@@ -38,6 +38,7 @@ the whole team agrees on: each cell that every rover's belief holds with the sam
 from __future__ import annotations
 
 import struct
+from collections.abc import Collection
 
 import numpy as np
 
@@ -131,8 +132,9 @@ class PeerStrategy(Strategy):
     def peer_acked(self, a: int, b: int, ctx: dict) -> None:
         pass
 
-    def peer_round(self, round_no: int) -> None:
-        pass
+    def peer_round(self, round_no: int, agents: Collection[int] | None = None) -> None:
+        """Close round ``round_no`` for ``agents`` (None: every agent) once their messages
+        have arrived (on ``leader``: the leaders first, then their members)."""
 
 
 class RawGossip(PeerStrategy):
@@ -256,20 +258,22 @@ class ModelGossip(PeerStrategy):
     def peer_acked(self, a: int, b: int, ctx: dict) -> None:
         self.ref[self._i(a)][self._i(b)] = ctx["decoded"]
 
-    def peer_round(self, round_no: int) -> None:
-        """Every agent mixes the models that arrived this round (Metropolis weights)."""
-        new = []
-        for i in range(self.n + 1):
+    def _closing(self, agents: Collection[int] | None) -> list[int]:
+        """The agents' indices (the lander is ``n``) that close their round now."""
+        return [i for i in range(self.n + 1) if agents is None or (BASE if i == self.n else i) in agents]
+
+    def peer_round(self, round_no: int, agents: Collection[int] | None = None) -> None:
+        """Each closing agent mixes the models that arrived this round (Metropolis weights)."""
+        new = list(self.w)
+        for i in self._closing(agents):
             agent = BASE if i == self.n else i
-            got = self.inbox[i]
+            got, self.inbox[i] = self.inbox[i], {}
             if not got:
-                new.append(self.w[i])
                 continue
             mine = self.degree.get(agent, len(got))
             nbrs = [(w, metropolis_weight(mine, d)) for w, d in got.values()]
-            new.append(metropolis_mix(self.w[i], nbrs, untouched=self.init if self.coverage else None))
+            new[i] = metropolis_mix(self.w[i], nbrs, untouched=self.init if self.coverage else None)
         self.w = new
-        self.inbox = [{} for _ in range(self.n + 1)]
 
 
 #: C-ADMM's penalty parameter rho (DiNNO's): the weight of the pull towards each
@@ -301,15 +305,16 @@ class Admm(ModelGossip):
     def at_sync(self, round_no: int) -> None:
         """Nothing before the messages: C-ADMM trains after it heard its neighbours."""
 
-    def peer_round(self, round_no: int) -> None:
+    def peer_round(self, round_no: int, agents: Collection[int] | None = None) -> None:
+        """Each closing agent's dual and primal steps (a rover that heard nobody this round
+        trains on its own map alone)."""
         rho = ADMM_RHO
-        new = []
+        new = list(self.w)
         names = [n for n, _ in self.model.named_parameters()]
-        for i in range(self.n + 1):
-            got = self.inbox[i]
+        for i in self._closing(agents):
+            got, self.inbox[i] = self.inbox[i], {}
             mine = self.w[i]
             if not got and i == self.n:
-                new.append(mine)
                 continue
             p_sum = {k: np.zeros_like(mine[k], dtype=np.float64) for k in names}
             mids = []
@@ -323,11 +328,10 @@ class Admm(ModelGossip):
                 out = dict(mine)
                 for k in names:
                     out[k] = admm_consensus(p_sum[k], [m[k] for m in mids], rho).astype(np.float32)
-                new.append(out)
+                new[i] = out
                 continue
-            new.append(self._primal(i, round_no, p_sum, mids))
+            new[i] = self._primal(i, round_no, p_sum, mids)
         self.w = new
-        self.inbox = [{} for _ in range(self.n + 1)]
 
     def _primal(self, i: int, round_no: int, p_sum: dict, mids: list[dict]) -> Weights:
         import torch  # the network's own library; imported here to keep the module's import light

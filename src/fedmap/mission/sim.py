@@ -774,7 +774,7 @@ class _Run:
             for a, b in pairs:
                 self._offer(s, [a, b], t, round_no, "peer")
                 self._offer(s, [b, a], t, round_no, "peer")
-            self._push(t + lat, "peer_round", round_no)
+            self._push(t + lat, "peer_round", round_no, None)
             return
         mesh = self.topology
         assert isinstance(mesh, MeshTopology)
@@ -786,7 +786,7 @@ class _Run:
         for _m, r in routes.items():
             assert r is not None
             self._offer(s, r, t, round_no, "up")
-        self._push(t + lat * hops, "lead", round_no, routes, hops)
+        self._push(t + lat * hops, "lead", round_no, routes, hops, self.leaders)
 
     def deliver(self, t: int) -> None:
         s = self.strategy
@@ -802,16 +802,17 @@ class _Run:
                 else:
                     msg.status = "stale"
             elif kind == "lead":  # leaders have what their members sent: they mix, and answer
-                round_no, routes, hops = data
+                round_no, routes, hops, leaders = data
                 assert isinstance(s, PeerStrategy)
-                s.peer_round(round_no)
+                s.peer_round(round_no, agents=leaders)
                 for _m, r in routes.items():
                     self._offer(s, r[::-1], due, round_no, "down")
-                self._push(due + self.config.link.latency * hops, "peer_round", round_no)
+                members = tuple(a for a in (BASE, *range(len(self.team))) if a not in leaders)
+                self._push(due + self.config.link.latency * hops, "peer_round", round_no, members)
             elif kind == "peer_round":
-                (round_no,) = data
+                round_no, closing = data
                 assert isinstance(s, PeerStrategy)
-                s.peer_round(round_no)
+                s.peer_round(round_no, agents=closing)
                 for r in self.team:
                     r.replan = True
             elif kind == "up":
