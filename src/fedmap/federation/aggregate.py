@@ -92,6 +92,19 @@ class FedAvg:
         return {}
 
 
+def _touched_mean(reference: np.ndarray, weighted: list[tuple[np.ndarray, float]], fallback: np.ndarray) -> np.ndarray:
+    """Per entry, the weighted mean of the ``weighted`` ``(values, weight)`` whose entry
+    differs from ``reference``; ``fallback`` where none does. float64 in, float32 out."""
+    num = np.zeros_like(reference)
+    den = np.zeros_like(reference)
+    for values, weight in weighted:
+        v = np.asarray(values, dtype=np.float64)
+        touched = v != reference
+        num += np.where(touched, weight * v, 0.0)
+        den += np.where(touched, weight, 0.0)
+    return np.where(den > 0, num / np.maximum(den, 1e-300), fallback).astype(np.float32)
+
+
 def coverage_average(global_w: Weights, updates: list[Weights], counts: list[float]) -> Weights:
     """Per-entry weighted average over the agents whose value differs from ``global_w``."""
     _check_updates(updates, counts)
@@ -99,14 +112,7 @@ def coverage_average(global_w: Weights, updates: list[Weights], counts: list[flo
     out: Weights = {}
     for k, g in global_w.items():
         g64 = np.asarray(g, dtype=np.float64)
-        num = np.zeros_like(g64)
-        den = np.zeros_like(g64)
-        for ck, u in zip(c, updates):
-            uk = np.asarray(u[k], dtype=np.float64)
-            touched = uk != g64
-            num += np.where(touched, ck * uk, 0.0)
-            den += np.where(touched, ck, 0.0)
-        out[k] = np.where(den > 0, num / np.maximum(den, 1e-300), g64).astype(np.float32)
+        out[k] = _touched_mean(g64, [(u[k], float(ck)) for ck, u in zip(c, updates)], g64)
     return out
 
 
@@ -145,15 +151,7 @@ def metropolis_mix(own: Weights, neighbours: list[tuple[Weights, float]], *,
             out[k] = acc.astype(np.float32)
             continue
         base = np.asarray(untouched[k], dtype=np.float64)
-        touched = mine != base
-        num = np.where(touched, self_w * mine, 0.0)
-        den = np.where(touched, self_w, 0.0)
-        for (w, mj) in neighbours:
-            wk = np.asarray(w[k], dtype=np.float64)
-            t = wk != base
-            num += np.where(t, mj * wk, 0.0)
-            den += np.where(t, mj, 0.0)
-        out[k] = np.where(den > 0, num / np.maximum(den, 1e-300), mine).astype(np.float32)
+        out[k] = _touched_mean(base, [(mine, self_w), *((w[k], mj) for w, mj in neighbours)], mine)
     return out
 
 
