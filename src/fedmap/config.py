@@ -42,7 +42,7 @@ from fedmap import _schema
 from fedmap._util import check_keys, suggest
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import GridMap
-from fedmap.maps.sources import READER_OPTIONS, TerrainSource, load_terrain, load_truth
+from fedmap.maps.sources import READER_OPTIONS, TerrainSource, load_truth
 from fedmap.maps.traversability import rover_profile
 from fedmap.pipeline import MAX_SIDE, MIN_SIDE, PipelineConfig, preset_names
 
@@ -296,15 +296,7 @@ def load_run(config_path: str | Path | None = None, overrides: list[dict] | None
     source = terrain_source(resolved)
     resolved["terrain"] = {k: v for k, v in source.to_dict().items() if k != "thresholds"}
     config = to_pipeline_config(resolved, label=source.label)  # a bad setting stops the run before any terrain work
-    layers = resolved.get("explore", {}).get("layers", ("classes",))
-    if "elevation" in layers:  # the truth carries its heights: read the DEM once
-        truth, dem = load_terrain(source, seed=resolved["seed"], with_dem=True)
-        if dem is None:
-            raise FedmapError("an elevation layer needs the terrain's elevation (a DEM, tiles or built-in source, "
-                              "not a class map)")
-        truth = truth.with_layer("elevation", dem.elevation)
-    else:
-        truth = load_truth(source, seed=resolved["seed"])
+    truth = load_truth(source, seed=resolved["seed"], elevation="elevation" in config.explore.layers)
     h, w = truth.shape
     if h != w or not MIN_SIDE <= h <= MAX_SIDE:
         raise FedmapError(f"the terrain map is {h}x{w} cells; the pipeline needs a square map of {MIN_SIDE}..{MAX_SIDE} "

@@ -26,10 +26,10 @@ import numpy as np
 from scipy import ndimage
 
 from fedmap._schema import setting
-from fedmap._util import suggest
 from fedmap.errors import FedmapError
-from fedmap.maps.grid import LAYERS, UNKNOWN, GridMap
+from fedmap.maps.grid import LAYERS, UNKNOWN, GridMap, check_layers
 from fedmap.maps.planning import astar, passable_mask
+from fedmap.maps.sources import needs_dem
 
 EXPLORE_MODES = ("quadrants", "strips", "grid", "traverse")
 
@@ -47,11 +47,8 @@ class ExploreConfig:
                                       choices=LAYERS)
 
     def __post_init__(self) -> None:
-        layers = tuple(self.layers)
-        for name in layers:
-            if name not in LAYERS:
-                raise FedmapError(f"unknown map layer {name!r}{suggest(name, LAYERS)}")
-        object.__setattr__(self, "layers", layers)  # classes are always observed; "elevation" adds the heights
+        # classes are always observed; "elevation" adds the heights
+        object.__setattr__(self, "layers", check_layers(self.layers))
         if isinstance(self.agents, bool) or not isinstance(self.agents, int) or self.agents < 1:
             raise FedmapError(f"agents must be an integer >= 1, got {self.agents!r}")
         if self.mode not in EXPLORE_MODES:
@@ -66,8 +63,7 @@ class ExploreConfig:
         if "elevation" not in self.layers:
             return maps
         if truth.elevation is None:
-            raise FedmapError("an elevation layer needs the terrain's elevation (a DEM, tiles or built-in source, "
-                              "not a class map)")
+            raise needs_dem("an elevation layer")
         return [m.with_layer("elevation", np.where(m.known, truth.elevation, np.nan)) for m in maps]
 
 

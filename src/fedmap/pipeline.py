@@ -23,7 +23,7 @@ from fedmap.federation.heightfed import HEIGHT_CODEC, federate_heights
 from fedmap.federation.runner import FederationConfig, FederationResult, RoundRecord, run_federation, total_local_steps
 from fedmap.maps.dem import Dem
 from fedmap.maps.grid import GridMap, check_same_frame, classes_from_rgb
-from fedmap.maps.sources import TerrainSource, load_terrain, load_truth
+from fedmap.maps.sources import TerrainSource, load_truth, needs_dem
 from fedmap.maps.terrain import TERRAIN_KINDS
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
 from fedmap.nets.init import ModelConfig
@@ -187,15 +187,11 @@ def run_pipeline(
     timings: dict[str, float] = {}
     t = time.perf_counter()
     stage("terrain", 0)
-    if truth is None and "elevation" in config.explore.layers:
-        truth, dem = load_terrain(config.terrain, seed=config.seed, with_dem=True)
-        if dem is not None:
-            truth = truth.with_layer("elevation", dem.elevation)
+    heights = "elevation" in config.explore.layers
     if truth is None:
-        truth = load_truth(config.terrain, seed=config.seed)
-    if "elevation" in config.explore.layers and truth.elevation is None:
-        raise FedmapError("an elevation layer needs the terrain's elevation (a DEM, tiles or built-in source, "
-                          "not a class map)")
+        truth = load_truth(config.terrain, seed=config.seed, elevation=heights)
+    if heights and truth.elevation is None:
+        raise needs_dem("an elevation layer")
     if local_maps is None:
         local_maps = build_local_maps(config, truth)
     elif check_same_frame(local_maps) != truth.shape:

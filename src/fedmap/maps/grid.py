@@ -149,8 +149,7 @@ class GridMap:
         ``name`` must be one of :data:`LAYERS` and ``array`` must have the map's shape;
         a ``classes`` layer must hold integer class codes (stored as uint8).
         """
-        if name not in LAYERS:
-            raise FedmapError(f"unknown map layer {name!r}{suggest(name, LAYERS)}")
+        check_layers([name])
         a = np.asarray(array)
         if a.shape != self.shape:
             raise FedmapError(f"layer {name!r} has shape {_shape(a.shape)}, but the map is {_shape(self.shape)}")
@@ -176,6 +175,16 @@ def check_classes(classes: np.ndarray, what: str = "class map") -> np.ndarray:
     if a.min() < 0 or a.max() > UNKNOWN:
         raise FedmapError(f"{what} must hold classes 0, 1, 2 (free, impassable, unknown), got {a.min()}..{a.max()}")
     return a.astype(np.uint8, copy=False)
+
+
+def check_layers(names) -> tuple[str, ...]:
+    """``names`` as a tuple of layer names; a one-line error (with a suggestion) for one that
+    is not in :data:`LAYERS`."""
+    names = tuple(names)
+    for name in names:
+        if name not in LAYERS:
+            raise FedmapError(f"unknown map layer {name!r}{suggest(name, LAYERS)}")
+    return names
 
 
 def check_elevation(elevation: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

@@ -209,9 +209,20 @@ def _nearest_classes(classes: np.ndarray, size: int) -> np.ndarray:
     return classes[np.ix_(idx, idx)]
 
 
-def load_truth(source: TerrainSource, *, seed: int = 0) -> GridMap:
-    """The ground-truth traversability map of a source (see the module docstring)."""
-    return load_terrain(source, seed=seed, with_dem=False)[0]
+def needs_dem(what: str) -> FedmapError:
+    """The one-line error for a feature that needs the terrain's elevation on a class map."""
+    return FedmapError(f"{what} needs the terrain's elevation (a DEM, tiles or built-in source, not a class map)")
+
+
+def load_truth(source: TerrainSource, *, seed: int = 0, elevation: bool = False) -> GridMap:
+    """The ground-truth traversability map of a source (see the module docstring); with
+    ``elevation``, carrying the DEM it was classified from as its ``elevation`` layer."""
+    truth, dem = load_terrain(source, seed=seed, with_dem=elevation)
+    if not elevation:
+        return truth
+    if dem is None:
+        raise needs_dem("an elevation layer")
+    return truth.with_layer("elevation", dem.elevation)
 
 
 def load_terrain(source: TerrainSource, *, seed: int = 0, with_dem: bool = True) -> tuple[GridMap, Dem | None]:

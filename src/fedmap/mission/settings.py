@@ -42,8 +42,8 @@ from fedmap.config import (
     with_rover_profile,
 )
 from fedmap.errors import FedmapError
-from fedmap.maps.grid import LAYERS
-from fedmap.maps.sources import TerrainSource
+from fedmap.maps.grid import LAYERS, check_layers
+from fedmap.maps.sources import TerrainSource, needs_dem
 from fedmap.maps.traversability import ROVER_NAMES
 
 #: Every sharing strategy, from the lower bound to the upper bound.
@@ -344,10 +344,7 @@ class MissionConfig:
             if len(starts) != self.rovers:
                 raise FedmapError(f"starts gives {len(starts)} cells for {self.rovers} rovers")
             object.__setattr__(self, "starts", starts)
-        layers = tuple(self.layers)
-        for name in layers:
-            if name not in LAYERS:
-                raise FedmapError(f"unknown map layer {name!r}{suggest(name, LAYERS)}")
+        layers = check_layers(self.layers)
         # classes are always a layer (GridMap's canonical one): "elevation" alone means both
         layers = tuple(n for n in LAYERS if n in layers)
         object.__setattr__(self, "layers", layers)
@@ -465,17 +462,12 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
                                seed=resolved["seed"])
     except TypeError as exc:  # a wrong type reaching a comparison
         raise FedmapError(f"bad mission setting: {exc}") from exc
-    if config.line_of_sight and source.kind == "map":
-        raise FedmapError("line of sight needs the terrain's elevation (a DEM, tiles or built-in source, not a class map)")
-    if "elevation" in config.layers and source.kind == "map":
-        raise FedmapError("an elevation layer needs the terrain's elevation (a DEM, tiles or built-in source, not a "
-                          "class map)")
-    if config.profiles and source.kind == "map":
-        raise FedmapError("rover profiles need the terrain's elevation (a DEM, tiles or built-in source, not a class "
-                          "map)")
-    if config.prior.kind == "orbital" and source.kind == "map":
-        raise FedmapError("an orbital prior needs the terrain's elevation (a DEM, tiles or built-in source, not a "
-                          "class map)")
+    if source.kind == "map":
+        for asked, what in ((config.line_of_sight, "line of sight"), ("elevation" in config.layers, "an elevation layer"),
+                            (bool(config.profiles), "rover profiles"),
+                            (config.prior.kind == "orbital", "an orbital prior")):
+            if asked:
+                raise needs_dem(what)
     out = {"seed": resolved["seed"], "terrain": {k: v for k, v in source.to_dict().items() if k != "thresholds"},
            "thresholds": used_thresholds(resolved["thresholds"]), "mission": {k: v for k, v in asdict(config).items()
                                                             if k not in ("link", "prior", "helicopter", "methods",

@@ -37,7 +37,7 @@ from fedmap.maps.dem import Dem
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.orbital import orbital_prior
 from fedmap.maps.planning import path_is_valid
-from fedmap.maps.sources import TerrainSource, load_terrain
+from fedmap.maps.sources import TerrainSource, load_terrain, needs_dem
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, rover_profile
 from fedmap.mission.frontiers import choose_target, plan_path
 from fedmap.mission.link import (
@@ -987,9 +987,9 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     """
     t0 = time.perf_counter()
     if config.line_of_sight and elevation is None:
-        raise FedmapError("line of sight needs the terrain's elevation (a DEM or built-in source, not a class map)")
+        raise needs_dem("line of sight")
     if "elevation" in config.layers and elevation is None:
-        raise FedmapError("an elevation layer needs the terrain's elevation (a DEM or built-in source, not a class map)")
+        raise needs_dem("an elevation layer")
     if elevation is not None and np.shape(elevation) != truth.shape:
         raise FedmapError(f"elevation grid {np.shape(elevation)} does not match the map {truth.shape}")
     if prior is not None and np.shape(prior) != truth.shape:
