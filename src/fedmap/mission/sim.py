@@ -433,7 +433,8 @@ class _Run:
                  starts: list[Cell], base: Cell, waypoints: list[list[Cell]], scorer: _Scorer,
                  frame_every: int, prior: np.ndarray | None = None,
                  profiles: dict[str, np.ndarray] | None = None,
-                 thresholds: TraversabilityThresholds | None = None) -> None:
+                 thresholds: TraversabilityThresholds | None = None,
+                 profile_scorers: dict[str, _Scorer] | None = None) -> None:
         self.name, self.config, self.truth, self.elevation = name, config, truth, elevation
         self.prior = prior
         self.scorer, self.frame_every = scorer, frame_every
@@ -471,8 +472,7 @@ class _Run:
         # each rover's own classes of the terrain (None: it follows the shared thresholds), and its scorer
         names = [*config.rover_profiles, *(["team"] * config.helicopters)]
         self.own_truth = [None if p == "team" else (profiles or {})[p] for p in names]
-        self.own_scorer = [scorer if p == "team" else _Scorer(truth.with_classes((profiles or {})[p], p),
-                                                            config.eval_pairs, config.seed) for p in names]
+        self.own_scorer = [scorer if p == "team" else (profile_scorers or {})[p] for p in names]
         for r, t in zip(self.team, self.own_truth):
             r.own = None if t is None else np.full(shape, UNKNOWN, dtype=np.uint8)
         # the elevation layer: what each rover measures, and the thresholds it derives its classes with
@@ -863,12 +863,10 @@ class _Run:
             down_delivered=delivered[DOWN], down_dropped=dropped[DOWN]))
         if evaluate:
             g = self.scorer.scores(s.global_map())
+            own = [self.own_scorer[k].path(self.own_view(k, b)) for k, b in enumerate(beliefs)]
             self.evals.append(_EvalRow(step=t, psnr=g.psnr, ssim=g.ssim, accuracy=g.accuracy, f1=g.path.f1,
-                                       f1_tolerant=g.path.tolerant.f1,
-                                       belief_f1=tuple(self.own_scorer[k].path(self.own_view(k, b)).f1
-                                                       for k, b in enumerate(beliefs)),
-                                       belief_success=tuple(self.own_scorer[k].path(self.own_view(k, b)).success
-                                                            for k, b in enumerate(beliefs))))
+                                       f1_tolerant=g.path.tolerant.f1, belief_f1=tuple(p.f1 for p in own),
+                                       belief_success=tuple(p.success for p in own)))
         if t % self.frame_every == 0 or t == self.config.steps:
             self.frames.append(Frame(step=t, beliefs=beliefs, global_map=s.global_map().copy(),
                                      positions=self.positions(), trail_len=[len(r.trail) for r in self.team],
@@ -1005,13 +1003,15 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     starts, base = place_starts(truth, config)
     waypoints = plan_waypoints(truth, config) if config.mode == "waypoints" else [[] for _ in starts]
     scorer = _Scorer(truth, config.eval_pairs, config.seed)
+    # one scorer per rover profile, shared by every strategy and rover (the truth's paths are planned once)
+    profile_scorers = {p: _Scorer(truth.with_classes(c, p), config.eval_pairs, config.seed) for p, c in profiles.items()}
     frame_every = max(1, math.ceil(config.steps / max(frames, 1)))
     runs = {}
     for name in config.strategies:
         if on_strategy is not None:
             on_strategy(name)
         runs[name] = _Run(name, config, truth, elevation, starts, base, waypoints, scorer, frame_every,
-                          prior, profiles, thresholds).run(on_step)
+                          prior, profiles, thresholds, profile_scorers).run(on_step)
     return MissionResult(config, truth, starts, base, runs, time.perf_counter() - t0)
 
 
