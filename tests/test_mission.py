@@ -12,9 +12,9 @@ from fedmap.errors import FedmapError
 from fedmap.federation.mapcodec import decode_map
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
-from fedmap.mission.frontiers import frontier_mask, gain_map
+from fedmap.mission.frontiers import choose_target, frontier_mask, gain_map, travel_costs
 from fedmap.mission.link import Link, StarTopology
-from fedmap.mission.sensing import footprint
+from fedmap.mission.sensing import disk_offsets, footprint
 from fedmap.mission.settings import load_mission
 from fedmap.mission.strategies import unpack_up
 
@@ -73,6 +73,93 @@ def test_frontier_on_a_constructed_map():
     g = gain_map(b, 1.5)
     r, c = 1, 1
     assert g[r, c] == sum(b[i, j] == UNKNOWN for i in range(0, 3) for j in range(0, 3))
+
+
+def _random_belief(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
+    """A belief with blobs of known ground in unknown terrain, and scattered obstacles."""
+    b = np.full(shape, UNKNOWN, dtype=np.uint8)
+    for _ in range(rng.integers(3, 9)):
+        r, c = rng.integers(0, shape[0]), rng.integers(0, shape[1])
+        s = rng.integers(3, 14)
+        b[max(r - s, 0):r + s, max(c - s, 0):c + s] = FREE
+    b[(rng.random(shape) < 0.15) & (b == FREE)] = IMPASSABLE
+    return b
+
+
+def _mcp_costs(b: np.ndarray, start: tuple[int, int], unknown_cost: float) -> np.ndarray:
+    """The reference travel costs: scikit-image's MCP_Geometric over the whole map."""
+    from skimage.graph import MCP_Geometric
+
+    costs = np.where(b == FREE, 1.0, unknown_cost)
+    costs[b == IMPASSABLE] = -1.0
+    cum, _ = MCP_Geometric(costs, fully_connected=True).find_costs([start])
+    return np.where(np.isfinite(cum) & (costs >= 0), cum, np.inf)
+
+
+def _whole_map_target(b, pos, *, radius, unknown_cost, others, allowed=None, excluded=(), heading=None):
+    """The reference target choice: every cell rated over the whole map (gain by convolution,
+    costs by MCP), the lowest score, ties to the lowest flat index."""
+    front = frontier_mask(b)
+    if allowed is not None:
+        front &= allowed
+    for cell in excluded:
+        front[cell] = False
+    gain = gain_map(b, radius)
+    cost = _mcp_costs(b, pos, unknown_cost)
+    front &= (gain > 0) & np.isfinite(cost)
+    if not front.any():
+        return None
+    score = cost - 2 * radius * gain / len(disk_offsets(radius))
+    rows, cols = np.indices(b.shape)
+    if heading is not None:
+        r0, c0, angle = heading
+        dr, dc = rows - r0, cols - c0
+        score = score - radius * (dr * np.sin(angle) + dc * np.cos(angle)) / np.maximum(np.hypot(dr, dc), 1e-9)
+    for r, c in others:
+        score = score + 4 * radius * ((rows - r) ** 2 + (cols - c) ** 2 <= (2 * radius) ** 2)
+    score = np.where(front, score, np.inf)
+    return divmod(int(np.argmin(score)), b.shape[1])
+
+
+def test_travel_costs_equal_scikit_image_mcp():
+    rng = np.random.default_rng(11)
+    for trial in range(20):
+        b = _random_belief(rng, (int(rng.integers(5, 60)), int(rng.integers(5, 60))))
+        free = np.argwhere(b != IMPASSABLE)
+        pos = tuple(int(v) for v in free[rng.integers(len(free))])
+        uc = float(rng.choice([1.0, 1.5, 3.0]))
+        want = _mcp_costs(b, pos, uc)
+        got = travel_costs(b, pos, uc)
+        assert np.array_equal(np.isfinite(got), np.isfinite(want)), trial
+        assert np.allclose(got[np.isfinite(got)], want[np.isfinite(want)], rtol=0, atol=1e-9), trial
+        # bounded: every settled cell has its whole-map cost, and every cell within the slack is settled
+        targets = frontier_mask(b)
+        part = travel_costs(b, pos, uc, targets=targets, slack=5.0)
+        fin = np.isfinite(part)
+        assert np.array_equal(part[fin], got[fin]), trial
+        if (targets & np.isfinite(got)).any():
+            c0 = got[targets & np.isfinite(got)].min()
+            assert fin[np.isfinite(got) & (got <= c0 + 5.0)].all(), trial
+
+
+def test_the_bounded_target_choice_is_the_whole_map_choice():
+    rng = np.random.default_rng(5)
+    for trial in range(120):
+        shape = (int(rng.integers(8, 70)), int(rng.integers(8, 70)))
+        b = _random_belief(rng, shape)
+        free = np.argwhere(b == FREE)
+        if not len(free):
+            continue
+        pos = tuple(int(v) for v in free[rng.integers(len(free))])
+        kw = dict(radius=float(rng.choice([1.5, 3.0, 4.0, 6.5])), unknown_cost=float(rng.choice([1.0, 1.5, 2.5])),
+                  others=[tuple(int(v) for v in rng.integers(0, shape)) for _ in range(rng.integers(0, 4))])
+        if rng.random() < 0.5:
+            kw["heading"] = (shape[0] / 2, shape[1] / 2, float(rng.uniform(0, 2 * np.pi)))
+        if rng.random() < 0.3:
+            kw["allowed"] = rng.random(shape) < 0.7
+        if rng.random() < 0.3 and len(free) > 1:
+            kw["excluded"] = {tuple(int(v) for v in free[i]) for i in rng.integers(0, len(free), 3)}
+        assert choose_target(b, pos, **kw) == _whole_map_target(b, pos, **kw), (trial, kw)
 
 
 # ---------------------------------------------------------------- missions

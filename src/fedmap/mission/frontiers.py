@@ -3,8 +3,9 @@
 A rover plans on its *belief*: its own observations laid over the latest global map it
 has received. How unknown cells are treated:
 
-* **Rating targets.** The travel cost to every cell is a geodesic cost over the belief
-  (scikit-image's minimum-cost path, 8-connected): a known free cell costs 1, an
+* **Rating targets.** The travel cost to a frontier cell is a geodesic cost over the
+  belief (scikit-image's ``MCP_Geometric`` cost model, 8-connected, searched by a compiled
+  Dijkstra only as far as a cell could still be chosen): a known free cell costs 1, an
   UNKNOWN cell ``unknown_cost`` (default 1.5: optimistic, but known ground is
   preferred), a known impassable cell cannot be crossed.
 * **The path** to the chosen target is fedmap's one A* (:func:`fedmap.maps.planning.astar`)
@@ -21,9 +22,11 @@ out instead of chasing the same frontier.
 
 from __future__ import annotations
 
+import functools
+import heapq
+
 import numpy as np
 from scipy import ndimage
-from skimage.graph import MCP_Geometric
 
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.maps.planning import astar
@@ -52,14 +55,91 @@ def gain_map(belief: np.ndarray, radius: float) -> np.ndarray:
                                     mode="constant", cval=0.0)).astype(np.int64)
 
 
-def travel_costs(belief: np.ndarray, start: tuple[int, int], unknown_cost: float) -> np.ndarray:
-    """Geodesic cost from ``start`` to every cell (inf where unreachable)."""
+def travel_costs(belief: np.ndarray, start: tuple[int, int], unknown_cost: float, *,
+                 targets: np.ndarray | None = None, slack: float = np.inf) -> np.ndarray:
+    """Geodesic cost from ``start`` to every cell (inf where unreachable).
+
+    8-connected, a step between cells of costs ``a`` and ``b`` costs ``(a + b) / 2`` times
+    its length (1 or sqrt 2), as scikit-image's ``MCP_Geometric`` has it (the tests check
+    every cost against it). With ``targets`` (a boolean mask) the search stops once it has
+    settled every cell within ``slack`` of the cheapest target; the cells it did not settle
+    are inf, the ones it did have their whole-map cost. A compiled Dijkstra (numba, cached
+    on disk): the bound makes a target pick cost what the neighbourhood of the rover costs,
+    not the whole map.
+    """
     b = np.asarray(belief)
-    costs = np.where(b == FREE, 1.0, unknown_cost)
-    costs[b == IMPASSABLE] = -1.0  # negative: impassable to MCP
-    mcp = MCP_Geometric(costs, fully_connected=True)
-    cum, _ = mcp.find_costs([start])
-    return np.where(np.isfinite(cum) & (costs >= 0), cum, np.inf)
+    h, w = b.shape
+    costs = np.full((h + 2, w + 2), -1.0)  # a border of impassable cells: no bounds checks
+    costs[1:-1, 1:-1] = np.where(b == FREE, 1.0, unknown_cost)
+    costs[1:-1, 1:-1][b == IMPASSABLE] = -1.0
+    stop = np.zeros((h + 2, w + 2), dtype=bool)
+    if targets is not None:
+        stop[1:-1, 1:-1] = targets
+    s = (start[0] + 1) * (w + 2) + start[1] + 1
+    cum = _dijkstra()(costs.ravel(), stop.ravel(), w + 2, s, targets is not None, float(slack))
+    return cum.reshape(h + 2, w + 2)[1:-1, 1:-1]
+
+
+@functools.cache
+def _dijkstra():
+    """:func:`_settle` compiled with numba (cached on disk), compiled at the first pick."""
+    from numba import njit
+
+    return njit(cache=True)(_settle)
+
+
+def _settle(costs: np.ndarray, stop: np.ndarray, W: int, s: int, bounded: bool, slack: float) -> np.ndarray:
+    """Dijkstra on the padded, flattened ``costs`` (row length ``W``, negative: a barrier)
+    from ``s``: the settled cells' costs, inf elsewhere. ``bounded``: stop once a popped cost
+    exceeds the first popped ``stop`` cell's cost plus ``slack``."""
+    n = costs.size
+    cum = np.full(n, np.inf)
+    done = np.zeros(n, np.bool_)
+    out = np.full(n, np.inf)
+    if costs[s] < 0:
+        return out
+    steps = (-W, W, -1, 1, -W - 1, -W + 1, W - 1, W + 1)
+    root2 = np.sqrt(2.0)
+    bound = np.inf
+    cum[s] = 0.0
+    heap = [(0.0, s)]
+    while len(heap):
+        d, i = heapq.heappop(heap)
+        if done[i]:
+            continue
+        if d > bound:
+            break
+        done[i] = True
+        out[i] = d
+        if bounded and stop[i] and bound == np.inf:
+            bound = d + slack
+        ci = costs[i]
+        for k in range(8):
+            j = i + steps[k]
+            cj = costs[j]
+            if cj < 0 or done[j]:
+                continue
+            nd = d + (1.0 if k < 4 else root2) * 0.5 * (ci + cj)
+            if nd < cum[j]:
+                cum[j] = nd
+                heapq.heappush(heap, (nd, j))
+    return out
+
+
+def _gains(unknown: np.ndarray, cells: np.ndarray, radius: float) -> np.ndarray:
+    """:func:`gain_map` at the flat indices ``cells`` only."""
+    off = disk_offsets(radius)
+    r = int(np.abs(off).max())
+    h, w = unknown.shape
+    pad = np.zeros((h + 2 * r, w + 2 * r), dtype=np.int64)
+    pad[r:-r or None, r:-r or None] = unknown
+    flat = pad.ravel()
+    rows, cols = np.divmod(cells, w)
+    base = (rows + r) * (w + 2 * r) + cols + r
+    gain = np.zeros(len(cells), dtype=np.int64)
+    for dr, dc in off:
+        gain += flat[base + dr * (w + 2 * r) + dc]
+    return gain
 
 
 def choose_target(belief: np.ndarray, pos: tuple[int, int], *, radius: float, unknown_cost: float,
@@ -74,6 +154,12 @@ def choose_target(belief: np.ndarray, pos: tuple[int, int], *, radius: float, un
     ``allowed`` restricts the targets (e.g. within radio range of the base). ``heading``
     ``(origin row, origin col, angle)`` subtracts ``radius * cos`` of the angle between the
     heading and the direction from the origin to the cell.
+
+    Only frontier cells are rated, and the travel costs are searched only as far as a cell
+    could still win: a cell costing more than the cheapest candidate ``c0`` plus ``8 radius``
+    scores above it whatever its gain (at most ``2 radius``), heading (at most ``radius``
+    either way) and crowding (``4 radius``), so the choice is the one a whole-map rating
+    makes (the tests compare them).
     """
     b = np.asarray(belief)
     front = frontier_mask(b)
@@ -81,31 +167,34 @@ def choose_target(belief: np.ndarray, pos: tuple[int, int], *, radius: float, un
         front &= allowed
     for cell in excluded:
         front[cell] = False
-    if not front.any():
+    cells = np.flatnonzero(front)
+    if not len(cells):
         return None
-    gain = gain_map(b, radius)
-    front &= gain > 0
-    if not front.any():
+    gain = _gains(b == UNKNOWN, cells, radius)
+    keep = gain > 0
+    cells, gain = cells[keep], gain[keep]
+    if not len(cells):
         return None
-    cost = travel_costs(b, pos, unknown_cost)
-    front &= np.isfinite(cost)
-    if not front.any():
+    front = np.zeros(b.shape, dtype=bool)
+    front.flat[cells] = True
+    cost = travel_costs(b, pos, unknown_cost, targets=front, slack=8 * radius + 1).ravel()[cells]
+    keep = np.isfinite(cost)
+    cells, gain, cost = cells[keep], gain[keep], cost[keep]
+    if not len(cells):
         return None
     score = cost - 2 * radius * gain / len(disk_offsets(radius))
-    rows, cols = np.indices(b.shape)
+    rows, cols = np.divmod(cells, b.shape[1])
     if heading is not None:
         r0, c0, angle = heading
         dr, dc = rows - r0, cols - c0
         norm = np.maximum(np.hypot(dr, dc), 1e-9)
         score = score - radius * (dr * np.sin(angle) + dc * np.cos(angle)) / norm
     if others:
-        crowd = np.zeros(b.shape, dtype=bool)
+        crowd = np.zeros(len(cells), dtype=bool)
         for r, c in others:
             crowd |= (rows - r) ** 2 + (cols - c) ** 2 <= (2 * radius) ** 2
         score = score + 4 * radius * crowd
-    score = np.where(front, score, np.inf)
-    i = int(np.argmin(score))
-    return divmod(i, b.shape[1])
+    return divmod(int(cells[int(np.argmin(score))]), b.shape[1])
 
 
 def plan_path(belief: np.ndarray, pos: tuple[int, int], goal: tuple[int, int]) -> list[tuple[int, int]] | None:
