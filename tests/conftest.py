@@ -1,11 +1,21 @@
-import numpy as np
-import pytest
-import torch
+import os
 
-from fedmap.maps.grid import FREE, IMPASSABLE, GridMap
-from fedmap.nets.model import NetConfig
+# Under pytest-xdist (three workers on two cores, see addopts in pyproject.toml) every
+# worker, and every process a test starts (rovers, CLI runs), trains with one torch thread:
+# two threads per worker only wait on each other, and a test that compares a subprocess's
+# model with an in-process one needs both on the same thread count.
+WORKER = bool(os.environ.get("PYTEST_XDIST_WORKER"))
+if WORKER:
+    os.environ["OMP_NUM_THREADS"] = "1"
 
-torch.set_num_threads(2)
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+from fedmap.maps.grid import FREE, IMPASSABLE, GridMap  # noqa: E402
+from fedmap.nets.model import NetConfig  # noqa: E402
+
+torch.set_num_threads(1 if WORKER else 2)
 
 #: A small network so tests of training and federation run in milliseconds.
 TINY_NET = NetConfig(mapping_size=16, hidden=32)

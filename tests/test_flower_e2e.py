@@ -79,6 +79,7 @@ def _run(tmp_path, run: dict, on_status=None):
     return maps, out, json.loads((out / "metrics.json").read_text())
 
 
+@pytest.mark.xdist_group("loopback-b")  # a long loopback run: see addopts in pyproject.toml
 def test_four_rovers_one_round_equal_the_in_process_runner(flower_home):
     maps, out, m = _run(flower_home, {**RUN, "deadline": 300.0})
     init, ref = _reference(maps)
@@ -97,6 +98,7 @@ def test_four_rovers_one_round_equal_the_in_process_runner(flower_home):
     assert {"psnr", "ssim", "path"} <= set(m["global"]) and (out / "figure.png").is_file()
 
 
+@pytest.mark.xdist_group("loopback-b")  # a long loopback run: see addopts in pyproject.toml
 def test_a_rover_killed_mid_round_leaves_three(flower_home):
     killed = []
 
@@ -116,6 +118,7 @@ def test_a_rover_killed_mid_round_leaves_three(flower_home):
         np.testing.assert_allclose(got[k], ref.weights[k], atol=1e-5)
 
 
+@pytest.mark.xdist_group("loopback-a")  # a long loopback run: see addopts in pyproject.toml
 def test_a_killed_rover_restarted_rejoins_with_an_update_codec(flower_home):
     """Real processes: rover 3 is killed (SIGKILL) as round 2 goes out and started again at
     once, with an ``update-int4+zstd`` downlink. Its state is gone: it misses round 2 (its
