@@ -111,6 +111,13 @@ def keep_freed_memory() -> bool:
     return bool(libc.mallopt(m_mmap_max, 0)) and bool(libc.mallopt(m_trim_threshold, 1 << 30))
 
 
+#: Above this many cells, a full-batch step of a network without BatchNorm (GridNet, or a
+#: Fourier MLP built without it) is computed in chunks of this many cells, its gradients
+#: accumulated (:func:`_streamed_step`), and a masked map trains on its known cells only:
+#: the same step in bounded memory. Smaller maps keep the one-pass step bit for bit.
+STREAM_CELLS = 1 << 20
+
+
 def map_targets(grid: GridMap, *, masked: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Coordinates, RGB targets and loss weights of a map, flattened row-major.
 
@@ -168,6 +175,11 @@ def fit(
             raise RejectedUpdate(f"map {grid.source!r} has no selected cell to train on")
     if config.masked and not weight.any():
         raise RejectedUpdate(f"map {grid.source!r} has no known cell to train on")
+    stream = (config.batch is None and coords.shape[0] > STREAM_CELLS
+              and not any(isinstance(m, torch.nn.BatchNorm1d) for m in model.modules()))
+    if stream and config.masked:  # a zero-weight cell adds nothing to the loss or its gradient
+        keep = weight > 0
+        coords, target, weight = coords[keep], target[keep], weight[keep]
     bf16 = False
     if getattr(model, "cacheable_features", False):
         bf16 = config.precision == "bf16"
@@ -195,6 +207,12 @@ def fit(
         for idx in batches:
             x, y, wt = (feats, target, weight) if idx is None else (feats[idx], target[idx], weight[idx])
             opt.zero_grad(set_to_none=True)
+            if stream and idx is None and n > STREAM_CELLS:
+                losses.append(_streamed_step(head, x, y, wt, penalty, bf16))
+                opt.step()
+                if on_step is not None:
+                    on_step(len(losses), losses[-1])
+                continue
             with torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
                 pred = head(x)
             loss = _loss(pred.float(), y, wt)
@@ -208,6 +226,27 @@ def fit(
     if losses and not np.isfinite(losses[-1]):
         raise RejectedUpdate(f"training diverged on {grid.source!r} (loss is {losses[-1]}); lower the learning rate")
     return losses
+
+
+def _streamed_step(head: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, y: torch.Tensor,
+                   wt: torch.Tensor, penalty: Callable[[], torch.Tensor] | None, bf16: bool) -> float:
+    """The gradient of one full-batch step, accumulated over chunks of :data:`STREAM_CELLS`
+    cells (the loss is a weighted sum over cells, so the chunks' gradients add up to the
+    whole batch's): memory stays at one chunk's activations whatever the map's size.
+    Returns the step's loss."""
+    total = wt.sum().clamp_min(1.0)
+    value = 0.0
+    for a in range(0, x.shape[0], STREAM_CELLS):
+        with torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
+            pred = head(x[a:a + STREAM_CELLS])
+        part = (((pred.float() - y[a:a + STREAM_CELLS]) ** 2).mean(dim=1) * wt[a:a + STREAM_CELLS]).sum() / total
+        part.backward()
+        value += part.item()
+    if penalty is not None:
+        term = penalty()
+        term.backward()
+        value += term.item()
+    return value
 
 
 def steps_per_epoch(n_pixels: int, config: TrainConfig) -> int:
