@@ -111,8 +111,9 @@ def test_training_on_a_selection_is_training_on_the_map_with_the_rest_unknown(ti
 
 @pytest.mark.parametrize("masked", [True, False])
 def test_a_streamed_full_batch_step_is_the_one_pass_step(monkeypatch, blob_map, masked):
-    """Above STREAM_CELLS a full-batch step runs chunk by chunk (and a masked map on its known
-    cells only); the fitted weights and losses equal the one-pass step's to float rounding."""
+    """Above STREAM_CELLS a full-batch step runs chunk by chunk, and above KNOWN_ONLY_CELLS a
+    masked map trains on its known cells only; the fitted weights and losses equal the
+    one-pass, every-cell step's to float rounding."""
     from fedmap.nets import training
     from fedmap.nets.model import grid_config
 
@@ -126,8 +127,9 @@ def test_a_streamed_full_batch_step_is_the_one_pass_step(monkeypatch, blob_map, 
         return 1e-3 * sum((p ** 2).sum() for p in penalty_model["m"].parameters())
 
     runs = []
-    for cells in (1 << 20, 50):  # one pass; chunks of 50 cells (576 cells in all)
+    for cells in (1 << 20, 50):  # one pass on every cell; known cells only, in chunks of 50 (576 cells in all)
         monkeypatch.setattr(training, "STREAM_CELLS", cells)
+        monkeypatch.setattr(training, "KNOWN_ONLY_CELLS", cells)
         model = build_model(grid_config(24), seed=0)
         penalty_model["m"] = model
         losses = fit(model, grid, cfg, seed=0, penalty=penalty)

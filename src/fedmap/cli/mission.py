@@ -57,7 +57,8 @@ def mission(
 
         result = run_mission(cfg, truth, elevation=elevation, prior=prior, profiles=profiles,
                              thresholds=source.thresholds,
-                             on_strategy=on_strategy, on_step=on_step)
+                             on_strategy=on_strategy, on_step=on_step,
+                             frames=60 if animation else 1)  # without an animation, keep no frames' maps
         task = progress.add_task("write outputs", total=None, loss="")
         title = f"{source.label}, {truth.shape[0]}x{truth.shape[1]}"
         write_mission(result, out, title=title, settings=resolved, animation=animation,

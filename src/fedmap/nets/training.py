@@ -111,10 +111,14 @@ def keep_freed_memory() -> bool:
     return bool(libc.mallopt(m_mmap_max, 0)) and bool(libc.mallopt(m_trim_threshold, 1 << 30))
 
 
-#: Above this many cells, a full-batch step of a network without BatchNorm (GridNet, or a
-#: Fourier MLP built without it) is computed in chunks of this many cells, its gradients
-#: accumulated (:func:`_streamed_step`), and a masked map trains on its known cells only:
-#: the same step in bounded memory. Smaller maps keep the one-pass step bit for bit.
+#: Above this many cells, a masked map trained by a network without BatchNorm (GridNet, or
+#: a Fourier MLP built without it) trains on its known cells only: the same loss and
+#: gradients (an UNKNOWN cell's weight is 0), without the work on the cells nobody saw.
+#: Smaller maps keep the whole-grid step bit for bit.
+KNOWN_ONLY_CELLS = 1 << 16
+#: Above this many training cells, a full-batch step of a network without BatchNorm is
+#: computed in chunks of this many cells, its gradients accumulated
+#: (:func:`_streamed_step`): the same step in bounded memory.
 STREAM_CELLS = 1 << 20
 
 
@@ -175,11 +179,11 @@ def fit(
             raise RejectedUpdate(f"map {grid.source!r} has no selected cell to train on")
     if config.masked and not weight.any():
         raise RejectedUpdate(f"map {grid.source!r} has no known cell to train on")
-    stream = (config.batch is None and coords.shape[0] > STREAM_CELLS
-              and not any(isinstance(m, torch.nn.BatchNorm1d) for m in model.modules()))
-    if stream and config.masked:  # a zero-weight cell adds nothing to the loss or its gradient
-        keep = weight > 0
+    per_cell = not any(isinstance(m, torch.nn.BatchNorm1d) for m in model.modules())  # no batch statistics
+    if per_cell and config.masked and coords.shape[0] > KNOWN_ONLY_CELLS:
+        keep = weight > 0  # a zero-weight cell adds nothing to the loss or its gradient
         coords, target, weight = coords[keep], target[keep], weight[keep]
+    stream = per_cell and config.batch is None and coords.shape[0] > STREAM_CELLS
     bf16 = False
     if getattr(model, "cacheable_features", False):
         bf16 = config.precision == "bf16"
