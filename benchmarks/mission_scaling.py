@@ -50,6 +50,34 @@ def fit_exponent(x: list[float], y: list[float]) -> float | None:
     return float(np.polyfit(np.log(x), np.log(y), 1)[0])
 
 
+def plot(rows: list[dict], names: list[str], exponents: dict, steps: int, terrain: str, path: Path) -> None:
+    """Log-log: every configuration's time per strategy (marker: team size) and the fitted line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    x = np.array([r["cells_x_agents"] for r in rows], dtype=float)
+    markers = dict(zip(sorted({r["agents"] for r in rows}), "o^sDv"))
+    for i, n in enumerate(names):
+        y = np.array([r["per_strategy_s"][n] for r in rows])
+        for r, xi, yi in zip(rows, x, y):
+            ax.loglog(xi, yi, markers[r["agents"]], color=f"C{i}", ms=5)
+        e = exponents[n]
+        if e is not None:
+            b = np.polyfit(np.log(x), np.log(y), 1)[1]
+            xs = np.array([x.min(), x.max()])
+            ax.loglog(xs, np.exp(b) * xs ** e, "-", color=f"C{i}", lw=1, label=f"{n}: time ~ (cells x agents)^{e:.2f}")
+    for a, m in markers.items():
+        ax.plot([], [], m, color="gray", label=f"{a} agents")
+    ax.set(xlabel="cells x agents", ylabel=f"wall time of {steps} steps, s",
+           title=f"Mission cost vs map and team size (built-in {terrain}, 2 cores)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256, 512])
@@ -61,7 +89,12 @@ def main() -> None:
     ap.add_argument("--terrain", default="moon")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/mission_scaling"))
     ap.add_argument("--one", nargs=2, type=int, help=argparse.SUPPRESS)  # size agents: run one, print JSON
+    ap.add_argument("--replot", action="store_true", help="Redraw scaling.png from --out's scaling.json")
     args = ap.parse_args()
+    if args.replot:
+        d = json.loads((args.out / "scaling.json").read_text())
+        plot(d["rows"], d["strategies"], d["exponents"], d["steps"], d["terrain"], args.out / "scaling.png")
+        return
     if args.one:
         print(json.dumps(one(args.one[0], args.one[1], args.steps, args.strategies, args.terrain)))
         return
@@ -88,22 +121,7 @@ def main() -> None:
                                                        "strategies": names, "rows": rows,
                                                        "exponents": exponents, "load_average_before": load,
                                                        "cpus": os.cpu_count()}, indent=1))
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    order = np.argsort(x)
-    for i, n in enumerate(names):
-        ys = [rows[j]["per_strategy_s"][n] for j in order]
-        e = exponents[n]
-        ax.loglog([x[j] for j in order], ys, "o-", color=f"C{i}", label=f"{n} (exponent {e:.2f})" if e else n)
-    ax.set(xlabel="cells x agents", ylabel=f"wall time of {args.steps} steps, s",
-           title=f"Mission cost vs map and team size (built-in {args.terrain}, 2 cores)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(args.out / "scaling.png", dpi=120)
+    plot(rows, names, exponents, args.steps, args.terrain, args.out / "scaling.png")
     print(f"wrote {args.out}/scaling.json and scaling.png")
 
 
