@@ -126,6 +126,7 @@ def test_a_streamed_full_batch_step_is_the_one_pass_step(monkeypatch, blob_map, 
     def penalty():
         return 1e-3 * sum((p ** 2).sum() for p in penalty_model["m"].parameters())
 
+    monkeypatch.setattr(training, "_adam_eps", lambda model, n: training.ADAM_EPS)  # the same Adam in both runs
     runs = []
     for cells in (1 << 20, 50):  # one pass on every cell; known cells only, in chunks of 50 (576 cells in all)
         monkeypatch.setattr(training, "STREAM_CELLS", cells)
@@ -139,3 +140,31 @@ def test_a_streamed_full_batch_step_is_the_one_pass_step(monkeypatch, blob_map, 
     np.testing.assert_allclose(l2, l1, rtol=1e-5, atol=1e-7)
     for k in w1:
         np.testing.assert_allclose(w2[k], w1[k], rtol=1e-4, atol=1e-6)
+
+
+def test_a_large_grid_fit_is_adam_on_a_loss_scaled_to_the_reference_size(monkeypatch, blob_map):
+    """Above KNOWN_ONLY_CELLS a GridNet's Adam eps is scaled by KNOWN_ONLY_CELLS / n: the same
+    steps as Adam with the default eps on the loss times n / KNOWN_ONLY_CELLS (a hand loop)."""
+    from fedmap.nets import training
+    from fedmap.nets.model import grid_config, grid_coords
+
+    monkeypatch.setattr(training, "KNOWN_ONLY_CELLS", 100)
+    cfg = TrainConfig(epochs=8, lr=0.05, masked=True)
+    model = build_model(grid_config(24), seed=0)
+    fit(model, blob_map, cfg, seed=0)
+    ref = build_model(grid_config(24), seed=0)
+    opt = torch.optim.Adam(ref.parameters(), lr=0.05)
+    x = grid_coords(24, 24)
+    y = torch.from_numpy(blob_map.to_rgb().reshape(-1, 3))
+    for _ in range(8):
+        opt.zero_grad()
+        (((ref(x) - y) ** 2).mean(dim=1).mean() * (576 / 100)).backward()
+        opt.step()
+    got, want = get_weights(model), get_weights(ref)
+    for k in want:
+        np.testing.assert_allclose(got[k], want[k], rtol=1e-4, atol=1e-6)
+    # and it is not the unscaled step: with eps at its default the weights differ
+    plain = build_model(grid_config(24), seed=0)
+    monkeypatch.setattr(training, "KNOWN_ONLY_CELLS", 1 << 20)
+    fit(plain, blob_map, cfg, seed=0)
+    assert any(not np.allclose(get_weights(plain)[k], want[k], rtol=1e-4, atol=1e-6) for k in want)

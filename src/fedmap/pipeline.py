@@ -92,7 +92,7 @@ class PipelineConfig:
 
 
 #: Side limits of the map the pipeline trains on.
-MIN_SIDE, MAX_SIDE = 64, 2048
+MIN_SIDE, MAX_SIDE = 64, 4096
 
 
 # --------------------------------------------------------------------------- the run assembly

@@ -24,7 +24,7 @@ from fedmap.mission import load_mission, mission_terrain
 
 def bandwidth(
     terrain: str = typer.Option("mars", help="Built-in terrain: mars, moon or ice."),
-    size: int = typer.Option(128, help="Map side for the rate-distortion comparison (64..2048)."),
+    size: int = typer.Option(128, help="Map side for the rate-distortion comparison (64..4096)."),
     pairs: int = typer.Option(75, help="Random start/goal pairs for the path F1."),
     seed: int = typer.Option(0),
     federated: bool = typer.Option(True, help="Also run fedmap's federated configurations on the same map."),

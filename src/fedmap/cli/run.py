@@ -143,7 +143,7 @@ def run(
 def terrain(
     kind: str = typer.Argument(..., help="mars, moon or ice."),
     out: Path = typer.Argument(..., help="Output map (.png, .npy, .tif GeoTIFF or ROS .yaml)."),
-    size: int = typer.Option(256, help="Map side in cells (64..2048)."),
+    size: int = typer.Option(256, help="Map side in cells (64..4096)."),
     seed: int = typer.Option(0),
     dem_out: Optional[Path] = typer.Option(None, "--dem", help="Also save the DEM as .npy."),
 ) -> None:

@@ -42,7 +42,7 @@ TERRAIN_KINDS: tuple[str, ...] = ("mars", "moon", "ice")
 
 #: Allowed map sizes in cells per side.
 _MIN_SIZE: int = 64
-_MAX_SIZE: int = 2048
+_MAX_SIZE: int = 4096
 
 #: Default ground size of one cell, metres: rover scale, so boulders and steps count.
 _DEFAULT_PIXEL_SIZE: dict[str, float] = {"mars": 1.0, "moon": 1.0, "ice": 1.0}
@@ -62,7 +62,7 @@ def generate_dem(kind: str, size: int, *, seed: int = 0, pixel_size: float | Non
     kind : str
         One of :data:`TERRAIN_KINDS`.
     size : int
-        Cells per side, in ``[64, 2048]``; the DEM is ``size x size``.
+        Cells per side, in ``[64, 4096]``; the DEM is ``size x size``.
     seed : int
         Non-negative seed; the output is a pure function of ``(kind, size, seed,
         pixel_size)``.
