@@ -82,7 +82,7 @@ def resolved_thresholds(resolved):
     (["--dem", "nope.tif"], "error: no such file: "),
     (["--terrain", "venus"], "error: unknown terrain kind 'venus'"),
     (["--terrain", "mars", "--dem", "x.tif"], "error: give at most one of --dem, --map and --terrain"),
-    (["--terrain", "mars", "--size", "32"], "error: terrain size must be an integer in [64, 2048], got 32"),
+    (["--terrain", "mars", "--size", "32"], "error: terrain size must be an integer in [64, 4096], got 32"),
     (["--set", "explore.agnets=3"], "error: unknown key 'agnets' in [explore] of the command-line options "
                                     "(did you mean 'agents'?)"),
     (["missing.toml"], "error: no such config file: missing.toml"),
@@ -126,7 +126,7 @@ def test_bad_toml_and_earlier_results_kept(tmp_path, capsys):
     assert rc == 2 and "is a L PNG" in err and err.count("\n") == 1
     np.save(tmp_path / "small.npy", np.zeros((40, 50), np.float32))
     rc, _, err = _run(["--dem", tmp_path / "small.npy", "-o", out], capsys)
-    assert rc == 2 and err.startswith("error: the terrain map is 40x40 cells; the pipeline needs a square map of 64..2048")
+    assert rc == 2 and err.startswith("error: the terrain map is 40x40 cells; the pipeline needs a square map of 64..4096")
     assert (out / "metrics.json").read_text() == "{}"
 
 

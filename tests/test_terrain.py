@@ -106,7 +106,7 @@ def test_bad_kind_raises(kind):
 
 @pytest.mark.parametrize("size", [0, 63, 4097, -5, 128.0, "128", True])
 def test_bad_size_raises(size):
-    with pytest.raises(FedmapError, match=r"\[64, 2048\]"):
+    with pytest.raises(FedmapError, match=r"\[64, 4096\]"):
         generate_dem("mars", size)  # type: ignore[arg-type]
 
 
