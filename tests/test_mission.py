@@ -6,13 +6,14 @@ import re
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from conftest import maze
 from fedmap.errors import FedmapError
 from fedmap.federation.mapcodec import decode_map
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
-from fedmap.mission.frontiers import choose_target, frontier_mask, gain_map, travel_costs
+from fedmap.mission.frontiers import choose_target, frontier_mask, gain_at, travel_costs
 from fedmap.mission.link import Link, StarTopology
 from fedmap.mission.sensing import disk_offsets, footprint
 from fedmap.mission.settings import load_mission
@@ -70,9 +71,12 @@ def test_frontier_on_a_constructed_map():
     assert np.array_equal(got, want)
     assert not got[2, 2] and got[1, 1]  # the obstacle is no frontier; corners of the free block are
     # gain = unknown cells within the radius, counted by hand for one cell
-    g = gain_map(b, 1.5)
     r, c = 1, 1
-    assert g[r, c] == sum(b[i, j] == UNKNOWN for i in range(0, 3) for j in range(0, 3))
+    assert gain_at(b, np.array([r * 7 + c]), 1.5)[0] == sum(b[i, j] == UNKNOWN for i in range(0, 3) for j in range(0, 3))
+    # and at every cell, the convolution of the unknown cells with the sensor's disk
+    every = np.arange(b.size)
+    assert np.array_equal(gain_at(b, every, 1.5).reshape(b.shape), gain_map(b, 1.5))
+    assert np.array_equal(gain_at(b, every, 3.0).reshape(b.shape), gain_map(b, 3.0))
 
 
 def _random_belief(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
@@ -84,6 +88,17 @@ def _random_belief(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarr
         b[max(r - s, 0):r + s, max(c - s, 0):c + s] = FREE
     b[(rng.random(shape) < 0.15) & (b == FREE)] = IMPASSABLE
     return b
+
+
+def gain_map(belief: np.ndarray, radius: float) -> np.ndarray:
+    """The reference gain: UNKNOWN cells within ``radius`` of every cell, by convolution
+    with the sensor's disk (outside the map counts 0)."""
+    off = disk_offsets(radius)
+    r = int(np.abs(off).max())
+    kernel = np.zeros((2 * r + 1, 2 * r + 1))
+    kernel[off[:, 0] + r, off[:, 1] + r] = 1.0
+    return np.rint(ndimage.convolve((np.asarray(belief) == UNKNOWN).astype(np.float64), kernel,
+                                    mode="constant", cval=0.0)).astype(np.int64)
 
 
 def _mcp_costs(b: np.ndarray, start: tuple[int, int], unknown_cost: float) -> np.ndarray:

@@ -26,7 +26,6 @@ import functools
 import heapq
 
 import numpy as np
-from scipy import ndimage
 
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.maps.planning import astar
@@ -43,16 +42,6 @@ def frontier_mask(belief: np.ndarray) -> np.ndarray:
     near[:, 1:] |= unknown[:, :-1]
     near[:, :-1] |= unknown[:, 1:]
     return (b == FREE) & near
-
-
-def gain_map(belief: np.ndarray, radius: float) -> np.ndarray:
-    """Number of UNKNOWN cells within ``radius`` of every cell (outside the map counts 0)."""
-    off = disk_offsets(radius)
-    r = int(np.abs(off).max())
-    kernel = np.zeros((2 * r + 1, 2 * r + 1))
-    kernel[off[:, 0] + r, off[:, 1] + r] = 1.0
-    return np.rint(ndimage.convolve((np.asarray(belief) == UNKNOWN).astype(np.float64), kernel,
-                                    mode="constant", cval=0.0)).astype(np.int64)
 
 
 def travel_costs(belief: np.ndarray, start: tuple[int, int], unknown_cost: float, *,
@@ -95,9 +84,8 @@ def _settle(costs: np.ndarray, stop: np.ndarray, W: int, s: int, bounded: bool, 
     n = costs.size
     cum = np.full(n, np.inf)
     done = np.zeros(n, np.bool_)
-    out = np.full(n, np.inf)
     if costs[s] < 0:
-        return out
+        return cum
     steps = (-W, W, -1, 1, -W - 1, -W + 1, W - 1, W + 1)
     root2 = np.sqrt(2.0)
     bound = np.inf
@@ -110,7 +98,6 @@ def _settle(costs: np.ndarray, stop: np.ndarray, W: int, s: int, bounded: bool, 
         if d > bound:
             break
         done[i] = True
-        out[i] = d
         if bounded and stop[i] and bound == np.inf:
             bound = d + slack
         ci = costs[i]
@@ -123,16 +110,18 @@ def _settle(costs: np.ndarray, stop: np.ndarray, W: int, s: int, bounded: bool, 
             if nd < cum[j]:
                 cum[j] = nd
                 heapq.heappush(heap, (nd, j))
-    return out
+    return np.where(done, cum, np.inf)  # a settled cell's cost is the one it was popped with
 
 
-def _gains(unknown: np.ndarray, cells: np.ndarray, radius: float) -> np.ndarray:
-    """:func:`gain_map` at the flat indices ``cells`` only."""
+def gain_at(belief: np.ndarray, cells: np.ndarray, radius: float) -> np.ndarray:
+    """The *gain* of the cells at flat indices ``cells``: the number of UNKNOWN cells within
+    ``radius`` of each (cells outside the map count 0)."""
     off = disk_offsets(radius)
     r = int(np.abs(off).max())
-    h, w = unknown.shape
+    b = np.asarray(belief)
+    h, w = b.shape
     pad = np.zeros((h + 2 * r, w + 2 * r), dtype=np.int64)
-    pad[r:-r or None, r:-r or None] = unknown
+    pad[r:-r or None, r:-r or None] = b == UNKNOWN
     flat = pad.ravel()
     rows, cols = np.divmod(cells, w)
     base = (rows + r) * (w + 2 * r) + cols + r
@@ -170,7 +159,7 @@ def choose_target(belief: np.ndarray, pos: tuple[int, int], *, radius: float, un
     cells = np.flatnonzero(front)
     if not len(cells):
         return None
-    gain = _gains(b == UNKNOWN, cells, radius)
+    gain = gain_at(b, cells, radius)
     keep = gain > 0
     cells, gain = cells[keep], gain[keep]
     if not len(cells):

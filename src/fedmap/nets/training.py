@@ -140,9 +140,12 @@ def map_targets(grid: GridMap, *, masked: bool) -> tuple[torch.Tensor, torch.Ten
     return coords, target, weight
 
 
-def _loss(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+def _loss(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor,
+          total: torch.Tensor | None = None) -> torch.Tensor:
+    """Weighted per-cell squared error, summed and divided by ``total`` (default: the
+    batch's weight, at least 1; a chunk of a streamed step passes the whole batch's)."""
     per_pixel = ((pred - target) ** 2).mean(dim=1)  # (B,)
-    return (per_pixel * weight).sum() / weight.sum().clamp_min(1.0)
+    return (per_pixel * weight).sum() / (weight.sum().clamp_min(1.0) if total is None else total)
 
 
 def fit(
@@ -213,7 +216,7 @@ def fit(
         for idx in batches:
             x, y, wt = (feats, target, weight) if idx is None else (feats[idx], target[idx], weight[idx])
             opt.zero_grad(set_to_none=True)
-            if stream and idx is None and n > STREAM_CELLS:
+            if stream:  # full batch (config.batch is None) of more than STREAM_CELLS cells
                 losses.append(_streamed_step(head, x, y, wt, penalty, bf16))
                 opt.step()
                 if on_step is not None:
@@ -259,7 +262,7 @@ def _streamed_step(head: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor
     for a in range(0, x.shape[0], STREAM_CELLS):
         with torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
             pred = head(x[a:a + STREAM_CELLS])
-        part = (((pred.float() - y[a:a + STREAM_CELLS]) ** 2).mean(dim=1) * wt[a:a + STREAM_CELLS]).sum() / total
+        part = _loss(pred.float(), y[a:a + STREAM_CELLS], wt[a:a + STREAM_CELLS], total)
         part.backward()
         value += part.item()
     if penalty is not None:
