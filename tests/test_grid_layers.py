@@ -1,13 +1,17 @@
-"""Tests for the named layers of fedmap.maps.grid.GridMap ("classes", and an optional "elevation")."""
+"""Tests for the named layers of fedmap.maps.grid.GridMap ("classes", an optional "elevation", and a
+new layer declared by one LAYER_SPECS entry)."""
 
 from __future__ import annotations
+
+import copy
+import pickle
 
 import numpy as np
 import pytest
 from affine import Affine
 
 from fedmap.errors import FedmapError
-from fedmap.maps.grid import FREE, IMPASSABLE, LAYERS, UNKNOWN, GridMap
+from fedmap.maps.grid import FREE, IMPASSABLE, LAYER_SPECS, LAYERS, UNKNOWN, GridMap, LayerSpec
 from fedmap.maps.io import load_map, save_map
 
 
@@ -22,8 +26,9 @@ def test_classes_is_always_a_layer_and_elevation_only_when_present():
     assert list(_map().layers) == ["classes"]
     z = np.linspace(0, 1, 12 * 17).reshape(12, 17)
     g = _map().with_layer("elevation", z)
-    assert list(g.layers) == ["classes", "elevation"] and g.layers["elevation"] is g.elevation
-    assert g.elevation.dtype == np.float32 and np.allclose(g.elevation, z)
+    assert list(g.layers) == ["classes", "elevation"] and g.layers["elevation"] is g.layer("elevation")
+    assert g.layers["elevation"].dtype == np.float32 and np.allclose(g.layers["elevation"], z)
+    assert _map().layers.get("elevation") is None
 
 
 def test_layers_classes_is_the_same_data_as_classes():
@@ -73,9 +78,9 @@ def test_elevation_layer_checks_and_travels_with_the_classes():
     z = np.full(grid.shape, np.nan)
     z[2:5, 3:9] = 12.5
     g = grid.with_layer("elevation", z)
-    assert grid.elevation is None  # the original untouched
+    assert "elevation" not in grid.layers  # the original untouched
     moved = g.with_classes(np.zeros(grid.shape, np.uint8))
-    assert moved.elevation is g.elevation  # carried along
+    assert moved.layers["elevation"] is g.layers["elevation"]  # carried along
     assert np.isnan(moved.layer("elevation")[0, 0]) and moved.layer("elevation")[3, 4] == 12.5
 
 
@@ -109,3 +114,51 @@ def test_layers_survive_save_and_load(tmp_path, suffix):
     assert list(back.layers) == list(grid.layers)
     assert back.layer("classes").dtype == np.uint8
     np.testing.assert_array_equal(back.layers["classes"], grid.layers["classes"])
+
+
+def test_constructor_takes_the_other_layers_checked_and_in_registry_order():
+    z = np.arange(12 * 17, dtype=np.float64).reshape(12, 17)
+    g = GridMap(np.zeros((12, 17), np.uint8), 0.5, layers={"elevation": z})
+    assert list(g.layers) == ["classes", "elevation"] and g.layers["elevation"].dtype == np.float32
+    with pytest.raises(FedmapError, match="layer 'elevation' has shape 3x3, but the map is 12x17"):
+        GridMap(np.zeros((12, 17), np.uint8), layers={"elevation": np.zeros((3, 3))})
+    with pytest.raises(FedmapError, match="'slop'.*"):
+        GridMap(np.zeros((12, 17), np.uint8), layers={"slop": z})
+    with pytest.raises(FedmapError, match="first argument"):  # the classes are not given twice
+        GridMap(g.classes, layers=g.layers)
+
+
+def test_a_map_with_layers_pickles_and_copies():
+    g = _map().with_layer("elevation", np.ones((12, 17)))
+    for back in (pickle.loads(pickle.dumps(g)), copy.deepcopy(g)):
+        assert list(back.layers) == ["classes", "elevation"] and back.layers["classes"] is back.classes
+        np.testing.assert_array_equal(back.layer("elevation"), g.layer("elevation"))
+
+
+def _slopes(a: np.ndarray, what: str) -> np.ndarray:
+    if not np.issubdtype(a.dtype, np.number):
+        raise FedmapError(f"{what} must hold slopes in degrees, got {a.dtype}")
+    if (a[~np.isnan(a)] > 90).any():
+        raise FedmapError(f"{what} holds slopes above 90 degrees")
+    return a
+
+
+def test_a_new_layer_is_one_registry_entry(monkeypatch):
+    """Declaring a layer in LAYER_SPECS is all a map needs to hold, check and carry it."""
+    with pytest.raises(FedmapError, match="unknown map layer 'slope'"):
+        _map().with_layer("slope", np.zeros((12, 17)))
+    monkeypatch.setitem(LAYER_SPECS, "slope", LayerSpec("slope", np.float16, float("nan"), _slopes))
+    grid = _map()
+    s = np.linspace(0, 45, 12 * 17).reshape(12, 17)
+    g = grid.with_layer("slope", s).with_layer("elevation", np.zeros((12, 17)))
+    assert list(g.layers) == ["classes", "elevation", "slope"]  # registry order, whatever the order set
+    assert g.layer("slope").dtype == np.float16 and np.allclose(g.layer("slope"), s, atol=0.05)
+    moved = g.with_classes(np.full(g.shape, FREE, np.uint8))
+    assert moved.layers["slope"] is g.layers["slope"] and list(moved.layers) == list(g.layers)
+    assert list(GridMap(grid.classes, layers={"slope": s}).layers) == ["classes", "slope"]
+    with pytest.raises(FedmapError, match="layer 'slope' has shape 3x3, but the map is 12x17"):
+        grid.with_layer("slope", np.zeros((3, 3)))
+    with pytest.raises(FedmapError, match="layer 'slope' holds slopes above 90 degrees"):
+        grid.with_layer("slope", np.full(grid.shape, 91.0))
+    with pytest.raises(FedmapError, match="layer 'slope' must hold slopes in degrees, got bool"):
+        GridMap(grid.classes, layers={"slope": np.ones(grid.shape, bool)})

@@ -62,9 +62,9 @@ class ExploreConfig:
         maps = explore(truth, self.agents, self.mode, seed=seed, overlap=self.overlap, sensor_radius=self.sensor_radius)
         if "elevation" not in self.layers:
             return maps
-        if truth.elevation is None:
+        if "elevation" not in truth.layers:
             raise needs_dem("an elevation layer")
-        return [m.with_layer("elevation", np.where(m.known, truth.elevation, np.nan)) for m in maps]
+        return [m.with_layer("elevation", np.where(m.known, truth.layer("elevation"), np.nan)) for m in maps]
 
 
 def _grid_shape(n: int) -> tuple[int, int]:

@@ -190,7 +190,7 @@ def run_pipeline(
     heights = "elevation" in config.explore.layers
     if truth is None:
         truth = load_truth(config.terrain, seed=config.seed, elevation=heights)
-    if heights and truth.elevation is None:
+    if heights and "elevation" not in truth.layers:
         raise needs_dem("an elevation layer")
     if local_maps is None:
         local_maps = build_local_maps(config, truth)
@@ -247,9 +247,8 @@ def _elevation(config: PipelineConfig, truth: GridMap, local_maps: list[GridMap]
     """Federate the rovers' heights and score them: RMSE and max error, the bytes both ways
     (and a lossless 1 cm share's, for comparison), and the path F1 of the classes re-derived
     from the federated heights with the run's thresholds."""
-    assert truth.elevation is not None  # run_pipeline checked it before any work
     hf = federate_heights(local_maps, seed=config.seed)
-    z = truth.elevation.astype(np.float64)
+    z = truth.layer("elevation").astype(np.float64)  # run_pipeline checked it is there before any work
     observed = np.any([m.known for m in local_maps], axis=0)
     derived = dem_to_traversability(Dem(hf.heights.astype(np.float32), truth.pixel_size), config.thresholds).classes
     return {"method": "height grid", "resolutions": list(hf.resolutions), "codec": HEIGHT_CODEC,

@@ -77,7 +77,7 @@ class HeightFederation:
 
 def federate_heights(local_maps: list[GridMap], *, steps: int = 300, seed: int = 0) -> HeightFederation:
     """One round of height-grid federation over the rovers' ``elevation`` layers."""
-    zs = [m.elevation for m in local_maps]
+    zs = [m.layers.get("elevation") for m in local_maps]
     if any(z is None for z in zs):
         raise FedmapError("every local map needs an elevation layer to federate heights")
     stack = np.stack([np.asarray(z, dtype=np.float64) for z in zs])

@@ -6,15 +6,16 @@ as the network's target a map is rendered in the paper's colours (free = green,
 impassable = red, unknown = grey 0.5); a network's RGB output goes back to classes by
 nearest colour.
 
-A map holds *named layers* (:data:`LAYERS`): the class array ``"classes"``, always, and
-optionally ``"elevation"`` (metres, NaN where unknown; see :class:`GridMap`).
+A map holds *named layers*, each declared once in :data:`LAYER_SPECS` (a
+:class:`LayerSpec`: dtype, validation, the value of an unknown cell): the class array
+``"classes"``, always, and optionally ``"elevation"`` (metres, NaN where unknown; see
+:class:`GridMap`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
-from types import MappingProxyType
 
 import numpy as np
 from affine import Affine
@@ -37,8 +38,78 @@ PALETTE = np.array(
     dtype=np.float32,
 )
 
+
+def _shape(shape: tuple[int, ...]) -> str:
+    return "x".join(str(n) for n in shape) or "()"
+
+
+def check_classes(classes: np.ndarray, what: str = "class map") -> np.ndarray:
+    """``classes`` as a ``(H, W)`` uint8 class map; a one-line error names ``what`` when it
+    is not a non-empty 2-D array of integer classes FREE, IMPASSABLE or UNKNOWN."""
+    a = np.asarray(classes)
+    if a.ndim != 2 or a.size == 0:
+        raise FedmapError(f"{what} must be a non-empty 2-D class map, got shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.integer):
+        raise FedmapError(f"{what} must hold integer classes, got {a.dtype}")
+    if a.min() < 0 or a.max() > UNKNOWN:
+        raise FedmapError(f"{what} must hold classes 0, 1, 2 (free, impassable, unknown), got {a.min()}..{a.max()}")
+    return a.astype(np.uint8, copy=False)
+
+
+def check_heights(heights: np.ndarray, what: str = "layer 'elevation'") -> np.ndarray:
+    """``heights`` as float32 metres (NaN = unknown); a one-line error names ``what`` when
+    they are not real numbers or hold infinite heights."""
+    a = np.asarray(heights)
+    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        raise FedmapError(f"{what} must hold heights in metres, got {a.dtype}")
+    a = a.astype(np.float32, copy=False)
+    if np.isinf(a).any():
+        raise FedmapError(f"{what} holds infinite heights (unknown cells must be NaN)")
+    return a
+
+
+@dataclass(frozen=True)
+class LayerSpec:
+    """What one layer of a :class:`GridMap` is: the one place a layer is declared.
+
+    ``values(array, what)`` checks an array's values (a one-line :class:`FedmapError`
+    naming ``what``, e.g. ``"layer 'elevation'"``) and returns it as ``dtype``; ``unknown``
+    is the value of a cell nothing is known about (UNKNOWN for classes, NaN for heights).
+    """
+
+    name: str
+    dtype: type[np.generic]
+    unknown: float
+    values: Callable[[np.ndarray, str], np.ndarray]
+
+    def check(self, array: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+        """``array`` as this layer of a map of ``shape``; a one-line error when it has another
+        shape or fails :attr:`values`."""
+        a = np.asarray(array)
+        if a.shape != tuple(shape):
+            raise FedmapError(f"layer {self.name!r} has shape {_shape(a.shape)}, but the map is {_shape(shape)}")
+        return self.values(a, f"layer {self.name!r}").astype(self.dtype, copy=False)
+
+
+#: Every layer a :class:`GridMap` can hold, by name, canonical layer first: declaring a
+#: layer here is all a map needs to hold, check and carry it.
+LAYER_SPECS: dict[str, LayerSpec] = {spec.name: spec for spec in (
+    LayerSpec("classes", np.uint8, UNKNOWN, check_classes),
+    LayerSpec("elevation", np.float32, float("nan"), check_heights),
+)}
+
 #: Names of the layers a :class:`GridMap` can hold, canonical layer first.
-LAYERS: tuple[str, ...] = ("classes", "elevation")
+LAYERS: tuple[str, ...] = tuple(LAYER_SPECS)
+
+
+def check_layers(names: Iterable[str]) -> tuple[str, ...]:
+    """``names`` as a tuple of layer names; a one-line error (with a suggestion) for one that
+    is not in :data:`LAYER_SPECS`."""
+    names = tuple(names)
+    for name in names:
+        if name not in LAYER_SPECS:
+            raise FedmapError(f"unknown map layer {name!r}{suggest(name, tuple(LAYER_SPECS))}")
+    return names
 
 
 @dataclass
@@ -60,22 +131,27 @@ class GridMap:
         a grid without georeferencing (generated terrain).
     crs : str, optional
         The CRS as WKT, or None.
+    layers : mapping, optional
+        The map's other layers, name -> ``(H, W)`` array (e.g. ``{"elevation": z}``);
+        each is checked against its :class:`LayerSpec` and stored as its dtype.
 
     Layers
     ------
     A map holds named ``(H, W)`` layers on one grid, all sharing ``pixel_size``,
-    ``transform`` and ``crs``; :data:`LAYERS` lists the names a map can hold. ``"classes"``
-    is stored in the ``classes`` field, which stays the canonical accessor; the optional
-    ``"elevation"`` (metres, float32, NaN = unknown) in the keyword field ``elevation``.
-    :attr:`layers` is a read-only mapping name -> array over the
-    same arrays (no copies: ``grid.layers["classes"] is grid.classes``),
+    ``transform`` and ``crs``. Each name a map can hold is declared once, in
+    :data:`LAYER_SPECS` (a :class:`LayerSpec`: dtype, checks, unknown value); a new layer
+    needs no more than that entry here. ``"classes"`` (integer codes FREE, IMPASSABLE,
+    UNKNOWN, stored as uint8) is always there, and the ``classes`` field stays its
+    canonical accessor; the others, such as ``"elevation"`` (real heights in metres, NaN
+    where unknown, never infinite, stored as float32), are optional and given as
+    ``layers=``. After construction :attr:`layers` is a read-only mapping name -> array
+    over every layer the map has, ``"classes"`` first and the rest in
+    :data:`LAYER_SPECS` order, without copies (``grid.layers["classes"] is
+    grid.classes``; ``grid.layers.get("elevation")`` is None on a map without heights).
     :meth:`layer` fetches one by name (a one-line :class:`FedmapError` names a missing
-    layer and the available ones) and :meth:`with_layer` returns a new map with one
-    layer replaced, after checking its shape matches the map's and the layer's own
-    rules (``classes``: integer codes FREE, IMPASSABLE, UNKNOWN, stored as uint8;
-    ``elevation``: real heights, NaN where unknown, never infinite, stored as float32).
-    :meth:`with_classes` carries the elevation along. An agent can derive its own classes
-    from the elevation with its own rover profile
+    layer and the available ones), :meth:`with_layer` returns a new map with one layer
+    set, and :meth:`with_classes` carries every other layer along. An agent can derive
+    its own classes from the elevation with its own rover profile
     (:func:`fedmap.maps.traversability.dem_to_traversability`).
     """
 
@@ -85,7 +161,7 @@ class GridMap:
     meta: dict = field(default_factory=dict)
     transform: Affine | None = None
     crs: str | None = None
-    elevation: np.ndarray | None = None
+    layers: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         c = np.asarray(self.classes)
@@ -98,28 +174,22 @@ class GridMap:
         self.classes = c.astype(np.uint8, copy=False)
         if not np.isfinite(self.pixel_size) or self.pixel_size <= 0:
             raise FedmapError(f"pixel size must be a positive number of metres, got {self.pixel_size}")
-        if self.elevation is not None:
-            self.elevation = check_elevation(self.elevation, self.classes.shape)
+        given = dict(self.layers)
+        if "classes" in given:
+            raise FedmapError("layers= holds a map's other layers; its classes are the first argument")
+        check_layers(given)
+        self.layers = _Layers({"classes": self.classes, **{
+            name: spec.check(given[name], self.classes.shape) for name, spec in LAYER_SPECS.items() if name in given}})
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.classes.shape
 
-    @property
-    def layers(self) -> Mapping[str, np.ndarray]:
-        """The map's layers, name -> ``(H, W)`` array, read-only; the arrays are the
-        map's own (``layers["classes"] is classes``)."""
-        out = {"classes": self.classes}
-        if self.elevation is not None:
-            out["elevation"] = self.elevation
-        return MappingProxyType(out)
-
     def layer(self, name: str) -> np.ndarray:
         """The layer ``name``; a one-line error names it and the layers this map has."""
-        layers = self.layers
-        if name not in layers:
-            raise FedmapError(f"this map has no layer {name!r}; available layers: {', '.join(layers)}")
-        return layers[name]
+        if name not in self.layers:
+            raise FedmapError(f"this map has no layer {name!r}; available layers: {', '.join(self.layers)}")
+        return self.layers[name]
 
     @property
     def known(self) -> np.ndarray:
@@ -139,66 +209,42 @@ class GridMap:
         return {name: float(counts[i]) for i, name in enumerate(CLASS_NAMES)}
 
     def with_classes(self, classes: np.ndarray, source: str | None = None) -> GridMap:
-        """A copy with new classes and the same metadata and georeferencing."""
-        return GridMap(classes, self.pixel_size, self.source if source is None else source, dict(self.meta),
-                       transform=self.transform, crs=self.crs, elevation=self.elevation)
+        """A copy with new classes, every other layer, and the same metadata and georeferencing."""
+        return self._with({**self.layers, "classes": classes}, source)
 
     def with_layer(self, name: str, array: np.ndarray, source: str | None = None) -> GridMap:
         """A new map with layer ``name`` set to ``array`` and everything else kept.
 
-        ``name`` must be one of :data:`LAYERS` and ``array`` must have the map's shape;
-        a ``classes`` layer must hold integer class codes (stored as uint8).
+        ``name`` must be one of :data:`LAYER_SPECS` and ``array`` must have the map's shape
+        and pass the layer's checks (:meth:`LayerSpec.check`).
         """
-        check_layers([name])
-        a = np.asarray(array)
-        if a.shape != self.shape:
-            raise FedmapError(f"layer {name!r} has shape {_shape(a.shape)}, but the map is {_shape(self.shape)}")
-        if name == "elevation":
-            out = self.with_classes(self.classes, source)
-            out.elevation = check_elevation(a, self.shape)
-            return out
-        return self.with_classes(check_classes(a, f"layer {name!r}"), source)
+        (name,) = check_layers([name])
+        return self._with({**self.layers, name: LAYER_SPECS[name].check(array, self.shape)}, source)
+
+    def _with(self, layers: Mapping[str, np.ndarray], source: str | None) -> GridMap:
+        """A new map of ``layers`` (``"classes"`` among them) with this one's metadata."""
+        others = {name: a for name, a in layers.items() if name != "classes"}
+        return GridMap(layers["classes"], self.pixel_size, self.source if source is None else source,
+                       dict(self.meta), transform=self.transform, crs=self.crs, layers=others)
 
 
-def _shape(shape: tuple[int, ...]) -> str:
-    return "x".join(str(n) for n in shape) or "()"
+class _Layers(Mapping[str, np.ndarray]):
+    """A map's layers, name -> array, read-only (unlike a mappingproxy, it pickles)."""
 
+    def __init__(self, arrays: dict[str, np.ndarray]) -> None:
+        self._arrays = arrays
 
-def check_classes(classes: np.ndarray, what: str = "class map") -> np.ndarray:
-    """``classes`` as a ``(H, W)`` uint8 class map; a one-line error names ``what`` when it
-    is not a non-empty 2-D array of integer classes FREE, IMPASSABLE or UNKNOWN."""
-    a = np.asarray(classes)
-    if a.ndim != 2 or a.size == 0:
-        raise FedmapError(f"{what} must be a non-empty 2-D class map, got shape {a.shape}")
-    if not np.issubdtype(a.dtype, np.integer):
-        raise FedmapError(f"{what} must hold integer classes, got {a.dtype}")
-    if a.min() < 0 or a.max() > UNKNOWN:
-        raise FedmapError(f"{what} must hold classes 0, 1, 2 (free, impassable, unknown), got {a.min()}..{a.max()}")
-    return a.astype(np.uint8, copy=False)
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self._arrays[name]
 
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._arrays)
 
-def check_layers(names) -> tuple[str, ...]:
-    """``names`` as a tuple of layer names; a one-line error (with a suggestion) for one that
-    is not in :data:`LAYERS`."""
-    names = tuple(names)
-    for name in names:
-        if name not in LAYERS:
-            raise FedmapError(f"unknown map layer {name!r}{suggest(name, LAYERS)}")
-    return names
+    def __len__(self) -> int:
+        return len(self._arrays)
 
-
-def check_elevation(elevation: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """``elevation`` as a float32 layer of ``shape`` (metres, NaN = unknown); a one-line
-    error when it has another shape, is not real, or holds infinite heights."""
-    a = np.asarray(elevation)
-    if a.shape != shape:
-        raise FedmapError(f"layer 'elevation' has shape {_shape(a.shape)}, but the map is {_shape(shape)}")
-    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
-        raise FedmapError(f"layer 'elevation' must hold heights in metres, got {a.dtype}")
-    a = a.astype(np.float32, copy=False)
-    if np.isinf(a).any():
-        raise FedmapError("layer 'elevation' holds infinite heights (unknown cells must be NaN)")
-    return a
+    def __repr__(self) -> str:
+        return f"layers({', '.join(self._arrays)})"
 
 
 def render_classes(classes: np.ndarray) -> np.ndarray:
