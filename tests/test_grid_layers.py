@@ -11,6 +11,7 @@ import pytest
 from affine import Affine
 
 from fedmap.errors import FedmapError
+from fedmap.explore import ExploreConfig
 from fedmap.maps.grid import FREE, IMPASSABLE, LAYER_SPECS, LAYERS, UNKNOWN, GridMap, LayerSpec
 from fedmap.maps.io import load_map, save_map
 
@@ -144,7 +145,8 @@ def _slopes(a: np.ndarray, what: str) -> np.ndarray:
 
 
 def test_a_new_layer_is_one_registry_entry(monkeypatch):
-    """Declaring a layer in LAYER_SPECS is all a map needs to hold, check and carry it."""
+    """Declaring a layer in LAYER_SPECS is all a map needs to hold, check and carry it,
+    and for a run's rovers to observe it."""
     with pytest.raises(FedmapError, match="unknown map layer 'slope'"):
         _map().with_layer("slope", np.zeros((12, 17)))
     monkeypatch.setitem(LAYER_SPECS, "slope", LayerSpec("slope", np.float16, float("nan"), _slopes))
@@ -162,3 +164,8 @@ def test_a_new_layer_is_one_registry_entry(monkeypatch):
         grid.with_layer("slope", np.full(grid.shape, 91.0))
     with pytest.raises(FedmapError, match="layer 'slope' must hold slopes in degrees, got bool"):
         GridMap(grid.classes, layers={"slope": np.ones(grid.shape, bool)})
+    # the rovers of a run observe it: the truth's slopes where they saw, the unknown value elsewhere
+    truth = GridMap(np.zeros((32, 32), np.uint8), 1.0).with_layer("slope", np.full((32, 32), 10.0))
+    for m in ExploreConfig(agents=4, layers=("classes", "slope")).local_maps(truth, seed=0):
+        got = m.layer("slope")
+        assert np.all(got[m.known] == 10.0) and np.all(np.isnan(got[~m.known])) and m.known.any()

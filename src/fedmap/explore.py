@@ -27,7 +27,7 @@ from scipy import ndimage
 
 from fedmap._schema import setting
 from fedmap.errors import FedmapError
-from fedmap.maps.grid import LAYERS, UNKNOWN, GridMap, check_layers
+from fedmap.maps.grid import LAYER_SPECS, LAYERS, UNKNOWN, GridMap, check_layers
 from fedmap.maps.planning import astar, passable_mask
 from fedmap.maps.sources import needs_dem
 
@@ -57,14 +57,17 @@ class ExploreConfig:
             raise FedmapError(f"overlap must be >= 0 and sensor_radius positive, got {self.overlap}, {self.sensor_radius}")
 
     def local_maps(self, truth: GridMap, *, seed: int) -> list[GridMap]:
-        """One local map per rover (:func:`explore`) with these settings; with an elevation
-        layer each carries the truth's heights of the cells it observed (NaN elsewhere)."""
+        """One local map per rover (:func:`explore`) with these settings; each other layer
+        of ``layers`` carries the truth's values of the cells the rover observed and the
+        layer's unknown value elsewhere (an elevation layer: the heights, NaN elsewhere)."""
         maps = explore(truth, self.agents, self.mode, seed=seed, overlap=self.overlap, sensor_radius=self.sensor_radius)
-        if "elevation" not in self.layers:
-            return maps
-        if "elevation" not in truth.layers:
+        if "elevation" in self.layers and "elevation" not in truth.layers:
             raise needs_dem("an elevation layer")
-        return [m.with_layer("elevation", np.where(m.known, truth.layer("elevation"), np.nan)) for m in maps]
+        for name in self.layers:
+            if name != "classes":
+                unknown = LAYER_SPECS[name].unknown
+                maps = [m.with_layer(name, np.where(m.known, truth.layer(name), unknown)) for m in maps]
+        return maps
 
 
 def _grid_shape(n: int) -> tuple[int, int]:
