@@ -14,8 +14,10 @@ from fedmap.flower.task import initial_weights as flower_initial_weights
 from fedmap.flower.task import load_local_map
 from fedmap.maps.grid import UNKNOWN
 from fedmap.maps.sources import load_truth
-from fedmap.mission.sim import Rover
-from fedmap.mission.strategies import make_strategy
+from fedmap.mission.registry import Setup, build
+from fedmap.mission.settings import MissionConfig
+from fedmap.mission.topology import StarTopology
+from fedmap.mission.world import Rover
 from fedmap.nets.init import load_init_weights
 from fedmap.nets.model import build_model, get_weights
 from fedmap.nets.training import native_bf16
@@ -45,9 +47,9 @@ def _mission_start(settings: dict) -> dict:
     truth = load_truth(method_config(size=SIDE, seed=SEED).terrain, seed=SEED)
     blank = np.full(truth.shape, UNKNOWN, np.uint8)
     team = [Rover(pos=(10 * k, 10), local=blank.copy(), obs_step=np.full(truth.shape, -1)) for k in range(2)]
-    strategy = make_strategy("paper", truth, team, {"up": None, "down": None}, methods={"paper": settings}, seed=SEED,
-                             radius=8.0)
-    return strategy.rover_held[0]  # type: ignore[attr-defined]
+    config = MissionConfig(rovers=2, strategies=("paper",), methods={"paper": settings}, seed=SEED)
+    sharing = build("paper", Setup(config, truth, team, StarTopology((0, 0))))
+    return sharing.rovers[0].held_w
 
 
 def _same(a: dict, b: dict) -> bool:

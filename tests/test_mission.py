@@ -14,10 +14,11 @@ from fedmap.federation.mapcodec import decode_map
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
 from fedmap.mission.frontiers import choose_target, frontier_mask, gain_at, travel_costs
-from fedmap.mission.link import Link, StarTopology
+from fedmap.mission.link import Link
+from fedmap.mission.protocol import unpack_up
 from fedmap.mission.sensing import disk_offsets, footprint
 from fedmap.mission.settings import load_mission
-from fedmap.mission.strategies import unpack_up
+from fedmap.mission.topology import StarTopology
 
 
 def _maze(n: int = 40, seed: int = 3) -> GridMap:
@@ -226,7 +227,7 @@ def test_raw_global_map_is_exactly_the_union_of_delivered_observations(mission):
     delivered = [m for m in run.ledger if m.direction == "up" and m.status == "delivered"]
     assert delivered and any(m.status == "lost" for m in run.ledger)
     # the global map is the union of what the delivered uplinks carried: decode them again
-    received = run.strategy.received  # (round, rover, payload) as the base got them
+    received = run.sharing.journal.received  # (round, rover, payload) as the base got them
     assert len(received) == len(delivered)
     for _, _, payload in received:
         cells = decode_map(unpack_up(payload)[3], expected_shape=truth.shape)
@@ -258,7 +259,7 @@ def test_same_seed_same_series_and_bytes(mission):
     a, b = result.runs["raw"], again.runs["raw"]
     assert a.series == b.series and a.summary == b.summary
     assert [m.to_dict() for m in a.ledger] == [m.to_dict() for m in b.ledger]
-    assert a.strategy.received == b.strategy.received
+    assert a.sharing.journal.received == b.sharing.journal.received
 
 
 def test_budget_and_range_are_enforced():
@@ -340,26 +341,27 @@ def test_fedmap_strategy_is_one_round_of_fedmap_run():
     base steps of `fedmap run`) on the rovers' local maps at that sync."""
     from fedmap.config import method_config
     from fedmap.federation.runner import run_federation
-    from fedmap.mission.strategies import UP_HEADER, torch_threads
+    from fedmap.mission.model import COUNT_BYTES
+    from fedmap.mission.protocol import UP_HEADER, torch_threads
     from fedmap.pipeline import initial_weights
 
     truth = _maze(32)
     cfg = _small(rovers=2, steps=6, sync_every=6, strategies=("fedmap",), link=LinkConfig(loss=0.0),
                  methods={"fedmap": {"epochs": 15}})
     run = run_mission(cfg, truth).runs["fedmap"]
-    strat = run.strategy
-    assert strat.rounds_aggregated == 1
+    strat = run.sharing
+    assert strat.base.rounds_aggregated == 1
     pc = method_config("fedmap", epochs=15, seed=cfg.seed)
     init = initial_weights(pc, 32)
     locals_ = [truth.with_classes(r.local, f"rover {k}") for k, r in enumerate(strat.team)]
     with torch_threads():  # the mission's thread setting: the same float order
         fed = run_federation(init, pc.model.network(32), locals_, pc.federation)
     for name, w in fed.weights.items():
-        np.testing.assert_array_equal(strat.base_held[name], w)
+        np.testing.assert_array_equal(strat.base.held_w[name], w)
         for k in range(2):  # and every rover decoded the same broadcast
-            np.testing.assert_array_equal(strat.rover_held[k][name], w)
+            np.testing.assert_array_equal(strat.rovers[k].held_w[name], w)
     up = [m.bytes for m in run.ledger if m.direction == "up"]
-    assert sorted(up) == sorted(b + UP_HEADER for b in fed.history[0].uplink_bytes.values())
+    assert sorted(up) == sorted(b + UP_HEADER + COUNT_BYTES for b in fed.history[0].uplink_bytes.values())
 
 
 @pytest.mark.parametrize("kept, catch_up", [(0, "keyframe"), (8, "chain")])
@@ -370,14 +372,14 @@ def test_lost_broadcasts_cost_keyframes_or_chains_and_rovers_stay_in_step_with_t
     cfg = _small(rovers=2, steps=16, sync_every=2, strategies=("fedmap",), link=LinkConfig(loss=0.4, seed=1),
                  methods={"fedmap": {"epochs": 5, "versions_kept": kept}})
     run = run_mission(cfg, truth).runs["fedmap"]
-    strat = run.strategy
+    strat = run.sharing
     kinds = {(m.kind, m.status) for m in run.ledger if m.direction == "down"}
     assert (catch_up, "delivered") in kinds and ("broadcast", "lost") in kinds
     for k in range(2):
-        if strat.rover_version[k] == strat.bc.version:  # the same version is the same weights
-            for name, w in strat.base_held.items():
-                np.testing.assert_array_equal(strat.rover_held[k][name], w)
-    assert strat.rounds_aggregated >= 1
+        if strat.rovers[k].version == strat.base.bc.version:  # the same version is the same weights
+            for name, w in strat.base.held_w.items():
+                np.testing.assert_array_equal(strat.rovers[k].held_w[name], w)
+    assert strat.base.rounds_aggregated >= 1
 
 
 def test_latency_delays_every_delivery_and_waypoints_are_followed():
@@ -456,7 +458,7 @@ def test_beliefs_are_scored_on_observed_and_unobserved_cells_apart():
     result = run_mission(config, _maze(40, 9), frames=1)
     truth = result.truth.classes
     for run in result.runs.values():
-        s = run.strategy
+        s = run.sharing
         seen = np.stack([r.local != UNKNOWN for r in s.team]).any(axis=0)
         for k in range(config.rovers):
             b = s.belief(k)
@@ -469,36 +471,36 @@ def test_beliefs_are_scored_on_observed_and_unobserved_cells_apart():
 
 
 def test_a_downlink_over_the_budget_arrives_in_chunks_over_the_rounds(monkeypatch):
-    from fedmap.mission import strategies
+    from fedmap.mission.model import ModelRover
     completed: list[tuple[int, str]] = []
-    real = strategies.Model._receive_chunk
+    real = ModelRover._receive_chunk
 
-    def spy(self, k, version, reports, body):
-        before = self.rover_version[k]
-        ok = real(self, k, version, reports, body)
-        if self.rover_version[k] != before:
-            completed.append((k, self.rover_version[k]))
+    def spy(self, reference, reports, body):
+        before = self.version
+        ok = real(self, reference, reports, body)
+        if self.version != before:
+            completed.append((self.k, self.version))
         return ok
 
-    monkeypatch.setattr(strategies.Model, "_receive_chunk", spy)
+    monkeypatch.setattr(ModelRover, "_receive_chunk", spy)
     truth = _maze(32)
     budget = 400
     cfg = _small(rovers=2, steps=24, sync_every=2, strategies=("fedmap",),
                  link=LinkConfig(loss=0.3, seed=2, downlink_bytes=budget),
                  methods={"fedmap": {"epochs": 5, "versions_kept": 8}})
     run = run_mission(cfg, truth).runs["fedmap"]
-    strat = run.strategy
+    strat = run.sharing
     down = [m for m in run.ledger if m.direction == "down"]
     assert all(m.bytes <= budget for m in down)
     assert any(m.kind.endswith(" chunk") and m.status == "delivered" for m in down)
     assert any(m.kind.endswith(" chunk") and m.status == "lost" for m in down)  # and a lost one was sent again
     for k in range(2):  # whatever a rover holds is a model the base held, bit for bit
-        if strat.rover_version[k] == strat.bc.version:
-            for name, w in strat.base_held.items():
-                np.testing.assert_array_equal(strat.rover_held[k][name], w)
+        if strat.rovers[k].version == strat.base.bc.version:
+            for name, w in strat.base.held_w.items():
+                np.testing.assert_array_equal(strat.rovers[k].held_w[name], w)
     # rovers that missed a broadcast were resynchronised by downlinks put together from chunks
     assert completed
-    assert strat.rounds_aggregated >= 1
+    assert strat.base.rounds_aggregated >= 1
 
 
 def test_rate_control_sends_the_best_update_that_fits_rather_than_nothing():
@@ -511,26 +513,26 @@ def test_rate_control_sends_the_best_update_that_fits_rather_than_nothing():
     assert any(m.kind.startswith("update top-k") for m in up)  # the codec's own update did not fit
     down = [m for m in run.ledger if m.direction == "down"]
     assert all(m.bytes <= 900 for m in down) and not any(m.status == "over budget" for m in down)
-    s = run.strategy
+    s = run.sharing
     for k in range(2):  # on a perfect link every rover ends holding the base's model, bit for bit
-        assert s.rover_version[k] == s.bc.version
+        assert s.rovers[k].version == s.base.bc.version
 
 
 def test_training_on_what_changed_selects_the_new_cells_and_a_seeded_replay_sample():
-    from fedmap.mission.strategies import MIN_REPLAY
+    from fedmap.mission.model import MIN_REPLAY
 
     truth = maze(40, seed=2)
     base = dict(rovers=2, steps=30, sync_every=10, speed=2, sensor_radius=4.0, eval_pairs=8,
                 strategies=("fedmap",), methods={"fedmap": {"epochs": 5}}, link=LinkConfig(loss=0.0))
-    whole = run_mission(MissionConfig(**base), truth).runs["fedmap"].strategy
-    changed = run_mission(MissionConfig(**base, train_on="changed", replay=0.5), truth).runs["fedmap"].strategy
+    whole = run_mission(MissionConfig(**base), truth).runs["fedmap"].sharing
+    changed = run_mission(MissionConfig(**base, train_on="changed", replay=0.5), truth).runs["fedmap"].sharing
     # the whole map: every known cell at every sync (fedmap's preset trains masked)
-    for rec in whole.trained_cells:
+    for rec in whole.journal.trained_cells:
         assert rec["cells"] > 0
     # round 1 trains on the whole map; later rounds on the new cells and a replay sample
-    first = [r for r in changed.trained_cells if r["round"] == 1]
+    first = [r for r in changed.journal.trained_cells if r["round"] == 1]
     assert first and all(r["cells"] > 0 for r in first)
-    later = [r for r in changed.trained_cells if r["round"] > 1]
+    later = [r for r in changed.journal.trained_cells if r["round"] > 1]
     assert later
     for rec in later:
         k = rec["rover"]

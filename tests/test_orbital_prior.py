@@ -65,7 +65,7 @@ def test_a_rover_plans_on_the_prior_but_never_counts_it_as_seen():
     # a prior of FREE everywhere: every impassable cell a rover has not seen is a false free
     free = np.full(truth.shape, FREE, np.uint8)
     run = run_mission(replace(config, strategies=("none",)), truth, prior=free, frames=1).runs["none"]
-    s = run.strategy
+    s = run.sharing
     for k, r in enumerate(s.team):
         on = np.where(r.local == UNKNOWN, FREE, r.local)
         want = ((on == FREE) & (truth.classes == IMPASSABLE)).sum() / (on == FREE).sum()

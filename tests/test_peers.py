@@ -16,10 +16,11 @@ from fedmap.errors import FedmapError
 from fedmap.federation.aggregate import metropolis_mix, metropolis_weight
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.mission import LinkConfig, MissionConfig
-from fedmap.mission.link import BASE, PEER, Link, MeshTopology, components, elect_leaders, route
+from fedmap.mission.link import BASE, PEER, Link
 from fedmap.mission.sensing import block_classes, coarse_footprint
 from fedmap.mission.settings import HelicopterConfig
 from fedmap.mission.sim import run_mission
+from fedmap.mission.topology import MeshTopology, components, elect_leaders, route
 
 
 def _random_graph(rng, n: int, p: float) -> list[tuple[int, int]]:
@@ -158,17 +159,17 @@ def test_gossip_delivers_every_cell_once_per_acknowledged_link(link):
     truth = maze(32, seed=2)
     res = run_mission(_mission(link=link, strategies=("raw",)), truth)
     run = res.runs["raw"]
-    s = run.strategy
-    assert s is not None and s.deliveries, "no gossip was delivered"
+    s = run.sharing
+    assert s is not None and s.journal.deliveries, "no gossip was delivered"
     carried: dict[tuple[int, int], set] = {}
-    for _, a, b, cells in s.deliveries:
+    for _, a, b, cells in s.journal.deliveries:
         got = carried.setdefault((a, b), set())
         assert not got & set(cells.tolist()), f"a cell went twice from {a} to {b}"
         got |= set(cells.tolist())
     # nothing is sent back the way it came: a cell b received from a, b never sends to a
     for (a, b), cells in carried.items():
         assert not cells & carried.get((b, a), set()) or link.get("latency", 0) > 0 or \
-            _first_from(s.deliveries, a, b, cells & carried[(b, a)])
+            _first_from(s.journal.deliveries, a, b, cells & carried[(b, a)])
     # every byte of the ledger is a peer message, charged to its sender
     assert run.ledger and all(m.direction == PEER for m in run.ledger)
     assert run.summary.bytes_up + run.summary.bytes_down == sum(m.bytes for m in run.ledger)
@@ -188,7 +189,7 @@ def test_raw_gossip_on_a_perfect_complete_mesh_gives_everyone_every_observation(
     truth = maze(32, seed=5)
     cfg = _mission(link=dict(topology="mesh", loss=0.0), strategies=("raw",), steps=40)
     res = run_mission(cfg, truth)
-    s = res.runs["raw"].strategy
+    s = res.runs["raw"].sharing
     last = cfg.sync_steps[-1]
     union = np.full(truth.shape, UNKNOWN, dtype=np.uint8)
     for r in s.team:
@@ -228,7 +229,7 @@ def test_model_gossip_shares_and_improves_beliefs_over_none():
     res = run_mission(cfg, truth)
     g = res.runs["gossip"]
     assert any(m.status == "delivered" and m.kind == "model" for m in g.ledger)
-    assert g.strategy.rejected == 0
+    assert g.sharing.journal.rejected == 0
     assert np.mean(g.series.accuracy[-1]) > np.mean(res.runs["none"].series.accuracy[-1])
 
 
@@ -266,7 +267,7 @@ def test_a_helicopter_keeps_its_flight_budget_and_lands_on_landing_sites(budget,
     cfg = _mission(helicopters=1, helicopter=heli, steps=80)
     res = run_mission(cfg, truth)
     for name, run in res.runs.items():
-        h = run.strategy.team[cfg.rovers]
+        h = run.sharing.team[cfg.rovers]
         assert h.kind == "helicopter" and h.landings, f"{name}: the helicopter never landed"
         # from the step log: no stretch in the air is longer than the budget, and each ends on a site
         runs, n = [], 0
@@ -314,15 +315,15 @@ def test_admm_runs_on_a_mesh_and_keeps_duals_per_link():
     cfg = _mission(link=dict(topology="mesh", loss=0.0), strategies=("none", "admm"), steps=20,
                    methods={"admm": {"epochs": 10}})
     res = run_mission(cfg, truth)
-    s = res.runs["admm"].strategy
+    s = res.runs["admm"].sharing
     # a complete mesh of the lander and 3 rovers: every agent holds a dual per neighbour
-    assert sorted(s.dual) == sorted((i, j) for i in range(4) for j in (BASE, 0, 1, 2)
-                                    if j != (BASE if i == 3 else i))
+    assert {a: sorted(p.dual) for a, p in s.peers.items()} == {a: [j for j in (BASE, 0, 1, 2) if j != a]
+                                                             for a in (BASE, 0, 1, 2)}
     # the shared model tells every rover cells it never observed, rightly (none's beliefs know only their own)
     for k, r in enumerate(s.team):
         told = (s.belief(k) == truth.classes) & (r.local == UNKNOWN)
         assert told.sum() > 0.05 * truth.classes.size
-    none = res.runs["none"].strategy
+    none = res.runs["none"].sharing
     assert all(((none.belief(k) != UNKNOWN) == (r.local != UNKNOWN)).all() for k, r in enumerate(none.team))
 
 
@@ -343,7 +344,7 @@ def test_each_rover_plans_on_its_own_profile_and_is_scored_on_it():
         assert (profiles[name] == FREE).sum() > (truth.classes == FREE).sum()
     res = run_mission(cfg, truth, elevation=elevation, prior=prior, profiles=profiles)
     run = res.runs["raw"]
-    s = run.strategy
+    s = run.sharing
     own = [profiles["cadre"], truth.classes, profiles["msl"]]
     for k, r in enumerate(s.team):
         assert all(own[k][c] == FREE for c in r.trail), f"rover {k} entered a cell its own profile forbids"
@@ -389,7 +390,7 @@ def test_shared_exact_heights_let_each_rover_derive_its_own_classes():
     from scipy import ndimage
 
     cfg, truth, elevation, profiles, res = _elevation_mission(noise=0.0, q=0.0)
-    s = res.runs["raw"].strategy
+    s = res.runs["raw"].sharing
     for r in s.team:
         seen = np.isfinite(r.heights)
         assert np.array_equal(r.heights[seen], elevation[seen])  # exact sensing
@@ -402,7 +403,7 @@ def test_shared_exact_heights_let_each_rover_derive_its_own_classes():
     for k in range(cfg.rovers):
         # where every cell within 2 of a cell has a height, the classes it derives are its profile's truth
         r = s.team[k]
-        zk = np.where(np.isfinite(r.heights), r.heights, s.heights(k))
+        zk = np.where(np.isfinite(r.heights), r.heights, s.rovers[k].heights())
         inner = ndimage.binary_erosion(np.isfinite(zk), np.ones((5, 5)), border_value=0)
         received = inner & (r.local == UNKNOWN)
         assert received.any(), f"rover {k} received no heights to derive from"
@@ -415,10 +416,10 @@ def _run_view(res, name, k):
     from fedmap.maps.dem import Dem
     from fedmap.maps.traversability import dem_to_traversability, rover_profile
 
-    s = res.runs[name].strategy
+    s = res.runs[name].sharing
     r = s.team[k]
     profile = res.config.rover_profiles[k]
-    z = np.where(np.isfinite(r.heights), r.heights, s.heights(k))
+    z = np.where(np.isfinite(r.heights), r.heights, s.rovers[k].heights())
     derived = dem_to_traversability(Dem(z, res.truth.pixel_size), None if profile == "team" else
                                     rover_profile(profile)).classes
     return np.where(derived != UNKNOWN, derived, s.belief(k))
@@ -427,35 +428,35 @@ def _run_view(res, name, k):
 def test_height_noise_is_seeded_and_measured():
     _, _, elevation, _, a = _elevation_mission(noise=0.2, q=0.01)
     _, _, _, _, b = _elevation_mission(noise=0.2, q=0.01)
-    ra, rb = a.runs["raw"].strategy.team[0], b.runs["raw"].strategy.team[0]
+    ra, rb = a.runs["raw"].sharing.team[0], b.runs["raw"].sharing.team[0]
     assert np.array_equal(ra.heights, rb.heights, equal_nan=True)  # the same seed, the same noise
     seen = np.isfinite(ra.heights)
     err = ra.heights[seen] - elevation[seen]
     assert 0.15 < float(np.std(err)) < 0.25 and abs(float(np.mean(err))) < 0.05
     # what the base holds is what the rovers measured, quantised to 1 cm
-    z = a.runs["raw"].strategy.global_heights()
+    z = a.runs["raw"].sharing.global_heights()
     assert 0.15 < a.runs["raw"].summary.final_height_rmse_m < 0.25
     assert np.isfinite(z).sum() > 0
 
 
 def test_under_leaders_each_admm_agent_takes_one_primal_step_per_round():
-    from fedmap.mission import peers
+    from fedmap.mission.gossip import AdmmPeer
 
     calls: list[tuple[int, int]] = []
-    original = peers.Admm._primal
+    original = AdmmPeer._primal
 
-    def counting(self, i, round_no, p_sum, mids):
-        calls.append((round_no, i))
-        return original(self, i, round_no, p_sum, mids)
+    def counting(self, round_no, p_sum, mids):
+        calls.append((round_no, self.agent))
+        return original(self, round_no, p_sum, mids)
 
     truth = maze(32, seed=4)
     cfg = _mission(link=dict(topology="leader", loss=0.0, peer_range=100.0), strategies=("admm",), steps=20,
                    methods={"admm": {"epochs": 3}})
-    peers.Admm._primal = counting
+    AdmmPeer._primal = counting
     try:
         run_mission(cfg, truth)
     finally:
-        peers.Admm._primal = original
+        AdmmPeer._primal = original
     assert calls and len(calls) == len(set(calls))  # never twice in one round
     assert {r for r, _ in calls} == set(range(1, len(cfg.sync_steps) + 1))
     assert {i for _, i in calls} == {0, 1, 2}  # the lander (the leader) takes the exact step instead

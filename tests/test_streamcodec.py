@@ -15,10 +15,10 @@ from conftest import maze
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.federation import streamcodec as sc
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
-from fedmap.meta.coder import _scaled, learn_coder_prior, save_coder_prior
 from fedmap.meta.collections import MapCollection
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
-from fedmap.mission.strategies import cover
+from fedmap.mission.coderprior import _scaled, learn_coder_prior, save_coder_prior
+from fedmap.mission.protocol import cover
 
 SHAPE = (40, 48)
 
@@ -189,18 +189,19 @@ def test_predictive_reaches_raws_map_for_fewer_bytes_and_both_ends_stay_identica
                            eval_pairs=5, link=link)
     result = run_mission(config, _maze(), frames=1)
     raw, pred = result.runs["raw"], result.runs["predictive"]
-    s = pred.strategy
+    s = pred.sharing
     for k in range(config.rovers):
-        assert s.up_rover[k].same_as(s.up_base[k]) and s.down_rover[k].same_as(s.down_base[k])
+        rover, base = s.rovers[k], s.base
+        assert rover.up.same_as(base.up[k]) and rover.down.same_as(base.down[k])
         # what the base believes a rover holds is what it holds
-        np.testing.assert_array_equal(s.b_held[k], s.r_held[k])
+        np.testing.assert_array_equal(base.held_by[k], rover.held())
         # every cell a rover holds from the base is true
-        held = s.r_held[k] != UNKNOWN
-        np.testing.assert_array_equal(s.r_held[k][held], result.truth.classes[held])
+        held = rover.held() != UNKNOWN
+        np.testing.assert_array_equal(rover.held()[held], result.truth.classes[held])
     # the base holds exactly the delivered observations: the union of what each rover delivered
     union = np.full(result.truth.shape, UNKNOWN, np.uint8)
     for k, r in enumerate(s.team):
-        union = np.where(s.r_delivered[k], r.local, union)
+        union = np.where(s.rovers[k].delivered_cells, r.local, union)
     np.testing.assert_array_equal(s.global_map(), union)
     bytes_raw = sum(m.bytes for m in raw.ledger)
     bytes_pred = sum(m.bytes for m in pred.ledger)
@@ -211,7 +212,7 @@ def test_without_loss_predictive_ends_with_raws_maps():
     config = MissionConfig(rovers=3, steps=50, sync_every=5, sensor_radius=4.0, strategies=("raw", "predictive"),
                            eval_pairs=5, link=LinkConfig(loss=0.0))
     result = run_mission(config, _maze(seed=5), frames=1)
-    a, b = result.runs["raw"].strategy, result.runs["predictive"].strategy
+    a, b = result.runs["raw"].sharing, result.runs["predictive"].sharing
     np.testing.assert_array_equal(a.global_map(), b.global_map())
     for k in range(config.rovers):
         np.testing.assert_array_equal(a.belief(k), b.belief(k))
@@ -223,10 +224,10 @@ def test_predictive_fits_a_tight_budget_by_sending_a_prefix_of_the_trail():
     run = run_mission(config, _maze(seed=6), frames=1).runs["predictive"]
     sent = [m for m in run.ledger if m.bytes]
     assert sent and all(m.bytes <= (6 if m.direction == "up" else 8) for m in sent)
-    s = run.strategy
+    s = run.sharing
     for k in range(2):  # the base holds a prefix of each trail, and the cells in range of it
-        assert s.b_trails[k] == s.team[k].trail[:len(s.b_trails[k])]
-        assert len(s.b_trails[k]) < len(s.team[k].trail)
+        assert s.base.trails[k] == s.team[k].trail[:len(s.base.trails[k])]
+        assert len(s.base.trails[k]) < len(s.team[k].trail)
     again = run_mission(replace(config, link=replace(config.link, uplink_bytes=None, downlink_bytes=None)),
                         _maze(seed=6), frames=1).runs["predictive"]
     assert sum(m.bytes for m in again.ledger) > sum(m.bytes for m in run.ledger)

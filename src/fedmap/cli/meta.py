@@ -18,10 +18,10 @@ from fedmap.cli.ui import console, progress_bar
 from fedmap.errors import FedmapError
 from fedmap.maps.traversability import TraversabilityThresholds
 from fedmap.meta.ablation import AblationConfig, make_inits, pick_maps, run_ablation, write_ablation
-from fedmap.meta.coder import learn_coder_prior, save_coder_prior
 from fedmap.meta.collections import BUILTIN_CATEGORIES, MapCollection, earth_like, load_collection
 from fedmap.meta.reptile import MetaConfig
 from fedmap.meta.reptile import meta_train as run_meta_train
+from fedmap.mission.coderprior import learn_coder_prior, save_coder_prior
 from fedmap.nets.model import NetConfig, preset
 
 

@@ -37,9 +37,10 @@ from scipy.special import gammaln
 from fedmap.experiments.bandwidth import pack_2bit
 from fedmap.federation.mapcodec import ALPHA, decode_map
 from fedmap.maps.grid import UNKNOWN, GridMap
+from fedmap.mission.predictive import PredictiveRover
+from fedmap.mission.protocol import unpack_up
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.sim import run_mission
-from fedmap.mission.strategies import Predictive, Raw, unpack_up
 
 #: The JBIG-style template: (drow, dcol) of the 10 causal neighbours of a cell.
 TEMPLATE = ((-2, -1), (-2, 0), (-2, 1), (-1, -2), (-1, -1), (-1, 0), (-1, 1), (-1, 2), (0, -2), (0, -1))
@@ -101,10 +102,10 @@ def cell_stream_report(config: MissionConfig, truth: GridMap, *, elevation: np.n
     say = on_stage or (lambda _s: None)
     say("raw")
     raw = run_mission(replace(config, strategies=("raw",)), truth, elevation=elevation, prior=prior,
-                      frames=1).runs["raw"].strategy
-    assert isinstance(raw, Raw)
-    messages = [decode_map(unpack_up(p)[3], expected_shape=truth.shape) for _, _, p in raw.received]
-    bodies = [len(unpack_up(p)[3]) for _, _, p in raw.received]
+                      frames=1).runs["raw"].sharing
+    received = raw.journal.received  # what the base merged, as it got it
+    messages = [decode_map(unpack_up(p)[3], expected_shape=truth.shape) for _, _, p in received]
+    bodies = [len(unpack_up(p)[3]) for _, _, p in received]
     carried = int(sum((m != UNKNOWN).sum() for m in messages))
     final = int((raw.global_map() != UNKNOWN).sum())
     say("generic codecs")
@@ -121,10 +122,10 @@ def cell_stream_report(config: MissionConfig, truth: GridMap, *, elevation: np.n
         say(label)
         c = replace(config, strategies=("predictive",), methods={**config.methods, "predictive": opts})
         run = run_mission(c, truth, elevation=elevation, prior=prior, frames=1).runs["predictive"]
-        s = run.strategy
-        assert isinstance(s, Predictive)
+        s = run.sharing
+        assert all(isinstance(r, PredictiveRover) for r in s.rovers)
         up = [m for m in run.ledger if m.direction == "up" and m.status == "delivered"]
-        cells = int(sum(d.sum() for d in s.r_delivered))
+        cells = int(sum(r.delivered_cells.sum() for r in s.rovers))
         rows.append({"coder": label, "messages": len(up), "cells": cells, "bytes": sum(m.bytes for m in up),
                      "same_map": bool(np.array_equal(s.global_map(), raw.global_map()))})
     for r in rows:

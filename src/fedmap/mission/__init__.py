@@ -4,17 +4,28 @@ sharing are compared on the same mission.
 * :mod:`~fedmap.mission.settings`: :class:`MissionConfig`, :class:`LinkConfig`, the TOML loader;
 * :mod:`~fedmap.mission.sensing`: the sensor footprint (disk, optional line of sight over the DEM);
 * :mod:`~fedmap.mission.frontiers`: frontier cells and coordinated target choice on a belief map;
-* :mod:`~fedmap.mission.link`: the seeded link (budgets, loss, latency), its :class:`Topology`
-  (who reaches the base: :class:`StarTopology`, within range) and its ledger;
-* :mod:`~fedmap.mission.strategies`: none, raw, predictive, paper, fedmap, central;
-* :mod:`~fedmap.mission.sim`: :func:`run_mission`, the step loop and its typed results
-  (:class:`StrategyRun`: a :class:`TimeSeries` and a :class:`MissionSummary` per strategy);
+* :mod:`~fedmap.mission.world`: the rovers' world: drive, fly, sense, plan on a belief;
+* :mod:`~fedmap.mission.protocol`: the ends of a strategy (rover, base, peer), its headers;
+* :mod:`~fedmap.mission.raw`, :mod:`~fedmap.mission.predictive`, :mod:`~fedmap.mission.model`,
+  :mod:`~fedmap.mission.gossip`: the strategies' ends (none, raw, central; predictive;
+  paper, fedmap; gossip, admm), which talk to each other only in bytes;
+* :mod:`~fedmap.mission.registry`: the one registry of strategies (:data:`REGISTRY`);
+* :mod:`~fedmap.mission.link`: the seeded link (budgets, loss, latency, drops) and its ledger;
+* :mod:`~fedmap.mission.topology`: who talks to whom (:class:`StarTopology`,
+  :class:`MeshTopology`, :class:`LeaderTopology`) and one sync round over the ends;
+* :mod:`~fedmap.mission.sim`: :func:`run_mission`, the step loop; its typed results
+  (:class:`StrategyRun`: a :class:`TimeSeries` and a :class:`MissionSummary` per strategy)
+  are in :mod:`~fedmap.mission.results`;
+* :mod:`~fedmap.mission.coderprior`: the predictive coder's learned initial state;
 * :mod:`~fedmap.mission.report`: ``metrics.json``, ``report.md``, plots and the animation.
 """
 
-from fedmap.mission.link import StarTopology, Topology
+from fedmap.mission.registry import REGISTRY
+from fedmap.mission.results import MissionResult, MissionSummary, StrategyRun, TimeSeries
 from fedmap.mission.settings import STRATEGIES, LinkConfig, MissionConfig, load_mission
-from fedmap.mission.sim import MissionResult, MissionSummary, StrategyRun, TimeSeries, mission_terrain, run_mission
+from fedmap.mission.sim import mission_terrain, run_mission
+from fedmap.mission.topology import LeaderTopology, MeshTopology, StarTopology, Topology
 
-__all__ = ["STRATEGIES", "LinkConfig", "MissionConfig", "MissionResult", "MissionSummary", "StarTopology",
-           "StrategyRun", "TimeSeries", "Topology", "load_mission", "mission_terrain", "run_mission"]
+__all__ = ["REGISTRY", "STRATEGIES", "LeaderTopology", "LinkConfig", "MeshTopology", "MissionConfig", "MissionResult",
+           "MissionSummary", "StarTopology", "StrategyRun", "TimeSeries", "Topology", "load_mission",
+           "mission_terrain", "run_mission"]

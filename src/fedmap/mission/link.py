@@ -1,11 +1,12 @@
-"""The seeded radio link between the rovers and the base station, its topology, and its ledger.
+"""The seeded radio link between the agents, and its ledger (who talks to whom:
+:mod:`fedmap.mission.topology`).
 
 Every message is a real payload (``bytes``); the ledger records its length. What happens
 to a message, in this order:
 
-1. **Range.** A rover the :class:`Topology` says cannot reach the base this step has no
+1. **Range.** A rover the :class:`~fedmap.mission.topology.Topology` says cannot reach the base this step has no
    link: nothing is sent (``out of range``, 0 bytes). The mission's topology is
-   :class:`StarTopology`: every rover talks to the base directly, within ``max_range``
+   :class:`~fedmap.mission.topology.StarTopology`: every rover talks to the base directly, within ``max_range``
    cells of it.
 2. **Budget.** A payload longer than the direction's per-round budget is not sent
    (``over budget``, 0 bytes); the strategy decides what to send instead, before asking.
@@ -21,7 +22,7 @@ acknowledgement, not counted in the bytes).
 
 **Peer topologies** (``[link] topology``). On ``mesh`` and ``leader`` every agent (the
 rovers, and the lander as an agent that never moves unless ``lander_agent = false``) can
-talk to every other agent within ``peer_range`` cells (:class:`MeshTopology`). A peer
+talk to every other agent within ``peer_range`` cells (:class:`~fedmap.mission.topology.MeshTopology`). A peer
 message's ledger entry has ``direction = "peer"``, its sender in ``rover`` (:data:`BASE`
 for the lander) and its receiver in ``to``; each hop of a relayed message is its own entry.
 
@@ -35,182 +36,26 @@ for the lander) and its receiver in ``to``; each hop of a relayed message is its
   ``SeedSequence([seed, round, a + 1, b + 1, 2])`` (directed: ``a`` is the sender).
 * **Leaders** (``leader``): at every sync the links that are up split the agents into
   connected groups; each group's leader is the lander when it is in the group, else its
-  lowest-numbered rover (:func:`elect_leaders`). Members reach their leader along the
-  shortest route of links that are up (:func:`route`, ties to the lower-numbered agent),
+  lowest-numbered rover (:func:`~fedmap.mission.topology.elect_leaders`). Members reach their leader along the
+  shortest route of links that are up (:func:`~fedmap.mission.topology.route`, ties to the lower-numbered agent),
   every hop relayed, costing its bytes, and drawn for loss on its own; latency is per hop.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from fedmap.mission.settings import LinkConfig
+if TYPE_CHECKING:
+    from fedmap.mission.settings import LinkConfig
 
 UP, DOWN, PEER = "up", "down", "peer"
 Cell = tuple[int, int]
 #: The base station's index among the agents of a :class:`Topology` (rovers are 0, 1, ...).
 BASE = -1
-#: Slack on ``max_range`` (cells), so a rover exactly at the range is in range despite rounding.
-RANGE_SLACK = 1e-9
-
-
-class Topology(Protocol):
-    """Who can talk to whom this step, from the rovers' positions (cells, team order).
-
-    The link asks it whether a rover's message can reach the base; the mission asks it
-    where a rover may go and still reach the base (``stay_in_range``). :class:`StarTopology`
-    (every rover talks only to the base, within range of it) and :class:`MeshTopology`
-    (agents within range of each other talk peer to peer; the ``leader`` topology elects
-    leaders over it) implement it: the link, strategies and mission loop only ask it, and
-    compute no reachability themselves.
-    """
-
-    def neighbours(self, agent: int, positions: Sequence[Cell]) -> tuple[int, ...]:
-        """The agents ``agent`` talks to directly this step (rover indices, or :data:`BASE`)."""
-        ...
-
-    def reachable(self, positions: Sequence[Cell]) -> tuple[bool, ...]:
-        """For every rover (team order): can its messages reach the base this step?"""
-        ...
-
-    def region(self, shape: tuple[int, int]) -> np.ndarray | None:
-        """The cells from which a rover reaches the base whatever the others do (boolean map
-        of ``shape``), or None where there is no such limit."""
-        ...
-
-
-@dataclass(frozen=True)
-class StarTopology:
-    """Every rover talks only to the base station at ``base``, when it is within
-    ``max_range`` cells of it (Euclidean, in cells; None: no limit). Rovers never talk to
-    each other."""
-
-    base: Cell
-    max_range: float | None = None
-
-    def _in_range(self, pos: Cell) -> bool:
-        r = self.max_range
-        return r is None or math.hypot(pos[0] - self.base[0], pos[1] - self.base[1]) <= r + RANGE_SLACK
-
-    def neighbours(self, agent: int, positions: Sequence[Cell]) -> tuple[int, ...]:
-        if agent == BASE:
-            return tuple(k for k, p in enumerate(positions) if self._in_range(p))
-        return (BASE,) if self._in_range(positions[agent]) else ()
-
-    def reachable(self, positions: Sequence[Cell]) -> tuple[bool, ...]:
-        return tuple(self._in_range(p) for p in positions)
-
-    def region(self, shape: tuple[int, int]) -> np.ndarray | None:
-        if self.max_range is None:
-            return None
-        rows, cols = np.indices(shape)
-        return np.hypot(rows - self.base[0], cols - self.base[1]) <= self.max_range + RANGE_SLACK
-
-
-@dataclass(frozen=True)
-class MeshTopology:
-    """Every agent talks directly to every agent within ``peer_range`` cells of it
-    (Euclidean; None: no limit). The agents are the rovers (0, 1, ...) and, when
-    ``lander_agent``, the lander at ``base`` as :data:`BASE`."""
-
-    base: Cell
-    peer_range: float | None = None
-    lander_agent: bool = True
-
-    def agents(self, n_rovers: int) -> tuple[int, ...]:
-        """Every agent, the lander (:data:`BASE`) first when it is one."""
-        return ((BASE,) if self.lander_agent else ()) + tuple(range(n_rovers))
-
-    def position(self, agent: int, positions: Sequence[Cell]) -> Cell:
-        return self.base if agent == BASE else positions[agent]
-
-    def in_range(self, a: int, b: int, positions: Sequence[Cell]) -> bool:
-        if self.peer_range is None:
-            return True
-        pa, pb = self.position(a, positions), self.position(b, positions)
-        return math.hypot(pa[0] - pb[0], pa[1] - pb[1]) <= self.peer_range + RANGE_SLACK
-
-    def neighbours(self, agent: int, positions: Sequence[Cell]) -> tuple[int, ...]:
-        return tuple(b for b in self.agents(len(positions)) if b != agent and self.in_range(agent, b, positions))
-
-    def pairs(self, positions: Sequence[Cell]) -> list[tuple[int, int]]:
-        """Every pair of agents in range of each other, ``(a, b)`` with ``a < b``, in order."""
-        ags = self.agents(len(positions))
-        return [(a, b) for i, a in enumerate(ags) for b in ags[i + 1:] if self.in_range(a, b, positions)]
-
-    def reachable(self, positions: Sequence[Cell]) -> tuple[bool, ...]:
-        """For every rover: is it connected to the lander, over any number of hops?"""
-        if not self.lander_agent:
-            return tuple(False for _ in positions)
-        group = next(g for g in components(self.agents(len(positions)), self.pairs(positions)) if BASE in g)
-        return tuple(k in group for k in range(len(positions)))
-
-    def region(self, shape: tuple[int, int]) -> np.ndarray | None:
-        return None
-
-
-def components(agents: Sequence[int], pairs: Sequence[tuple[int, int]]) -> list[tuple[int, ...]]:
-    """The connected groups of ``agents`` over the undirected ``pairs``, each sorted, in the
-    order of their lowest agent (:data:`BASE` sorts first)."""
-    parent = {a: a for a in agents}
-
-    def root(a: int) -> int:
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
-    for a, b in pairs:
-        ra, rb = root(a), root(b)
-        if ra != rb:
-            parent[max(ra, rb)] = min(ra, rb)
-    groups: dict[int, list[int]] = {}
-    for a in sorted(agents):
-        groups.setdefault(root(a), []).append(a)
-    return [tuple(g) for _, g in sorted(groups.items())]
-
-
-def elect_leaders(groups: Sequence[tuple[int, ...]]) -> dict[int, int]:
-    """Every agent's leader: in each group, the lander (:data:`BASE`) when it is in the
-    group, else the lowest-numbered rover. Deterministic: it depends only on who is in the
-    group, never on order, time or the strategy."""
-    out = {}
-    for g in groups:
-        leader = BASE if BASE in g else min(g)
-        out.update({a: leader for a in g})
-    return out
-
-
-def route(a: int, b: int, pairs: Sequence[tuple[int, int]]) -> list[int] | None:
-    """The shortest route from ``a`` to ``b`` over the undirected ``pairs`` (``[a, ..., b]``;
-    breadth first, lower-numbered neighbours first, so it is deterministic), or None."""
-    nbrs: dict[int, list[int]] = {}
-    for x, y in pairs:
-        nbrs.setdefault(x, []).append(y)
-        nbrs.setdefault(y, []).append(x)
-    prev: dict[int, int | None] = {a: None}
-    frontier = [a]
-    while frontier and b not in prev:
-        nxt = []
-        for x in frontier:
-            for y in sorted(nbrs.get(x, ())):
-                if y not in prev:
-                    prev[y] = x
-                    nxt.append(y)
-        frontier = nxt
-    if b not in prev:
-        return None
-    out = [b]
-    while out[-1] != a:
-        p = prev[out[-1]]
-        assert p is not None
-        out.append(p)
-    return out[::-1]
 
 
 @dataclass
@@ -248,11 +93,10 @@ class Message:
 class Link:
     """The link of one strategy's run: decides each message's fate and keeps the ledger.
 
-    ``topology`` says who can reach the base (the mission's: :class:`StarTopology` at the
-    base station, with the config's ``max_range``).
+    ``topology`` (a :class:`~fedmap.mission.topology.Topology`) says who can reach the base.
     """
 
-    def __init__(self, config: LinkConfig, topology: Topology) -> None:
+    def __init__(self, config: LinkConfig, topology: Any) -> None:
         self.config = config
         self.topology = topology
         self.ledger: list[Message] = []
@@ -286,11 +130,6 @@ class Link:
             return False
         rng = np.random.default_rng(np.random.SeedSequence([self.config.seed, round_no, a + 1, b + 1, 2]))
         return bool(rng.random() < self.config.loss)
-
-    def up_pairs(self, round_no: int, step: int, positions: Sequence[Cell]) -> list[tuple[int, int]]:
-        """The peer links that are up this round: in range, and not down."""
-        assert isinstance(self.topology, MeshTopology)
-        return [(a, b) for a, b in self.topology.pairs(positions) if not self.down(round_no, a, b, step)]
 
     def send_route(self, payload: bytes | None, path: Sequence[int], *, round_no: int, step: int, kind: str,
                    budget: int | None) -> Message:

@@ -45,34 +45,25 @@ from fedmap.errors import FedmapError
 from fedmap.maps.grid import LAYERS, check_layers
 from fedmap.maps.sources import TerrainSource, needs_dem
 from fedmap.maps.traversability import ROVER_NAMES
+from fedmap.mission.registry import REGISTRY
+from fedmap.mission.topology import TOPOLOGIES as TOPOLOGY_CLASSES
 
-#: Every sharing strategy, from the lower bound to the upper bound.
-STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive", "paper", "fedmap", "gossip", "admm", "central")
+#: Every sharing strategy, from the lower bound to the upper bound (:data:`~fedmap.mission.registry.REGISTRY`).
+STRATEGIES: tuple[str, ...] = tuple(REGISTRY)
 #: The strategies a mission runs unless told otherwise (``paper`` is slow: an option).
-DEFAULT_STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive", "fedmap", "central")
-#: The strategies that train a network and share it with the rovers' step of ``fedmap run``.
-MODEL_STRATEGIES: tuple[str, ...] = ("paper", "fedmap")
+DEFAULT_STRATEGIES: tuple[str, ...] = tuple(n for n, s in REGISTRY.items() if s.default)
 #: The strategies that run on every topology (``[link] topology``); the others need the
 #: base station of the ``star`` topology.
-PEER_STRATEGIES: tuple[str, ...] = ("none", "raw", "gossip", "admm", "central")
+PEER_STRATEGIES: tuple[str, ...] = tuple(n for n, s in REGISTRY.items() if s.peer is not None)
 #: The strategies a peer topology runs unless told otherwise (``admm`` is an option).
-PEER_DEFAULTS: tuple[str, ...] = ("none", "raw", "gossip", "central")
+PEER_DEFAULTS: tuple[str, ...] = tuple(n for n, s in REGISTRY.items() if s.peer_default)
 #: A rover's own traversability profile: the shared ``[thresholds]`` (``team``) or a named rover.
 PROFILES: tuple[str, ...] = ("team", *ROVER_NAMES)
-#: Who talks to whom (:mod:`fedmap.mission.link`).
-TOPOLOGIES: tuple[str, ...] = ("star", "mesh", "leader")
+#: Who talks to whom (:mod:`fedmap.mission.topology`).
+TOPOLOGIES: tuple[str, ...] = tuple(TOPOLOGY_CLASSES)
 MODES: tuple[str, ...] = ("frontier", "waypoints")
 #: What a model strategy's rover trains on at a sync (``[mission] train_on``).
 TRAIN_ON: tuple[str, ...] = ("map", "changed")
-#: ``[strategies.predictive]``: the parts of the predictive coder, each with its default first
-#: (the others are ablations, for measuring what each part saves): ``prior``, the coder's
-#: initial state (the shipped learned one, or none); ``mask``, which cells a message codes
-#: (those derived from the trails, or every cell the receiver lacks); ``state``, whether
-#: both ends keep the model from message to message.
-PREDICTIVE_OPTIONS: dict[str, tuple[str, ...]] = {"prior": ("learned", "none"), "mask": ("derived", "coded"),
-                                                   "state": ("persistent", "per-message")}
-
-
 def check_strategies(names) -> tuple[str, ...]:
     """``names`` as a tuple of known strategies (one-line error with a suggestion otherwise)."""
     names = tuple(names)
@@ -84,6 +75,21 @@ def check_strategies(names) -> tuple[str, ...]:
     if len(set(names)) != len(names):
         raise FedmapError(f"a strategy is listed twice: {', '.join(names)}")
     return names
+
+
+def check_strategy_options(name: str, options: dict) -> None:
+    """Check ``[strategies.<name>]``: the registry says what a strategy takes (its options
+    dataclass, or :func:`fedmap.config.method_config` keywords for one that trains)."""
+    spec = REGISTRY.get(name)
+    where = f"[strategies.{name}]"
+    if spec is not None and spec.options is not None:
+        _schema.check_table(spec.options, options, "the mission settings", section=f"strategies.{name}")
+        spec.options(**options)  # its own checks of the values
+    elif spec is not None and spec.trains:
+        check_keys(options, KEYWORDS, where)
+    else:
+        takes = [*(n for n, s in REGISTRY.items() if s.trains), *(n for n, s in REGISTRY.items() if s.options)]
+        raise FedmapError(f"{where}: only {', '.join(takes)} take settings")
 
 
 def _cell(value, what: str) -> tuple[int, int]:
@@ -101,7 +107,7 @@ class LinkConfig:
     ----------
     uplink_bytes, downlink_bytes : int or None
         Budget per rover per sync round (None: unlimited). A payload over budget is not
-        sent (see :mod:`fedmap.mission.strategies` for what each strategy does instead).
+        sent (see :mod:`fedmap.mission.registry` and each strategy's ends for what it does instead).
     loss : float
         Probability that a message is lost, drawn independently per (round, rover,
         direction) from ``seed`` (:meth:`fedmap.mission.link.Link.lost`).
@@ -366,17 +372,7 @@ class MissionConfig:
                 raise FedmapError(f"waypoints gives {len(wps)} lists for {self.rovers} rovers")
             object.__setattr__(self, "waypoints", wps)
         for name, kw in self.methods.items():
-            if name == "predictive":
-                check_keys(kw, PREDICTIVE_OPTIONS, "[strategies.predictive]")
-                for key, value in kw.items():
-                    if value not in PREDICTIVE_OPTIONS[key]:
-                        raise FedmapError(f"[strategies.predictive] {key} must be one of "
-                                          f"{', '.join(PREDICTIVE_OPTIONS[key])}, got {value!r}")
-                continue
-            trained = (*MODEL_STRATEGIES, "gossip", "admm")
-            if name not in trained:
-                raise FedmapError(f"[strategies.{name}]: only {', '.join((*trained, 'predictive'))} take settings")
-            check_keys(kw, KEYWORDS, f"[strategies.{name}]")
+            check_strategy_options(name, kw)
 
     @property
     def rover_profiles(self) -> tuple[str, ...]:

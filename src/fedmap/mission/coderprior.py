@@ -23,9 +23,9 @@ import numpy as np
 
 from fedmap.federation.streamcodec import PARTS, PRIOR_FILE, CoderState, blank_state
 from fedmap.meta.collections import MapCollection, earth_like
+from fedmap.mission.predictive import PredictiveBase
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.sim import run_mission
-from fedmap.mission.strategies import Predictive
 
 #: Largest count total per context in the shipped state (a new site outweighs it quickly).
 PRIOR_TOTAL = 64
@@ -50,12 +50,12 @@ def learn_coder_prior(collection: MapCollection | None = None, *, steps: int = 1
     learned = blank_state()
     config = replace(MissionConfig(), rovers=rovers, steps=steps, strategies=("predictive",), seed=seed)
     for i, truth in enumerate(maps):
-        strategy = run_mission(config, truth, frames=1).runs["predictive"].strategy
-        assert isinstance(strategy, Predictive)
-        for state in (*strategy.up_base, *strategy.down_base):
+        base = run_mission(config, truth, frames=1).runs["predictive"].sharing.base
+        assert isinstance(base, PredictiveBase)
+        for state in (*base.up, *base.down):  # the base end's coder state of every link, both ways
             for name in PARTS:
                 # the counts this state learned (a state folds from the shipped prior; subtract it)
-                getattr(learned, name)[...] += getattr(state, name) - getattr(strategy.initial, name)
+                getattr(learned, name)[...] += getattr(state, name) - getattr(base.initial, name)
         if on_map is not None:
             on_map(i + 1, len(maps))
     cells, moves, lengths, marks = (_scaled(np.maximum(getattr(learned, n), 0), total) for n in PARTS)

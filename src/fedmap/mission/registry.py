@@ -1,0 +1,228 @@
+"""The one registry of sharing strategies: a name, its ends, the topologies it runs on and
+its options.
+
+Each :class:`StrategySpec` says how to build the strategy's ends for one run: ``star``
+builds a rover end per rover and a base end (a topology with a base station), ``peer`` a
+peer end per agent (any topology; on the star the base station is an agent). A strategy
+with only ``peer`` runs as peers on the star too; one with only ``star`` needs the star.
+``raw`` has both, so it is lossless merging at the base on the star and gossip of cells
+on a mesh: that is decided here, in :func:`build`, and nowhere else.
+
+Adding a strategy is writing its ends (:mod:`fedmap.mission.protocol`) and one entry of
+:data:`REGISTRY`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fedmap.config import method_config
+from fedmap.federation.runner import init_held
+from fedmap.maps.grid import UNKNOWN, GridMap
+from fedmap.mission.gossip import AdmmPeer, GossipPeer
+from fedmap.mission.link import BASE
+from fedmap.mission.model import MISSION_DEFAULTS, ModelBase, ModelRover, Training, model_lags
+from fedmap.mission.predictive import PredictiveBase, PredictiveOptions, PredictiveRover
+from fedmap.mission.protocol import BaseEnd, Cell, Journal, PeerEnd, RoverEnd
+from fedmap.mission.raw import CentralBase, CentralRover, RawBase, RawPeer, RawRover
+from fedmap.pipeline import initial_weights
+
+
+@dataclass
+class Setup:
+    """What a strategy's ends are built from: the mission (``config``, a
+    :class:`~fedmap.mission.settings.MissionConfig`), the truth's grid, the team (each
+    rover end gets its own rover), every start, and the topology's agents and budgets."""
+
+    config: Any
+    truth: GridMap
+    team: list
+    topology: Any
+    journal: Journal = field(default_factory=Journal)
+
+    @property
+    def starts(self) -> list[Cell]:
+        return [r.pos for r in self.team]
+
+    @property
+    def options(self) -> dict:
+        """The ``[strategies.<name>]`` settings of the strategy being built."""
+        return dict(self.config.methods.get(self._name, {}))
+
+    _name: str = ""
+
+
+@dataclass
+class Sharing:
+    """One strategy's ends in one run, as the simulator holds them.
+
+    ``rovers`` are the ends the team's members plan with (rover ends, or the rovers' peer
+    ends), ``base`` the base station's end (None on peers), ``peers`` every agent's peer end
+    (None on the star), ``on_link`` whether it sends anything at all (``none`` and the
+    ``central`` oracle do not).
+    """
+
+    name: str
+    team: list
+    rovers: list
+    base: BaseEnd | None = None
+    peers: dict[int, PeerEnd] | None = None
+    on_link: bool = True
+    journal: Journal = field(default_factory=Journal)
+    #: called at every sync before the ends' own (a record the run keeps, e.g. model lags)
+    on_sync: Callable[[int], None] | None = None
+
+    def at_sync(self, round_no: int) -> None:
+        if self.on_sync is not None:
+            self.on_sync(round_no)
+        for end in (self.peers.values() if self.peers is not None else self.rovers):
+            end.at_sync(round_no)
+
+    def belief(self, k: int) -> np.ndarray:
+        return self.rovers[k].belief()
+
+    def global_map(self) -> np.ndarray:
+        """The base station's map; on peers the lander's, or without one the cells every
+        rover's belief holds with the same class."""
+        if self.base is not None:
+            return self.base.global_map()
+        assert self.peers is not None
+        if BASE in self.peers:
+            return self.peers[BASE].belief()
+        beliefs = [r.belief() for r in self.rovers]
+        agree = np.all([b == beliefs[0] for b in beliefs[1:]], axis=0) if len(beliefs) > 1 else \
+            np.ones(beliefs[0].shape, bool)
+        return np.where(agree, beliefs[0], UNKNOWN).astype(np.uint8)
+
+    def global_heights(self) -> np.ndarray | None:
+        return self.base.global_heights() if self.base is not None else None
+
+
+Factory = Callable[[Setup], Sharing]
+
+
+@dataclass(frozen=True)
+class StrategySpec:
+    """A strategy of :data:`REGISTRY`."""
+
+    name: str
+    help: str
+    star: Factory | None = None  #: its ends with a base station
+    peer: Factory | None = None  #: its ends as peers
+    options: type | None = None  #: the dataclass of ``[strategies.<name>]`` (declared through ``_schema``)
+    trains: bool = False  #: ``[strategies.<name>]`` takes :func:`fedmap.config.method_config` keywords
+    default: bool = False  #: run unless told otherwise, on the star
+    peer_default: bool = False  #: run unless told otherwise, on a peer topology
+
+    def factory(self, has_base: bool) -> Factory | None:
+        """The factory on a topology with (``has_base``) or without a base station."""
+        return (self.star or self.peer) if has_base else self.peer
+
+
+def _journal_with_updates() -> Journal:
+    return Journal(dropped=[], lags=[])
+
+
+def _local(oracle: bool) -> Factory:
+    def build(s: Setup) -> Sharing:
+        starts = s.starts
+        if oracle:
+            rovers: list[RoverEnd] = [CentralRover(k, r, starts, team=s.team) for k, r in enumerate(s.team)]
+            base: BaseEnd = CentralBase(s.truth.shape, starts, team=s.team)
+        else:
+            rovers, base = [RoverEnd(k, r, starts) for k, r in enumerate(s.team)], BaseEnd(s.truth.shape, starts)
+        return Sharing(s._name, s.team, rovers, base, on_link=False, journal=s.journal)
+    return build
+
+
+def _height_q(s: Setup) -> float | None:
+    return s.config.elevation_q_m if "elevation" in s.config.layers else None
+
+
+def _raw_star(s: Setup) -> Sharing:
+    lc, q = s.config.link, _height_q(s)
+    rovers = [RawRover(k, r, s.starts, budget=lc.uplink_bytes, height_q=q) for k, r in enumerate(s.team)]
+    base = RawBase(s.truth.shape, s.starts, budget=lc.downlink_bytes, height_q=q, journal=s.journal)
+    return Sharing(s._name, s.team, rovers, base, journal=s.journal)
+
+
+def _peers(s: Setup, make: Callable[[int, Any, tuple[int, ...]], PeerEnd]) -> Sharing:
+    agents = s.topology.peer_agents(len(s.team))
+    peers = {a: make(a, None if a == BASE else s.team[a], agents) for a in agents}
+    return Sharing(s._name, s.team, [peers[k] for k in range(len(s.team))], peers=peers, journal=s.journal)
+
+
+def _raw_peer(s: Setup) -> Sharing:
+    return _peers(s, lambda a, r, agents: RawPeer(a, r, s.truth.shape, s.starts, agents=agents, journal=s.journal))
+
+
+def _predictive(s: Setup) -> Sharing:
+    lc, radius = s.config.link, s.config.sensor_radius
+    opts = PredictiveOptions(**s.options)
+    rovers = [PredictiveRover(k, r, s.starts, budget=lc.uplink_bytes, radius=radius, options=opts)
+              for k, r in enumerate(s.team)]
+    base = PredictiveBase(s.truth.shape, s.starts, budget=lc.downlink_bytes, radius=radius, options=opts)
+    return Sharing(s._name, s.team, rovers, base, journal=s.journal)
+
+
+def _preset(s: Setup, method: str):
+    pc = method_config(method, **{**MISSION_DEFAULTS.get(method, {}), **s.options, "seed": s.config.seed})
+    return pc, init_held(initial_weights(pc, s.truth.shape[0]))
+
+
+def _model(s: Setup) -> Sharing:
+    c, lc = s.config, s.config.link
+    s.journal = _journal_with_updates()
+    pc, init = _preset(s, s._name)
+    training = Training(c.train_on, c.replay, c.seed)
+    rovers = [ModelRover(k, r, s.starts, truth=s.truth, pc=pc, init=init, budget=lc.uplink_bytes,
+                         training=training, journal=s.journal) for k, r in enumerate(s.team)]
+    base = ModelBase(s.truth.shape, s.starts, pc=pc, init=init, budget=lc.downlink_bytes, journal=s.journal)
+    lags = s.journal.lags
+    assert lags is not None
+
+    def on_sync(round_no: int) -> None:
+        lags.append({"round": round_no, "lag": model_lags(base, rovers)})
+
+    return Sharing(s._name, s.team, rovers, base, journal=s.journal, on_sync=on_sync)
+
+
+def _gossip(cls: type[GossipPeer]) -> Factory:
+    def build(s: Setup) -> Sharing:
+        pc, init = _preset(s, "fedmap")  # the fedmap preset's network, trained as [strategies.<name>] says
+        return _peers(s, lambda a, r, agents: cls(a, r, s.truth.shape, s.starts, truth=s.truth, pc=pc, init=init,
+                                                  agents=agents, journal=s.journal))
+    return build
+
+
+#: Every sharing strategy, from the lower bound to the upper bound.
+REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
+    StrategySpec("none", "nothing is sent: a rover's belief is its own observations", star=_local(False),
+                 peer=_local(False), default=True, peer_default=True),
+    StrategySpec("raw", "observed cells, lossless (context codec): merged at the base on the star, gossiped on "
+                 "peers", star=_raw_star, peer=_raw_peer, default=True, peer_default=True),
+    StrategySpec("predictive", "new cells, lossless, with a learned probability model both ends keep",
+                 star=_predictive, options=PredictiveOptions, default=True),
+    StrategySpec("paper", "the source paper's Fourier MLP, FedAvg", star=_model, trains=True),
+    StrategySpec("fedmap", "fedmap's feature grids, coverage-aware FedAvg", star=_model, trains=True, default=True),
+    StrategySpec("gossip", "fedmap's network averaged peer to peer (Metropolis weights)", peer=_gossip(GossipPeer),
+                 trains=True, peer_default=True),
+    StrategySpec("admm", "fedmap's network by DiNNO's decentralised C-ADMM", peer=_gossip(AdmmPeer), trains=True),
+    StrategySpec("central", "the oracle: every observation, instantly, free", star=_local(True), peer=_local(True),
+                 default=True, peer_default=True),
+)}
+
+
+def build(name: str, setup: Setup) -> Sharing:
+    """The ends of strategy ``name`` for one run on ``setup``'s topology."""
+    make = REGISTRY[name].factory(setup.topology.has_base)
+    assert make is not None, f"{name} does not run on this topology (the config check refuses it)"
+    setup._name = name
+    return make(setup)
+
+
+__all__ = ["REGISTRY", "Setup", "Sharing", "StrategySpec", "build"]

@@ -1,0 +1,368 @@
+"""The rovers' world: where each rover is, what it observes, and how it drives, flies and
+plans on its belief. A rover's belief, and what it knows of the others, come from its own
+end of the strategy (:attr:`World.ends`); nothing here knows which strategy that is.
+
+One step, for every rover in turn: drive up to ``speed`` cells along the planned path,
+observing the footprint from every cell entered (the next cell is always observed before
+the move, so a rover never enters a cell that is impassable in the truth: the world checks
+it against the truth and stops with an error if it ever would).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from fedmap.errors import FedmapError
+from fedmap.maps.dem import Dem
+from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
+from fedmap.maps.planning import path_is_valid
+from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, rover_profile
+from fedmap.mission.frontiers import choose_target, plan_path
+from fedmap.mission.sensing import block_classes, coarse_footprint, disk_offsets, footprint
+from fedmap.mission.settings import MissionConfig
+
+Cell = tuple[int, int]
+
+
+@dataclass
+class Rover:
+    """One rover's state during a run."""
+
+    pos: Cell
+    local: np.ndarray  # its own observations (classes, UNKNOWN elsewhere)
+    obs_step: np.ndarray  # step each cell was first observed by it (-1: never)
+    target: Cell | None = None
+    path: list[Cell] = field(default_factory=list)
+    trail: list[Cell] = field(default_factory=list)
+    distance: float = 0.0
+    waypoints: list[Cell] = field(default_factory=list)
+    excluded: set = field(default_factory=set)
+    replan: bool = True
+    kind: str = "rover"  #: rover, or helicopter (its observations are coarse: HelicopterConfig)
+    flight: int = 0  #: helicopter: steps in the air this sortie
+    charging: int = 0  #: helicopter: steps left on the ground before it may take off
+    returning: bool = False  #: helicopter: heading for a landing site
+    #: with a profile of its own: the classes it observed under its own limits (None: it has none)
+    own: np.ndarray | None = None
+    #: with an elevation layer: the heights it observed (metres, its noise included; NaN elsewhere)
+    heights: np.ndarray | None = None
+    n_sensed: int = 0  #: how many times it has sensed (seeds its height noise)
+    #: helicopter: every landing, ``(step, cell, steps flown that sortie, "lander" or "observed free")``
+    landings: list = field(default_factory=list)
+    airborne: list = field(default_factory=list)  #: helicopter: per step from step 1, whether it flew
+
+
+
+def place_starts(truth: GridMap, config: MissionConfig) -> tuple[list[Cell], Cell]:
+    """Start cells (one per rover) and the base station cell, checked against the truth."""
+    h, w = truth.shape
+    free = truth.classes == FREE
+
+    def inside(cell: Cell, what: str) -> Cell:
+        if not (0 <= cell[0] < h and 0 <= cell[1] < w):
+            raise FedmapError(f"{what} {list(cell)} is outside the {h}x{w} map")
+        return cell
+
+    lander = inside(config.lander, "lander") if config.lander is not None else (h // 2, w // 2)
+    base = inside(config.base, "base") if config.base is not None else lander
+    if config.starts is not None:
+        starts = [inside(s, f"start of rover {k}") for k, s in enumerate(config.starts)]
+        for k, s in enumerate(starts):
+            if not free[s]:
+                raise FedmapError(f"start of rover {k} {list(s)} is impassable (or unknown) in the truth")
+        if len(set(starts)) != len(starts):
+            raise FedmapError("two rovers are given the same start cell")
+        return starts, base
+    cells = np.argwhere(free)
+    if len(cells) < config.rovers:
+        raise FedmapError(f"{config.rovers} rovers but only {len(cells)} free start cells on the map")
+    d = (cells[:, 0] - lander[0]) ** 2 + (cells[:, 1] - lander[1]) ** 2
+    order = np.lexsort((cells[:, 1], cells[:, 0], d))[: config.rovers]
+    return [(int(cells[i][0]), int(cells[i][1])) for i in order], base
+
+
+#: A start whose free ground reaches less than this share of the map's free cells is flagged.
+SMALL_POCKET = 0.05
+
+
+def start_pocket_warning(truth: GridMap, config: MissionConfig) -> str | None:
+    """A one-line warning when the rovers start on a free pocket cut off from most of the
+    map's free ground (they can explore only that pocket), else None. Reachability is
+    4-connectivity, the planner's (:mod:`fedmap.maps.planning`)."""
+    starts, _ = place_starts(truth, config)
+    free = truth.classes == FREE
+    labels, _ = ndimage.label(free)
+    sizes = np.bincount(labels.ravel())
+    reach = int(sum(sizes[lab] for lab in {labels[s] for s in starts} if lab))
+    total = int(free.sum())
+    if total and reach < SMALL_POCKET * total:
+        return (f"the rovers start on free ground of {reach:,} cells, cut off from the rest of the map's "
+                f"{total:,} free cells: they can explore only that pocket (set [mission] lander or starts, or "
+                f"another terrain or slope limit)")
+    return None
+
+
+def plan_waypoints(truth: GridMap, config: MissionConfig) -> list[list[Cell]]:
+    """The fixed traverse of every rover (``mode = "waypoints"``): given, or seeded random
+    free cells (as a planner would pick them from orbital maps)."""
+    if config.waypoints is not None:
+        return [list(w) for w in config.waypoints]
+    cells = np.argwhere(truth.classes == FREE)
+    rngs = [np.random.default_rng(s) for s in np.random.SeedSequence([config.seed, 7]).spawn(config.rovers)]
+    return [[(int(cells[i][0]), int(cells[i][1])) for i in g.choice(len(cells), size=config.n_waypoints)]
+            for g in rngs]
+
+
+
+class World:
+    """Every member of the team on ``truth``: rovers from ``starts`` (their ``waypoints`` in
+    ``waypoints`` mode), then the helicopters from the base. ``ends[k]`` is member ``k``'s
+    end of the strategy (set by the run before the first step): its belief and what it
+    heard of the others."""
+
+    def __init__(self, config: MissionConfig, truth: GridMap, elevation: np.ndarray | None, starts: list[Cell],
+                 base: Cell, waypoints: list[list[Cell]], *, prior: np.ndarray | None = None,
+                 profiles: dict[str, np.ndarray] | None = None, thresholds: TraversabilityThresholds | None = None,
+                 allowed: np.ndarray | None = None) -> None:
+        self.config, self.truth, self.elevation, self.prior, self.base = config, truth, elevation, prior, base
+        shape = truth.shape
+        self.team = [Rover(s, np.full(shape, UNKNOWN, dtype=np.uint8), np.full(shape, -1, dtype=np.int64),
+                           trail=[s], waypoints=list(w) if config.mode == "waypoints" else [])
+                     for s, w in zip(starts, waypoints)]
+        self.team += [Rover(base, np.full(shape, UNKNOWN, dtype=np.uint8), np.full(shape, -1, dtype=np.int64),
+                            trail=[base], kind="helicopter") for _ in range(config.helicopters)]
+        f = config.helicopter.resolution
+        self.coarse = np.repeat(np.repeat(block_classes(truth.classes, f, UNKNOWN), f, axis=0), f,
+                                axis=1)[:shape[0], :shape[1]] if config.helicopters else None
+        self.origin = (float(np.mean([s[0] for s in starts])), float(np.mean([s[1] for s in starts])))
+        # each member's own classes of the terrain (None: it follows the shared thresholds)
+        names = [*config.rover_profiles, *(["team"] * config.helicopters)]
+        self.own_truth = [None if p == "team" else (profiles or {})[p] for p in names]
+        for r, t in zip(self.team, self.own_truth):
+            r.own = None if t is None else np.full(shape, UNKNOWN, dtype=np.uint8)
+        # the elevation layer: what each rover measures, and the thresholds it derives its classes with
+        if "elevation" in config.layers:
+            for r in self.team[:config.rovers]:
+                r.heights = np.full(shape, np.nan, dtype=np.float32)
+        self.own_thresholds = [thresholds if p == "team" else rover_profile(p) for p in names]
+        self._derived: dict[int, tuple[tuple, np.ndarray]] = {}
+        self.allowed = allowed
+        self.ends: list = []
+
+    def positions(self) -> list[Cell]:
+        """Every member's cell now, in team order."""
+        return [r.pos for r in self.team]
+
+    # -- sensing and driving
+    def sense(self, k: int, t: int) -> None:
+        r = self.team[k]
+        c = self.config
+        if r.kind == "helicopter":
+            assert self.coarse is not None
+            hc = c.helicopter
+            seen = coarse_footprint(r.pos, self.truth.shape, hc.sensor_radius, hc.resolution) & (self.coarse != UNKNOWN)
+            new = seen & (r.local == UNKNOWN)
+            r.local[new] = self.coarse[new]
+            r.obs_step[new] = t
+            return
+        mask = footprint(r.pos, self.truth.shape, c.sensor_radius,
+                         elevation=self.elevation if c.line_of_sight else None, height_m=c.sensor_height_m)
+        new = mask & (r.local == UNKNOWN)
+        r.local[new] = self.truth.classes[new]
+        r.obs_step[new] = t
+        own = self.own_truth[k]
+        if r.own is not None and own is not None:
+            r.own[new] = own[new]
+        if r.heights is not None and self.elevation is not None:
+            r.n_sensed += 1
+            z = self.elevation[new]
+            if c.elevation_noise_m > 0:
+                rng = np.random.default_rng(np.random.SeedSequence([c.seed, k, r.n_sensed, 5]))
+                z = z + rng.normal(0.0, c.elevation_noise_m, size=z.shape)
+            r.heights[new] = z
+
+    def _target_done(self, r: Rover, belief: np.ndarray) -> bool:
+        if r.target is None or r.pos == r.target:
+            return True
+        if self.config.mode == "waypoints":
+            return False
+        off = disk_offsets(self.config.sensor_radius)
+        rr, cc = off[:, 0] + r.target[0], off[:, 1] + r.target[1]
+        h, w = belief.shape
+        ok = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
+        return not (belief[rr[ok], cc[ok]] == UNKNOWN).any()
+
+    def _pick(self, k: int, belief: np.ndarray) -> Cell | None:
+        r = self.team[k]
+        if self.config.mode == "waypoints":
+            while r.waypoints and (r.waypoints[0] in r.excluded or belief[r.waypoints[0]] == IMPASSABLE
+                                   or r.waypoints[0] == r.pos):
+                r.waypoints.pop(0)
+            return r.waypoints[0] if r.waypoints else None
+        heading = (*self.origin, 2 * math.pi * k / self.config.rovers)
+        return choose_target(belief, r.pos, radius=self.config.sensor_radius, unknown_cost=self.config.unknown_cost,
+                             others=self.ends[k].others(), allowed=self.allowed, excluded=r.excluded,
+                             heading=heading)
+
+    def own_view(self, k: int, belief: np.ndarray) -> np.ndarray:
+        """Rover ``k``'s belief with the cells it observed itself in its own classes (its
+        profile's limits); with an elevation layer, the classes it derives with its own
+        limits from the heights it holds (its own and those shared with it) where they
+        allow it; the shared classes elsewhere."""
+        r = self.team[k]
+        view = belief
+        if r.heights is not None:
+            derived = self.derived(k)
+            view = np.where(derived != UNKNOWN, derived, view)
+            view = np.where(r.local != UNKNOWN, r.local if r.own is None else r.own, view)
+        elif r.own is not None:
+            view = np.where(r.own != UNKNOWN, r.own, view)
+        return view.astype(np.uint8, copy=False)
+
+    def derived(self, k: int) -> np.ndarray:
+        """The classes rover ``k`` derives, with its own thresholds, from every height it
+        holds (cached until they change)."""
+        r = self.team[k]
+        assert r.heights is not None
+        key = (r.n_sensed, self.ends[k].heights_version())
+        hit = self._derived.get(k)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        shared = self.ends[k].heights()
+        z = r.heights if shared is None else np.where(np.isfinite(r.heights), r.heights, shared)
+        if np.isfinite(z).any() and min(z.shape) >= 3:
+            out = dem_to_traversability(Dem(z, self.truth.pixel_size), self.own_thresholds[k]).classes
+        else:
+            out = np.full(z.shape, UNKNOWN, dtype=np.uint8)
+        self._derived[k] = (key, out)
+        return out
+
+    def planning_map(self, belief: np.ndarray, k: int | None = None) -> np.ndarray:
+        """What a rover plans its path on: its belief (its own classes where it has them), and
+        the prior where it has no observation."""
+        if k is not None:
+            belief = self.own_view(k, belief)
+        if self.prior is None:
+            return belief
+        return np.where(belief == UNKNOWN, self.prior, belief).astype(np.uint8)
+
+    def plan(self, k: int, belief: np.ndarray) -> None:
+        r = self.team[k]
+        on = self.planning_map(belief, k)
+        passable = (on == FREE) | (on == UNKNOWN)
+        if (not r.replan and r.path and not self._target_done(r, belief)
+                and path_is_valid(passable, [r.pos, *r.path])):
+            return
+        if self.config.mode == "waypoints" and r.target is not None and r.pos == r.target and r.waypoints:
+            r.waypoints.pop(0)
+        r.replan, r.path, r.target = False, [], None
+        for _ in range(8):
+            target = self._pick(k, belief)
+            if target is None:
+                return
+            path = plan_path(on, r.pos, target)
+            if not path and self.prior is not None:  # the prior is a guess: never let it trap a rover
+                path = plan_path(self.own_view(k, belief), r.pos, target)
+            if path:
+                r.target, r.path = target, path
+                return
+            r.excluded.add(target)
+
+    def fly(self, k: int, t: int) -> None:
+        """One step of a helicopter: see :class:`~fedmap.mission.settings.HelicopterConfig`.
+
+        Its rule keeps ``flight + ceil(d / speed) <= flight_budget`` at every step, ``d``
+        the Chebyshev distance to its nearest landing site: a step that would break it is
+        flown towards that site instead (8-connected moves shorten it by one cell each), and
+        it lands on arriving there. The loop checks the budget and the site and stops with
+        an error if the rule ever broke."""
+        r, hc = self.team[k], self.config.helicopter
+        r.airborne.append(False)
+        if r.charging > 0:
+            r.charging -= 1
+            return
+        sites = r.local == FREE
+        sites[self.base] = True
+        dist = ndimage.distance_transform_cdt(~sites, metric="chessboard")
+        budget, speed = hc.flight_budget, hc.speed
+
+        def after(goal: Cell) -> Cell:
+            dr, dc = goal[0] - r.pos[0], goal[1] - r.pos[1]
+            n = min(speed, max(abs(dr), abs(dc)))
+            return (r.pos[0] + int(np.clip(dr, -n, n)), r.pos[1] + int(np.clip(dc, -n, n)))
+
+        def affordable(cell: Cell) -> bool:
+            return r.flight + 1 + -(-int(dist[cell]) // speed) <= budget
+
+        if not r.returning:
+            belief = self.ends[k].belief()
+            if r.target is None or self._target_done(r, belief) or r.pos == r.target:
+                flyer = np.where(belief == UNKNOWN, UNKNOWN, FREE).astype(np.uint8)
+                reach = dist * 2 <= speed * (budget - 2)
+                r.target = choose_target(flyer, r.pos, radius=hc.sensor_radius, unknown_cost=1.0,
+                                         others=self.ends[k].others(), allowed=reach)
+            if r.target is None or not affordable(after(r.target)):
+                r.returning = True
+                r.target = None
+        if r.returning and dist[r.pos] == 0:  # on a site: land (or stay landed) this step
+            if r.flight > 0:
+                self._land(k, t)
+            r.returning = False
+            return
+        if r.returning:
+            near = np.argwhere(sites)
+            d = np.maximum(np.abs(near[:, 0] - r.pos[0]), np.abs(near[:, 1] - r.pos[1]))
+            i = int(np.lexsort((near[:, 1], near[:, 0], d))[0])
+            goal = (int(near[i, 0]), int(near[i, 1]))
+        else:
+            assert r.target is not None
+            goal = r.target
+        for _ in range(speed):
+            if r.pos == goal:
+                break
+            nxt = (r.pos[0] + int(np.sign(goal[0] - r.pos[0])), r.pos[1] + int(np.sign(goal[1] - r.pos[1])))
+            r.distance += math.hypot(nxt[0] - r.pos[0], nxt[1] - r.pos[1])
+            r.pos = nxt
+            r.trail.append(nxt)
+            self.sense(k, t)
+        r.flight += 1
+        r.airborne[-1] = True
+        if r.flight > budget:
+            raise RuntimeError(f"helicopter {k} flew {r.flight} steps, over its budget of {budget}")
+        if r.returning and r.pos == goal:
+            self._land(k, t)
+
+    def _land(self, k: int, t: int) -> None:
+        r = self.team[k]
+        site = "lander" if r.pos == self.base else "observed free"
+        if site != "lander" and r.local[r.pos] != FREE:
+            raise RuntimeError(f"helicopter {k} landed on {r.pos}, which is not a landing site")
+        r.landings.append((t, r.pos, r.flight, site))
+        r.flight, r.charging, r.returning = 0, self.config.helicopter.recharge, False
+
+    def drive(self, k: int, t: int) -> None:
+        r = self.team[k]
+        if r.kind == "helicopter":
+            self.fly(k, t)
+            return
+        for _ in range(self.config.speed):
+            belief = self.ends[k].belief()
+            self.plan(k, belief)
+            if not r.path:
+                return
+            nxt = r.path[0]
+            if self.own_view(k, belief)[nxt] == IMPASSABLE:  # revealed on the way: replan next time
+                r.replan = True
+                return
+            own = self.own_truth[k]
+            if (self.truth.classes if own is None else own)[nxt] == IMPASSABLE:
+                raise RuntimeError(f"rover {k} would enter impassable cell {nxt}: the planner broke its contract")
+            r.path.pop(0)
+            r.distance += math.hypot(nxt[0] - r.pos[0], nxt[1] - r.pos[1])
+            r.pos = nxt
+            r.trail.append(nxt)
+            self.sense(k, t)
