@@ -25,7 +25,7 @@ from fedmap.maps.orbital import orbital_prior
 from fedmap.maps.sources import TerrainSource, load_terrain, needs_dem
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, rover_profile
 from fedmap.mission.link import BASE, DOWN, UP, Link
-from fedmap.mission.registry import Setup, build
+from fedmap.mission.registry import Setup, Sharing, build
 from fedmap.mission.results import (
     COVERAGE_LEVELS,
     F1_GOAL,
@@ -47,6 +47,8 @@ from fedmap.mission.topology import Exchange, make_topology
 from fedmap.mission.world import Rover, World, place_starts, plan_waypoints, start_pocket_warning
 
 Cell = tuple[int, int]
+#: A strategy's ends for one run: ``ends(name, setup) -> Sharing``.
+Ends = Callable[[str, Setup], Sharing]
 
 
 class _Run:
@@ -58,7 +60,7 @@ class _Run:
                  frame_every: int, prior: np.ndarray | None = None,
                  profiles: dict[str, np.ndarray] | None = None,
                  thresholds: TraversabilityThresholds | None = None,
-                 profile_scorers: dict[str, Scorer] | None = None) -> None:
+                 profile_scorers: dict[str, Scorer] | None = None, ends: Ends | None = None) -> None:
         self.name, self.config, self.truth, self.elevation = name, config, truth, elevation
         self.scorer, self.frame_every = scorer, frame_every
         self.topology = make_topology(config.link, base)
@@ -67,7 +69,7 @@ class _Run:
                                    thresholds=thresholds, allowed=allowed)
         self.team = world.team
         self.link = Link(config.link, self.topology)
-        self.sharing = build(name, Setup(config, truth, self.team, self.topology))
+        self.sharing = (ends or build)(name, Setup(config, truth, self.team, self.topology))
         world.ends = self.sharing.rovers
 
         def replan(k: int | None) -> None:
@@ -175,7 +177,7 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
                 thresholds: TraversabilityThresholds | None = None,
                 on_strategy: Callable[[str], None] | None = None,
                 on_step: Callable[[str, int, float], None] | None = None,
-                frames: int = 60) -> MissionResult:
+                frames: int = 60, ends: Ends | None = None) -> MissionResult:
     """Run every strategy of ``config`` on the same mission over ``truth``.
 
     ``elevation`` (metres, the truth's grid) is needed for ``line_of_sight``; ``prior``
@@ -186,6 +188,9 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     elevation layer (None: the defaults; the truth must have been classified with them).
     ``on_strategy(name)`` announces each strategy and ``on_step(name, step, coverage)``
     follows it (progress bars); ``frames`` bounds the animation's frames per strategy.
+    ``ends(name, setup)`` builds a strategy's ends (default: the registry's
+    :func:`~fedmap.mission.registry.build`, every end in this process;
+    :func:`fedmap.mission.processes.ends_in_processes` puts each in an OS process of its own).
     """
     t0 = time.perf_counter()
     if config.line_of_sight and elevation is None:
@@ -215,7 +220,7 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
         if on_strategy is not None:
             on_strategy(name)
         runs[name] = _Run(name, config, truth, elevation, starts, base, waypoints, scorer, frame_every,
-                          prior, profiles, thresholds, profile_scorers).run(on_step)
+                          prior, profiles, thresholds, profile_scorers, ends).run(on_step)
     return MissionResult(config, truth, starts, base, runs, time.perf_counter() - t0)
 
 
