@@ -118,25 +118,25 @@ class StrategySpec:
     default: bool = False  #: run unless told otherwise, on the star
     peer_default: bool = False  #: run unless told otherwise, on a peer topology
 
-    def factory(self, has_base: bool) -> Factory | None:
-        """The factory on a topology with (``has_base``) or without a base station."""
-        return (self.star or self.peer) if has_base else self.peer
+    def factory(self, topology: Any) -> Factory | None:
+        """Its factory on ``topology`` (:class:`~fedmap.mission.topology.Topology`): the
+        star ends where there is a base station and it has them, else its peer ends."""
+        return (self.star or self.peer) if topology.has_base else self.peer
 
 
 def _journal_with_updates() -> Journal:
     return Journal(dropped=[], lags=[])
 
 
-def _local(oracle: bool) -> Factory:
-    def build(s: Setup) -> Sharing:
-        starts = s.starts
-        if oracle:
-            rovers: list[RoverEnd] = [CentralRover(k, r, starts, team=s.team) for k, r in enumerate(s.team)]
-            base: BaseEnd = CentralBase(s.truth.shape, starts, team=s.team)
-        else:
-            rovers, base = [RoverEnd(k, r, starts) for k, r in enumerate(s.team)], BaseEnd(s.truth.shape, starts)
-        return Sharing(s._name, s.team, rovers, base, on_link=False, journal=s.journal)
-    return build
+def _none(s: Setup) -> Sharing:
+    rovers = [RoverEnd(k, r, s.starts) for k, r in enumerate(s.team)]
+    return Sharing(s._name, s.team, rovers, BaseEnd(s.truth.shape, s.starts), on_link=False, journal=s.journal)
+
+
+def _central(s: Setup) -> Sharing:
+    rovers: list[RoverEnd] = [CentralRover(k, r, s.starts, team=s.team) for k, r in enumerate(s.team)]
+    base = CentralBase(s.truth.shape, s.starts, team=s.team)
+    return Sharing(s._name, s.team, rovers, base, on_link=False, journal=s.journal)
 
 
 def _height_q(s: Setup) -> float | None:
@@ -201,8 +201,8 @@ def _gossip(cls: type[GossipPeer]) -> Factory:
 
 #: Every sharing strategy, from the lower bound to the upper bound.
 REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
-    StrategySpec("none", "nothing is sent: a rover's belief is its own observations", star=_local(False),
-                 peer=_local(False), default=True, peer_default=True),
+    StrategySpec("none", "nothing is sent: a rover's belief is its own observations", star=_none, peer=_none,
+                 default=True, peer_default=True),
     StrategySpec("raw", "observed cells, lossless (context codec): merged at the base on the star, gossiped on "
                  "peers", star=_raw_star, peer=_raw_peer, default=True, peer_default=True),
     StrategySpec("predictive", "new cells, lossless, with a learned probability model both ends keep",
@@ -212,14 +212,14 @@ REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
     StrategySpec("gossip", "fedmap's network averaged peer to peer (Metropolis weights)", peer=_gossip(GossipPeer),
                  trains=True, peer_default=True),
     StrategySpec("admm", "fedmap's network by DiNNO's decentralised C-ADMM", peer=_gossip(AdmmPeer), trains=True),
-    StrategySpec("central", "the oracle: every observation, instantly, free", star=_local(True), peer=_local(True),
+    StrategySpec("central", "the oracle: every observation, instantly, free", star=_central, peer=_central,
                  default=True, peer_default=True),
 )}
 
 
 def build(name: str, setup: Setup) -> Sharing:
     """The ends of strategy ``name`` for one run on ``setup``'s topology."""
-    make = REGISTRY[name].factory(setup.topology.has_base)
+    make = REGISTRY[name].factory(setup.topology)
     assert make is not None, f"{name} does not run on this topology (the config check refuses it)"
     setup._name = name
     return make(setup)

@@ -29,6 +29,7 @@ from fedmap.maps.grid import PALETTE
 from fedmap.mission.link import BASE
 from fedmap.mission.sensing import disk_offsets
 from fedmap.mission.sim import COVERAGE_LEVELS, F1_GOAL, MissionResult, MissionSummary
+from fedmap.mission.topology import TOPOLOGIES
 from fedmap.outputs import write_metrics
 
 
@@ -157,14 +158,14 @@ def table_rows(result: MissionResult) -> tuple[list[str], list[list[str]]]:
 
 def has_peers(result: MissionResult) -> bool:
     """Whether the mission has peer messages: a mesh or leader topology, or ``gossip``."""
-    return result.config.link.topology != "star" or any(
+    return not TOPOLOGIES[result.config.link.topology].has_base or any(
         m.direction == "peer" for r in result.runs.values() for m in r.ledger)
 
 
 def global_meaning(result: MissionResult) -> str:
     """What the "global map" of this mission is."""
     link = result.config.link
-    if link.topology == "star":
+    if TOPOLOGIES[link.topology].has_base:
         return "the base station's map"
     if link.lander_agent:
         return "the lander's map (an agent of the mesh)"
@@ -185,6 +186,7 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
     if animations is None:
         animations = [f"mission_{n}.gif" for n in result.runs]
     c, link = result.config, result.config.link
+    topology = TOPOLOGIES[link.topology]
     h, w = result.truth.shape
     budget = lambda b: "unlimited" if b is None else f"{b:,} B"  # noqa: E731
     lines = [
@@ -199,16 +201,11 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         + (f", each link down for a round with probability {link.drop:g}" if link.drop else "")
         + (f", the lander's links down in steps {link.lander_cut[0]}-{link.lander_cut[1] - 1}" if link.lander_cut else "")
         + ".", "",
-        *([f"Topology: **{link.topology}**: agents within "
-           f"{'any distance' if link.peer_range is None else f'{link.peer_range:g} cells'} of each other talk directly"
-           + ("; at every sync each connected group elects a leader (the lander if in the group, else its "
-              "lowest-numbered rover) that plays the base for the group, members reaching it over relays"
-              if link.topology == "leader" else "; every link that is up exchanges both ways at every sync")
-           + (f"; budget per link per direction per round {budget(link.peer_bytes)}" if link.topology == "mesh" else "")
-           + ". The lander is " + ("an agent that never moves" if link.lander_agent else "not an agent: there is no "
-                                   "base station") + ". *B/link/round*: mean bytes per message offered on a link that "
-           "was up (in range, not down), each relay hop counted, as RAMEN reports per link per round.", ""]
-          if link.topology != "star" else []),
+        *([f"Topology: **{link.topology}**: " + topology.describe(link) + ". The lander is "
+           + ("an agent that never moves" if link.lander_agent else "not an agent: there is no base station")
+           + ". *B/link/round*: mean bytes per message offered on a link that was up (in range, not down), each "
+           "relay hop counted, as RAMEN reports per link per round.", ""]
+          if not topology.has_base else []),
         *([f"Helicopters: {c.helicopters} (after the rovers), {c.helicopter.speed} cells per step over any terrain, "
            f"seeing {c.helicopter.resolution}x{c.helicopter.resolution}-cell blocks within "
            f"{c.helicopter.sensor_radius:g} cells (a block of one class is observed, a mixed block stays unknown), "

@@ -334,7 +334,7 @@ class MissionConfig:
         if self.mode not in MODES:
             raise FedmapError(f"unknown mode {self.mode!r}{suggest(self.mode, MODES)}")
         object.__setattr__(self, "strategies", check_strategies(self.strategies))
-        if self.link.topology != "star":
+        if not TOPOLOGY_CLASSES[self.link.topology].has_base:
             if self.strategies == DEFAULT_STRATEGIES:  # the defaults that run on a peer topology
                 object.__setattr__(self, "strategies", PEER_DEFAULTS)
             for s in self.strategies:

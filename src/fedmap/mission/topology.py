@@ -206,6 +206,11 @@ class Topology:
         """The budget of a message from ``a`` to ``b`` (``role``: up, down or peer)."""
         raise NotImplementedError
 
+    @classmethod
+    def describe(cls, lc: Any) -> str:
+        """One sentence of ``report.md`` on who talks to whom under ``[link]`` ``lc``."""
+        return "every rover talks to the base station"
+
     def sync(self, x: Exchange, t: int, round_no: int) -> None:
         """Round ``round_no`` at step ``t`` over the ends of ``x.sharing``."""
         x.exchange_round(t, round_no, self.up_pairs(x.link, round_no, t, x.positions()))
@@ -315,6 +320,17 @@ class MeshTopology(Topology):
     def budget(self, a: int, b: int, role: str) -> int | None:
         return self.peer_bytes
 
+    @classmethod
+    def describe(cls, lc: Any) -> str:
+        budget = "unlimited" if lc.peer_bytes is None else f"{lc.peer_bytes:,} B"
+        return (cls._within(lc) + "; every link that is up exchanges both ways at every sync; budget per link per "
+                f"direction per round {budget}")
+
+    @staticmethod
+    def _within(lc: Any) -> str:
+        return (f"agents within {'any distance' if lc.peer_range is None else f'{lc.peer_range:g} cells'} of each "
+                "other talk directly")
+
 
 @dataclass(frozen=True)
 class LeaderTopology(MeshTopology):
@@ -331,6 +347,11 @@ class LeaderTopology(MeshTopology):
 
     def budget(self, a: int, b: int, role: str) -> int | None:
         return self.uplink_bytes if role == "up" else self.downlink_bytes
+
+    @classmethod
+    def describe(cls, lc: Any) -> str:
+        return (cls._within(lc) + "; at every sync each connected group elects a leader (the lander if in the group, "
+                "else its lowest-numbered rover) that plays the base for the group, members reaching it over relays")
 
     def sync(self, x: Exchange, t: int, round_no: int) -> None:
         x.sharing.at_sync(round_no)
