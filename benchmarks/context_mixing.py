@@ -21,8 +21,8 @@ import time
 import numba
 import numpy as np
 
+from fedmap.coding.mapcodec import encode_map
 from fedmap.experiments.bandwidth import image_codecs
-from fedmap.federation.mapcodec import encode_map
 from fedmap.maps.sources import TerrainSource, load_truth
 
 T4 = ((-1, -1), (-1, 0), (-1, 1), (0, -1))

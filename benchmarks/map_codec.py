@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from fedmap.coding.mapcodec import decode_map, encode_map
 from fedmap.experiments.bandwidth import ImageCodec
 from fedmap.experiments.real_terrain import REAL_TERRAINS
-from fedmap.federation.mapcodec import decode_map, encode_map
 from fedmap.maps.grid import UNKNOWN
 from fedmap.maps.sources import TerrainSource, load_truth
 

@@ -91,17 +91,17 @@ def _decode_payload(data: bytes) -> object:
 
 
 def _decode_map(data: bytes) -> object:
-    from fedmap.federation.mapcodec import decode_map
+    from fedmap.coding.mapcodec import decode_map
     return decode_map(data, expected_shape=(24, 24))
 
 
 def _decode_map_ref(data: bytes) -> object:
-    from fedmap.federation.mapcodec import decode_map
+    from fedmap.coding.mapcodec import decode_map
     return decode_map(data, reference=_classes(1), expected_shape=(24, 24))
 
 
 def _stream_kwargs() -> dict:
-    from fedmap.federation.streamcodec import MOVES  # noqa: F401 - the module under test
+    from fedmap.coding.streamcodec import MOVES  # noqa: F401 - the module under test
     known = np.full((24, 24), 2, np.uint8)
     known[:4] = 0
 
@@ -115,7 +115,7 @@ def _stream_kwargs() -> dict:
 
 
 def _stream_sample() -> bytes:
-    from fedmap.federation import streamcodec as sc
+    from fedmap.coding import streamcodec as sc
     kw = _stream_kwargs()
     track = [(12, 13), (13, 14), (14, 14), (15, 13)]
     cand = kw["candidates"]([track]) & (kw["known"] == 2)
@@ -124,7 +124,7 @@ def _stream_sample() -> bytes:
 
 
 def _decode_stream(data: bytes) -> object:
-    from fedmap.federation import streamcodec as sc
+    from fedmap.coding import streamcodec as sc
     return sc.decode(data, state=sc.blank_state(), **_stream_kwargs())
 
 
@@ -223,10 +223,10 @@ TARGETS: dict[str, Target] = {t.name: t for t in (
     Target("payload int8+zstd", _decode_payload, _payload("int8+zstd", False), crc=True),
     Target("payload update-int4+zstd", _decode_payload, _payload("update-int4+zstd", True), crc=True),
     Target("payload topk", _decode_payload, _payload("topk:0.1,values=int8", True), crc=True),
-    Target("map codec", _decode_map, lambda: __import__("fedmap.federation.mapcodec", fromlist=["x"]).encode_map(
+    Target("map codec", _decode_map, lambda: __import__("fedmap.coding.mapcodec", fromlist=["x"]).encode_map(
         _classes(0)), crc=True),
     Target("map codec with a reference", _decode_map_ref,
-           lambda: __import__("fedmap.federation.mapcodec", fromlist=["x"]).encode_map(_classes(0),
+           lambda: __import__("fedmap.coding.mapcodec", fromlist=["x"]).encode_map(_classes(0),
                                                                                        reference=_classes(1)),
            crc=True),
     Target("predictive message", _decode_stream, _stream_sample),

@@ -7,8 +7,8 @@ import math
 import numpy as np
 
 from conftest import maze
+from fedmap.coding.mapcodec import ALPHA
 from fedmap.experiments.cellstreams import TEMPLATE, cell_stream_report, quadtree_bytes, template_bits
-from fedmap.federation.mapcodec import ALPHA
 from fedmap.maps.grid import UNKNOWN
 from fedmap.mission import LinkConfig, MissionConfig
 

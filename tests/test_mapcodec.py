@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fedmap.coding import mapcodec
+from fedmap.coding.mapcodec import decode_map, encode_map
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.experiments.bandwidth import ImageCodec
-from fedmap.federation import mapcodec
-from fedmap.federation.mapcodec import decode_map, encode_map
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.maps.sources import TerrainSource, load_truth
 

@@ -9,8 +9,8 @@ import pytest
 from scipy import ndimage
 
 from conftest import maze
+from fedmap.coding.mapcodec import decode_map
 from fedmap.errors import FedmapError
-from fedmap.federation.mapcodec import decode_map
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
 from fedmap.mission.frontiers import choose_target, frontier_mask, gain_at, travel_costs

@@ -1,4 +1,4 @@
-"""The predictive coder (fedmap.federation.streamcodec), its learned prior, and the
+"""The predictive coder (fedmap.coding.streamcodec), its learned prior, and the
 ``predictive`` mission strategy against ``raw``."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from conftest import maze
+from fedmap.coding import streamcodec as sc
 from fedmap.errors import FedmapError, RejectedUpdate
-from fedmap.federation import streamcodec as sc
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.meta.collections import MapCollection
 from fedmap.mission import LinkConfig, MissionConfig, run_mission

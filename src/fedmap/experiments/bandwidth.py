@@ -54,7 +54,7 @@ name                 lossy   payload
 ``zstd-2bit``        no      zstd (level 19, with checksum) of the classes packed 4 per byte,
                              2 bits each, first cell in the high bits (like ``np.packbits``)
 ``zstd-uint8``       no      zstd (level 19, with checksum) of the classes as H*W uint8 bytes
-``context``          no      fedmap's context-model range coder (:mod:`fedmap.federation.mapcodec`):
+``context``          no      fedmap's context-model range coder (:mod:`fedmap.coding.mapcodec`):
                              shape and CRC-32 in the payload
 ===================  ======  ===================================================================
 
@@ -91,10 +91,10 @@ import zstandard
 from PIL import Image, UnidentifiedImageError, features
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from fedmap.coding.mapcodec import decode_map, encode_map
 from fedmap.errors import FedmapError
 from fedmap.evaluation.metrics import image_scores
 from fedmap.evaluation.paths import PathScores, path_f1
-from fedmap.federation.mapcodec import decode_map, encode_map
 from fedmap.maps.grid import FREE, IMPASSABLE, PALETTE, UNKNOWN, GridMap, check_classes
 
 # -- Table III ---------------------------------------------------------------------------

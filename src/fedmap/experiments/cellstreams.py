@@ -34,8 +34,8 @@ import numpy as np
 import zstandard
 from scipy.special import gammaln
 
+from fedmap.coding.mapcodec import ALPHA, decode_map
 from fedmap.experiments.bandwidth import pack_2bit
-from fedmap.federation.mapcodec import ALPHA, decode_map
 from fedmap.maps.grid import UNKNOWN, GridMap
 from fedmap.mission.predictive import PredictiveRover
 from fedmap.mission.protocol import unpack_up

@@ -6,7 +6,7 @@ default the built-in Earth-like collection of the meta-initialisation, never a t
 site), sums what every link's coder state learned (its counts at the end minus a blank
 state's), and scales each context down to at most ``total`` counts, so the shipped state
 predicts from the first message and still adapts quickly to a new site.
-:func:`save_coder_prior` writes it where :func:`fedmap.federation.streamcodec.initial_state`
+:func:`save_coder_prior` writes it where :func:`fedmap.coding.streamcodec.initial_state`
 reads it (``fedmap/weights/cell_prior.npz``); ``fedmap meta coder`` does both.
 """
 
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fedmap.federation.streamcodec import PARTS, PRIOR_FILE, CoderState, blank_state
+from fedmap.coding.streamcodec import PARTS, PRIOR_FILE, CoderState, blank_state
 from fedmap.meta.collections import MapCollection, earth_like
 from fedmap.mission.predictive import PredictiveBase
 from fedmap.mission.settings import MissionConfig

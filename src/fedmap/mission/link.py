@@ -45,12 +45,9 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from fedmap.mission.settings import LinkConfig
 
 UP, DOWN, PEER = "up", "down", "peer"
 Cell = tuple[int, int]
@@ -93,10 +90,11 @@ class Message:
 class Link:
     """The link of one strategy's run: decides each message's fate and keeps the ledger.
 
-    ``topology`` (a :class:`~fedmap.mission.topology.Topology`) says who can reach the base.
+    ``config`` is the mission's :class:`~fedmap.mission.settings.LinkConfig`; ``topology``
+    (a :class:`~fedmap.mission.topology.Topology`) says who can reach the base.
     """
 
-    def __init__(self, config: LinkConfig, topology: Any) -> None:
+    def __init__(self, config: Any, topology: Any) -> None:
         self.config = config
         self.topology = topology
         self.ledger: list[Message] = []

@@ -1,5 +1,5 @@
 """``predictive``: lossless sharing of new cells with a persistent, learned probability
-model (:mod:`fedmap.federation.streamcodec`), as a rover end and a base end.
+model (:mod:`fedmap.coding.streamcodec`), as a rover end and a base end.
 
 Per rover, each direction of its link has a coder state on both ends. An uplink carries
 the rover's trail since the last one the base acknowledged (its moves), its target, and
@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 
 from fedmap._schema import setting
+from fedmap.coding import streamcodec
 from fedmap.errors import FedmapError, RejectedUpdate
-from fedmap.federation import streamcodec
 from fedmap.maps.grid import UNKNOWN
 from fedmap.mission.protocol import BaseEnd, Cell, Outgoing, RoverEnd, cover, largest_fitting
 

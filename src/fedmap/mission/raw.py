@@ -4,7 +4,7 @@ and the two strategies that use no link, ``none`` and the ``central`` oracle.
 
 * ``raw`` on the star: a rover sends the cells it observed since its last *delivered* sync,
   as a class map (other cells UNKNOWN) coded with fedmap's lossless ``context`` codec
-  (:mod:`fedmap.federation.mapcodec`). **Over budget**, it sends the newest cells that fit
+  (:mod:`fedmap.coding.mapcodec`). **Over budget**, it sends the newest cells that fit
   (every cell first observed at or after a cut-off step, the earliest cut-off that fits)
   and keeps the rest for the next sync; lost cells are sent again. The base overlays every
   delivered map on its global map (observations are truth, so they never conflict) and
@@ -32,9 +32,9 @@ from typing import Any
 
 import numpy as np
 
+from fedmap.coding.mapcodec import decode_map, encode_map
 from fedmap.errors import RejectedUpdate
 from fedmap.federation.heights import HeightCodec
-from fedmap.federation.mapcodec import decode_map, encode_map
 from fedmap.maps.grid import UNKNOWN
 from fedmap.mission.protocol import (
     BaseEnd,

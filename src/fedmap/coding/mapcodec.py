@@ -66,9 +66,9 @@ _CRC = 4
 ALPHA = 0.25  # additive prior on every count
 N_CLASSES = 3
 _OUTSIDE = 3  # a neighbour outside the map
-_N_CTX = 4**4  # four base-4 neighbour digits
+N_CTX = 4**4  # four base-4 neighbour digits
 _REF_KNOWN = 2 * 5  # with a reference: (its class FREE / IMPASSABLE) x (0..4 neighbours changed)
-_LEVELS = 3  # s = 1, s = 2, s >= 4
+LEVELS = 3  # s = 1, s = 2, s >= 4
 #: Largest map a payload may declare (cells, 4096²); bounds what a decoder allocates before
 #: the map's CRC can be checked. Pass ``expected_shape`` to bound it to the map you expect.
 MAX_CELLS = 1 << 24
@@ -79,7 +79,7 @@ _OFFSETS = {
     "B": lambda s: ((0, -s), (0, s), (-s, 0), (s, 0)),
     "C": lambda s: ((-s, 0), (s, 0), (0, -s), (0, s)),
 }
-_KINDS = ("A", "B", "C")
+KINDS = ("A", "B", "C")
 #: For each offset of a phase, the index of the opposite one (``(-dr, -dc)``).
 _OPPOSITE = {"A": (3, 2, 1, 0), "B": (1, 0, 3, 2), "C": (1, 0, 3, 2)}
 
@@ -95,24 +95,24 @@ def _map_crc(m: np.ndarray) -> int:
     return zlib.crc32(np.ascontiguousarray(m, dtype=np.uint8).tobytes())
 
 
-def _phases(h: int, w: int) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
+def phases(h: int, w: int) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
     """``(table, s, rows, cols)`` for every phase after cell (0, 0), coarse to fine."""
     s = (1 << max(0, (max(h, w) - 1).bit_length())) // 2
     while s >= 1:
-        level = min(s.bit_length() - 1, _LEVELS - 1)
-        for k, kind in enumerate(_KINDS):
+        level = min(s.bit_length() - 1, LEVELS - 1)
+        for k, kind in enumerate(KINDS):
             rows = np.arange(s if kind in ("A", "C") else 0, h, 2 * s)
             cols = np.arange(s if kind in ("A", "B") else 0, w, 2 * s)
             if rows.size and cols.size:
-                yield 1 + k * _LEVELS + level, s, rows, cols
+                yield 1 + k * LEVELS + level, s, rows, cols
         s //= 2
 
 
-def _contexts(m: np.ndarray, kind_table: int, s: int, rows: np.ndarray, cols: np.ndarray,
+def contexts(m: np.ndarray, kind_table: int, s: int, rows: np.ndarray, cols: np.ndarray,
               reference: np.ndarray | None) -> np.ndarray:
     """Context of every cell of a phase, row-major: ``(len(rows) * len(cols),)`` int64."""
     h, w = m.shape
-    kind = _KINDS[(kind_table - 1) // _LEVELS]
+    kind = KINDS[(kind_table - 1) // LEVELS]
     digits, inside, refs = [], [], []
     for dr, dc in _OFFSETS[kind](s):
         rr, cc = rows + dr, cols + dc
@@ -140,8 +140,8 @@ class _Model:
     """Adaptive counts per (table, context); the same arithmetic on both ends."""
 
     def __init__(self, with_reference: bool) -> None:
-        n_ctx = _REF_KNOWN + _N_CTX if with_reference else _N_CTX
-        self.counts = np.zeros((1 + len(_KINDS) * _LEVELS, n_ctx, N_CLASSES), dtype=np.int64)
+        n_ctx = _REF_KNOWN + N_CTX if with_reference else N_CTX
+        self.counts = np.zeros((1 + len(KINDS) * LEVELS, n_ctx, N_CLASSES), dtype=np.int64)
         self.family = constriction.stream.model.Categorical(perfect=False)
 
     def probabilities(self, table: int, ctx: np.ndarray) -> np.ndarray:
@@ -152,7 +152,7 @@ class _Model:
         np.add.at(self.counts[table], (ctx, symbols), 1)
 
 
-def _rounds(ctx: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+def context_rounds(ctx: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
     """The coding order of a phase: ``(order, rounds)``.
 
     Cells are grouped by context (raster order within a group). The k-th cell of a group
@@ -180,10 +180,10 @@ def encode_map(classes: np.ndarray, *, reference: np.ndarray | None = None) -> b
     enc = constriction.stream.queue.RangeEncoder()
     root_ctx = np.zeros(1, dtype=np.int64) if ref is None else ref[:1, 0].astype(np.int64)
     enc.encode(m[:1, 0].astype(np.int32), model.family, model.probabilities(0, root_ctx))
-    for table, s, rows, cols in _phases(h, w):
-        ctx = _contexts(m, table, s, rows, cols, ref)
+    for table, s, rows, cols in phases(h, w):
+        ctx = contexts(m, table, s, rows, cols, ref)
         sym = m[np.ix_(rows, cols)].ravel().astype(np.int64)
-        order, rounds = _rounds(ctx)
+        order, rounds = context_rounds(ctx)
         ctx, sym = ctx[order], sym[order]
         for part in rounds:
             enc.encode(sym[part].astype(np.int32), model.family, model.probabilities(table, ctx[part]))
@@ -240,9 +240,9 @@ def _decode_body(words: np.ndarray, h: int, w: int, ref: np.ndarray | None) -> n
     m = np.zeros((h, w), dtype=np.uint8)
     root_ctx = np.zeros(1, dtype=np.int64) if ref is None else ref[:1, 0].astype(np.int64)
     m[0, 0] = dec.decode(model.family, model.probabilities(0, root_ctx))[0]
-    for table, s, rows, cols in _phases(h, w):
-        ctx = _contexts(m, table, s, rows, cols, ref)
-        order, rounds = _rounds(ctx)
+    for table, s, rows, cols in phases(h, w):
+        ctx = contexts(m, table, s, rows, cols, ref)
+        order, rounds = context_rounds(ctx)
         ctx = ctx[order]
         sym = np.empty(ctx.size, dtype=np.int64)
         for part in rounds:

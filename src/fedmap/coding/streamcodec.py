@@ -1,7 +1,7 @@
 """``predictive``: lossless messages of newly observed cells, coded with a probability
 model that both ends of a link keep, message after message.
 
-The ``context`` codec (:mod:`fedmap.federation.mapcodec`) starts every message from
+The ``context`` codec (:mod:`fedmap.coding.mapcodec`) starts every message from
 nothing: its counts, its headers, and the mask of *which* cells are new. Here:
 
 * **The model persists.** Each direction of each link has a :class:`CoderState`: the
@@ -44,14 +44,14 @@ from importlib import resources
 import constriction
 import numpy as np
 
+from fedmap.coding.mapcodec import KINDS, LEVELS, N_CLASSES, N_CTX, context_rounds, contexts, phases
 from fedmap.errors import FedmapError, RejectedUpdate
-from fedmap.federation.mapcodec import _KINDS, _LEVELS, _N_CTX, N_CLASSES, _contexts, _phases, _rounds
 from fedmap.maps.grid import UNKNOWN
 
 Cell = tuple[int, int]
 #: Contexts per table: 256 neighbour contexts, in candidates (0) or outside them (1).
 N_FEATURES = 2
-N_TABLES = 1 + len(_KINDS) * _LEVELS
+N_TABLES = 1 + len(KINDS) * LEVELS
 #: The 8 moves between neighbouring cells, and the "no previous move" context.
 MOVES: tuple[Cell, ...] = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
 _MOVE_INDEX = {m: i for i, m in enumerate(MOVES)}
@@ -116,7 +116,7 @@ class Fold:
 
     @classmethod
     def empty(cls) -> Fold:
-        return cls(np.zeros((N_TABLES, N_FEATURES * _N_CTX, N_CLASSES), np.int64),
+        return cls(np.zeros((N_TABLES, N_FEATURES * N_CTX, N_CLASSES), np.int64),
                    np.zeros((_NO_MOVE + 1, len(MOVES)), np.int64), np.zeros(_MAX_LEN_BITS + 1, np.int64),
                    np.zeros(3, np.int64))
 
@@ -254,18 +254,18 @@ def _cells(io: _Io, cells: np.ndarray | None, known: np.ndarray, todo: np.ndarra
     """Code the classes of the ``todo`` cells (a class or UNKNOWN each) into ``known`` in place."""
     h, w = known.shape
     if todo[0, 0]:
-        p = _p(state.cells[0, feature * _N_CTX] + fold.cells[0, feature * _N_CTX])[None, :]
+        p = _p(state.cells[0, feature * N_CTX] + fold.cells[0, feature * N_CTX])[None, :]
         v = int(io.sym(None if cells is None else np.array([cells[0, 0]]), p)[0])
-        fold.cells[0, feature * _N_CTX, v] += 1
+        fold.cells[0, feature * N_CTX, v] += 1
         known[0, 0] = v
-    for table, s, rows, cols in _phases(h, w):
+    for table, s, rows, cols in phases(h, w):
         sub = todo[np.ix_(rows, cols)].ravel()
         if not sub.any():
             continue
-        ctx = _contexts(known, table, s, rows, cols, None)[sub] + feature * _N_CTX
+        ctx = contexts(known, table, s, rows, cols, None)[sub] + feature * N_CTX
         rr = np.repeat(rows, cols.size)[sub]
         cc = np.tile(cols, rows.size)[sub]
-        order, rounds = _rounds(ctx)
+        order, rounds = context_rounds(ctx)
         ctx, rr, cc = ctx[order], rr[order], cc[order]
         truth = None if cells is None else cells[rr, cc].astype(np.int64)
         sym = np.empty(ctx.size, dtype=np.int64)
