@@ -8,7 +8,7 @@ to a message, in this order:
    link: nothing is sent (``out of range``, 0 bytes). The mission's topology is
    :class:`~fedmap.mission.topology.StarTopology`: every rover talks to the base directly, within ``max_range``
    cells of it.
-2. **Budget.** A payload longer than the direction's per-round budget is not sent
+2. **Budget.** A payload longer than its budget (the topology's: per direction and round) is not sent
    (``over budget``, 0 bytes); the strategy decides what to send instead, before asking.
 3. **Loss.** A sent message is lost with probability ``loss``; the bytes are spent either
    way. The draw for (round, rover, direction) is the first ``random()`` of
@@ -151,25 +151,20 @@ class Link:
             t += self.config.latency
         return msg
 
-    def budget(self, direction: str) -> int | None:
-        return self.config.uplink_bytes if direction == UP else self.config.downlink_bytes
-
-    def fits(self, n_bytes: int, direction: str) -> bool:
-        b = self.budget(direction)
-        return b is None or n_bytes <= b
-
     def send(self, payload: bytes | None, *, round_no: int, step: int, rover: int, direction: str, kind: str,
-             positions: Sequence[Cell]) -> Message:
-        """Offer one message to the link; returns its ledger entry (``status`` says its fate).
+             positions: Sequence[Cell], budget: int | None = None) -> Message:
+        """Offer one message between rover ``rover`` and the base; returns its ledger entry
+        (``status`` says its fate).
 
         ``positions`` are every rover's cells now (the topology decides the range from
-        them); ``payload=None`` records a message the strategy could not fit into the budget.
+        them); ``budget`` is the message's budget (the topology's, None: unlimited);
+        ``payload=None`` records a message the strategy could not fit into the budget.
         """
         if not self.topology.reachable(positions)[rover]:
             msg = Message(round_no, step, rover, direction, kind, 0, "out of range")
         elif self.down(round_no, rover, BASE, step):
             msg = Message(round_no, step, rover, direction, kind, 0, "link down")
-        elif payload is None or not self.fits(len(payload), direction):
+        elif payload is None or (budget is not None and len(payload) > budget):
             msg = Message(round_no, step, rover, direction, kind, 0, "over budget")
         elif self.lost(round_no, rover, direction):
             msg = Message(round_no, step, rover, direction, kind, len(payload), "lost")

@@ -91,7 +91,7 @@ class Exchange:
                 link.ledger.append(Message(round_no, t, k, UP, "update", 0, "rejected"))
                 continue
             msg = link.send(out.payload, round_no=round_no, step=t, rover=k, direction=UP, kind=out.kind,
-                            positions=positions)
+                            positions=positions, budget=self.topology.budget(k, BASE, UP))
             if msg.arrival is None:
                 rover.delivered(round_no, False)
                 continue
@@ -106,7 +106,7 @@ class Exchange:
         base = self.sharing.base
         for k, out in base.downlinks(round_no).items():
             msg = self.link.send(out.payload, round_no=round_no, step=due, rover=k, direction=DOWN, kind=out.kind,
-                                 positions=self.positions())
+                                 positions=self.positions(), budget=self.topology.budget(BASE, k, DOWN))
             if msg.arrival is None:
                 base.delivered(k, round_no, False)
                 continue
