@@ -15,7 +15,7 @@ Adding a strategy is writing its ends (:mod:`fedmap.mission.protocol`) and one e
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -43,6 +43,7 @@ class Setup:
     team: list
     topology: Any
     journal: Journal = field(default_factory=Journal)
+    name: str = ""  #: the strategy being built (:func:`build` sets it)
 
     @property
     def starts(self) -> list[Cell]:
@@ -51,9 +52,7 @@ class Setup:
     @property
     def options(self) -> dict:
         """The ``[strategies.<name>]`` settings of the strategy being built."""
-        return dict(self.config.methods.get(self._name, {}))
-
-    _name: str = ""
+        return dict(self.config.methods.get(self.name, {}))
 
 
 @dataclass
@@ -130,13 +129,13 @@ def _journal_with_updates() -> Journal:
 
 def _none(s: Setup) -> Sharing:
     rovers = [RoverEnd(k, r, s.starts) for k, r in enumerate(s.team)]
-    return Sharing(s._name, s.team, rovers, BaseEnd(s.truth.shape, s.starts), on_link=False, journal=s.journal)
+    return Sharing(s.name, s.team, rovers, BaseEnd(s.truth.shape, s.starts), on_link=False, journal=s.journal)
 
 
 def _central(s: Setup) -> Sharing:
     rovers: list[RoverEnd] = [CentralRover(k, r, s.starts, team=s.team) for k, r in enumerate(s.team)]
     base = CentralBase(s.truth.shape, s.starts, team=s.team)
-    return Sharing(s._name, s.team, rovers, base, on_link=False, journal=s.journal)
+    return Sharing(s.name, s.team, rovers, base, on_link=False, journal=s.journal)
 
 
 def _height_q(s: Setup) -> float | None:
@@ -147,13 +146,13 @@ def _raw_star(s: Setup) -> Sharing:
     lc, q = s.config.link, _height_q(s)
     rovers = [RawRover(k, r, s.starts, budget=lc.uplink_bytes, height_q=q) for k, r in enumerate(s.team)]
     base = RawBase(s.truth.shape, s.starts, budget=lc.downlink_bytes, height_q=q, journal=s.journal)
-    return Sharing(s._name, s.team, rovers, base, journal=s.journal)
+    return Sharing(s.name, s.team, rovers, base, journal=s.journal)
 
 
 def _peers(s: Setup, make: Callable[[int, Any, tuple[int, ...]], PeerEnd]) -> Sharing:
     agents = s.topology.peer_agents(len(s.team))
     peers = {a: make(a, None if a == BASE else s.team[a], agents) for a in agents}
-    return Sharing(s._name, s.team, [peers[k] for k in range(len(s.team))], peers=peers, journal=s.journal)
+    return Sharing(s.name, s.team, [peers[k] for k in range(len(s.team))], peers=peers, journal=s.journal)
 
 
 def _raw_peer(s: Setup) -> Sharing:
@@ -166,7 +165,7 @@ def _predictive(s: Setup) -> Sharing:
     rovers = [PredictiveRover(k, r, s.starts, budget=lc.uplink_bytes, radius=radius, options=opts)
               for k, r in enumerate(s.team)]
     base = PredictiveBase(s.truth.shape, s.starts, budget=lc.downlink_bytes, radius=radius, options=opts)
-    return Sharing(s._name, s.team, rovers, base, journal=s.journal)
+    return Sharing(s.name, s.team, rovers, base, journal=s.journal)
 
 
 def _preset(s: Setup, method: str):
@@ -177,7 +176,7 @@ def _preset(s: Setup, method: str):
 def _model(s: Setup) -> Sharing:
     c, lc = s.config, s.config.link
     s.journal = _journal_with_updates()
-    pc, init = _preset(s, s._name)
+    pc, init = _preset(s, s.name)
     training = Training(c.train_on, c.replay, c.seed)
     rovers = [ModelRover(k, r, s.starts, truth=s.truth, pc=pc, init=init, budget=lc.uplink_bytes,
                          training=training, journal=s.journal) for k, r in enumerate(s.team)]
@@ -188,7 +187,7 @@ def _model(s: Setup) -> Sharing:
     def on_sync(round_no: int) -> None:
         lags.append({"round": round_no, "lag": model_lags(base, rovers)})
 
-    return Sharing(s._name, s.team, rovers, base, journal=s.journal, on_sync=on_sync)
+    return Sharing(s.name, s.team, rovers, base, journal=s.journal, on_sync=on_sync)
 
 
 def _gossip(cls: type[GossipPeer]) -> Factory:
@@ -221,8 +220,7 @@ def build(name: str, setup: Setup) -> Sharing:
     """The ends of strategy ``name`` for one run on ``setup``'s topology."""
     make = REGISTRY[name].factory(setup.topology)
     assert make is not None, f"{name} does not run on this topology (the config check refuses it)"
-    setup._name = name
-    return make(setup)
+    return make(replace(setup, name=name))
 
 
 __all__ = ["REGISTRY", "Setup", "Sharing", "StrategySpec", "build"]
