@@ -1,0 +1,77 @@
+"""Hashes of every preset and example mission's ``metrics.json``, timings removed: the check
+that a refactoring changed no behaviour (same metrics, same bytes per message).
+
+    python benchmarks/mission_hashes.py                 # all eight missions (about 30 min on 2 cores)
+    python benchmarks/mission_hashes.py default ramen   # some of them
+    python benchmarks/mission_hashes.py --out DIR       # keep the outputs (metrics.json, report.md)
+
+Prints one line per mission: the hash of the whole file (sha256, 16 hex digits) and one
+per strategy (12 hex digits), so a change shows which strategy it touched. Run it before
+and after a change (``git stash``) and compare the lines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from fedmap.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+#: name -> the ``fedmap mission`` arguments
+MISSIONS: dict[str, list[str]] = {
+    "default": [],
+    "cadre": ["--preset", "cadre"],
+    "cadre-mesh": ["--preset", "cadre-mesh"],
+    "ramen": ["--preset", "ramen"],
+    "scout": ["--preset", "scout"],
+    "mission_gale": [str(ROOT / "examples/mission_gale.toml")],
+    "mission_hadley": [str(ROOT / "examples/mission_hadley.toml")],
+    "mission_elevation": [str(ROOT / "examples/mission_elevation.toml")],
+}
+
+
+def _without_timings(x):
+    if isinstance(x, dict):
+        return {k: _without_timings(v) for k, v in x.items() if k != "seconds"}
+    if isinstance(x, list):
+        return [_without_timings(v) for v in x]
+    return x
+
+
+def digest(metrics: dict, n: int) -> str:
+    return hashlib.sha256(json.dumps(metrics, sort_keys=True).encode()).hexdigest()[:n]
+
+
+def main_(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("missions", nargs="*", help=f"some of {', '.join(MISSIONS)} (default: all)")
+    p.add_argument("--out", type=Path, default=None, help="keep the outputs here (default: a temporary folder)")
+    args = p.parse_args(argv)
+    names = args.missions or list(MISSIONS)
+    unknown = [n for n in names if n not in MISSIONS]
+    if unknown:
+        p.error(f"unknown mission(s) {', '.join(unknown)}; known: {', '.join(MISSIONS)}")
+    with tempfile.TemporaryDirectory() as tmp:
+        out = args.out or Path(tmp)
+        for name in names:
+            folder = out / name
+            with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):  # the mission's own table
+                code = main(["--quiet", "mission", *MISSIONS[name], "--no-animation", "-o", str(folder)])
+            if code:
+                print(f"{name}: fedmap mission failed (exit {code})", file=sys.stderr)
+                return code
+            m = _without_timings(json.loads((folder / "metrics.json").read_text()))
+            per = {s: digest(r, 12) for s, r in m["strategies"].items()}
+            print(f"{name:18s} {digest(m, 16)}  " + "  ".join(f"{s} {h}" for s, h in per.items()), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main_())
