@@ -19,7 +19,7 @@ import multiprocessing as mp
 import os
 from typing import Any
 
-from fedmap.mission.registry import Setup, Sharing, build
+from fedmap.mission.registry import REGISTRY, Setup, Sharing, build
 from fedmap.mission.world import Rover
 
 #: What a rover's end reads of its own rover (sent before every call).
@@ -99,9 +99,9 @@ def ends_in_processes(name: str, setup: Setup) -> Sharing:
     """The ends of a star strategy ``name``, each in a process of its own (an ``ends``
     factory for :func:`~fedmap.mission.sim.run_mission`). Call :meth:`ProcessSharing.close`
     when the run is over (:func:`close_all` does it for a mission's result)."""
-    local = build(name, Setup(setup.config, setup.truth, setup.team, setup.topology))
-    if not local.on_link or local.base is None:
-        return local  # none, central: no link, nothing to separate (peer strategies: not here)
+    spec = REGISTRY[name]
+    if not (spec.on_link and setup.topology.has_base and spec.star is not None):
+        return build(name, setup)  # none, central: no link, nothing to separate (peer strategies: not here)
     ctx = mp.get_context("spawn")
     starts = [r.pos for r in setup.team]
 
@@ -115,7 +115,8 @@ def ends_in_processes(name: str, setup: Setup) -> Sharing:
 
     base = start(None)
     rovers = [start(k) for k in range(len(setup.team))]
-    return ProcessSharing(name, setup.team, rovers, base, journal=local.journal)  # type: ignore[arg-type]
+    # the journals stay with the ends, in their processes: this one records nothing
+    return ProcessSharing(name, setup.team, rovers, base)  # type: ignore[arg-type]
 
 
 def close_all(result: Any) -> None:

@@ -114,6 +114,7 @@ class StrategySpec:
     peer: Factory | None = None  #: its ends as peers
     options: type | None = None  #: the dataclass of ``[strategies.<name>]`` (declared through ``_schema``)
     trains: bool = False  #: ``[strategies.<name>]`` takes :func:`fedmap.config.method_config` keywords
+    on_link: bool = True  #: it sends anything at all (``none`` and the ``central`` oracle do not)
     default: bool = False  #: run unless told otherwise, on the star
     peer_default: bool = False  #: run unless told otherwise, on a peer topology
 
@@ -129,13 +130,13 @@ def _journal_with_updates() -> Journal:
 
 def _none(s: Setup) -> Sharing:
     rovers = [RoverEnd(k, r, s.starts) for k, r in enumerate(s.team)]
-    return Sharing(s.name, s.team, rovers, BaseEnd(s.truth.shape, s.starts), on_link=False, journal=s.journal)
+    return Sharing(s.name, s.team, rovers, BaseEnd(s.truth.shape, s.starts), journal=s.journal)
 
 
 def _central(s: Setup) -> Sharing:
     rovers: list[RoverEnd] = [CentralRover(k, r, s.starts, team=s.team) for k, r in enumerate(s.team)]
     base = CentralBase(s.truth.shape, s.starts, team=s.team)
-    return Sharing(s.name, s.team, rovers, base, on_link=False, journal=s.journal)
+    return Sharing(s.name, s.team, rovers, base, journal=s.journal)
 
 
 def _height_q(s: Setup) -> float | None:
@@ -201,7 +202,7 @@ def _gossip(cls: type[GossipPeer]) -> Factory:
 #: Every sharing strategy, from the lower bound to the upper bound.
 REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
     StrategySpec("none", "nothing is sent: a rover's belief is its own observations", star=_none, peer=_none,
-                 default=True, peer_default=True),
+                 on_link=False, default=True, peer_default=True),
     StrategySpec("raw", "observed cells, lossless (context codec): merged at the base on the star, gossiped on "
                  "peers", star=_raw_star, peer=_raw_peer, default=True, peer_default=True),
     StrategySpec("predictive", "new cells, lossless, with a learned probability model both ends keep",
@@ -212,15 +213,18 @@ REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
                  trains=True, peer_default=True),
     StrategySpec("admm", "fedmap's network by DiNNO's decentralised C-ADMM", peer=_gossip(AdmmPeer), trains=True),
     StrategySpec("central", "the oracle: every observation, instantly, free", star=_central, peer=_central,
-                 default=True, peer_default=True),
+                 on_link=False, default=True, peer_default=True),
 )}
 
 
 def build(name: str, setup: Setup) -> Sharing:
     """The ends of strategy ``name`` for one run on ``setup``'s topology."""
-    make = REGISTRY[name].factory(setup.topology)
+    spec = REGISTRY[name]
+    make = spec.factory(setup.topology)
     assert make is not None, f"{name} does not run on this topology (the config check refuses it)"
-    return make(replace(setup, name=name))
+    sharing = make(replace(setup, name=name))
+    sharing.on_link = spec.on_link
+    return sharing
 
 
 __all__ = ["REGISTRY", "Setup", "Sharing", "StrategySpec", "build"]

@@ -77,8 +77,7 @@ class _Run:
                 r.replan = True
 
         self.exchange = Exchange(self.topology, self.link, self.sharing, world.positions, replan)
-        names = [*config.rover_profiles, *(["team"] * config.helicopters)]
-        self.own_scorer = [scorer if p == "team" else (profile_scorers or {})[p] for p in names]
+        self.own_scorer = [scorer if p == "team" else (profile_scorers or {})[p] for p in world.profiles]
         self.rows: list[StepRow] = []
         self.evals: list[EvalRow] = []
         self.frames: list[Frame] = []

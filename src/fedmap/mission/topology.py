@@ -68,6 +68,7 @@ class Exchange:
 
     def sync(self, t: int, round_no: int) -> None:
         if self.sharing.on_link:
+            self.sharing.at_sync(round_no)  # every topology: before any message of the round
             self.topology.sync(self, t, round_no)
 
     def deliver(self, t: int) -> None:
@@ -79,7 +80,6 @@ class Exchange:
     # -- the star's messages
     def star_round(self, t: int, round_no: int) -> None:
         s, link = self.sharing, self.link
-        s.at_sync(round_no)
         positions = self.positions()
         reachable = self.topology.reachable(positions)
         for k, rover in enumerate(s.rovers):
@@ -159,7 +159,6 @@ class Exchange:
 
     def exchange_round(self, t: int, round_no: int, pairs: list[tuple[int, int]]) -> None:
         """Every pair exchanges both ways; every agent closes its round ``latency`` steps later."""
-        self.sharing.at_sync(round_no)
         self.links, self.leaders = tuple(pairs), ()
         self.peer_links(round_no, pairs)
         for a, b in pairs:
@@ -354,7 +353,6 @@ class LeaderTopology(MeshTopology):
                 "else its lowest-numbered rover) that plays the base for the group, members reaching it over relays")
 
     def sync(self, x: Exchange, t: int, round_no: int) -> None:
-        x.sharing.at_sync(round_no)
         positions = x.positions()
         pairs = self.up_pairs(x.link, round_no, t, positions)
         x.links = tuple(pairs)

@@ -140,7 +140,8 @@ class World:
                                 axis=1)[:shape[0], :shape[1]] if config.helicopters else None
         self.origin = (float(np.mean([s[0] for s in starts])), float(np.mean([s[1] for s in starts])))
         # each member's own classes of the terrain (None: it follows the shared thresholds)
-        names = [*config.rover_profiles, *(["team"] * config.helicopters)]
+        #: every member's traversability profile (helicopters follow the team's)
+        self.profiles = names = [*config.rover_profiles, *(["team"] * config.helicopters)]
         self.own_truth = [None if p == "team" else (profiles or {})[p] for p in names]
         for r, t in zip(self.team, self.own_truth):
             r.own = None if t is None else np.full(shape, UNKNOWN, dtype=np.uint8)
