@@ -412,7 +412,8 @@ def test_shared_exact_heights_let_each_rover_derive_its_own_classes():
 
 
 def _run_view(res, name, k):
-    """The rover's own view rebuilt from scratch: derived classes over shared heights, own cells on top."""
+    """The rover's own view rebuilt from scratch: derived classes over shared heights (for a
+    ``team`` rover only where its belief holds no class), own cells on top."""
     from fedmap.maps.dem import Dem
     from fedmap.maps.traversability import dem_to_traversability, rover_profile
 
@@ -422,7 +423,9 @@ def _run_view(res, name, k):
     z = np.where(np.isfinite(r.heights), r.heights, s.rovers[k].heights())
     derived = dem_to_traversability(Dem(z, res.truth.pixel_size), None if profile == "team" else
                                     rover_profile(profile)).classes
-    return np.where(derived != UNKNOWN, derived, s.belief(k))
+    belief = s.belief(k)
+    use = (derived != UNKNOWN) & ((belief == UNKNOWN) if profile == "team" else True)
+    return np.where(use, derived, belief)
 
 
 def test_height_noise_is_seeded_and_measured():

@@ -25,7 +25,7 @@ from fedmap.maps.dem import Dem
 from fedmap.maps.grid import GridMap, check_same_frame, classes_from_rgb
 from fedmap.maps.sources import TerrainSource, load_truth, needs_dem
 from fedmap.maps.terrain import TERRAIN_KINDS
-from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
+from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, resolved_slope
 from fedmap.nets.init import ModelConfig
 from fedmap.nets.init import initial_model as build_initial_model
 from fedmap.nets.model import CoordNet, GridNet, Weights, build_model, get_weights, render, set_weights
@@ -250,7 +250,9 @@ def _elevation(config: PipelineConfig, truth: GridMap, local_maps: list[GridMap]
     hf = federate_heights(local_maps, seed=config.seed)
     z = truth.layer("elevation").astype(np.float64)  # run_pipeline checked it is there before any work
     observed = np.any([m.known for m in local_maps], axis=0)
-    derived = dem_to_traversability(Dem(hf.heights.astype(np.float32), truth.pixel_size), config.thresholds).classes
+    # a percentile slope limit is the truth's, in degrees: not re-taken on the federated heights
+    limits = resolved_slope(config.thresholds, truth)
+    derived = dem_to_traversability(Dem(hf.heights.astype(np.float32), truth.pixel_size), limits).classes
     return {"method": "height grid", "resolutions": list(hf.resolutions), "codec": HEIGHT_CODEC,
             **hf.scores(z, observed), "bytes": {"uplink": hf.uplink_bytes, "downlink": hf.downlink_bytes,
                                                 "lossless_1cm_uplink": hf.reference_bytes},

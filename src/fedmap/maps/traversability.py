@@ -34,7 +34,7 @@ a one-line warning in ``meta["warning"]`` naming the pixel size and thresholds
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -160,6 +160,23 @@ def rover_profile(name: str) -> TraversabilityThresholds:
     if name not in ROVER_PROFILES:
         raise FedmapError(f"unknown rover {name!r}; choose one of {', '.join(ROVER_PROFILES)}")
     return ROVER_PROFILES[name]
+
+
+def resolved_slope(thresholds: TraversabilityThresholds, truth: GridMap) -> TraversabilityThresholds:
+    """``thresholds`` with a percentile slope limit resolved, once, into the degrees it gave on
+    ``truth`` (``truth.meta["slope_limit_deg"]``, set by :func:`dem_to_traversability`).
+
+    Every map derived later from part of the same terrain (a rover's few heights, a coarse
+    orbital DEM, federated heights) must use those degrees: the percentile of a partial or
+    resampled map's own slopes is another limit, and classifies the same slope differently.
+    Limits given in degrees come back unchanged."""
+    if thresholds.max_slope_percentile is None:
+        return thresholds
+    limit = truth.meta.get("slope_limit_deg")
+    if limit is None:
+        raise FedmapError(f"the slope limit p{thresholds.max_slope_percentile:g} is a percentile of the map's slopes, "
+                          f"but map {truth.source!r} was not classified from a DEM: give the limit in degrees")
+    return replace(thresholds, max_slope_deg=float(limit), max_slope_percentile=None)
 
 
 def parse_slope_limit(text: str | float) -> dict:

@@ -187,6 +187,8 @@ class StrategyRun:
     #: (``{"round": r, "lag": [...]}``; None in ``lag``: it holds none the base still keeps)
     model_lag: tuple[dict, ...] | None = None
     sharing: Any = None  #: the ends' final state (:class:`~fedmap.mission.registry.Sharing`; not written)
+    #: every member's final view: its belief in its own classes, what it plans on and is scored on
+    views: tuple[np.ndarray, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The strategy's entry of ``metrics.json`` (no frames, trails or strategy state)."""

@@ -23,7 +23,12 @@ from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.orbital import orbital_prior
 from fedmap.maps.sources import TerrainSource, load_terrain, needs_dem
-from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, rover_profile
+from fedmap.maps.traversability import (
+    TraversabilityThresholds,
+    dem_to_traversability,
+    resolved_slope,
+    rover_profile,
+)
 from fedmap.mission.link import BASE, DOWN, UP, Link
 from fedmap.mission.registry import Setup, Sharing, build
 from fedmap.mission.results import (
@@ -151,7 +156,8 @@ class _Run:
                            [list(r.trail) for r in self.team], seconds,
                            dropped_updates=None if journal.dropped is None else tuple(journal.dropped),
                            model_lag=None if journal.lags is None else tuple(journal.lags),
-                           sharing=self.sharing)
+                           sharing=self.sharing,
+                           views=tuple(w.own_view(k, self.sharing.belief(k)) for k in range(len(self.team))))
 
 
 def mission_terrain(config: MissionConfig, source: TerrainSource) -> tuple[GridMap, np.ndarray | None,
@@ -165,8 +171,9 @@ def mission_terrain(config: MissionConfig, source: TerrainSource) -> tuple[GridM
     needs_dem = config.line_of_sight or config.prior.kind == "orbital" or bool(own) or layer
     truth, dem = load_terrain(source, seed=config.seed, with_dem=needs_dem)
     elevation = dem.elevation if dem is not None and (config.line_of_sight or layer) else None
-    prior = orbital_prior(dem, source.thresholds, config.prior.factor) if dem is not None and \
-        config.prior.kind == "orbital" else None
+    # the prior is classified with the truth's slope limit in degrees, not a percentile of its coarse slopes
+    prior = orbital_prior(dem, resolved_slope(source.thresholds, truth), config.prior.factor) \
+        if dem is not None and config.prior.kind == "orbital" else None
     profiles = {p: dem_to_traversability(dem, rover_profile(p)).classes for p in own} if dem is not None else {}
     return truth, elevation, prior, profiles
 
@@ -184,7 +191,9 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     (:class:`~fedmap.mission.settings.PriorConfig`); ``profiles`` the classes of the terrain under
     each rover profile of ``config.profiles`` but ``team`` (:func:`mission_terrain` builds all three);
     ``thresholds`` the team's limits, with which a ``team`` rover derives classes from an
-    elevation layer (None: the defaults; the truth must have been classified with them).
+    elevation layer (None: the defaults; the truth must have been classified with them); a
+    percentile slope limit is resolved once, into the degrees it gave on the truth
+    (:func:`~fedmap.maps.traversability.resolved_slope`), never re-taken on a rover's heights.
     ``on_strategy(name)`` announces each strategy and ``on_step(name, step, coverage)``
     follows it (progress bars); ``frames`` bounds the animation's frames per strategy.
     ``ends(name, setup)`` builds a strategy's ends (default: the registry's
@@ -208,6 +217,8 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     for name, classes in profiles.items():
         if np.shape(classes) != truth.shape:
             raise FedmapError(f"profile {name!r} classes {np.shape(classes)} do not match the map {truth.shape}")
+    if thresholds is not None and "elevation" in config.layers:
+        thresholds = resolved_slope(thresholds, truth)
     starts, base = place_starts(truth, config)
     waypoints = plan_waypoints(truth, config) if config.mode == "waypoints" else [[] for _ in starts]
     scorer = Scorer(truth, config.eval_pairs, config.seed)

@@ -212,13 +212,22 @@ class World:
     def own_view(self, k: int, belief: np.ndarray) -> np.ndarray:
         """Rover ``k``'s belief with the cells it observed itself in its own classes (its
         profile's limits); with an elevation layer, the classes it derives with its own
-        limits from the heights it holds (its own and those shared with it) where they
-        allow it; the shared classes elsewhere."""
+        limits from the heights it holds (its own and those shared with it); the shared
+        classes elsewhere.
+
+        Derived classes replace shared ones only for a rover with a profile of its own: the
+        shared classes are the team's, not its limits. A ``team`` rover's shared classes
+        are already the team's limits applied to exact observations, while classes derived
+        from shared heights carry the heights' quantisation and noise (a cell at a limit
+        flips), so for it they fill only cells whose class it does not hold."""
         r = self.team[k]
         view = belief
         if r.heights is not None:
             derived = self.derived(k)
-            view = np.where(derived != UNKNOWN, derived, view)
+            use = derived != UNKNOWN
+            if self.own_truth[k] is None:  # a team rover: its shared classes win where it holds them
+                use &= view == UNKNOWN
+            view = np.where(use, derived, view)
             view = np.where(r.local != UNKNOWN, r.local if r.own is None else r.own, view)
         elif r.own is not None:
             view = np.where(r.own != UNKNOWN, r.own, view)
