@@ -5,6 +5,9 @@ file, CI, ``nohup``) a :class:`LogProgress` prints plain lines instead: one when
 starts and ends, and one at least every 10 s in between (stage, done/total, elapsed, ETA).
 ``fedmap --quiet ...`` prints no progress; ``fedmap --log-json ...`` prints each progress
 event as one JSON object per line (see :func:`set_output`).
+
+Without a terminal the console is also :data:`LOG_WIDTH` columns wide, so that a table in a
+log file is whole (not cut to 80 columns with ``…``) and a line of text is one line.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import time
 from collections.abc import Callable
 from typing import Any, TextIO
 
-from rich.console import Console
+from rich.console import Console, ConsoleDimensions
 from rich.measure import Measurement
 from rich.progress import (
     BarColumn,
@@ -34,7 +37,26 @@ from fedmap.maps.grid import GridMap
 from fedmap.maps.traversability import TraversabilityThresholds
 from fedmap.pipeline import PipelineResult
 
-console = Console()
+#: Columns of the console when its output is not a terminal (a file, a pipe, CI): wide
+#: enough that no table is cut, since nobody's window is there to fit.
+LOG_WIDTH = 10_000
+
+
+class _Console(Console):
+    """A rich console whose width is the terminal's, or :data:`LOG_WIDTH` without one (rich
+    would take 80 columns, or ``$COLUMNS``, and cut a wider table's cells to ``…``)."""
+
+    @property
+    def size(self) -> ConsoleDimensions:
+        size = super().size
+        return size if self.is_terminal else ConsoleDimensions(LOG_WIDTH, size.height)
+
+    @size.setter
+    def size(self, new_size: tuple[int, int]) -> None:
+        self._width, self._height = new_size
+
+
+console: Console = _Console()
 
 
 def terrain_line(label: str, truth: GridMap, thresholds: TraversabilityThresholds) -> str:
@@ -265,8 +287,9 @@ def comparison_table(rows: list[dict]) -> Table:
 
 
 def fit(table: Table) -> Table:
-    """Drop the cell padding of a table wider than the console (80 columns when piped), so
-    that narrow consoles show every number whole rather than cut."""
+    """Drop the cell padding of a table wider than the console, so that a narrow terminal
+    shows every number whole rather than cut (without a terminal the console is
+    :data:`LOG_WIDTH` wide and the table is printed as it is)."""
     if Measurement.get(console, console.options.update_width(10_000), table).maximum > console.width:
         table.padding = (0, 0)
     return table
