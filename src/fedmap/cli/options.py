@@ -2,7 +2,8 @@
 
 A command declares which configuration classes it exposes; :func:`with_settings` adds one
 typer option per one-value setting (``--lr``, ``--masked/--no-masked``, ``--strategies``
-as a comma-separated list), with the setting's help, allowed values and default, and
+as a comma-separated list), with the setting's help (escaped for rich, so a ``[section]`` in
+it is shown as written), allowed values and default, and
 hands the command a partial config ``{section: {key: value}}`` of the options given.
 Nothing here names a setting: a new field appears on the command line by itself.
 """
@@ -16,6 +17,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
+from rich.markup import escape
 
 from fedmap import _schema
 from fedmap.config import defaults, merge, preset_names, terrain_table
@@ -54,7 +56,7 @@ def _preset_default(s: _schema.Setting, presets: dict[str, dict]) -> Any:
 
 
 def _option(name: str, kind: type, decl: str, help_: str) -> inspect.Parameter:
-    return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=typer.Option(None, decl, help=help_),
+    return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=typer.Option(None, decl, help=escape(help_)),
                              annotation=Optional[kind])  # noqa: UP045  (typer reads Optional)
 
 
@@ -98,7 +100,8 @@ def parameters(settings: Iterable[_schema.Setting], *, presets: bool = False,
         help_ = _schema.help_text(s, default)
         if s.path:
             kind = Path
-        option = typer.Option(None, *_decls(s, kind), help=help_ + ".", rich_help_panel=_panel(s))
+        # typer reads help as rich markup: escaped, a "[helicopter]" in it is shown, not eaten as a style
+        option = typer.Option(None, *_decls(s, kind), help=escape(help_ + "."), rich_help_panel=_panel(s))
         name = f"{_PREFIX}{s.section}__{s.name}"
         if s.types == (list,):
             _LISTS.add(name)
