@@ -17,9 +17,12 @@ sharing are compared on the same mission.
   (:class:`StrategyRun`: a :class:`TimeSeries` and a :class:`MissionSummary` per strategy)
   are in :mod:`~fedmap.mission.results`;
 * :mod:`~fedmap.mission.coderprior`: the predictive coder's learned initial state;
-* :mod:`~fedmap.mission.report`: ``metrics.json``, ``report.md``, plots and the animation.
+* :mod:`~fedmap.mission.report`: ``metrics.json``, ``report.md``, plots and the animation;
+* :mod:`~fedmap.mission.maps_out`: the final global maps and beliefs as GridMaps and files
+  (:func:`mission_maps`, :func:`write_mission_maps`).
 """
 
+from fedmap.mission.maps_out import mission_maps, write_mission_maps
 from fedmap.mission.registry import REGISTRY
 from fedmap.mission.results import MissionResult, MissionSummary, StrategyRun, TimeSeries
 from fedmap.mission.settings import STRATEGIES, LinkConfig, MissionConfig, load_mission
@@ -28,4 +31,4 @@ from fedmap.mission.topology import LeaderTopology, MeshTopology, StarTopology, 
 
 __all__ = ["REGISTRY", "STRATEGIES", "LeaderTopology", "LinkConfig", "MeshTopology", "MissionConfig", "MissionResult",
            "MissionSummary", "StarTopology", "StrategyRun", "TimeSeries", "Topology", "load_mission",
-           "mission_terrain", "run_mission"]
+           "mission_maps", "mission_terrain", "run_mission", "write_mission_maps"]
