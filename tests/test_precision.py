@@ -11,12 +11,15 @@ import numpy as np
 import pytest
 import torch
 
+from fedmap.cli import main
+from fedmap.cli import run as run_cli
 from fedmap.config import method_config
 from fedmap.errors import FedmapError
 from fedmap.evaluation.metrics import psnr
 from fedmap.maps.grid import GridMap
+from fedmap.nets import training
 from fedmap.nets.model import build_model, get_weights, grid_coords, render
-from fedmap.nets.training import TrainConfig, fit, native_bf16, resolve_precision
+from fedmap.nets.training import PRECISIONS, TrainConfig, fit, native_bf16, precision_reason, resolve_precision
 
 
 def _reference_fp32_fit(model, grid: GridMap, epochs: int, lr: float) -> list[float]:
@@ -93,3 +96,56 @@ def test_allocator_setting_is_applied_once_and_can_be_turned_off():
     off = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "FEDMAP_MALLOC_TUNING": "0"}).stdout
     assert (on, off) == ("True", "False")
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_the_precision_reason_follows_the_cpu(monkeypatch, native):
+    """The words agree with what runs: :func:`resolve_precision` under the same detection."""
+    monkeypatch.setattr(training, "native_bf16", lambda: native)
+    auto = precision_reason("auto")
+    assert auto.startswith(f"{resolve_precision('auto')} (auto): ")
+    if native:
+        assert auto == "bf16 (auto): this CPU multiplies bfloat16 natively (AVX-512 BF16 or AMX)"
+        assert precision_reason("fp32").endswith("; auto would train in bf16")
+    else:
+        assert auto == ("fp32 (auto): this CPU has no native bf16 (no AVX-512 BF16 or AMX); bf16 would be emulated "
+                        "and slower")
+        assert precision_reason("bf16").endswith(", so bf16 is emulated and slower than fp32")
+    assert precision_reason("bf16").startswith("bf16, as asked; ")
+    assert precision_reason("fp32").startswith("fp32, as asked; ")
+    for name in PRECISIONS:  # feature grids train in fp32 whatever was asked
+        assert precision_reason(name, grid=True).startswith("fp32: feature grids always train in fp32")
+
+
+_TINY_DEMO = ["demo", "--method", "paper", "--size", "64", "--local-epochs", "1", "--pairs", "2", "--rounds", "1"]
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_the_demo_says_which_precision_it_trains_in_before_training(monkeypatch, capsys, tmp_path, native):
+    """The line comes before the training (which is stopped here, to keep the test fast)."""
+    monkeypatch.setattr(training, "native_bf16", lambda: native)
+
+    def stop(config, **kwargs):
+        raise FedmapError(f"stopped before training in {config.train.precision}")
+
+    monkeypatch.setattr(run_cli, "run_pipeline", stop)
+    assert main([*_TINY_DEMO, "-o", str(tmp_path / "d")]) == 2
+    out = capsys.readouterr()
+    used = "bf16" if native else "fp32"
+    assert f"training precision: {precision_reason('auto')}" in out.out.splitlines()
+    assert f"training precision: {used} (auto): " in out.out and f"stopped before training in {used}" in out.err
+    # two methods side by side: one line each, the feature grids' in fp32
+    assert main(["demo", "--size", "64", "-o", str(tmp_path / "d2")]) == 2
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("training precision")]
+    assert lines == [f"training precision (paper): {precision_reason('auto')}"]  # stopped in paper's run
+
+
+def test_the_demo_trains_in_the_precision_its_line_names(monkeypatch, capsys, tmp_path):
+    """A CPU without native bf16 (as detected): the line says fp32 and why, and fp32 ran."""
+    monkeypatch.setattr(training, "native_bf16", lambda: False)
+    assert main([*_TINY_DEMO, "-o", str(tmp_path / "d")]) == 0
+    out = capsys.readouterr().out
+    assert ("training precision: fp32 (auto): this CPU has no native bf16 (no AVX-512 BF16 or AMX); bf16 would be "
+            "emulated and slower") in out.splitlines()
+    ran = json.loads((tmp_path / "d" / "config.json").read_text())
+    assert ran["train"]["precision"] == ran["federation"]["local"]["precision"] == "fp32"

@@ -28,6 +28,7 @@ from fedmap.maps.export import EXPORT_FORMATS, check_formats
 from fedmap.maps.io import load_map, save_map
 from fedmap.maps.terrain import generate_dem
 from fedmap.maps.traversability import dem_to_traversability
+from fedmap.nets.training import precision_reason
 from fedmap.outputs import comparison_rows, write_comparison, write_outputs
 from fedmap.pipeline import PipelineConfig, run_pipeline
 
@@ -51,6 +52,7 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
         resolved, source, truth, pconfig = load_run(config, overrides, terrain=terrain)
         if truth.meta.get("warning"):
             console.print(f"warning: {truth.meta['warning']}", soft_wrap=True)  # one line, however wide
+        console.print(precision_line(resolved, pconfig))
         result = run_pipeline(pconfig, truth=truth, on_stage=on_stage, on_step=on_step)
         on_stage("write outputs", 0)
         write_outputs(result, out, extra={"config.toml": dumps_toml(resolved), "run_config.json": to_json(resolved)},
@@ -91,6 +93,7 @@ def _execute_many(methods: list[str], overrides: list[dict], *, out: Path, expor
 
             stage("load terrain", 0)
             resolved, source, truth, pconfig = load_run(None, [*overrides, {"method": method}])
+            console.print(precision_line(resolved, pconfig, method=method))
             results[method] = run_pipeline(pconfig, truth=truth, on_stage=stage, on_step=on_step)
             resolved_by[method] = {"config.toml": dumps_toml(resolved), "run_config.json": to_json(resolved)}
         on_stage("write outputs", 0)
@@ -106,6 +109,15 @@ def _execute_many(methods: list[str], overrides: list[dict], *, out: Path, expor
     console.print(f"outputs: {out}/  (figure.png, metrics.json; {', '.join(f'{m}/' for m in methods)} with each "
                   "method's maps, model and config)")
     console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
+
+
+def precision_line(resolved: dict, pconfig: PipelineConfig, method: str | None = None) -> str:
+    """The line saying which precision a run trains in and why, printed before it trains:
+    ``training precision (paper): fp32 (auto): this CPU has no native bf16 ...``. ``resolved``
+    is the run's settings as given (``precision`` may be ``auto``), ``pconfig`` the built run."""
+    asked = resolved.get("train", {}).get("precision", pconfig.train.precision)
+    head = "training precision" + (f" ({method})" if method else "")
+    return f"{head}: {precision_reason(asked, grid=pconfig.model.net == 'grid')}"
 
 
 #: The settings ``demo`` and ``run`` take as options: the run config's, derived from its fields.

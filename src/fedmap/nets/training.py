@@ -84,6 +84,26 @@ def resolve_precision(name: str) -> str:
     return name
 
 
+def precision_reason(name: str, *, grid: bool = False) -> str:
+    """The precision a run asked for as ``name`` (:data:`PRECISIONS`) trains in, and why, in
+    words for the console: ``fp32 (auto): this CPU has no native bf16 (no AVX-512 BF16 or
+    AMX); bf16 would be emulated and slower``. ``grid``: the network is feature grids, which
+    train in fp32 whatever the setting (:func:`fit`). Follows :func:`native_bf16`, as
+    :func:`resolve_precision` does.
+    """
+    used, native = resolve_precision(name), native_bf16()
+    cpu = ("this CPU multiplies bfloat16 natively (AVX-512 BF16 or AMX)" if native
+           else "this CPU has no native bf16 (no AVX-512 BF16 or AMX)")
+    if grid:
+        return ("fp32: feature grids always train in fp32 (their step is bilinear sampling, not matrix products, "
+                "where bf16 does not pay)" + ("; the bf16 asked is for Fourier networks" if name == "bf16" else ""))
+    if name == "auto":
+        return f"{used} (auto): {cpu}" + ("" if native else "; bf16 would be emulated and slower")
+    if used == "bf16":
+        return f"bf16, as asked; {cpu}" + ("" if native else ", so bf16 is emulated and slower than fp32")
+    return f"fp32, as asked; {cpu}" + ("; auto would train in bf16" if native else "")
+
+
 @functools.cache
 def keep_freed_memory() -> bool:
     """Let glibc reuse freed memory for the next large tensor instead of returning it to the OS.
