@@ -198,8 +198,21 @@ def load_source_dem(source: TerrainSource, *, seed: int = 0) -> Dem:
     if (rows, cols) != ((0, dem.shape[0]), (0, dem.shape[1])):
         dem = crop_dem(dem, rows, cols)
     if source.size is not None and source.size != dem.shape[0]:
+        before = (dem.shape[0], dem.pixel_size)
         dem = resample_dem(dem, source.size, method=source.resample)
+        dem.meta["resampled"] = resample_note(before, (dem.shape[0], dem.pixel_size), source.resample)
     return dem
+
+
+def _metres(v: float) -> str:
+    return f"{v / 1000:.3g} km" if v >= 1000 else f"{v:.3g} m"
+
+
+def resample_note(before: tuple[int, float], after: tuple[int, float], method: str) -> str:
+    """One line: the DEM was resampled, from what side and cell size to what."""
+    return (f"the DEM was resampled ({method}) from {before[0]}x{before[0]} cells of {_metres(before[1])} to "
+            f"{after[0]}x{after[0]} cells of {_metres(after[1])} ([terrain] size, --size or the preset's size: "
+            f"set size = {before[0]} to keep its cells)")
 
 
 def _nearest_classes(classes: np.ndarray, size: int) -> np.ndarray:
@@ -240,4 +253,7 @@ def load_terrain(source: TerrainSource, *, seed: int = 0, with_dem: bool = True)
         return GridMap(classes, px, grid.source, {**grid.meta, "crop": [r0, r1, c0, c1]}, transform=transform,
                        crs=grid.crs), None
     dem = load_source_dem(source, seed=seed)
-    return dem_to_traversability(dem, source.thresholds), dem if with_dem else None
+    truth = dem_to_traversability(dem, source.thresholds)
+    if "resampled" in dem.meta:  # said once, beside the truth (the CLI prints it)
+        truth.meta["resampled"] = dem.meta["resampled"]
+    return truth, dem if with_dem else None

@@ -39,6 +39,8 @@ _REPORT = struct.Struct("<Bhhhh")  # rover, row, col, target row, target col
 KINDS = ("map", "broadcast", "keyframe", "chain", "chunk")
 #: Bytes of the uplink header (before the payload proper).
 UP_HEADER = _UP.size
+#: Bytes of the smallest downlink header (no rover reported).
+DOWN_HEADER = _DOWN.size
 #: Torch threads while a mission trains or renders. The models are small and trained one
 #: after another; on a shared 2-core machine two OpenMP threads per process spin against
 #: other processes and made one GridNet fit 20x slower than one thread (measured: 17-23 s

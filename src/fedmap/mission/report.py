@@ -7,6 +7,9 @@
   rover belief, strict path F1 vs step), ``accuracy_bytes.png`` (mean belief accuracy
   vs cumulative bytes per rover, both directions), ``knowing.png`` (accuracy on observed
   and on unobserved cells, false-free rate, executed path success, vs step);
+* ``maps/``: each strategy's final global map (``<strategy>_global``; with ``beliefs``, each
+  rover's final belief, ``<strategy>_rover<k>``) as ``.png``, ``.tif`` (GeoTIFF, the truth's
+  CRS and transform) and ``.yaml`` + ``.pgm`` (ROS map_server);
 * ``mission_<strategy>.gif`` (and ``.mp4`` when ``ffmpeg`` is on the PATH): the truth,
   every rover's belief with its path, position and sensor footprint, and the global map.
 """
@@ -16,7 +19,8 @@ from __future__ import annotations
 import io
 import shutil
 import subprocess
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +31,9 @@ from skimage.draw import line as draw_line
 from fedmap._util import AtomicDir, atomic_write_bytes
 from fedmap.maps.grid import PALETTE
 from fedmap.mission.link import BASE
+from fedmap.mission.maps_out import write_mission_maps
+from fedmap.mission.repeats import VALUES, Interval, interval, intervals, what_varies
+from fedmap.mission.results import READY_COVERAGE
 from fedmap.mission.sensing import disk_offsets
 from fedmap.mission.sim import COVERAGE_LEVELS, F1_GOAL, MissionResult, MissionSummary
 from fedmap.mission.topology import TOPOLOGIES
@@ -61,8 +68,22 @@ def _fmt(v, nd: int = 2) -> str:
     if v is None:
         return "-"
     if isinstance(v, float):
-        return "inf" if v == float("inf") else f"{v:.{nd}f}"
+        if v == float("inf"):
+            return "inf"
+        if nd and 0 < abs(v) < 0.5 * 10 ** -nd:  # a small rate keeps two significant digits, never "0.000"
+            return f"{v:.2g}"
+        return f"{v:.{nd}f}"
     return f"{v:,}" if isinstance(v, int) else str(v)
+
+
+def _fmt_interval(iv: Interval | None, nd: int) -> str:
+    """``0.53 [0.48, 0.58]``; a value some repeats never reached adds how many did (``3/5``)."""
+    if iv is None:
+        return "-"
+    whole = nd == 0
+    fmt = (lambda v: f"{round(v):,}") if whole else (lambda v: _fmt(float(v), nd))  # noqa: E731
+    out = fmt(iv.mean) if iv.n == 1 else f"{fmt(iv.mean)} [{fmt(iv.lo)}, {fmt(iv.hi)}]"
+    return out + (f" ({iv.n}/{iv.n + iv.missing})" if iv.missing else "")
 
 
 def _steps_to(level: float) -> Callable[[MissionSummary], int | None]:
@@ -102,39 +123,139 @@ def undelivered(summary: MissionSummary, direction: str) -> str:
     return ", ".join(parts) or "-"
 
 
-def verdict(result: MissionResult) -> str:
-    """One computed line: which strategy left the rovers the best map, and which gained the
-    most map per byte on the link (``central``, the free oracle, is left out of both)."""
+def _winner(ivs: dict[str, Interval], *, high: bool) -> tuple[str | None, list[str]]:
+    """The strategy whose interval lies wholly beyond every other's (the highest when ``high``,
+    else the lowest), or None and the strategies that tie with the best mean. One value each
+    (a single run): the best mean wins, ties by name order."""
+    if not ivs:
+        return None, []
+    sign = 1.0 if high else -1.0
+    best = max(ivs, key=lambda n: sign * ivs[n].mean)
+    if all(iv.n == 1 for iv in ivs.values()):
+        return best, []
+    b = ivs[best]
+    tied = [n for n, iv in ivs.items() if n != best and not (
+        b.separated_above(iv) if high else iv.separated_above(b))]
+    return (None, [best, *tied]) if tied else (best, [])
+
+
+def plannable(results: Sequence[MissionResult]) -> str:
+    """One computed line: when each strategy's rovers first had a plannable map (their mean
+    belief F1 at least :data:`F1_GOAL` and the coverage at least :data:`READY_COVERAGE`), the
+    bytes spent to get there, the soonest and the fewest bytes among those that got there in
+    every repeat (``central``, pooling every observation at once for free, is shown but is no
+    candidate). A winner is named only where the intervals separate."""
+    n = len(results)
+    names = list(results[0].runs)
+    steps = {k: interval([r.runs[k].summary.ready_step for r in results]) for k in names}
+    spent = {k: interval([r.runs[k].summary.ready_bytes for r in results]) for k in names}
+    goal = f"the rovers' mean belief F1 ≥ {F1_GOAL} and {READY_COVERAGE:.0%} coverage"
+    reached = [k for k in names if steps[k] is not None]
+    if not reached:
+        return (f"No strategy gave the team a plannable map ({goal}) in {results[0].config.steps} steps"
+                + (f" in any of {n} repeats" if n > 1 else "") + ".")
+    parts = []
+    for k in names:
+        iv, b = steps[k], spent[k]
+        who = "central (every observation pooled at once, free)" if k == "central" else k
+        if iv is None:
+            parts.append(f"{who} never")
+            continue
+        some = f" in {iv.n}/{n} repeats" if iv.missing else ""
+        parts.append(f"{who} at step {_fmt_interval(replace(iv, missing=0), 0)} for "
+                     f"{_fmt_interval(replace(b, missing=0), 0) if b else '-'} B{some}")
+    line = f"Plannable map ({goal}): " + "; ".join(parts) + "."
+    every: dict[str, Interval] = {}  # the candidates: those that got there in every repeat
+    costs: dict[str, Interval] = {}
+    for k in reached:
+        iv, b = steps[k], spent[k]
+        if k != "central" and iv is not None and b is not None and not iv.missing:
+            every[k], costs[k] = iv, b
+    if not every:
+        return line + " No strategy but the central oracle got there" + (" in every repeat." if n > 1 else ".")
+    soon, tie_s = _winner(every, high=False)
+    cheap, tie_b = _winner(costs, high=False)
+    line += (f" Soonest: **{soon}**." if soon else f" Soonest: no clear difference between {', '.join(tie_s)}.")
+    line += (f" Fewest bytes to get there: **{cheap}**." if cheap else
+             f" Fewest bytes to get there: no clear difference between {', '.join(tie_b)}.")
+    return line
+
+
+def verdict(result: MissionResult, repeats: Sequence[MissionResult] | None = None) -> str:
+    """Computed lines: when each strategy's team first had a plannable map and for how many
+    bytes (:func:`plannable`); which strategy left the rovers the best map, and which gained
+    the most map per byte on the link (``central``, the free oracle, is left out of both).
+    With ``repeats`` (more than one), every value is a mean with its 95 % interval and a
+    winner is named only where the intervals separate ("no clear difference" otherwise)."""
+    results = list(repeats) if repeats is not None and len(repeats) > 1 else [result]
     others = {n: r for n, r in result.runs.items() if n != "central"}
     # a strategy that got nothing through the link holds its own observations over its
     # initial model's rendering: a score from the latter is a guess, so it is no candidate
-    silent = [n for n, r in others.items() if n != "none" and r.summary.bytes_up + r.summary.bytes_down == 0]
-    runs = {n: r for n, r in others.items() if n not in silent}
+    silent = [n for n in others if n != "none" and all(
+        r.runs[n].summary.bytes_up + r.runs[n].summary.bytes_down == 0 for r in results)]
+    runs = [n for n in others if n not in silent]
     notes = "".join(f" {n} got nothing through the link (uplinks: {undelivered(others[n].summary, 'up')}): its "
                     f"{others[n].summary.final_belief_accuracy_mean:.3f} is its own observations over its initial "
                     f"model ({float(np.mean(others[n].series.accuracy[0])):.3f} at step 0), not shared knowledge."
                     for n in silent)
+    first = plannable(results) + " "
     if not runs:
-        return ("Only the central oracle ran: nothing to compare." if not others else
-                "No strategy got anything through the link." + notes)
-    acc = {n: r.summary.final_belief_accuracy_mean for n, r in runs.items()}
-    best = max(acc, key=lambda n: (acc[n], -(runs[n].summary.bytes_up + runs[n].summary.bytes_down)))
-    line = f"Best map: **{best}** (belief accuracy {acc[best]:.3f}"
-    if "none" in runs and best != "none":
-        line += f", against {acc['none']:.3f} sharing nothing"
-    line += ")."
+        return first + ("Only the central oracle ran: nothing to compare." if not others else
+                        "No strategy got anything through the link." + notes)
+    acc = {n: interval([r.runs[n].summary.final_belief_accuracy_mean for r in results]) for n in runs}
+    spent = {n: [r.runs[n].summary.bytes_up + r.runs[n].summary.bytes_down for r in results] for n in runs}
+    if len(results) == 1:  # one run: the best mean wins, ties go to the fewer bytes
+        best: str | None = max(runs, key=lambda n: (acc[n].mean, -spent[n][0]))  # type: ignore[union-attr]
+        tied: list[str] = []
+    else:
+        best, tied = _winner(acc, high=True)  # type: ignore[arg-type]
+    if best is None:
+        line = ("Best map: no clear difference between " + ", ".join(
+            f"{n} ({_fmt_interval(acc[n], 3)})" for n in tied) + " (belief accuracy, 95 % intervals overlap).")
+    else:
+        line = f"Best map: **{best}** (belief accuracy {_fmt_interval(acc[best], 3)}"
+        if "none" in runs and best != "none":
+            line += f", against {_fmt_interval(acc['none'], 3)} sharing nothing"
+        line += ")."
     # what the bytes bought: the accuracy above sharing nothing (or, without `none`, above step 0)
-    spent = {n: r.summary.bytes_up + r.summary.bytes_down for n, r in runs.items()}
-    base = {n: acc["none"] if "none" in runs else float(np.mean(r.series.accuracy[0])) for n, r in runs.items()}
-    gain = {n: (acc[n] - base[n]) / spent[n] for n in runs if spent[n] > 0 and acc[n] > base[n]}
+    def base(r: MissionResult, n: str) -> float:
+        return r.runs["none"].summary.final_belief_accuracy_mean if "none" in runs else \
+            float(np.mean(r.runs[n].series.accuracy[0]))
+
+    gains = {n: [(r.runs[n].summary.final_belief_accuracy_mean - base(r, n)) / b
+                 for r, b in zip(results, spent[n])] for n in runs if min(spent[n]) > 0}
+    gain = {n: interval(g) for n, g in gains.items() if np.mean(g) > 0}
     than = "sharing nothing" if "none" in runs else "step 0"
     if gain:
-        top = max(gain, key=lambda n: gain[n])
-        line += (f" Best map per byte: **{top}** (+{(acc[top] - base[top]) * 100:.2f} accuracy points over {than} "
-                 f"for {spent[top]:,} B of the team's traffic).")
-    elif any(spent.values()):
+        top, tied_g = _winner(gain, high=True)  # type: ignore[arg-type]
+        if top is not None:
+            r0 = results[0].runs[top].summary
+            points = float(np.mean([(r.runs[top].summary.final_belief_accuracy_mean - base(r, top)) * 100
+                                    for r in results]))
+            line += (f" Best map per byte: **{top}** (+{points:.2f} accuracy points over {than} "
+                     f"for {round(float(np.mean(spent[top]))):,} B of the team's traffic)."
+                     if len(results) > 1 else
+                     f" Best map per byte: **{top}** (+{points:.2f} accuracy points over {than} "
+                     f"for {r0.bytes_up + r0.bytes_down:,} B of the team's traffic).")
+        else:
+            line += f" Best map per byte: no clear difference between {', '.join(tied_g)}."
+    elif any(max(b) for b in spent.values()):
         line += f" No strategy that used the link gave a better map than {than}."
-    return line + notes
+    return first + line + notes
+
+
+#: Decimals of each value of a repeats table (:data:`~fedmap.mission.repeats.VALUES`).
+_REPEAT_DECIMALS = {"coverage": 3, "belief accuracy": 3, "belief F1": 2, "path success": 2, "false-free": 3,
+                    "global F1": 2, "team bytes": 0, "steps to 95 %": 0, "team F1≥0.9 at": 0, "plannable at": 0,
+                    "bytes to plannable": 0}
+
+
+def repeat_rows(results: Sequence[MissionResult]) -> tuple[list[str], list[list[str]]]:
+    """Header and one row per strategy: each value's mean over the repeats with its 95 %
+    interval, ``mean [lo, hi]`` (a step some repeats never reached says in how many it was)."""
+    ivs = intervals(results)
+    header = ["strategy", *VALUES]
+    return header, [[name, *(_fmt_interval(ivs[name][v], _REPEAT_DECIMALS[v]) for v in VALUES)] for name in ivs]
 
 
 def table_rows(result: MissionResult) -> tuple[list[str], list[list[str]]]:
@@ -172,17 +293,20 @@ def global_meaning(result: MissionResult) -> str:
     return "the map every rover agrees on (no base station: each cell all beliefs hold with the same class)"
 
 
-def side_by_side(result: MissionResult) -> str:
-    """The strategies side by side, as a Markdown table."""
-    header, rows = table_rows(result)
+def side_by_side(result: MissionResult, repeats: Sequence[MissionResult] | None = None) -> str:
+    """The strategies side by side, as a Markdown table (with ``repeats``: means and intervals)."""
+    header, rows = repeat_rows(repeats) if repeats is not None and len(repeats) > 1 else table_rows(result)
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines) + "\n"
 
 
-def report_md(result: MissionResult, *, title: str, animations: list[str] | None = None) -> str:
+def report_md(result: MissionResult, *, title: str, animations: list[str] | None = None,
+              repeats: Sequence[MissionResult] | None = None) -> str:
     """The mission's ``report.md``; ``animations`` are the animation files written beside it
-    (None: one GIF per strategy), so the report links only files that exist."""
+    (None: one GIF per strategy), so the report links only files that exist. With
+    ``repeats`` (more than one, ``result`` the first), the table and verdict give each value's
+    mean over the repeats with its 95 % interval; the animations show the first repeat."""
     if animations is None:
         animations = [f"mission_{n}.gif" for n in result.runs]
     c, link = result.config, result.config.link
@@ -239,8 +363,14 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         *([f"Prior: orbital, the DEM {c.prior.factor}x coarser, held by every rover and the base before the mission "
            "and never sent (no bytes on the link); rovers plan paths on it where they have no observation.", ""]
           if c.prior.kind == "orbital" else []),
-        side_by_side(result),
-        verdict(result), "",
+        *([f"**Repeats**: {what_varies(result.config, len(repeats))}. Each value is the mean over the repeats "
+           "with its 95 % interval (Student's t); a step some repeats never reached gives the mean of those that "
+           "did and how many. *team F1≥0.9 at*: first step the rovers' mean belief F1 reached 0.9; *plannable at*: "
+           f"first step it had and the coverage was {READY_COVERAGE:.0%}. Per-repeat values: `metrics.json` "
+           "(`repeats`). The animations show the first repeat.", ""] if repeats is not None and len(repeats) > 1
+          else []),
+        side_by_side(result, repeats),
+        verdict(result, repeats), "",
         f"Wall time: {result.seconds:.1f} s ("
         + ", ".join(f"{n} {r.seconds:.1f} s" for n, r in result.runs.items()) + ").", "",
         "Plots: `coverage.png`, `f1.png`, `accuracy_bytes.png`, `knowing.png`; animations: "
@@ -259,68 +389,93 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
-def plot_coverage(result: MissionResult) -> bytes:
+def _line(ax, x, ys: Sequence[Sequence[float]], **kw) -> None:
+    """One strategy's curve: the value (one run), or the mean over the repeats with its 95 %
+    interval shaded, step by step."""
+    if len(ys) == 1:
+        ax.plot(x, ys[0], **kw)
+        return
+    ivs = [interval(col, bounds=(0.0, 1.0)) for col in zip(*ys)]  # every curve drawn so is a share
+    ax.plot(x, [iv.mean for iv in ivs], **kw)  # type: ignore[union-attr]
+    ax.fill_between(x, [iv.lo for iv in ivs], [iv.hi for iv in ivs], color=kw.get("color"),  # type: ignore[union-attr]
+                    alpha=0.2, lw=0)
+
+
+def _repeats_note(results: Sequence[MissionResult]) -> str:
+    return f" (mean of {len(results)} repeats, 95 % interval shaded)" if len(results) > 1 else ""
+
+
+def plot_coverage(results: Sequence[MissionResult]) -> bytes:
     fig, ax = _pyplot().subplots(figsize=(6, 3.6))
-    for i, (name, run) in enumerate(result.runs.items()):
-        ax.plot(run.series.step, run.series.coverage, label=name, color=f"C{i}")
-    for t in result.config.sync_steps:
+    for i, name in enumerate(results[0].runs):
+        _line(ax, results[0].runs[name].series.step, [r.runs[name].series.coverage for r in results],
+              label=name, color=f"C{i}")
+    for t in results[0].config.sync_steps:
         ax.axvline(t, color="0.9", lw=0.6, zorder=0)
-    ax.set(xlabel="step", ylabel="team coverage", ylim=(0, 1), title="Coverage (grey lines: syncs)")
+    ax.set(xlabel="step", ylabel="team coverage", ylim=(0, 1), title="Coverage (grey lines: syncs)"
+           + _repeats_note(results))
     ax.legend()
     return _png(fig)
 
 
-def plot_f1(result: MissionResult) -> bytes:
+def plot_f1(results: Sequence[MissionResult]) -> bytes:
     fig, axes = _pyplot().subplots(1, 2, figsize=(10, 3.6), sharey=True)
-    for i, (name, run) in enumerate(result.runs.items()):
-        ev = run.series.eval
-        axes[0].plot(ev.step, ev.f1, marker=".", label=name, color=f"C{i}")
-        axes[1].plot(ev.step, [max(f) for f in ev.belief_f1], marker=".", label=name, color=f"C{i}")
-    axes[0].set(xlabel="step", ylabel="strict path F1", ylim=(0, 1.02), title="Base's global map")
+    for i, name in enumerate(results[0].runs):
+        step = results[0].runs[name].series.eval.step
+        _line(axes[0], step, [r.runs[name].series.eval.f1 for r in results], marker=".", label=name, color=f"C{i}")
+        _line(axes[1], step, [[max(f) for f in r.runs[name].series.eval.belief_f1] for r in results], marker=".",
+              label=name, color=f"C{i}")
+    axes[0].set(xlabel="step", ylabel="strict path F1", ylim=(0, 1.02), title="Base's global map"
+                + _repeats_note(results))
     axes[1].set(xlabel="step", title="Best rover belief")
     axes[1].axhline(F1_GOAL, color="0.6", ls="--", lw=0.8)
     axes[0].legend()
     return _png(fig)
 
 
-def plot_accuracy_bytes(result: MissionResult) -> bytes:
+def plot_accuracy_bytes(results: Sequence[MissionResult]) -> bytes:
     fig, ax = _pyplot().subplots(figsize=(6, 3.6))
-    for i, (name, run) in enumerate(result.runs.items()):
-        s = run.series
-        n = result.config.rovers
-        x = [(sum(u) + sum(d)) / n for u, d in zip(s.bytes_up, s.bytes_down)]
-        y = [float(np.mean(a)) for a in s.accuracy]
-        lost = undelivered(run.summary, "up")
+    n = results[0].config.rovers
+    for i, name in enumerate(results[0].runs):
+        runs = [r.runs[name] for r in results]
+        xs = [[(sum(u) + sum(d)) / n for u, d in zip(run.series.bytes_up, run.series.bytes_down)] for run in runs]
+        x = [float(np.mean(col)) for col in zip(*xs)]  # the mean bytes per rover at each step
+        ys = [[float(np.mean(a)) for a in run.series.accuracy] for run in runs]
+        lost = undelivered(runs[0].summary, "up")
         label = name if lost == "-" else f"{name} (uplinks: {lost})"  # a silent strategy says why
         if max(x) > 0:
-            ax.plot(x, y, label=label, color=f"C{i}")
+            _line(ax, x, ys, label=label, color=f"C{i}")
         else:  # no bytes: one point at the end (the bound it reaches for free or alone)
-            ax.scatter([0.0], [y[-1]], label=f"{label} (0 B, final)", zorder=3, color=f"C{i}")
+            ax.scatter([0.0], [float(np.mean([y[-1] for y in ys]))], label=f"{label} (0 B, final)", zorder=3,
+                       color=f"C{i}")
         # its value at step 0, before any message (a model strategy's comes from its initial model)
-        ax.scatter([0.0], [y[0]], marker="o", facecolors="none", edgecolors=f"C{i}", zorder=3,
-                   label="step 0 (before any message)" if i == 0 else None)
+        ax.scatter([0.0], [float(np.mean([y[0] for y in ys]))], marker="o", facecolors="none", edgecolors=f"C{i}",
+                   zorder=3, label="step 0 (before any message)" if i == 0 else None)
     ax.set(xlabel="cumulative bytes per rover (up + down)", ylabel="mean belief accuracy", ylim=(0, 1),
-           title="Map accuracy vs bytes")
+           title="Map accuracy vs bytes" + _repeats_note(results))
     ax.set_xscale("symlog", linthresh=100)
     ax.set_xlim(left=0)
     ax.legend()
     return _png(fig)
 
 
-def plot_knowing(result: MissionResult) -> bytes:
+def plot_knowing(results: Sequence[MissionResult]) -> bytes:
     """Knowing vs guessing, per strategy over the mission: belief accuracy on the cells some
     rover observed, on those nobody observed, the false-free rate, and executed path success."""
     fig, axes = _pyplot().subplots(1, 4, figsize=(16, 3.6))
-    for i, (name, run) in enumerate(result.runs.items()):
-        s, ev = run.series, run.series.eval
-        axes[0].plot(s.step, [float(np.mean(a)) for a in s.accuracy_observed], label=name, color=f"C{i}")
-        axes[1].plot(s.step, [float(np.mean(a)) for a in s.accuracy_unobserved], label=name, color=f"C{i}")
-        axes[2].plot(s.step, [float(np.mean(f)) for f in s.false_free], label=name, color=f"C{i}")
-        axes[3].plot(ev.step, [float(np.mean(f)) for f in ev.belief_success], marker=".", label=name, color=f"C{i}")
+    for i, name in enumerate(results[0].runs):
+        runs = [r.runs[name] for r in results]
+        s, ev = runs[0].series, runs[0].series.eval
+        kw = {"label": name, "color": f"C{i}"}
+        _line(axes[0], s.step, [[float(np.mean(a)) for a in run.series.accuracy_observed] for run in runs], **kw)
+        _line(axes[1], s.step, [[float(np.mean(a)) for a in run.series.accuracy_unobserved] for run in runs], **kw)
+        _line(axes[2], s.step, [[float(np.mean(f)) for f in run.series.false_free] for run in runs], **kw)
+        _line(axes[3], ev.step, [[float(np.mean(f)) for f in run.series.eval.belief_success] for run in runs],
+              marker=".", **kw)
     axes[0].set(xlabel="step", ylabel="mean over the rovers", ylim=(0, 1.02), title="Accuracy on observed cells")
     axes[1].set(xlabel="step", ylim=(0, 1.02), title="Accuracy on cells nobody observed")
     axes[2].set(xlabel="step", ylim=(0, None), title="False-free rate (hazards planned as FREE)")
-    axes[3].set(xlabel="step", ylim=(0, 1.02), title="Executed path success")
+    axes[3].set(xlabel="step", ylim=(0, 1.02), title="Executed path success" + _repeats_note(results))
     axes[0].legend()
     return _png(fig)
 
@@ -438,16 +593,38 @@ def mp4_bytes(frames: list[np.ndarray], *, fps: int = 8) -> bytes | None:
     return done.stdout or None
 
 
+def repeats_metrics(results: Sequence[MissionResult]) -> dict:
+    """The ``repeats`` entry of ``metrics.json``: what varied, each value's interval per
+    strategy, and every repeat's seeds, starts and summaries."""
+    return {"n": len(results), "what_varies": what_varies(results[0].config, len(results)),
+            "level": 0.95,
+            "intervals": {n: {v: (None if iv is None else iv.to_dict()) for v, iv in ivs.items()}
+                          for n, ivs in intervals(results).items()},
+            "runs": [{"seed": r.config.seed, "link_seed": r.config.link.seed, "starts": [list(c) for c in r.starts],
+                      "summaries": {n: run.summary.to_dict() for n, run in r.runs.items()}} for r in results]}
+
+
 def write_mission(result: MissionResult, out_dir: str | Path, *, title: str, settings: dict | None = None,
-                  animation: bool = True, extra: dict[str, str] | None = None) -> Path:
-    """Write a mission's outputs as one atomic folder (see the module docstring)."""
+                  animation: bool = True, extra: dict[str, str] | None = None,
+                  repeats: Sequence[MissionResult] | None = None, beliefs: bool = False) -> Path:
+    """Write a mission's outputs as one atomic folder (see the module docstring). With
+    ``repeats`` (more than one run of the mission, ``result`` the first), ``metrics.json``
+    adds ``repeats`` (:func:`repeats_metrics`), and the report and plots give means with
+    95 % intervals. ``maps/`` holds each strategy's final global map (and with ``beliefs``
+    every rover's final belief) as PNG, GeoTIFF in the truth's CRS and ROS map_server YAML + PGM
+    (:func:`~fedmap.mission.maps_out.write_mission_maps`)."""
     out_dir = Path(out_dir)
+    results = list(repeats) if repeats is not None and len(repeats) > 1 else [result]
     with AtomicDir(out_dir) as tmp:
-        write_metrics(tmp, metrics(result, settings=settings))
-        atomic_write_bytes(tmp / "coverage.png", plot_coverage(result))
-        atomic_write_bytes(tmp / "f1.png", plot_f1(result))
-        atomic_write_bytes(tmp / "accuracy_bytes.png", plot_accuracy_bytes(result))
-        atomic_write_bytes(tmp / "knowing.png", plot_knowing(result))
+        data = metrics(result, settings=settings)
+        if len(results) > 1:
+            data["repeats"] = repeats_metrics(results)
+        write_metrics(tmp, data)
+        write_mission_maps(result, tmp, beliefs=beliefs)
+        atomic_write_bytes(tmp / "coverage.png", plot_coverage(results))
+        atomic_write_bytes(tmp / "f1.png", plot_f1(results))
+        atomic_write_bytes(tmp / "accuracy_bytes.png", plot_accuracy_bytes(results))
+        atomic_write_bytes(tmp / "knowing.png", plot_knowing(results))
         for name, text in (extra or {}).items():
             atomic_write_bytes(tmp / name, text.encode())
         if animation:
@@ -459,5 +636,6 @@ def write_mission(result: MissionResult, out_dir: str | Path, *, title: str, set
                     atomic_write_bytes(tmp / f"mission_{name}.mp4", mp4)
         written = [f"mission_{n}.{ext}" for n in result.runs for ext in ("gif", "mp4")
                    if (tmp / f"mission_{n}.{ext}").is_file()]
-        atomic_write_bytes(tmp / "report.md", report_md(result, title=title, animations=written).encode())
+        atomic_write_bytes(tmp / "report.md", report_md(result, title=title, animations=written,
+                                                        repeats=results).encode())
     return out_dir

@@ -26,6 +26,9 @@ Cell = tuple[int, int]
 COVERAGE_LEVELS = (0.5, 0.8, 0.95)
 #: A rover's belief "good enough to plan on": strict path F1 at least this.
 F1_GOAL = 0.9
+#: The coverage a team's map needs, beside a mean belief F1 of :data:`F1_GOAL`, to count as a
+#: plannable map of the site (:attr:`MissionSummary.ready_step`).
+READY_COVERAGE = 0.95
 
 
 @dataclass(frozen=True)
@@ -131,6 +134,12 @@ class MissionSummary:
     #: holds, against the true elevation, and the share of the map's cells it holds (None: no layer)
     final_height_rmse_m: float | None = None
     final_height_coverage: float | None = None
+    #: first evaluation step the rovers' belief F1 (their mean) reached the goal (None: never)
+    team_f1_step: int | None = None
+    #: first evaluation step the team had a plannable map: its mean belief F1 at the goal and
+    #: the coverage at :data:`READY_COVERAGE` (None: never)
+    ready_step: int | None = None
+    ready_bytes: int | None = None  #: the team's bytes, both ways, spent up to :attr:`ready_step`
 
     def to_dict(self) -> dict[str, Any]:
         """The ``summary`` of ``metrics.json``."""
@@ -154,6 +163,8 @@ class MissionSummary:
             "messages": dict(self.messages),
             **({"elevation": {"rmse_m": self.final_height_rmse_m, "coverage": self.final_height_coverage}}
                if self.final_height_rmse_m is not None else {}),
+            "plannable": {"team_f1_step": self.team_f1_step, "ready_step": self.ready_step,
+                          "ready_bytes": self.ready_bytes, "coverage": READY_COVERAGE},
         }
 
 
@@ -318,6 +329,10 @@ def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig, 
     ev = series.eval
     per_rover_f1 = tuple(first_step(ev.step, [f[k] for f in ev.belief_f1], F1_GOAL) for k in range(config.rovers))
     reached = [t for t in per_rover_f1 if t is not None]
+    team_f1 = [float(np.mean(f[:config.rovers])) for f in ev.belief_f1]  # the rovers' (helicopters plan no paths)
+    at = {t: i for i, t in enumerate(series.step)}
+    ready = next((t for t, f in zip(ev.step, team_f1)
+                  if f >= F1_GOAL - 1e-12 and series.coverage[at[t]] >= READY_COVERAGE - 1e-12), None)
     status: dict[str, int] = {}
     for m in ledger:
         key = f"{m.direction}_{m.status}"
@@ -345,5 +360,34 @@ def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig, 
         bytes_down=int(np.sum(series.bytes_down[-1])),
         bytes_per_link_round=sum(m.bytes for m in ledger) / slots if slots else 0.0,
         messages=dict(sorted(status.items())),
+        team_f1_step=first_step(ev.step, team_f1, F1_GOAL),
+        ready_step=ready,
+        ready_bytes=None if ready is None else int(np.sum(series.bytes_up[at[ready]]) +
+                                                   np.sum(series.bytes_down[at[ready]])),
     )
 
+
+
+#: A rover or helicopter that moved less than this share of its range is flagged (:func:`movement_warnings`).
+MOVED_LITTLE = 0.1
+
+
+def movement_warnings(result: MissionResult) -> list[str]:
+    """One line per member of the team that moved less than :data:`MOVED_LITTLE` of its range
+    under some strategy: its near-empty map still counts in every mean over the team. A
+    rover's range is ``steps * speed`` cells; a helicopter's counts only the share of the
+    steps it may fly (``flight_budget / (flight_budget + recharge)``) at its own speed."""
+    c = result.config
+    hc = c.helicopter
+    out = []
+    for k in range(c.rovers + c.helicopters):
+        heli = k >= c.rovers
+        reach = c.steps * (hc.speed * hc.flight_budget / (hc.flight_budget + hc.recharge) if heli else c.speed)
+        moved = {name: run.series.distance[-1][k] for name, run in result.runs.items()}
+        low = {name: d for name, d in moved.items() if d < MOVED_LITTLE * reach}
+        if low:
+            who = f"helicopter {k}" if heli else f"rover {k}"
+            out.append(f"{who} moved only {', '.join(f'{d:.0f} cells ({n})' for n, d in low.items())} in {c.steps} "
+                       f"steps, under {MOVED_LITTLE:.0%} of its {reach:.0f}-cell range: its near-empty map still "
+                       "counts in the team's belief columns")
+    return out

@@ -45,6 +45,7 @@ from fedmap.errors import FedmapError
 from fedmap.maps.grid import LAYERS, check_layers
 from fedmap.maps.sources import TerrainSource, needs_dem
 from fedmap.maps.traversability import ROVER_NAMES
+from fedmap.mission.protocol import DOWN_HEADER, UP_HEADER
 from fedmap.mission.registry import REGISTRY
 from fedmap.mission.topology import TOPOLOGIES as TOPOLOGY_CLASSES
 
@@ -249,6 +250,10 @@ class MissionConfig:
     lander : [row, col] or None
         Where the team starts: every rover starts on the free cell nearest to it (default:
         the map centre). ``starts`` overrides it with one cell per rover.
+    start_spread : int
+        0: the rovers start on the free cells nearest to the lander. More: on distinct free
+        cells drawn, seeded by ``seed``, within this many cells (Euclidean) of the lander:
+        the start area, so that repeats of a mission start differently.
     base : [row, col] or None
         The base station (default: the lander).
     mode : str
@@ -286,6 +291,8 @@ class MissionConfig:
     lander: tuple[int, int] | None = setting(None, help="[row, col] the team starts from (unset: the map centre)")
     starts: tuple[tuple[int, int], ...] | None = setting(None, help="One [row, col] start per rover (overrides "
                                                          "lander)")
+    start_spread: int = setting(0, help="0: rovers start on the free cells nearest the lander; N: on free cells drawn "
+                                "(seeded) within N cells of it")
     base: tuple[int, int] | None = setting(None, help="[row, col] of the base station (unset: the lander)")
     mode: str = setting("frontier", help="frontier: coordinated frontier exploration; waypoints: a fixed traverse",
                         choices=MODES)
@@ -341,6 +348,18 @@ class MissionConfig:
                 if s not in PEER_STRATEGIES:
                     raise FedmapError(f"strategy {s!r} needs the star topology's base station; on a "
                                       f"{self.link.topology} topology run {', '.join(PEER_STRATEGIES)}")
+        link = self.link
+        if TOPOLOGY_CLASSES[link.topology].has_base:  # a budget below the header can never carry a message
+            senders = [s for s in self.strategies if REGISTRY[s].on_link]
+            for what, budget, head in (("uplink", link.uplink_bytes, UP_HEADER),
+                                       ("downlink", link.downlink_bytes, DOWN_HEADER)):
+                if senders and budget is not None and budget < head:
+                    raise FedmapError(f"the {what} budget of {budget} B is below the {head}-byte header every "
+                                      f"{what} message of {', '.join(senders)} starts with: nothing could ever be "
+                                      f"sent (raise link.{what}_bytes to at least {head})")
+        if not (isinstance(self.start_spread, int) and not isinstance(self.start_spread, bool)
+                and self.start_spread >= 0):
+            raise FedmapError(f"start_spread must be a whole number of cells >= 0, got {self.start_spread!r}")
         if self.lander is not None:
             object.__setattr__(self, "lander", _cell(self.lander, "lander"))
         if self.base is not None:

@@ -82,6 +82,13 @@ def place_starts(truth: GridMap, config: MissionConfig) -> tuple[list[Cell], Cel
         raise FedmapError(f"{config.rovers} rovers but only {len(cells)} free start cells on the map")
     d = (cells[:, 0] - lander[0]) ** 2 + (cells[:, 1] - lander[1]) ** 2
     order = np.lexsort((cells[:, 1], cells[:, 0], d))[: config.rovers]
+    if config.start_spread > 0:  # a seeded draw in the start area
+        area = np.flatnonzero(d <= config.start_spread ** 2)
+        if len(area) < config.rovers:
+            raise FedmapError(f"the start area (free cells within {config.start_spread} cells of the lander "
+                              f"{list(lander)}) holds {len(area)} cells for {config.rovers} rovers: widen start_spread")
+        rng = np.random.default_rng(np.random.SeedSequence([config.seed, 11]))
+        order = rng.choice(area, size=config.rovers, replace=False)
     return [(int(cells[i][0]), int(cells[i][1])) for i in order], base
 
 
