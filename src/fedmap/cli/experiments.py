@@ -15,16 +15,27 @@ from fedmap.cli.ui import console, fit, fmt, progress_bar, stage_callbacks
 from fedmap.config import method_config
 from fedmap.errors import FedmapError
 from fedmap.experiments.cellstreams import cell_stream_report, markdown
-from fedmap.experiments.elevation import elevation_markdown, elevation_rd, plot_rd, terrain_sources
+from fedmap.experiments.elevation import (
+    DEFAULT_SIZE,
+    FAMILIES,
+    dem_source,
+    elevation_markdown,
+    elevation_rd,
+    plot_rd,
+    reach_rows,
+    terrain_sources,
+)
 from fedmap.experiments.reproduce import F1_MEANINGS, PAPER_TABLE2, ReproduceConfig
 from fedmap.experiments.reproduce import reproduce as run_reproduce
 from fedmap.experiments.table3 import bandwidth_report
+from fedmap.maps.traversability import TraversabilityThresholds, parse_slope_limit
 from fedmap.mission import load_mission, mission_terrain
 
 
 def bandwidth(
     terrain: str = typer.Option("mars", help="Built-in terrain: mars, moon or ice."),
-    size: int = typer.Option(128, help="Map side for the rate-distortion comparison (64..4096)."),
+    size: Optional[int] = typer.Option(None, help="Map side for the rate-distortion comparison (64..4096) [128]; "
+                                       "--layer elevation: every terrain is resampled to it (--dem's: 3 or more)."),
     pairs: int = typer.Option(75, help="Random start/goal pairs for the path F1."),
     seed: int = typer.Option(0),
     federated: bool = typer.Option(True, help="Also run fedmap's federated configurations on the same map."),
@@ -32,6 +43,10 @@ def bandwidth(
                                           "for every cell coder ('default' or a mission TOML file)."),
     layer: str = typer.Option("classes", help="classes: Table III on the class map; elevation: the heights' rate-distortion (lossless, LERC, JPEG XL, JPEG 2000, neural) on the built-in terrains (and --data's)."),
     data: Optional[Path] = typer.Option(None, help="--layer elevation: a folder laid out like the project's shared/data, for the Gale, Hadley and Columbia Glacier DEMs."),
+    dem: Optional[Path] = typer.Option(None, "--dem", help="--layer elevation: your own DEM (any raster GDAL reads, a .png heightmap or .npy) as the only terrain; its centred square, resampled to --size."),
+    pixel_size: Optional[float] = typer.Option(None, "--pixel-size", help="--dem: metres per cell (overrides the file's)."),
+    max_slope: Optional[str] = typer.Option(None, "--max-slope", help="--layer elevation: the slope limit of the re-derived classes, degrees (e.g. 20) or a percentile of the true heights' slopes (e.g. p75) [15]."),
+    neural_steps: int = typer.Option(1500, "--neural-steps", help="--layer elevation: training steps of each neural height field."),
     out: Path = typer.Option(Path("fedmap-out/bandwidth"), "--out", "-o", help="Output folder (replaced atomically)."),
 ) -> None:
     """Table III with real bytes: model codecs vs raw, JPEG, WebP, PNG and zstd of the map."""
@@ -41,8 +56,13 @@ def bandwidth(
     if layer not in ("classes", "elevation"):
         raise FedmapError(f"unknown layer {layer!r}; choose classes or elevation")
     if layer == "elevation":
-        _elevation(data, out, pairs=pairs, seed=seed)
+        _elevation(data, dem, out, size=size, pixel_size=pixel_size, max_slope=max_slope, pairs=pairs, seed=seed,
+                   neural_steps=neural_steps)
         return
+    for flag, value in (("--dem", dem), ("--data", data), ("--pixel-size", pixel_size), ("--max-slope", max_slope)):
+        if value is not None:
+            raise FedmapError(f"{flag} applies to --layer elevation only")
+    size = DEFAULT_SIZE if size is None else size
     method_config(terrain=terrain, size=size, pairs=pairs)  # validates before any work
     t0 = time.perf_counter()
     with progress_bar() as progress:
@@ -63,24 +83,47 @@ def bandwidth(
     console.print(f"outputs: {out}/  (report.md, bandwidth.json, rd.png); wall time {time.perf_counter() - t0:.1f} s")
 
 
-def _elevation(data: Path | None, out: Path, *, pairs: int, seed: int) -> None:
+def _elevation(data: Path | None, dem: Path | None, out: Path, *, size: int | None, pixel_size: float | None,
+               max_slope: str | None, pairs: int, seed: int, neural_steps: int) -> None:
     t0 = time.perf_counter()
     if data is not None and not data.is_dir():
         raise FedmapError(f"--data {data} is not a folder")
-    sources = terrain_sources(None if data is None else str(data))
+    if dem is not None and data is not None:
+        raise FedmapError("give --dem (your DEM alone) or --data (the benchmark's real terrains), not both")
+    if pixel_size is not None and dem is None:
+        raise FedmapError("--pixel-size applies to --dem only")
+    if neural_steps < 1:
+        raise FedmapError(f"--neural-steps must be at least 1, got {neural_steps}")
+    thresholds = None if max_slope is None else TraversabilityThresholds(**parse_slope_limit(max_slope))
+    if dem is not None:
+        sources = dem_source(dem, size=DEFAULT_SIZE if size is None else size, pixel_size=pixel_size,
+                             thresholds=thresholds)
+    else:
+        sources = terrain_sources(None if data is None else str(data), size=size, thresholds=thresholds)
     with progress_bar() as progress:
         task = progress.add_task("elevation: coding", total=None, loss="")
-        report = elevation_rd(sources, pairs=pairs, seed=seed,
+        report = elevation_rd(sources, pairs=pairs, seed=seed, neural_steps=neural_steps,
                               on_point=lambda what: progress.update(task, description=f"elevation: {what}"))
-    t = Table(title="sharing an elevation layer: neural against JPEG XL (matched RMSE) and LERC (matched max error)",
-              header_style="bold")
-    for col in ("terrain", "best neural / JPEG XL bytes", "best neural+residual / LERC bytes"):
+    target = next(iter(report["summary"].values()))["f1_target"]
+    t = Table(title=f"bytes before the heights are good enough to plan on (path F1 >= {target:g} of the re-derived "
+              "classes; smallest measured point)", header_style="bold")
+    for col in ("terrain", *FAMILIES, "wins"):
+        t.add_column(col, justify="left" if col in ("terrain", "wins") else "right")
+    for row in reach_rows(report):
+        t.add_row(*row)
+    console.print(fit(t))
+    t = Table(title="neural against JPEG XL (matched RMSE) and LERC (matched max error)", header_style="bold")
+    for col in ("terrain", "best neural / JPEG XL bytes", "best neural+residual / LERC bytes", "its path F1"):
         t.add_column(col, justify="left" if col == "terrain" else "right")
     for name, sm in report["summary"].items():
-        t.add_row(name, fmt(sm["best_neural_vs_jxl"]), fmt(sm["best_neural_residual_vs_lerc"]))
-    console.print(t)
-    console.print("below 1: the neural payload takes fewer bytes than the standard codec at the same error. "
-                  "All points: elevation.json, report.md, rd_elevation.png", soft_wrap=True)
+        vs = sm["neural_residual_vs_lerc"]
+        best = min(vs, key=lambda v: v["ratio"]) if vs else None
+        t.add_row(name, fmt(sm["best_neural_vs_jxl"]), fmt(sm["best_neural_residual_vs_lerc"]),
+                  fmt(None if best is None else best["path_f1"]))
+    console.print(fit(t))
+    console.print("below 1: the neural payload takes fewer bytes than the standard codec at the same error; its path "
+                  "F1 says whether a planner could use those heights. All points: elevation.json, report.md, "
+                  "rd_elevation.png", soft_wrap=True)
     with AtomicDir(out) as tmp:
         (tmp / "elevation.json").write_text(json.dumps(report, indent=1))
         (tmp / "rd_elevation.png").write_bytes(plot_rd(report))
