@@ -21,14 +21,13 @@ from fedmap.experiments.elevation import (
     FAMILIES,
     Point,
     bytes_to_f1,
-    degrees_limit,
     elevation_markdown,
     summarise,
     terrain_sources,
     winner,
 )
 from fedmap.maps.dem import Dem
-from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
+from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, resolved_slope
 
 #: A fast run: small map, few path pairs, short neural fits (with :func:`_one_small_net`).
 FAST = ["--size", "32", "--pairs", "8", "--neural-steps", "20"]
@@ -132,7 +131,7 @@ def test_a_percentile_limit_is_resolved_once_on_the_truth():
     dem = _sloped_dem()
     p75 = TraversabilityThresholds(max_slope_percentile=75.0)
     truth = dem_to_traversability(dem, p75)
-    t = degrees_limit(p75, truth.meta)
+    t = resolved_slope(p75, truth)
     assert t.max_slope_percentile is None and t.max_slope_deg == pytest.approx(truth.meta["slope_limit_deg"])
     np.testing.assert_array_equal(dem_to_traversability(dem, t).classes, truth.classes)
     # flattened heights: the resolved degrees find fewer steep cells; a percentile of the
@@ -142,7 +141,7 @@ def test_a_percentile_limit_is_resolved_once_on_the_truth():
     steep_pct = (dem_to_traversability(flat, p75).classes == 1).mean()
     assert steep_deg < steep_pct - 0.1
     degrees = TraversabilityThresholds(max_slope_deg=20.0)
-    assert degrees_limit(degrees, truth.meta) is degrees
+    assert resolved_slope(degrees, truth) is degrees
 
 
 def test_every_decoded_map_is_classified_with_the_truths_degrees(monkeypatch, _one_small_net):

@@ -205,3 +205,21 @@ def test_a_resampled_dem_says_from_what_to_what_cell_size(tmp_path):
     assert "from 100x100 cells of 30 m to 64x64 cells of 46.9 m" in note  # 30 m * 100 / 64
     kept, _ = load_terrain(TerrainSource(kind="dem", path=str(path), size=100))
     assert "resampled" not in kept.meta
+
+
+def test_metrics_json_names_every_summary_value_as_python_does(repeated, tmp_path):
+    from dataclasses import fields
+
+    _, _, results = repeated
+    out = write_mission(results[0], tmp_path / "one", title="maze", animation=False)
+    data = json.loads((out / "metrics.json").read_text())["strategies"]
+    for name, run in results[0].runs.items():
+        got = data[name]["summary"]
+        for f in fields(run.summary):
+            value = getattr(run.summary, f.name)
+            if f.name == "coverage_steps":
+                assert got[f.name] == {f"{int(lv * 100)}%": t for lv, t in value.items()}
+            elif isinstance(value, tuple):
+                assert got[f.name] == list(value)
+            else:
+                assert got[f.name] == value, f.name

@@ -37,7 +37,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +48,7 @@ from fedmap.evaluation.paths import path_f1
 from fedmap.federation.heights import HeightCodec, residual_apply, residual_encode
 from fedmap.maps.dem import Dem
 from fedmap.maps.sources import TerrainSource, load_source_dem
-from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
+from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, resolved_slope
 from fedmap.nets.heightfield import HeightNetConfig, encode_heightnet, fit_heights, render_fit
 
 #: LERC max errors, as multiples of the heights' standard deviation.
@@ -127,15 +127,6 @@ def dem_source(path: str | Path, *, size: int | None = DEFAULT_SIZE, pixel_size:
     return {p.stem: src}
 
 
-def degrees_limit(thresholds: TraversabilityThresholds, truth_meta: dict) -> TraversabilityThresholds:
-    """``thresholds`` with a percentile slope limit replaced by the degrees it gave on the
-    truth (``truth_meta["slope_limit_deg"]`` from :func:`dem_to_traversability`); a limit
-    in degrees comes back unchanged."""
-    if thresholds.max_slope_percentile is None:
-        return thresholds
-    return replace(thresholds, max_slope_deg=float(truth_meta["slope_limit_deg"]), max_slope_percentile=None)
-
-
 def _score(name: str, dem: Dem, truth_classes: np.ndarray, thresholds: TraversabilityThresholds,
            decoded: np.ndarray, codec: str, setting: str, n_bytes: int, pairs: int, seed: int) -> Point:
     z = dem.elevation.astype(np.float64)
@@ -157,7 +148,7 @@ def terrain_rd(name: str, dem: Dem, *, thresholds: TraversabilityThresholds | No
     std = float(z[known].std()) or 1.0
     truth_map = dem_to_traversability(dem, thresholds)
     truth = truth_map.classes
-    t_deg = degrees_limit(thresholds or TraversabilityThresholds(), truth_map.meta)
+    t_deg = resolved_slope(thresholds or TraversabilityThresholds(), truth_map)
     points = []
 
     def score(decoded: np.ndarray, family: str, setting: str, n_bytes: int) -> Point:

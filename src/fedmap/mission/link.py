@@ -97,6 +97,8 @@ class Link:
     def __init__(self, config: Any, topology: Any) -> None:
         self.config = config
         self.topology = topology
+        #: the seed of every draw (a link config outside a mission, whose seed is unset, draws from 0)
+        self.seed: int = 0 if config.seed is None else int(config.seed)
         self.ledger: list[Message] = []
         #: messages offered on a link that was up (in range, not down), counting every hop:
         #: the denominator of "bytes per link per round"
@@ -107,7 +109,7 @@ class Link:
         if self.config.loss <= 0:
             return False
         d = 0 if direction == UP else 1
-        rng = np.random.default_rng(np.random.SeedSequence([self.config.seed, round_no, rover, d]))
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, round_no, rover, d]))
         return bool(rng.random() < self.config.loss)
 
     def down(self, round_no: int, a: int, b: int, step: int | None = None) -> bool:
@@ -119,14 +121,14 @@ class Link:
         if self.config.drop <= 0:
             return False
         lo, hi = sorted((a, b))
-        rng = np.random.default_rng(np.random.SeedSequence([self.config.seed, round_no, lo + 1, hi + 1, 3]))
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, round_no, lo + 1, hi + 1, 3]))
         return bool(rng.random() < self.config.drop)
 
     def lost_hop(self, round_no: int, a: int, b: int) -> bool:
         """The seeded loss draw of one peer message (one hop) from ``a`` to ``b``."""
         if self.config.loss <= 0:
             return False
-        rng = np.random.default_rng(np.random.SeedSequence([self.config.seed, round_no, a + 1, b + 1, 2]))
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, round_no, a + 1, b + 1, 2]))
         return bool(rng.random() < self.config.loss)
 
     def send_route(self, payload: bytes | None, path: Sequence[int], *, round_no: int, step: int, kind: str,

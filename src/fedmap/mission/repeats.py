@@ -80,8 +80,9 @@ def repeat_configs(config: MissionConfig, repeats: int) -> list[MissionConfig]:
     if repeats == 1:
         return [config]
     spread = config.start_spread or (0 if config.starts is not None else REPEAT_SPREAD)
+    link_seed = config.seed if config.link.seed is None else config.link.seed  # MissionConfig resolves it so
     return [replace(config, seed=config.seed + i, start_spread=spread,
-                    link=replace(config.link, seed=config.link.seed + i)) for i in range(repeats)]
+                    link=replace(config.link, seed=link_seed + i)) for i in range(repeats)]
 
 
 def what_varies(config: MissionConfig, repeats: int) -> str:

@@ -80,9 +80,10 @@ def _fmt_interval(iv: Interval | None, nd: int) -> str:
     """``0.53 [0.48, 0.58]``; a value some repeats never reached adds how many did (``3/5``)."""
     if iv is None:
         return "-"
-    whole = nd == 0
-    fmt = (lambda v: f"{round(v):,}") if whole else (lambda v: _fmt(float(v), nd))  # noqa: E731
-    out = fmt(iv.mean) if iv.n == 1 else f"{fmt(iv.mean)} [{fmt(iv.lo)}, {fmt(iv.hi)}]"
+    small = nd and 0 < max(abs(iv.mean), abs(iv.hi)) < 0.5 * 10 ** -nd  # small rates: two significant digits
+    fmt = ((lambda v: f"{round(v):,}") if nd == 0 else (lambda v: f"{v:.2g}") if small  # noqa: E731
+           else (lambda v: _fmt(float(v), nd)))
+    out = fmt(iv.mean) if iv.n == 1 or iv.lo == iv.hi else f"{fmt(iv.mean)} [{fmt(iv.lo)}, {fmt(iv.hi)}]"
     return out + (f" ({iv.n}/{iv.n + iv.missing})" if iv.missing else "")
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -142,30 +142,15 @@ class MissionSummary:
     ready_bytes: int | None = None  #: the team's bytes, both ways, spent up to :attr:`ready_step`
 
     def to_dict(self) -> dict[str, Any]:
-        """The ``summary`` of ``metrics.json``."""
-        return {
-            "coverage_steps": {f"{int(level * 100)}%": t for level, t in self.coverage_steps.items()},
-            "belief_f1_goal": self.belief_f1_goal,
-            "first_belief_f1_step": self.first_belief_f1_step,
-            "first_belief_f1_step_per_rover": list(self.first_belief_f1_step_per_rover),
-            "final": {"coverage": self.final_coverage, "redundant": self.final_redundant,
-                      "belief_accuracy_mean": self.final_belief_accuracy_mean,
-                      "false_free_mean": self.final_false_free_mean,
-                      "accuracy_observed_mean": self.final_accuracy_observed_mean,
-                      "accuracy_unobserved_mean": self.final_accuracy_unobserved_mean,
-                      "path_success_mean": self.final_path_success_mean,
-                      "distance_total": self.final_distance_total, "global_psnr": self.final_global_psnr,
-                      "global_ssim": self.final_global_ssim, "global_accuracy": self.final_global_accuracy,
-                      "global_f1": self.final_global_f1, "global_f1_tolerant": self.final_global_f1_tolerant,
-                      "belief_f1_mean": self.final_belief_f1_mean},
-            "team_bytes": {"up": self.bytes_up, "down": self.bytes_down},
-            "bytes_per_link_round": self.bytes_per_link_round,
-            "messages": dict(self.messages),
-            **({"elevation": {"rmse_m": self.final_height_rmse_m, "coverage": self.final_height_coverage}}
-               if self.final_height_rmse_m is not None else {}),
-            "plannable": {"team_f1_step": self.team_f1_step, "ready_step": self.ready_step,
-                          "ready_bytes": self.ready_bytes, "coverage": READY_COVERAGE},
-        }
+        """The ``summary`` of ``metrics.json``: every field under its own name (so
+        ``summary["final_global_f1"]`` in the file is ``summary.final_global_f1`` in Python);
+        ``coverage_steps`` is keyed by the level in per cent (``"95%"``)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out["coverage_steps"] = {f"{int(level * 100)}%": t for level, t in self.coverage_steps.items()}
+        out["first_belief_f1_step_per_rover"] = list(self.first_belief_f1_step_per_rover)
+        out["messages"] = dict(self.messages)
+        out["ready_coverage"] = READY_COVERAGE
+        return out
 
 
 @dataclass(frozen=True)

@@ -116,8 +116,9 @@ class LinkConfig:
         Steps between sending and arrival, both ways.
     max_range : float or None
         Cells (Euclidean) from the base station beyond which a rover has no link.
-    seed : int
-        The link's own seed (the loss draws).
+    seed : int or None
+        The link's own seed (the loss draws); None: the mission's ``seed``, so that
+        ``--seed`` changes the losses too.
     """
 
     uplink_bytes: int | None = setting(None, help="Uplink budget per rover per sync round, bytes (unset: unlimited)")
@@ -126,7 +127,8 @@ class LinkConfig:
     loss: float = setting(0.1, help="Probability that a message is lost")
     latency: int = setting(0, help="Steps a message takes, each way")
     max_range: float | None = setting(None, help="Link range from the base station, cells (unset: unlimited)")
-    seed: int = setting(0, help="The link's own seed (its loss draws)", cli="--link-seed")
+    seed: int | None = setting(None, help="The link's own seed (its loss draws; unset: the mission's seed)",
+                               cli="--link-seed")
     topology: str = setting("star", help="star: every rover talks to the base; mesh: agents within peer_range talk "
                             "peer to peer; leader: each connected group elects a leader that plays the base",
                             choices=TOPOLOGIES, cli="--topology")
@@ -157,6 +159,8 @@ class LinkConfig:
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 0):
                 raise FedmapError(f"link {name} must be a non-negative number of bytes (or unset), got {v!r}")
+        if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, int)):
+            raise FedmapError(f"link seed must be a whole number (or unset: the mission's seed), got {self.seed!r}")
         if not (isinstance(self.loss, (int, float)) and 0.0 <= self.loss <= 1.0):
             raise FedmapError(f"link loss must be a probability in [0, 1], got {self.loss!r}")
         if isinstance(self.latency, bool) or not isinstance(self.latency, int) or self.latency < 0:
@@ -348,6 +352,8 @@ class MissionConfig:
                 if s not in PEER_STRATEGIES:
                     raise FedmapError(f"strategy {s!r} needs the star topology's base station; on a "
                                       f"{self.link.topology} topology run {', '.join(PEER_STRATEGIES)}")
+        if self.link.seed is None:  # the link draws its losses from the mission's seed
+            object.__setattr__(self, "link", replace(self.link, seed=self.seed))
         link = self.link
         if TOPOLOGY_CLASSES[link.topology].has_base:  # a budget below the header can never carry a message
             senders = [s for s in self.strategies if REGISTRY[s].on_link]
