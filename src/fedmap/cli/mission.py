@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from fedmap import _schema
@@ -31,7 +32,7 @@ _SETTINGS = [*(s for s in _schema.walk(PipelineConfig) if s.section in ("", "ter
 
 @with_settings(parameters(_SETTINGS, skip=SHORTCUT_FLAGS), terrain=True)
 def mission(
-    config: Optional[Path] = typer.Argument(None, help="Mission TOML ([terrain], [thresholds], [mission], [link], [strategies.*]); default: built-in mars 128²."),
+    config: Optional[Path] = typer.Argument(None, help=escape("Mission TOML ([terrain], [thresholds], [mission], [link], [strategies.*]); default: built-in mars 128².")),
     preset: Optional[str] = typer.Option(None, help="A shipped mission preset laid under the file, e.g. cadre."),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="Any mission key: section.key=value (TOML value), e.g. mission.rovers=3; repeatable."),
     animation: bool = typer.Option(True, "--animation/--no-animation", help="Write the GIF (and MP4 with ffmpeg) of each strategy."),

@@ -211,8 +211,8 @@ def _metres(v: float) -> str:
 def resample_note(before: tuple[int, float], after: tuple[int, float], method: str) -> str:
     """One line: the DEM was resampled, from what side and cell size to what."""
     return (f"the DEM was resampled ({method}) from {before[0]}x{before[0]} cells of {_metres(before[1])} to "
-            f"{after[0]}x{after[0]} cells of {_metres(after[1])} ([terrain] size, --size or the preset's size: "
-            f"set size = {before[0]} to keep its cells)")
+            f"{after[0]}x{after[0]} cells of {_metres(after[1])} (the terrain's size, from --size, the mission file or "
+            f"its preset: size {before[0]} keeps its cells)")
 
 
 def _nearest_classes(classes: np.ndarray, size: int) -> np.ndarray:
