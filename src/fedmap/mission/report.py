@@ -203,7 +203,8 @@ def verdict(result: MissionResult, repeats: Sequence[MissionResult] | None = Non
     if not runs:
         return first + ("Only the central oracle ran: nothing to compare." if not others else
                         "No strategy got anything through the link." + notes)
-    acc = {n: interval([r.runs[n].summary.final_belief_accuracy_mean for r in results]) for n in runs}
+    acc = {n: interval([r.runs[n].summary.final_belief_accuracy_mean for r in results], bounds=(0.0, 1.0))
+           for n in runs}
     spent = {n: [r.runs[n].summary.bytes_up + r.runs[n].summary.bytes_down for r in results] for n in runs}
     if len(results) == 1:  # one run: the best mean wins, ties go to the fewer bytes
         best: str | None = max(runs, key=lambda n: (acc[n].mean, -spent[n][0]))  # type: ignore[union-attr]
