@@ -237,3 +237,18 @@ def test_over_a_perfect_link_raw_and_predictive_give_the_same_maps_step_for_step
         assert fa.positions == fb.positions
         assert all(np.array_equal(x, y) for x, y in zip(fa.beliefs, fb.beliefs))
     assert b.summary.bytes_up + b.summary.bytes_down < a.summary.bytes_up + a.summary.bytes_down
+
+
+def test_snapshots_follow_the_run_step_by_step():
+    truth = maze(40, seed=3)
+    got: list = []
+    res = run_mission(_cfg(steps=12, strategies=("raw", "central")), truth, frames=1000, on_snapshot=got.append)
+    for name, run in res.runs.items():
+        snaps = [s for s in got if s.strategy == name]
+        assert [s.step for s in snaps] == list(range(13))
+        assert sum(len(s.messages) for s in snaps) == len(run.ledger)  # every ledger entry once, in order
+        assert [m for s in snaps for m in s.messages] == run.ledger
+        for s, f in zip(snaps, run.frames):
+            assert s.positions == f.positions and np.array_equal(s.global_map, f.global_map)
+        assert [s.eval is not None for s in snaps] == [t in (0, 6, 12) for t in range(13)]
+        assert all(np.array_equal(a, b) for a, b in zip(snaps[-1].views, run.views))

@@ -212,8 +212,8 @@ REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
     StrategySpec("gossip", "fedmap's network averaged peer to peer (Metropolis weights)", peer=_gossip(GossipPeer),
                  trains=True, peer_default=True),
     StrategySpec("admm", "fedmap's network by DiNNO's decentralised C-ADMM", peer=_gossip(AdmmPeer), trains=True),
-    StrategySpec("central", "every observation pooled at once, free (a reference, not a bound)", star=_central, peer=_central,
-                 on_link=False, default=True, peer_default=True),
+    StrategySpec("central", "every observation pooled at once, free (a reference, not a bound)", star=_central,
+                 peer=_central, on_link=False, default=True, peer_default=True),
 )}
 
 

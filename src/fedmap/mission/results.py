@@ -167,6 +167,31 @@ class Frame:
 
 
 @dataclass(frozen=True)
+class Snapshot:
+    """Everything a viewer draws of one strategy at one step, handed to ``run_mission``'s
+    ``on_snapshot`` as the mission runs (a recording or a live view). Arrays are the run's
+    own: copy what you keep."""
+
+    strategy: str  #: the strategy running
+    step: int  #: the mission clock (0 to ``steps``)
+    truth: GridMap  #: the ground truth (the same object every step)
+    beliefs: list[np.ndarray]  #: every member's belief (classes), team order: rovers, then helicopters
+    views: list[np.ndarray]  #: every member's view: its belief in its own classes, what it plans on
+    global_map: np.ndarray  #: the base's global map (classes)
+    global_heights: np.ndarray | None  #: the heights the base holds (metres, NaN elsewhere; None: no layer)
+    positions: list[Cell]  #: every member's cell
+    targets: list[Cell | None]  #: every member's current target (None: none)
+    kinds: list[str]  #: every member's kind (rover, helicopter)
+    sensor_radius: list[float]  #: every member's sensor radius, cells
+    base: Cell  #: the base station's cell
+    links: tuple[tuple[int, int], ...]  #: peer topologies: the links up at the last sync (agents; -1: lander)
+    leaders: tuple[int, ...]  #: leader topology: the agents leading at the last sync
+    messages: list[Message]  #: the ledger entries added since the previous snapshot
+    row: StepRow  #: this step's scores (coverage, accuracy, bytes, ...)
+    eval: EvalRow | None  #: this step's map scores when it is an evaluation step, else None
+
+
+@dataclass(frozen=True)
 class StrategyRun:
     """One strategy's mission: time series, summary, ledger, and what the animation draws."""
 

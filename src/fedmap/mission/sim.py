@@ -40,6 +40,7 @@ from fedmap.mission.results import (
     MissionResult,
     MissionSummary,
     Scorer,
+    Snapshot,
     StepRow,
     StrategyRun,
     TimeSeries,
@@ -65,7 +66,8 @@ class _Run:
                  frame_every: int, prior: np.ndarray | None = None,
                  profiles: dict[str, np.ndarray] | None = None,
                  thresholds: TraversabilityThresholds | None = None,
-                 profile_scorers: dict[str, Scorer] | None = None, ends: Ends | None = None) -> None:
+                 profile_scorers: dict[str, Scorer] | None = None, ends: Ends | None = None,
+                 on_snapshot: Callable[[Snapshot], None] | None = None) -> None:
         self.name, self.config, self.truth, self.elevation = name, config, truth, elevation
         self.scorer, self.frame_every = scorer, frame_every
         self.topology = make_topology(config.link, base)
@@ -83,6 +85,8 @@ class _Run:
 
         self.exchange = Exchange(self.topology, self.link, self.sharing, world.positions, replan)
         self.own_scorer = [scorer if p == "team" else (profile_scorers or {})[p] for p in world.profiles]
+        self.on_snapshot = on_snapshot
+        self._seen = 0  # ledger entries already handed to on_snapshot
         self.rows: list[StepRow] = []
         self.evals: list[EvalRow] = []
         self.frames: list[Frame] = []
@@ -120,6 +124,19 @@ class _Run:
             self.evals.append(EvalRow(step=t, psnr=g.psnr, ssim=g.ssim, accuracy=g.accuracy, f1=g.path.f1,
                                       f1_tolerant=g.path.tolerant.f1, belief_f1=tuple(p.f1 for p in own),
                                       belief_success=tuple(p.success for p in own)))
+        if self.on_snapshot is not None:
+            c = self.config
+            self.on_snapshot(Snapshot(
+                strategy=self.name, step=t, truth=self.truth, beliefs=beliefs,
+                views=[w.own_view(k, b) for k, b in enumerate(beliefs)], global_map=s.global_map(),
+                global_heights=s.global_heights(), positions=w.positions(), targets=[r.target for r in self.team],
+                kinds=[r.kind for r in self.team],
+                sensor_radius=[c.helicopter.sensor_radius if r.kind == "helicopter" else c.sensor_radius
+                               for r in self.team],
+                base=w.base, links=self.exchange.links, leaders=self.exchange.leaders,
+                messages=self.link.ledger[self._seen:], row=self.rows[-1],
+                eval=self.evals[-1] if evaluate else None))
+            self._seen = len(self.link.ledger)
         if t % self.frame_every == 0 or t == self.config.steps:
             x = self.exchange
             self.frames.append(Frame(step=t, beliefs=beliefs, global_map=s.global_map().copy(),
@@ -183,7 +200,8 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
                 thresholds: TraversabilityThresholds | None = None,
                 on_strategy: Callable[[str], None] | None = None,
                 on_step: Callable[[str, int, float], None] | None = None,
-                frames: int = 60, ends: Ends | None = None) -> MissionResult:
+                frames: int = 60, ends: Ends | None = None,
+                on_snapshot: Callable[[Snapshot], None] | None = None) -> MissionResult:
     """Run every strategy of ``config`` on the same mission over ``truth``.
 
     ``elevation`` (metres, the truth's grid) is needed for ``line_of_sight``; ``prior``
@@ -199,6 +217,8 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     ``ends(name, setup)`` builds a strategy's ends (default: the registry's
     :func:`~fedmap.mission.registry.build`, every end in this process;
     :func:`fedmap.mission.processes.ends_in_processes` puts each in an OS process of its own).
+    ``on_snapshot(snapshot)`` gets every strategy's :class:`~fedmap.mission.results.Snapshot`
+    at every step as it runs (a recording, a live view).
     """
     t0 = time.perf_counter()
     if config.line_of_sight and elevation is None:
@@ -230,10 +250,10 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
         if on_strategy is not None:
             on_strategy(name)
         runs[name] = _Run(name, config, truth, elevation, starts, base, waypoints, scorer, frame_every,
-                          prior, profiles, thresholds, profile_scorers, ends).run(on_step)
+                          prior, profiles, thresholds, profile_scorers, ends, on_snapshot).run(on_step)
     return MissionResult(config, truth, starts, base, runs, time.perf_counter() - t0)
 
 
-__all__ = ["COVERAGE_LEVELS", "F1_GOAL", "EvalSeries", "Frame", "MissionResult", "MissionSummary", "Rover",
+__all__ = ["COVERAGE_LEVELS", "F1_GOAL", "EvalSeries", "Frame", "MissionResult", "MissionSummary", "Rover", "Snapshot",
            "StrategyRun", "TimeSeries", "mission_terrain", "place_starts", "plan_waypoints", "run_mission",
            "start_pocket_warning"]
