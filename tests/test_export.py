@@ -36,7 +36,8 @@ def test_export_command_formats(tmp_path, capsys):
     assert main(["export", str(tmp_path / "m.png"), "-f", "png"]) == 2
     assert main(["export", str(tmp_path / "m.png"), "-f", "shapefile"]) == 2
     err = capsys.readouterr().err
-    assert "would overwrite it" in err and "unknown export format 'shapefile'; choose one of geotiff, ros, png, npy" in err
+    assert "would overwrite it" in err
+    assert "unknown export format 'shapefile'; choose one of geotiff, ros, png, npy, rosbag2" in err
 
 
 def test_run_with_rover_percentile_and_exports_overlays_the_dem(tmp_path, capsys):

@@ -1,10 +1,14 @@
 """Writing class maps in the formats other tools open: GeoTIFF (QGIS, GDAL), ROS
-map_server (YAML + PGM), PNG (the paper's colours) and ``.npy`` (class codes).
+map_server (YAML + PGM), PNG (the paper's colours), ``.npy`` (class codes) and ROS 2 bags
+(``nav_msgs/OccupancyGrid``, :mod:`fedmap.maps.rosbag`).
 
 :func:`export_map` writes one map in one format; :func:`export_maps` writes a set of maps
 that share a frame (a run's truth, local, global and refined maps), giving each map
 without georeferencing of its own the frame's transform and CRS, so that every output
 overlays the DEM it came from.
+
+A bag is a folder: ``rosbag2`` has no suffix. One map is a bag with one message on
+``/map``; a set of maps is one bag, :data:`BAG_NAME`, with a topic ``/<name>`` per map.
 """
 
 from __future__ import annotations
@@ -13,9 +17,13 @@ from pathlib import Path
 
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import GridMap
+from fedmap.maps.rosbag import write_map_bag, write_maps_bag
 
-#: Export format -> file suffix (``ros`` also writes a ``.pgm`` beside the ``.yaml``).
-EXPORT_FORMATS: dict[str, str] = {"geotiff": ".tif", "ros": ".yaml", "png": ".png", "npy": ".npy"}
+#: Export format -> file suffix (``ros`` also writes a ``.pgm`` beside the ``.yaml``; a
+#: ``rosbag2`` bag is a folder, named as given, without a suffix).
+EXPORT_FORMATS: dict[str, str] = {"geotiff": ".tif", "ros": ".yaml", "png": ".png", "npy": ".npy", "rosbag2": ""}
+#: The bag :func:`export_maps` writes a set of maps into (a folder in the output folder).
+BAG_NAME = "maps_bag"
 
 
 def check_formats(formats) -> tuple[str, ...]:
@@ -35,8 +43,10 @@ def export_map(grid: GridMap, path, fmt: str | None = None) -> list[Path]:
     from fedmap.maps.io import save_map  # io reads and writes every format; this module picks one
 
     path = Path(path)
+    if fmt is not None and check_formats([fmt]) == ("rosbag2",):  # a folder, named as given
+        return [write_map_bag(grid, path)]
     if fmt is None:
-        by_suffix = {v: k for k, v in EXPORT_FORMATS.items()} | {".tiff": "geotiff", ".yml": "ros"}
+        by_suffix = {v: k for k, v in EXPORT_FORMATS.items() if v} | {".tiff": "geotiff", ".yml": "ros"}
         if path.suffix.lower() not in by_suffix:
             raise FedmapError(f"cannot tell the export format of {path}; use one of {', '.join(EXPORT_FORMATS)}")
         fmt = by_suffix[path.suffix.lower()]
@@ -59,10 +69,14 @@ def in_frame(grid: GridMap, frame: GridMap | None) -> GridMap:
 
 
 def export_maps(maps: dict[str, GridMap], folder, formats, *, frame: GridMap | None = None) -> list[Path]:
-    """Write each map as ``folder/<name><suffix>`` in each format; returns the files written."""
+    """Write each map as ``folder/<name><suffix>`` in each format (``rosbag2``: all maps in
+    one bag ``folder/maps_bag``, a topic ``/<name>`` each); returns the files written."""
     folder = Path(folder)
     written: list[Path] = []
     for fmt in check_formats(formats):
+        if fmt == "rosbag2":
+            written.append(write_maps_bag({n: in_frame(g, frame) for n, g in maps.items()}, folder / BAG_NAME))
+            continue
         for name, grid in maps.items():
             written += export_map(in_frame(grid, frame), folder / f"{name}{EXPORT_FORMATS[fmt]}", fmt)
     return written

@@ -21,6 +21,10 @@ Maps (:func:`load_map`, :func:`save_map`)
     colour table, the CRS and the affine transform, so it overlays its DEM in QGIS.
 ``.yaml`` / ``.yml``
     A ROS map_server map (:mod:`fedmap.maps.ros`): the YAML plus its PGM image.
+A ROS 2 bag (folder, ``.db3`` or ``.mcap``)
+    A ``nav_msgs/OccupancyGrid`` message (:mod:`fedmap.maps.rosbag`): by default the last
+    one of the bag's only OccupancyGrid topic (``topic=`` picks another topic). Read only:
+    ``fedmap export --format rosbag2`` writes bags.
 
 Without a ``pixel_size`` argument (or one stored in the file) a map's pixel size is 1.0 m.
 
@@ -101,6 +105,7 @@ from fedmap.maps.geotiff import read_class_geotiff, write_class_geotiff
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb, render_classes
 from fedmap.maps.regrid import centre_crop, crop_dem, resample_dem  # noqa: F401  (part of this API)
 from fedmap.maps.ros import read_ros_map, write_ros_map
+from fedmap.maps.rosbag import is_bag, read_bag_map
 
 MAP_SUFFIXES: tuple[str, ...] = (".png", ".npy", ".tif", ".tiff", ".yaml", ".yml")
 
@@ -290,21 +295,32 @@ def _read_npy_map(path: Path) -> tuple[np.ndarray, dict]:
     )
 
 
-def load_map(path, *, pixel_size: float | None = None) -> GridMap:
-    """Read a traversability map from ``.png``, ``.npy``, ``.tif`` or ROS ``.yaml`` (see the
-    module docstring).
+def load_map(path, *, pixel_size: float | None = None, topic: str | None = None) -> GridMap:
+    """Read a traversability map from ``.png``, ``.npy``, ``.tif``, ROS ``.yaml`` or a ROS 2
+    bag (see the module docstring).
 
-    ``pixel_size`` (metres) defaults to the value stored in the file, else 1.0.
+    ``pixel_size`` (metres) defaults to the value stored in the file, else 1.0; ``topic``
+    picks a bag's OccupancyGrid topic (other formats refuse it).
     """
     path = Path(path)
-    suffix = _suffix(path, MAP_SUFFIXES, "map")
-    _check_exists(path)
-    if suffix in (".tif", ".tiff", ".yaml", ".yml"):
+    if path.is_dir() or is_bag(path):  # a folder that is no bag is a one-line error
+        grid = read_bag_map(path, topic=topic)
+    else:
+        if topic is not None:
+            raise FedmapError(f"topic {topic!r} applies to ROS 2 bags only, not {path}")
+        suffix = _suffix(path, MAP_SUFFIXES, "map")
+        _check_exists(path)
+        if suffix not in (".tif", ".tiff", ".yaml", ".yml"):
+            return _load_image_map(path, suffix, pixel_size)
         grid = read_class_geotiff(path) if suffix in (".tif", ".tiff") else read_ros_map(path)
-        if pixel_size is not None:
-            grid = GridMap(grid.classes, float(pixel_size), grid.source, {**grid.meta, "pixel_size_from": "argument"},
-                           transform=grid.transform, crs=grid.crs)
-        return grid
+    if pixel_size is not None:
+        grid = GridMap(grid.classes, float(pixel_size), grid.source, {**grid.meta, "pixel_size_from": "argument"},
+                       transform=grid.transform, crs=grid.crs)
+    return grid
+
+
+def _load_image_map(path: Path, suffix: str, pixel_size: float | None) -> GridMap:
+    """A ``.png`` or ``.npy`` class map (no transform unless fedmap's PNG text chunks hold one)."""
     stored_px = None
     if suffix == ".png":
         classes, meta, stored_px = _read_png_map(path)

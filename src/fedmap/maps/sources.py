@@ -36,7 +36,7 @@ SOURCE_KINDS: tuple[str, ...] = ("builtin", "dem", "map", "tiles")
 READER_OPTIONS: dict[str, tuple[type, ...]] = {
     "pixel_size": (float, int), "nodata": (float, int), "band": (int,), "crs": (str,),
     "shape": (list,), "dtype": (str,), "byteorder": (str,), "header_bytes": (int,), "offset": (float, int),
-    "zero_is_nodata": (bool,),
+    "zero_is_nodata": (bool,), "topic": (str,),
 }
 
 #: Built-in terrain side when a builtin source gives no ``size``.
@@ -52,7 +52,7 @@ class TerrainSource:
     kind : str
         ``builtin`` (seeded synthetic terrain), ``dem`` (a DEM file: anything GDAL reads,
         e.g. .tif, .cub, .img, .xml (PDS4), .asc; a .png heightmap; .npy), ``map`` (a class
-        map: .png, .npy, .tif, ROS .yaml) or ``tiles`` (RGB-packed
+        map: .png, .npy, .tif, ROS .yaml, or a ROS 2 bag: its folder, .db3 or .mcap) or ``tiles`` (RGB-packed
         GLD100-named tiles ``256p+{lon}+{lat}.png`` in the folder ``path``).
     path : str, optional
         The file (dem, map) or the tile folder (tiles).
@@ -69,7 +69,8 @@ class TerrainSource:
         ``area`` or ``bilinear`` for DEMs (class maps always use nearest).
     options : dict
         Reader options (``pixel_size``, ``nodata``, ``band``, ``crs``, ``shape``, ``dtype``,
-        ``byteorder``, ``header_bytes``, ``offset``, ``zero_is_nodata``).
+        ``byteorder``, ``header_bytes``, ``offset``, ``zero_is_nodata``; ``topic``: a ROS 2
+        bag's OccupancyGrid topic).
     thresholds : TraversabilityThresholds
         Rover limits for DEM -> traversability.
     """
@@ -86,7 +87,7 @@ class TerrainSource:
                                f"size, default {DEFAULT_BUILTIN_SIZE})")
     resample: str = setting("area", help="DEM resampling", choices=lambda: RESAMPLE_METHODS)
     options: dict = setting(default_factory=dict, help="Reader options (pixel_size, nodata, band, crs, shape, dtype, "
-                            "byteorder, header_bytes, offset, zero_is_nodata)")
+                            "byteorder, header_bytes, offset, zero_is_nodata; topic: a bag's map topic)")
     thresholds: TraversabilityThresholds = wiring(default_factory=TraversabilityThresholds)
 
     def __post_init__(self) -> None:
@@ -183,6 +184,8 @@ def load_source_dem(source: TerrainSource, *, seed: int = 0) -> Dem:
                             pixel_size=None if px is None else float(px))
     if source.kind == "map":
         raise FedmapError("a 'map' terrain source has no DEM")
+    if "topic" in source.options:
+        raise FedmapError("reader option topic applies to a 'map' source read from a ROS 2 bag only")
     opts = dict(source.options)
     if isinstance(opts.get("shape"), list):
         opts["shape"] = tuple(opts["shape"])
@@ -242,7 +245,7 @@ def load_terrain(source: TerrainSource, *, seed: int = 0, with_dem: bool = True)
     """``(truth, dem)``: the truth as :func:`load_truth` gives it and, with ``with_dem``, the
     DEM it was classified from (None for a ``map`` source, or without ``with_dem``), read once."""
     if source.kind == "map":
-        grid = load_map(source.path, pixel_size=source.options.get("pixel_size"))
+        grid = load_map(source.path, pixel_size=source.options.get("pixel_size"), topic=source.options.get("topic"))
         (r0, r1), (c0, c1) = _square_box(grid.shape, source.crop)
         classes, px = grid.classes[r0:r1, c0:c1], grid.pixel_size
         transform = crop_transform(grid.transform, r0, c0)

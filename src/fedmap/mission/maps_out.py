@@ -112,8 +112,8 @@ def mission_map_files(folder) -> dict[str, Path]:
     folder = Path(folder)
     maps_dir = folder / MAPS_DIR
     if not maps_dir.is_dir():
-        raise FedmapError(f"{folder} has no {MAPS_DIR}/ folder: give a map file, or a mission folder written "
-                          f"with its maps")
+        raise FedmapError(f"{folder} has no {MAPS_DIR}/ folder: give a map file, a ROS 2 bag, or a mission folder "
+                          f"written with its maps")
     rank = {s: i for i, s in enumerate(SOURCE_SUFFIXES)}
     found: dict[str, Path] = {}
     for p in sorted(maps_dir.iterdir()):
@@ -132,11 +132,16 @@ def reexport_mission_maps(folder, fmt: str, *, out=None,
 
     Each map is read from its GeoTIFF where there is one, so the output keeps the CRS and
     transform. A map whose output would be its own source (``geotiff`` into ``maps/``) is a
-    one-line error before anything is written. Returns ``(map, files written)`` per map.
+    one-line error before anything is written. ``rosbag2`` writes every map into one bag,
+    ``<out>/maps_bag``, a topic ``/<name>`` per map. Returns ``(map, files written)`` per map.
     """
     (fmt,) = check_formats([fmt])
     sources = mission_map_files(folder)
     out_dir = Path(out) if out is not None else Path(folder) / MAPS_DIR
+    if fmt == "rosbag2":
+        maps = {name: load_map(src, pixel_size=pixel_size) for name, src in sources.items()}
+        (bag,) = export_maps(maps, out_dir, [fmt])
+        return [(grid, [bag]) for grid in maps.values()]
     targets = {name: out_dir / f"{name}{EXPORT_FORMATS[fmt]}" for name in sources}
     for name, src in sources.items():
         if targets[name].resolve() == src.resolve():
