@@ -36,6 +36,7 @@ def test_the_console_is_wide_without_a_terminal_and_the_terminals_width_in_one(m
     assert not ui.console.is_terminal  # pytest captures stdout
     assert ui.console.width == ui.LOG_WIDTH
     monkeypatch.setenv("TTY_COMPATIBLE", "1")  # rich: treat the output as a terminal
+    monkeypatch.setenv("TERM", "xterm-256color")  # and not a dumb one (rich gives a dumb terminal 80 columns)
     assert ui.console.is_terminal and ui.console.width == 70
 
 

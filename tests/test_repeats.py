@@ -57,7 +57,9 @@ def repeated():
 def test_repeats_vary_the_seeds_the_link_and_the_starts(repeated):
     truth, cfg, results = repeated
     assert [r.config.seed for r in results] == [cfg.seed, cfg.seed + 1, cfg.seed + 2]
-    assert [r.config.link.seed for r in results] == [5, 6, 7]
+    assert [r.config.link_seed for r in results] == [5, 6, 7]
+    unset = repeat_configs(_cfg(link=LinkConfig(loss=0.3), seed=3), 2)  # an unset link seed follows the mission's
+    assert [c.link.seed for c in unset] == [None, None] and [c.link_seed for c in unset] == [3, 4]
     starts = [tuple(r.starts) for r in results]
     assert len(set(starts)) == 3  # each repeat draws its own starts ...
     for s in starts:  # ... on free cells of the start area
@@ -146,6 +148,11 @@ def test_a_budget_below_the_header_is_refused_before_the_mission():
         _cfg(link=LinkConfig(uplink_bytes=10))
     with pytest.raises(FedmapError, match="downlink budget of 4 B is below the 10-byte header"):
         _cfg(link=LinkConfig(downlink_bytes=4))  # kind 1 B + model version 8 B + rovers reported 1 B
+    # predictive carries no mission header: its least message is its state byte and check byte
+    _cfg(link=LinkConfig(uplink_bytes=6, downlink_bytes=6), strategies=("predictive",))
+    with pytest.raises(FedmapError, match="uplink budget of 1 B is below the 2-byte header every uplink message "
+                                          "of predictive carries"):
+        _cfg(link=LinkConfig(uplink_bytes=1), strategies=("predictive",))
     _cfg(link=LinkConfig(uplink_bytes=10), strategies=("none", "central"))  # nothing on the link: nothing to refuse
 
 

@@ -61,6 +61,8 @@ SAME, NONE, NEW = 0, 1, 2
 _MAX_LEN_BITS = 24  # Elias-gamma lengths (counts up to 2**24 - 1)
 #: Additive prior on every count (as the ``context`` codec).
 ALPHA = 0.25
+#: The fewest bytes of a message: its state byte and its check byte (the words may all drop).
+LEAST_BYTES = 2
 #: A context's counts are halved when its total passes this (both ends, at folding), so the
 #: model keeps adapting to the site instead of freezing.
 COUNT_LIMIT = 1 << 12

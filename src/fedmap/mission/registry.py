@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from fedmap.coding.streamcodec import LEAST_BYTES
 from fedmap.config import method_config
 from fedmap.federation.runner import init_held
 from fedmap.maps.grid import UNKNOWN, GridMap
@@ -27,7 +28,7 @@ from fedmap.mission.gossip import AdmmPeer, GossipPeer
 from fedmap.mission.link import BASE
 from fedmap.mission.model import MISSION_DEFAULTS, ModelBase, ModelRover, Training, model_lags
 from fedmap.mission.predictive import PredictiveBase, PredictiveOptions, PredictiveRover
-from fedmap.mission.protocol import BaseEnd, Cell, Journal, PeerEnd, RoverEnd
+from fedmap.mission.protocol import DOWN_HEADER, UP_HEADER, BaseEnd, Cell, Journal, PeerEnd, RoverEnd
 from fedmap.mission.raw import CentralBase, CentralRover, RawBase, RawPeer, RawRover
 from fedmap.pipeline import initial_weights
 
@@ -117,6 +118,9 @@ class StrategySpec:
     on_link: bool = True  #: it sends anything at all (``none`` and the ``central`` oracle do not)
     default: bool = False  #: run unless told otherwise, on the star
     peer_default: bool = False  #: run unless told otherwise, on a peer topology
+    #: the bytes every uplink and every downlink of it carries at the least (its headers): a
+    #: star budget below them can never carry a message (the mission config refuses it)
+    least: tuple[int, int] = (UP_HEADER, DOWN_HEADER)
 
     def factory(self, topology: Any) -> Factory | None:
         """Its factory on ``topology`` (:class:`~fedmap.mission.topology.Topology`): the
@@ -206,7 +210,8 @@ REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
     StrategySpec("raw", "observed cells, lossless (context codec): merged at the base on the star, gossiped on "
                  "peers", star=_raw_star, peer=_raw_peer, default=True, peer_default=True),
     StrategySpec("predictive", "new cells, lossless, with a learned probability model both ends keep",
-                 star=_predictive, options=PredictiveOptions, default=True),
+                 star=_predictive, options=PredictiveOptions, default=True,
+                 least=(LEAST_BYTES, LEAST_BYTES)),
     StrategySpec("paper", "the source paper's Fourier MLP, FedAvg", star=_model, trains=True),
     StrategySpec("fedmap", "fedmap's feature grids, coverage-aware FedAvg", star=_model, trains=True, default=True),
     StrategySpec("gossip", "fedmap's network averaged peer to peer (Metropolis weights)", peer=_gossip(GossipPeer),

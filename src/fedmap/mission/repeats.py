@@ -80,9 +80,10 @@ def repeat_configs(config: MissionConfig, repeats: int) -> list[MissionConfig]:
     if repeats == 1:
         return [config]
     spread = config.start_spread or (0 if config.starts is not None else REPEAT_SPREAD)
-    link_seed = config.seed if config.link.seed is None else config.link.seed  # MissionConfig resolves it so
+    # an unset link seed follows the mission's seed (so it is seed + i too)
     return [replace(config, seed=config.seed + i, start_spread=spread,
-                    link=replace(config.link, seed=link_seed + i)) for i in range(repeats)]
+                    link=config.link if config.link.seed is None else replace(config.link, seed=config.link.seed + i))
+            for i in range(repeats)]
 
 
 def what_varies(config: MissionConfig, repeats: int) -> str:
@@ -91,7 +92,7 @@ def what_varies(config: MissionConfig, repeats: int) -> str:
     c = configs[-1]
     starts = ("the starts given by [mission] starts" if config.starts is not None else
               f"starts drawn within {c.start_spread} cells of the lander")
-    return (f"{repeats} repeats, seeds {configs[0].seed}..{c.seed}, link seeds {configs[0].link.seed}..{c.link.seed}: "
+    return (f"{repeats} repeats, seeds {configs[0].seed}..{c.seed}, link seeds {configs[0].link_seed}..{c.link_seed}: "
             f"each draws its own evaluation pairs, losses, height noise and {starts}; the terrain is the same")
 
 

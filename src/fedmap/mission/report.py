@@ -321,7 +321,7 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         f"base station at {list(result.base)}; {c.steps} steps at {c.speed} cell(s) per step, sensor radius "
         f"{c.sensor_radius:g} cells{' (line of sight)' if c.line_of_sight else ''}, {c.mode} exploration; "
         f"a sync every {c.sync_every} steps ({len(c.sync_steps)} rounds).", "",
-        f"Link (seed {link.seed}): uplink {budget(link.uplink_bytes)} and downlink {budget(link.downlink_bytes)} per "
+        f"Link (seed {c.link_seed}): uplink {budget(link.uplink_bytes)} and downlink {budget(link.downlink_bytes)} per "
         f"rover per round, loss {link.loss:g}, latency {link.latency} step(s), range "
         f"{'unlimited' if link.max_range is None else f'{link.max_range:g} cells'}"
         + (f", each link down for a round with probability {link.drop:g}" if link.drop else "")
@@ -602,7 +602,7 @@ def repeats_metrics(results: Sequence[MissionResult]) -> dict:
             "level": 0.95,
             "intervals": {n: {v: (None if iv is None else iv.to_dict()) for v, iv in ivs.items()}
                           for n, ivs in intervals(results).items()},
-            "runs": [{"seed": r.config.seed, "link_seed": r.config.link.seed, "starts": [list(c) for c in r.starts],
+            "runs": [{"seed": r.config.seed, "link_seed": r.config.link_seed, "starts": [list(c) for c in r.starts],
                       "summaries": {n: run.summary.to_dict() for n, run in r.runs.items()}} for r in results]}
 
 

@@ -45,7 +45,6 @@ from fedmap.errors import FedmapError
 from fedmap.maps.grid import LAYERS, check_layers
 from fedmap.maps.sources import TerrainSource, needs_dem
 from fedmap.maps.traversability import ROVER_NAMES
-from fedmap.mission.protocol import DOWN_HEADER, UP_HEADER
 from fedmap.mission.registry import REGISTRY
 from fedmap.mission.topology import TOPOLOGIES as TOPOLOGY_CLASSES
 
@@ -352,17 +351,16 @@ class MissionConfig:
                 if s not in PEER_STRATEGIES:
                     raise FedmapError(f"strategy {s!r} needs the star topology's base station; on a "
                                       f"{self.link.topology} topology run {', '.join(PEER_STRATEGIES)}")
-        if self.link.seed is None:  # the link draws its losses from the mission's seed
-            object.__setattr__(self, "link", replace(self.link, seed=self.seed))
         link = self.link
-        if TOPOLOGY_CLASSES[link.topology].has_base:  # a budget below the header can never carry a message
-            senders = [s for s in self.strategies if REGISTRY[s].on_link]
-            for what, budget, head in (("uplink", link.uplink_bytes, UP_HEADER),
-                                       ("downlink", link.downlink_bytes, DOWN_HEADER)):
-                if senders and budget is not None and budget < head:
+        if TOPOLOGY_CLASSES[link.topology].has_base:  # a budget below the headers can never carry a message
+            for i, (what, budget) in enumerate((("uplink", link.uplink_bytes), ("downlink", link.downlink_bytes))):
+                short = [s for s in self.strategies if REGISTRY[s].on_link and budget is not None
+                         and budget < REGISTRY[s].least[i]]
+                if short:
+                    head = max(REGISTRY[s].least[i] for s in short)
                     raise FedmapError(f"the {what} budget of {budget} B is below the {head}-byte header every "
-                                      f"{what} message of {', '.join(senders)} starts with: nothing could ever be "
-                                      f"sent (raise link.{what}_bytes to at least {head})")
+                                      f"{what} message of {', '.join(short)} carries: nothing could ever be sent "
+                                      f"(raise link.{what}_bytes to at least {head})")
         if not (isinstance(self.start_spread, int) and not isinstance(self.start_spread, bool)
                 and self.start_spread >= 0):
             raise FedmapError(f"start_spread must be a whole number of cells >= 0, got {self.start_spread!r}")
@@ -408,6 +406,11 @@ class MissionConfig:
     @property
     def sync_steps(self) -> list[int]:
         return [t for t in range(1, self.steps + 1) if t % self.sync_every == 0]
+
+    @property
+    def link_seed(self) -> int:
+        """The seed the link draws from: ``[link] seed``, or the mission's ``seed`` when unset."""
+        return self.seed if self.link.seed is None else self.link.seed
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -75,7 +75,7 @@ class _Run:
         self.world = world = World(config, truth, elevation, starts, base, waypoints, prior=prior, profiles=profiles,
                                    thresholds=thresholds, allowed=allowed)
         self.team = world.team
-        self.link = Link(config.link, self.topology)
+        self.link = Link(replace(config.link, seed=config.link_seed), self.topology)
         self.sharing = (ends or build)(name, Setup(config, truth, self.team, self.topology))
         world.ends = self.sharing.rovers
 
