@@ -9,6 +9,8 @@ sharing are compared on the same mission.
 * :mod:`~fedmap.mission.raw`, :mod:`~fedmap.mission.predictive`, :mod:`~fedmap.mission.model`,
   :mod:`~fedmap.mission.gossip`: the strategies' ends (none, raw, central; predictive;
   paper, fedmap; gossip, admm), which talk to each other only in bytes;
+* :mod:`~fedmap.mission.rosgrid`: the ROS 2 baseline's ends (rosgrid, rosgrid-zlib): whole
+  ``nav_msgs/msg/OccupancyGrid`` messages both ways, merged at the base as map_merge does;
 * :mod:`~fedmap.mission.registry`: the one registry of strategies (:data:`REGISTRY`);
 * :mod:`~fedmap.mission.link`: the seeded link (budgets, loss, latency, drops) and its ledger;
 * :mod:`~fedmap.mission.topology`: who talks to whom (:class:`StarTopology`,

@@ -30,6 +30,7 @@ from fedmap.mission.model import MISSION_DEFAULTS, ModelBase, ModelRover, Traini
 from fedmap.mission.predictive import PredictiveBase, PredictiveOptions, PredictiveRover
 from fedmap.mission.protocol import DOWN_HEADER, UP_HEADER, BaseEnd, Cell, Journal, PeerEnd, RoverEnd
 from fedmap.mission.raw import CentralBase, CentralRover, RawBase, RawPeer, RawRover
+from fedmap.mission.rosgrid import ZLIB_LEVEL, GridCodec, RosgridBase, RosgridRover, grid_origin
 from fedmap.pipeline import initial_weights
 
 
@@ -173,6 +174,17 @@ def _predictive(s: Setup) -> Sharing:
     return Sharing(s.name, s.team, rovers, base, journal=s.journal)
 
 
+def _rosgrid(level: int | None) -> Factory:
+    def build(s: Setup) -> Sharing:
+        lc = s.config.link
+        grids = GridCodec(s.truth.shape, resolution=s.truth.pixel_size, origin=grid_origin(s.truth),
+                          sync_every=s.config.sync_every, level=level)
+        rovers = [RosgridRover(k, r, s.starts, grids=grids, budget=lc.uplink_bytes) for k, r in enumerate(s.team)]
+        base = RosgridBase(s.truth.shape, s.starts, grids=grids, budget=lc.downlink_bytes, journal=s.journal)
+        return Sharing(s.name, s.team, rovers, base, journal=s.journal)
+    return build
+
+
 def _preset(s: Setup, method: str):
     pc = method_config(method, **{**MISSION_DEFAULTS.get(method, {}), **s.options, "seed": s.config.seed})
     return pc, init_held(initial_weights(pc, s.truth.shape[0]))
@@ -212,6 +224,10 @@ REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
     StrategySpec("predictive", "new cells, lossless, with a learned probability model both ends keep",
                  star=_predictive, options=PredictiveOptions, default=True,
                  least=(LEAST_BYTES, LEAST_BYTES)),
+    StrategySpec("rosgrid", "what a ROS 2 team sends: every rover's whole map as a nav_msgs/OccupancyGrid (CDR), "
+                 "merged as map_merge does, the whole merged grid back", star=_rosgrid(None)),
+    StrategySpec("rosgrid-zlib", f"rosgrid with every serialised grid compressed by zlib (level {ZLIB_LEVEL})",
+                 star=_rosgrid(ZLIB_LEVEL)),
     StrategySpec("paper", "the source paper's Fourier MLP, FedAvg", star=_model, trains=True),
     StrategySpec("fedmap", "fedmap's feature grids, coverage-aware FedAvg", star=_model, trains=True, default=True),
     StrategySpec("gossip", "fedmap's network averaged peer to peer (Metropolis weights)", peer=_gossip(GossipPeer),
