@@ -44,7 +44,13 @@ LOG_WIDTH = 10_000
 
 class _Console(Console):
     """A rich console whose width is the terminal's, or :data:`LOG_WIDTH` without one (rich
-    would take 80 columns, or ``$COLUMNS``, and cut a wider table's cells to ``…``)."""
+    would take 80 columns, or ``$COLUMNS``, and cut a wider table's cells to ``…``).
+    ``$COLUMNS`` and ``$LINES`` are read when the size is asked for, not once at import (rich
+    would fix them at construction: under pytest-xdist a worker's ``COLUMNS=80`` stuck)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._width = self._height = None  # no fixed size: Console.size reads the terminal and $COLUMNS each time
 
     @property
     def size(self) -> ConsoleDimensions:
