@@ -196,9 +196,9 @@ def verdict(result: MissionResult, repeats: Sequence[MissionResult] | None = Non
         r.runs[n].summary.bytes_up + r.runs[n].summary.bytes_down == 0 for r in results)]
     runs = [n for n in others if n not in silent]
     notes = "".join(f" {n} got nothing through the link (uplinks: {undelivered(others[n].summary, 'up')}): its "
-                    f"{others[n].summary.final_belief_accuracy_mean:.3f} is its own observations over its initial "
-                    f"model ({float(np.mean(others[n].series.accuracy[0])):.3f} at step 0), not shared knowledge."
-                    for n in silent)
+                    f"{others[n].summary.final_belief_accuracy_mean:.3f} is what each rover observed itself (over "
+                    f"its initial rendering, for a model strategy: {float(np.mean(others[n].series.accuracy[0])):.3f} "
+                    "at step 0), not shared knowledge." for n in silent)
     first = plannable(results) + " "
     if not runs:
         return first + ("Only the central oracle ran: nothing to compare." if not others else
