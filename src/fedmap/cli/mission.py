@@ -4,6 +4,7 @@ ways of sharing side by side (:mod:`fedmap.mission`). This module only wires opt
 from __future__ import annotations
 
 import time
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Optional
 
@@ -17,6 +18,7 @@ from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import console, fit, progress_bar, terrain_line
 from fedmap.config import dumps_toml
 from fedmap.mission import load_mission, mission_terrain
+from fedmap.mission.recording import Recorder
 from fedmap.mission.repeats import run_repeats, what_varies
 from fedmap.mission.report import global_meaning, has_peers, repeat_rows, table_rows, verdict, write_mission
 from fedmap.mission.results import movement_warnings
@@ -39,6 +41,9 @@ def mission(
     export: bool = typer.Option(False, "--export", help="Also write every rover's final belief under maps/ (each strategy's final global map is always written: PNG, GeoTIFF, ROS map)."),
     repeats: int = typer.Option(1, "--repeats", min=1, help="Run the mission N times, each with its own seeds (evaluation pairs, losses, noise, starts in the start area); report means with 95 % intervals."),
     out: Path = typer.Option(Path("fedmap-out/mission"), "--out", "-o", help="Output folder (replaced atomically)."),
+    record: Optional[Path] = typer.Option(None, "--record", help="Also write the mission as an MCAP recording for Foxglove (every strategy's maps, rovers, link messages and scores; with --repeats, repeat 1's)."),
+    live: bool = typer.Option(False, "--live/--no-live", help="Stream the same channels from a Foxglove WebSocket server while the mission runs (stopped at the end)."),
+    port: int = typer.Option(8765, "--port", min=0, max=65535, help="The --live server's port on 127.0.0.1 (0: any free port)."),
     settings: Optional[dict] = None,
     terrain: Optional[dict] = None,
 ) -> None:
@@ -56,10 +61,21 @@ def mission(
         if repeats > 1:
             console.print(f"repeats: {what_varies(cfg, repeats)}", soft_wrap=True)
         label = ""
+        recorder = Recorder(cfg, truth, mcap=record, live=live, port=port, elevation=elevation) \
+            if record is not None or live else None
+        if recorder is not None and recorder.url:
+            console.print(f"live: {recorder.url}  (Foxglove: open connection, Foxglove WebSocket; layout "
+                          "docs/foxglove_layout.json)", soft_wrap=True)
+        first = True
 
         def on_repeat(i: int, _config) -> None:
-            nonlocal label
+            nonlocal label, first
             label = f"repeat {i + 1}/{repeats}: " if repeats > 1 else ""
+            first = i == 0
+
+        def on_snapshot(snapshot) -> None:  # the recording and the live view hold repeat 1
+            if first and recorder is not None:
+                recorder.log(snapshot)
 
         def on_strategy(name: str) -> None:
             nonlocal task
@@ -68,10 +84,11 @@ def mission(
         def on_step(name: str, step: int, coverage: float) -> None:
             progress.update(task, completed=step, loss=f"coverage {coverage:.0%}")
 
-        results = run_repeats(cfg, truth, repeats, on_repeat=on_repeat, elevation=elevation, prior=prior,
-                              profiles=profiles, thresholds=source.thresholds, on_strategy=on_strategy,
-                              on_step=on_step,
-                              frames=60 if animation else 1)  # without an animation, keep no frames' maps
+        with recorder if recorder is not None else nullcontext():  # stops the server, keeps the MCAP only on success
+            results = run_repeats(cfg, truth, repeats, on_repeat=on_repeat, elevation=elevation, prior=prior,
+                                  profiles=profiles, thresholds=source.thresholds, on_strategy=on_strategy,
+                                  on_step=on_step, on_snapshot=on_snapshot if recorder is not None else None,
+                                  frames=60 if animation else 1)  # without an animation, keep no frames' maps
         result = results[0]
         for warning in movement_warnings(result):
             console.print(f"warning: {warning}", soft_wrap=True)
@@ -80,6 +97,9 @@ def mission(
         write_mission(result, out, title=title, settings=resolved, animation=animation, repeats=results, beliefs=export,
                       extra={"mission.toml": dumps_toml(_toml_ready(resolved)), "mission.json": to_json(resolved)})
         progress.update(task, total=1, completed=1)
+    if record is not None:
+        console.print(f"recording: {record}  (MCAP{', repeat 1' if repeats > 1 else ''}; Foxglove layout: "
+                      "docs/foxglove_layout.json)")
     if repeats > 1:
         _print_repeats(results, title)
         console.print(verdict(result, results).replace("**", ""), soft_wrap=True)
