@@ -53,6 +53,24 @@ FREE_THRESH = 0.196
 MODES = ("trinary", "scale", "raw")
 
 
+def occupancy_classes(p: np.ndarray, *, occupied_thresh: float = OCCUPIED_THRESH,
+                      free_thresh: float = FREE_THRESH) -> np.ndarray:
+    """map_server's trinary rule on occupancy probabilities ``p`` (0..1): IMPASSABLE above
+    ``occupied_thresh``, FREE below ``free_thresh``, UNKNOWN between (uint8 classes)."""
+    return np.where(p > occupied_thresh, IMPASSABLE, np.where(p < free_thresh, FREE, UNKNOWN)).astype(np.uint8)
+
+
+def classes_from_occupancy(values: np.ndarray, *, occupied_thresh: float = OCCUPIED_THRESH,
+                           free_thresh: float = FREE_THRESH) -> np.ndarray:
+    """Classes of occupancy in percent (an OccupancyGrid's values, a ``raw`` map image's grey
+    levels) by map_server's thresholds on ``p = value / 100``; a value outside 0..100 (an
+    OccupancyGrid's -1, a raw image's 255) is UNKNOWN."""
+    v = np.asarray(values, dtype=np.float64)
+    classes = occupancy_classes(v / 100.0, occupied_thresh=occupied_thresh, free_thresh=free_thresh)
+    classes[(v < 0) | (v > 100)] = UNKNOWN
+    return classes
+
+
 def _fmt(v: float) -> str:
     return repr(float(v))
 
@@ -217,12 +235,10 @@ def read_ros_map(yaml_path) -> GridMap:
     image = image if image.is_absolute() else yaml_path.parent / image
     v = _grey_levels(image, where)
     if mode == "raw":
-        p = v / 100.0
-        classes = np.where(p > occ, IMPASSABLE, np.where(p < free, FREE, UNKNOWN))
-        classes[v > 100] = UNKNOWN
+        classes = classes_from_occupancy(v, occupied_thresh=occ, free_thresh=free)
     else:
         p = v / 255.0 if negate else (255.0 - v) / 255.0
-        classes = np.where(p > occ, IMPASSABLE, np.where(p < free, FREE, UNKNOWN))
+        classes = occupancy_classes(p, occupied_thresh=occ, free_thresh=free)
     x0, y0, yaw = (float(o) for o in origin)
     h = v.shape[0]
     transform = Affine(res, 0.0, x0, 0.0, -res, y0 + h * res) if yaw == 0 else None

@@ -51,7 +51,7 @@ from fedmap._util import one_line
 from fedmap.errors import FedmapError
 from fedmap.maps.georef import is_metric
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
-from fedmap.maps.ros import FREE_THRESH, OCCUPIED_THRESH
+from fedmap.maps.ros import FREE_THRESH, OCCUPIED_THRESH, classes_from_occupancy
 
 #: The message type read and written.
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
@@ -66,17 +66,6 @@ OCCUPANCY_VALUES: dict[int, int] = {FREE: 0, IMPASSABLE: 100, UNKNOWN: -1}
 
 
 # --------------------------------------------------------------------------- values
-
-
-def classes_from_occupancy(values: np.ndarray, *, occupied_thresh: float = OCCUPIED_THRESH,
-                           free_thresh: float = FREE_THRESH) -> np.ndarray:
-    """Classes of OccupancyGrid values (percent, -1 unknown) by map_server's thresholds
-    on ``p = value / 100``; a value outside 0..100 is UNKNOWN."""
-    v = np.asarray(values, dtype=np.int16)
-    p = v / 100.0
-    classes = np.where(p > occupied_thresh, IMPASSABLE, np.where(p < free_thresh, FREE, UNKNOWN))
-    classes[(v < 0) | (v > 100)] = UNKNOWN
-    return classes.astype(np.uint8)
 
 
 def occupancy_from_classes(classes: np.ndarray) -> np.ndarray:
@@ -271,20 +260,36 @@ def read_bag_map(path, *, topic: str | None = None, index: int = -1) -> GridMap:
 # --------------------------------------------------------------------------- writing
 
 
+def grid_origin(grid: GridMap) -> tuple[float, float]:
+    """The lower-left corner of ``grid`` in its CRS when that is metric (north-up), else (0, 0):
+    an OccupancyGrid's ``info.origin``, as :func:`fedmap.maps.ros.map_yaml_text` writes a
+    map_server ``origin``."""
+    t = grid.transform
+    if t is not None and is_metric(grid.crs):
+        return float(t.c), float(t.f + t.e * grid.shape[0])
+    return 0.0, 0.0
+
+
+def occupancy_message(typestore, classes: np.ndarray, *, resolution: float, origin: tuple[float, float],
+                      time_ns: int, frame_id: str = "map"):
+    """The ``nav_msgs/msg/OccupancyGrid`` of a class map (H, W): map_server's values, rows from
+    the bottom up, ``origin`` its lower-left corner, stamped ``time_ns``."""
+    t = typestore.types
+    h, w = classes.shape
+    stamp = t["builtin_interfaces/msg/Time"](sec=int(time_ns // 1_000_000_000), nanosec=int(time_ns % 1_000_000_000))
+    pose = t["geometry_msgs/msg/Pose"](position=t["geometry_msgs/msg/Point"](x=float(origin[0]), y=float(origin[1]),
+                                                                             z=0.0),
+                                       orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+    info = t["nav_msgs/msg/MapMetaData"](map_load_time=stamp, resolution=float(resolution), width=w, height=h,
+                                         origin=pose)
+    data = np.ascontiguousarray(occupancy_from_classes(classes)[::-1]).reshape(-1)  # bottom row first
+    return t[OCCUPANCY_GRID](header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id), info=info, data=data)
+
+
 def _message(typestore, grid: GridMap, time_ns: int, frame_id: str):
     """The OccupancyGrid message of ``grid`` stamped ``time_ns``."""
-    t = typestore.types
-    h, w = grid.shape
-    x0 = y0 = 0.0
-    if grid.transform is not None and is_metric(grid.crs):
-        x0, y0 = grid.transform.c, grid.transform.f + grid.transform.e * h  # lower-left corner (north-up)
-    stamp = t["builtin_interfaces/msg/Time"](sec=int(time_ns // 1_000_000_000), nanosec=int(time_ns % 1_000_000_000))
-    pose = t["geometry_msgs/msg/Pose"](position=t["geometry_msgs/msg/Point"](x=float(x0), y=float(y0), z=0.0),
-                                       orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
-    info = t["nav_msgs/msg/MapMetaData"](map_load_time=stamp, resolution=float(grid.pixel_size), width=w, height=h,
-                                         origin=pose)
-    data = np.ascontiguousarray(occupancy_from_classes(grid.classes)[::-1]).reshape(-1)  # bottom row first
-    return t[OCCUPANCY_GRID](header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id), info=info, data=data)
+    return occupancy_message(typestore, grid.classes, resolution=grid.pixel_size, origin=grid_origin(grid),
+                             time_ns=time_ns, frame_id=frame_id)
 
 
 def _map_qos():
@@ -362,5 +367,5 @@ def write_maps_bag(maps: Mapping[str, GridMap], path, *, frame_id: str = "map", 
 
 
 __all__ = ["BAG_SUFFIXES", "BAG_VERSION", "OCCUPANCY_GRID", "OCCUPANCY_VALUES", "STORAGES", "bag_map_feed",
-           "bag_storage", "bag_topics", "classes_from_occupancy", "grid_from_message", "is_bag",
-           "occupancy_from_classes", "read_bag_map", "write_bag", "write_map_bag", "write_maps_bag"]
+           "bag_storage", "bag_topics", "classes_from_occupancy", "grid_from_message", "grid_origin", "is_bag",
+           "occupancy_from_classes", "occupancy_message", "read_bag_map", "write_bag", "write_map_bag", "write_maps_bag"]

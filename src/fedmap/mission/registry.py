@@ -24,13 +24,14 @@ from fedmap.coding.streamcodec import LEAST_BYTES
 from fedmap.config import method_config
 from fedmap.federation.runner import init_held
 from fedmap.maps.grid import UNKNOWN, GridMap
+from fedmap.maps.rosbag import grid_origin
 from fedmap.mission.gossip import AdmmPeer, GossipPeer
 from fedmap.mission.link import BASE
 from fedmap.mission.model import MISSION_DEFAULTS, ModelBase, ModelRover, Training, model_lags
 from fedmap.mission.predictive import PredictiveBase, PredictiveOptions, PredictiveRover
 from fedmap.mission.protocol import DOWN_HEADER, UP_HEADER, BaseEnd, Cell, Journal, PeerEnd, RoverEnd
 from fedmap.mission.raw import CentralBase, CentralRover, RawBase, RawPeer, RawRover
-from fedmap.mission.rosgrid import ZLIB_LEVEL, GridCodec, RosgridBase, RosgridRover, grid_origin
+from fedmap.mission.rosgrid import ZLIB_LEVEL, GridCodec, RosgridBase, RosgridRover
 from fedmap.pipeline import initial_weights
 
 

@@ -38,18 +38,18 @@ from typing import Any
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
-from fedmap.maps.georef import is_metric
-from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
-from fedmap.maps.ros import FREE_THRESH, OCCUPIED_THRESH
+from fedmap.maps.grid import UNKNOWN
+from fedmap.maps.ros import classes_from_occupancy
+from fedmap.maps.rosbag import OCCUPANCY_GRID, OCCUPANCY_VALUES, occupancy_message
 from fedmap.mission.protocol import BaseEnd, Cell, Journal, Outgoing, RoverEnd, pack_down, pack_up, unpack_down, unpack_up
 
-MSGTYPE = "nav_msgs/msg/OccupancyGrid"
+MSGTYPE = OCCUPANCY_GRID
 FRAME = "map"
 #: zlib's level in ``rosgrid-zlib`` (9: the smallest output zlib gives; level 6, its default,
 #: gave 5-6 % more bytes on the default, Gale and Hadley missions).
 ZLIB_LEVEL = 9
 #: map_server's occupancy values (``nav_msgs/msg/OccupancyGrid.data``) of each fedmap class.
-VALUES: dict[int, int] = {FREE: 0, IMPASSABLE: 100, UNKNOWN: -1}
+VALUES: dict[int, int] = OCCUPANCY_VALUES
 _TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
 
 
@@ -58,40 +58,18 @@ def typestore() -> Any:
     return _TYPESTORE
 
 
-def grid_origin(truth: GridMap) -> tuple[float, float]:
-    """The lower-left corner of ``truth``'s grid in its CRS when that is metric, else (0, 0)
-    (as :func:`fedmap.maps.ros.map_yaml_text` writes a map_server ``origin``)."""
-    t = truth.transform
-    if t is not None and is_metric(truth.crs):
-        return float(t.c), float(t.f + t.e * truth.shape[0])
-    return 0.0, 0.0
-
-
 def grid_message(classes: np.ndarray, *, resolution: float, origin: tuple[float, float], stamp: int) -> Any:
-    """The ``nav_msgs/msg/OccupancyGrid`` of a class map (H, W), stamped ``stamp`` seconds."""
-    T = _TYPESTORE.types
-    lut = np.zeros(3, dtype=np.int8)
-    for c, v in VALUES.items():
-        lut[c] = v
-    time = T["builtin_interfaces/msg/Time"](sec=int(stamp), nanosec=0)
-    pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=origin[0], y=origin[1], z=0.0),
-                                       orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
-    h, w = classes.shape
-    info = T["nav_msgs/msg/MapMetaData"](map_load_time=time, resolution=float(resolution), width=w, height=h,
-                                         origin=pose)
-    data = lut[np.flipud(classes)].ravel()  # (H*W,) row-major from the bottom row up
-    return T[MSGTYPE](header=T["std_msgs/msg/Header"](stamp=time, frame_id=FRAME), info=info, data=data)
+    """The ``nav_msgs/msg/OccupancyGrid`` of a class map (H, W), stamped ``stamp`` seconds
+    (:func:`fedmap.maps.rosbag.occupancy_message`, the one way fedmap builds the message)."""
+    return occupancy_message(_TYPESTORE, classes, resolution=resolution, origin=origin,
+                             time_ns=int(stamp) * 1_000_000_000, frame_id=FRAME)
 
 
 def grid_classes(msg: Any) -> np.ndarray:
-    """A decoded OccupancyGrid's classes (H, W), read as map_server's trinary thresholds read
-    occupancy: above ``occupied_thresh`` impassable, below ``free_thresh`` free, else (and -1)
-    unknown."""
+    """A decoded OccupancyGrid's classes (H, W), by map_server's trinary thresholds
+    (:func:`fedmap.maps.ros.classes_from_occupancy`); rows from the top, as fedmap holds them."""
     v = np.asarray(msg.data, dtype=np.int16).reshape(int(msg.info.height), int(msg.info.width))
-    p = v / 100.0
-    classes = np.where(p > OCCUPIED_THRESH, IMPASSABLE, np.where(p < FREE_THRESH, FREE, UNKNOWN))
-    classes[v < 0] = UNKNOWN
-    return np.flipud(classes).astype(np.uint8)
+    return np.ascontiguousarray(classes_from_occupancy(v)[::-1])
 
 
 class GridCodec:
