@@ -241,3 +241,23 @@ def test_mission_cli_records(tmp_path, capsys):
     messages, schemas = read_recording(path)
     last = [m for m in messages if m.topic == "/raw/scores"][-1]
     assert decode(last, schemas)["coverage"] == metrics["strategies"]["raw"]["series"]["coverage"][-1]
+
+
+def test_a_taken_port_is_a_one_line_error(small):
+    import socket
+
+    truth, config = small
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        with pytest.raises(FedmapError, match="cannot start the live server") as err:
+            Recorder(config, truth, live=True, port=s.getsockname()[1])
+    assert "\n" not in str(err.value)
+
+
+def test_mission_cli_live_prints_the_url_and_stops(tmp_path, capsys):
+    rc = main(["mission", "--size", "64", "--steps", "4", "--sync-every", "2", "--rovers", "2", "--sensor-radius", "4",
+               "--strategies", "raw", "--no-animation", "-o", str(tmp_path / "out"), "--live", "--port", "0"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    assert "live: ws://127.0.0.1:" in out.out
