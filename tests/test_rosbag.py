@@ -227,3 +227,23 @@ def test_bad_bags_are_one_line_errors(tmp_path, capsys):
         export_map(grid, tmp_path / "empty", "rosbag2")
     export_map(GridMap(np.zeros((3, 3), np.uint8), 1.0, "z"), bag, "rosbag2")
     assert load_map(bag).shape == (3, 3)
+
+
+def test_mission_rosbag_holds_every_sync_of_every_strategy(tmp_path, capsys):
+    """``fedmap mission --rosbag``: step 0, every sync and the last step, for every strategy's
+    global map and every rover's belief; the last global map is the one the mission wrote."""
+    out, bag = tmp_path / "m", tmp_path / "bag"
+    rc = main(["mission", "--size", "64", "--steps", "10", "--sync-every", "4", "--rovers", "2", "--sensor-radius",
+               "4", "--strategies", "none,raw", "--no-animation", "--rosbag", str(bag), "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    steps: dict[str, list[int]] = {}
+    last = None
+    with AnyReader([bag]) as reader:
+        for conn, t, raw in reader.messages():
+            steps.setdefault(conn.topic, []).append(t // 1_000_000_000)
+            if conn.topic == "/raw/global_map":
+                last = reader.deserialize(raw, conn.msgtype)
+    assert set(steps) == {f"/{s}/{m}" for s in ("none", "raw") for m in ("global_map", "belief_0", "belief_1")}
+    assert all(v == [0, 4, 8, 10] for v in steps.values())
+    written = load_map(out / "maps" / "raw_global.tif").classes
+    assert last is not None and np.array_equal(read_bag_map(bag, topic="/raw/global_map").classes, written)

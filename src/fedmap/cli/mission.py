@@ -18,6 +18,7 @@ from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import console, fit, progress_bar, terrain_line
 from fedmap.config import dumps_toml
 from fedmap.mission import load_mission, mission_terrain
+from fedmap.mission.bag import SyncMaps
 from fedmap.mission.recording import Recorder
 from fedmap.mission.repeats import run_repeats, what_varies
 from fedmap.mission.report import global_meaning, has_peers, repeat_rows, table_rows, verdict, write_mission
@@ -43,6 +44,7 @@ def mission(
     out: Path = typer.Option(Path("fedmap-out/mission"), "--out", "-o", help="Output folder (replaced atomically)."),
     record: Optional[Path] = typer.Option(None, "--record", help="Also write the mission as an MCAP recording for Foxglove (every strategy's maps, rovers, link messages and scores; with --repeats, repeat 1's)."),
     live: bool = typer.Option(False, "--live/--no-live", help="Stream the same channels from a Foxglove WebSocket server while the mission runs (stopped at the end)."),
+    rosbag: Optional[Path] = typer.Option(None, "--rosbag", help="Also write every strategy's global map and every rover's belief at step 0, every sync and the last step as a ROS 2 bag folder of nav_msgs/OccupancyGrid (1 s a step; with --repeats, repeat 1's)."),
     port: int = typer.Option(8765, "--port", min=0, max=65535, help="The --live server's port on 127.0.0.1 (0: any free port)."),
     settings: Optional[dict] = None,
     terrain: Optional[dict] = None,
@@ -73,9 +75,13 @@ def mission(
             label = f"repeat {i + 1}/{repeats}: " if repeats > 1 else ""
             first = i == 0
 
-        def on_snapshot(snapshot) -> None:  # the recording and the live view hold repeat 1
+        bag = SyncMaps(cfg, truth) if rosbag is not None else None
+
+        def on_snapshot(snapshot) -> None:  # the recording, the live view and the bag hold repeat 1
             if first and recorder is not None:
                 recorder.log(snapshot)
+            if first and bag is not None:
+                bag(snapshot)
 
         def on_strategy(name: str) -> None:
             nonlocal task
@@ -87,7 +93,7 @@ def mission(
         with recorder if recorder is not None else nullcontext():  # stops the server, keeps the MCAP only on success
             results = run_repeats(cfg, truth, repeats, on_repeat=on_repeat, elevation=elevation, prior=prior,
                                   profiles=profiles, thresholds=source.thresholds, on_strategy=on_strategy,
-                                  on_step=on_step, on_snapshot=on_snapshot if recorder is not None else None,
+                                  on_step=on_step, on_snapshot=on_snapshot if recorder is not None or bag is not None else None,
                                   frames=60 if animation else 1)  # without an animation, keep no frames' maps
         result = results[0]
         for warning in movement_warnings(result):
@@ -96,7 +102,11 @@ def mission(
         title = f"{source.label}, {truth.shape[0]}x{truth.shape[1]}"
         write_mission(result, out, title=title, settings=resolved, animation=animation, repeats=results, beliefs=export,
                       extra={"mission.toml": dumps_toml(_toml_ready(resolved)), "mission.json": to_json(resolved)})
+        if bag is not None:
+            bag.write(rosbag)
         progress.update(task, total=1, completed=1)
+    if rosbag is not None:
+        console.print(f"ROS 2 bag: {rosbag}/  (ros2 bag play {rosbag})")
     if record is not None:
         console.print(f"recording: {record}  (MCAP{', repeat 1' if repeats > 1 else ''}; Foxglove layout: "
                       "docs/foxglove_layout.json)")

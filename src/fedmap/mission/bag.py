@@ -16,26 +16,53 @@ UNKNOWN, e.g. ``none``'s) is still written: a viewer sees it grow.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+
+import numpy as np
 
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import GridMap
 from fedmap.maps.rosbag import write_bag
-from fedmap.mission.results import MissionResult
+from fedmap.mission.results import MissionResult, Snapshot
+from fedmap.mission.settings import MissionConfig
 
 #: Seconds of mission clock per step in a mission's bag.
 STEP_SECONDS = 1.0
 
 
-def _messages(result: MissionResult, step_seconds: float) -> Iterator[tuple[str, int, GridMap]]:
-    truth = result.truth
-    for name, run in result.runs.items():
-        for frame in run.frames:
-            t = int(round(frame.step * step_seconds * 1e9))
-            yield f"/{name}/global_map", t, truth.with_classes(frame.global_map, f"mission {name}: global map")
-            for k, belief in enumerate(frame.beliefs):
-                yield f"/{name}/belief_{k}", t, truth.with_classes(belief, f"mission {name}: rover {k}'s belief")
+#: One strategy's maps at one step: ``(strategy, step, global map, beliefs)``.
+Maps = tuple[str, int, np.ndarray, list[np.ndarray]]
+
+
+def _messages(truth: GridMap, maps: Iterable[Maps], step_seconds: float) -> Iterator[tuple[str, int, GridMap]]:
+    for name, step, global_map, beliefs in maps:
+        t = int(round(step * step_seconds * 1e9))
+        yield f"/{name}/global_map", t, truth.with_classes(global_map, f"mission {name}: global map")
+        for k, belief in enumerate(beliefs):
+            yield f"/{name}/belief_{k}", t, truth.with_classes(belief, f"mission {name}: rover {k}'s belief")
+
+
+class SyncMaps:
+    """A ``run_mission`` ``on_snapshot`` that keeps every strategy's global map and every
+    member's belief at step 0, at every sync and at the last step, for :meth:`write` to put
+    in a bag (the run's kept frames are fewer: an animation's, or only the last)."""
+
+    def __init__(self, config: MissionConfig, truth: GridMap) -> None:
+        self.truth, self.steps = truth, {0, *config.sync_steps, config.steps}
+        self.maps: list[Maps] = []
+
+    def __call__(self, snap: Snapshot) -> None:
+        if snap.step in self.steps:
+            self.maps.append((snap.strategy, snap.step, snap.global_map.copy(), [b.copy() for b in snap.beliefs]))
+
+    def write(self, path, *, step_seconds: float = STEP_SECONDS, storage: str = "sqlite3") -> Path:
+        """The kept maps as a new ROS 2 bag folder ``path`` (see :func:`write_mission_bag`)."""
+        if not step_seconds > 0:
+            raise FedmapError(f"step_seconds must be positive, got {step_seconds!r}")
+        if not self.maps:
+            raise FedmapError("the mission recorded no step: nothing to write into a bag")
+        return write_bag(_messages(self.truth, self.maps, float(step_seconds)), path, storage=storage)
 
 
 def write_mission_bag(result: MissionResult, path, *, step_seconds: float = STEP_SECONDS,
@@ -62,7 +89,8 @@ def write_mission_bag(result: MissionResult, path, *, step_seconds: float = STEP
         raise FedmapError(f"step_seconds must be positive, got {step_seconds!r}")
     if not any(run.frames for run in result.runs.values()):
         raise FedmapError("the mission recorded no frame: nothing to write into a bag")
-    return write_bag(_messages(result, float(step_seconds)), path, storage=storage)
+    maps = [(name, f.step, f.global_map, f.beliefs) for name, run in result.runs.items() for f in run.frames]
+    return write_bag(_messages(result.truth, maps, float(step_seconds)), path, storage=storage)
 
 
-__all__ = ["STEP_SECONDS", "write_mission_bag"]
+__all__ = ["STEP_SECONDS", "SyncMaps", "write_mission_bag"]
