@@ -88,7 +88,8 @@ def test_mission_without_animation_and_with_a_class_map(tmp_path, capsys):
     (["--preset", "cadr"], "unknown mission preset 'cadr' (did you mean 'cadre'?)"),
     # no close name: the known strategies are listed once
     (["--strategies", "raw,federated"],
-     "unknown strategy 'federated'; known: none, raw, predictive, rosgrid, rosgrid-zlib, paper, fedmap, gossip, admm, central\n"),
+     "unknown strategy 'federated'; known: none, raw, predictive, rosgrid, rosgrid-zlib, paper, fedmap, gossip, admm, "
+     "central\n"),
 ])
 def test_mission_cli_bad_input_is_one_line(args, message, tmp_path, capsys):
     rc, stdout, err = _run([*TINY, *args, "-o", tmp_path / "x"], capsys)
