@@ -357,3 +357,33 @@ def test_the_probe_needs_an_http_answer_not_just_an_open_port(tmp_path):
         web.shutdown()
         web.server_close()
         relay.close()
+
+
+@pytest.mark.parametrize("host, tls, auth, insecure, refused", [
+    ("0.0.0.0", False, False, False, "TLS \\(--certs\\) and rover authentication"),
+    ("192.0.2.7", True, False, False, "without rover authentication"),
+    ("::", False, True, False, "without TLS \\(--certs\\):"),
+    ("base.example", True, True, False, None),  # TLS and authentication: fine anywhere
+    ("0.0.0.0", False, False, True, None),  # the user said the network is trusted
+    ("127.0.0.1", False, False, False, None), ("127.8.9.10", False, False, False, None),
+    ("::1", False, False, False, None), ("[::1]", False, False, False, None), ("localhost", False, False, False, None),
+])
+def test_the_base_station_refuses_to_listen_beyond_loopback_unprotected(host, tls, auth, insecure, refused):
+    from fedmap.flower.launch import check_exposure
+
+    if refused is None:
+        check_exposure(host, tls=tls, auth=auth, insecure=insecure)
+    else:
+        with pytest.raises(FedmapError, match=refused):
+            check_exposure(host, tls=tls, auth=auth, insecure=insecure)
+
+
+def test_base_station_cli_without_protection_is_one_line_and_starts_nothing(tmp_path):
+    """The default address (0.0.0.0) without --certs/--auth-keys is refused before any
+    SuperLink starts; --insecure is the way to say the network is trusted."""
+    r = subprocess.run([sys.executable, "-m", "fedmap", "base-station", "--rovers", "2", "-o", str(tmp_path / "out")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    errors = [ln for ln in r.stderr.splitlines() + r.stdout.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1 and "refusing to listen on 0.0.0.0" in errors[0] and "--insecure" in errors[0]
+    assert "Traceback" not in r.stderr and not (tmp_path / "out.run" / "superlink.log").exists()

@@ -38,6 +38,7 @@ def base_station(
     port: int = typer.Option(9092, help="SuperLink port (rovers connect to HOST:PORT)."),
     certs: Optional[Path] = typer.Option(None, help="TLS: folder from `fedmap certs` (ca.crt, server.pem, server.key)."),
     auth_keys: Optional[Path] = typer.Option(None, "--auth-keys", help="SuperNode authentication: folder of rover *.pub keys."),
+    insecure: bool = typer.Option(False, "--insecure", help="Listen beyond this machine without TLS or rover authentication (a trusted network only; loopback needs no flag)."),
     out: Path = typer.Option(Path("fedmap-out/flower"), "--out", "-o", help="Output folder (replaced atomically)."),
     resume: Optional[Path] = typer.Option(None, "--resume", metavar="OUT",
                                           help="Continue the crashed run that was writing to OUT from its last "
@@ -70,7 +71,7 @@ def base_station(
                           f"fedmap rover --superlink <this host>:{port} --partition-id K ...")
 
         run_base_station(cfg, host=host, port=port, certs=certs, auth_keys=auth_keys, on_status=on_status,
-                         on_ready=on_ready)
+                         on_ready=on_ready, insecure=insecure)
     m = json.loads((out / "metrics.json").read_text())
     for r in m["rounds"]:
         console.print(f"round {r['round']}: aggregated rovers {sorted(int(k) for k in r['aggregation_counts'])}; "
@@ -134,5 +135,5 @@ def certs(
     """TLS certificates for the SuperLink and SuperNode authentication keys for the rovers."""
     files = make_certs(out_dir, hosts=host, rovers=rovers, days=days)
     console.print(f"{out_dir}: " + ", ".join(f.name for f in files))
-    console.print("base station: fedmap base-station --certs DIR [--auth-keys DIR]; "
-                  "rover k: fedmap rover --root-cert DIR/ca.crt [--auth-key DIR/roverK] ...")
+    console.print("base station: fedmap base-station --certs DIR --auth-keys DIR; "
+                  "rover k: fedmap rover --root-cert DIR/ca.crt --auth-key DIR/roverK ...")

@@ -10,6 +10,7 @@ executables.
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import os
 import shutil
@@ -347,17 +348,44 @@ def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365)
 
 # -- the commands ------------------------------------------------------------------------------
 
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is this machine only: ``localhost``, 127.0.0.0/8 or ::1 (a name that
+    is not ``localhost`` counts as reachable from elsewhere)."""
+    if host.strip("[]").lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def check_exposure(host: str, *, tls: bool, auth: bool, insecure: bool = False) -> None:
+    """Refuse a SuperLink that other machines can reach without TLS and rover authentication
+    (any host that reaches the port could join as a rover and send an update the base
+    aggregates), unless ``insecure`` says the network is trusted. Loopback is always fine."""
+    if insecure or (tls and auth) or is_loopback(host):
+        return
+    missing = " and ".join(what for what, ok in (("TLS (--certs)", tls), ("rover authentication (--auth-keys)", auth))
+                           if not ok)
+    raise FedmapError(f"refusing to listen on {host} without {missing}: any host that reaches it could join as a "
+                      f"rover; make both with `fedmap certs DIR --host BASE_HOST --rovers N`, listen on --host "
+                      f"127.0.0.1, or pass --insecure on a network you trust")
+
+
 def run_base_station(run_config: dict, *, host: str = "0.0.0.0", port: int = 9092, certs: Path | None = None,
-                 auth_keys: Path | None = None, on_status: Callable[[dict], None] | None = None,
-                 on_ready: Callable[[], None] | None = None) -> dict:
+                     auth_keys: Path | None = None, on_status: Callable[[dict], None] | None = None,
+                     on_ready: Callable[[], None] | None = None, insecure: bool = False) -> dict:
     """Start a SuperLink, submit fedmap's ServerApp, wait for it; returns the final status.
 
     ``run_config`` holds run-config keys (see :data:`fedmap.flower.settings.RUN_DEFAULTS`);
-    ``out`` is made absolute so the ServerApp writes where the user asked.
+    ``out`` is made absolute so the ServerApp writes where the user asked. A ``host`` other
+    machines can reach needs ``certs`` and ``auth_keys``, or ``insecure``
+    (:func:`check_exposure`).
     """
     run_config = {**run_config, "out": str(Path(run_config.get("out", "fedmap-out/flower")).resolve())}
     settings = RunSettings.from_run_config(run_config)  # bad options fail here, before any process starts
     truth_shape(settings)  # so does a missing or unreadable --truth: read it now, not after the run
+    check_exposure(host, tls=certs is not None, auth=auth_keys is not None, insecure=insecure)
     require_executables(SUPERLINK_EXES)
     tls = Tls.from_dir(certs) if certs is not None else None
     keys = sorted(Path(auth_keys).resolve().glob("*.pub")) if auth_keys is not None else []
