@@ -87,6 +87,7 @@ class _Run:
         self.own_scorer = [scorer if p == "team" else (profile_scorers or {})[p] for p in world.profiles]
         self.on_snapshot = on_snapshot
         self._seen = 0  # ledger entries already handed to on_snapshot
+        self.views: list[np.ndarray] = []  # every member's view at the last recorded step
         self.rows: list[StepRow] = []
         self.evals: list[EvalRow] = []
         self.frames: list[Frame] = []
@@ -107,7 +108,9 @@ class _Run:
             if m.status == "delivered" and not ok:
                 continue  # still on its way
             (delivered if ok else dropped)[side] += 1
-        free = [w.planning_map(b, k) == FREE for k, b in enumerate(beliefs)]
+        # every member's view (its belief in its own classes), once: what it plans on and is scored on
+        self.views = views = [w.own_view(k, b) for k, b in enumerate(beliefs)]
+        free = [w.planning_map(v) == FREE for v in views]
         self.rows.append(StepRow(
             step=t, coverage=float((n_seen > 0).mean()), redundant=float((n_seen > 1).mean()),
             accuracy=tuple(float((b == truth).mean()) for b in beliefs),
@@ -120,7 +123,7 @@ class _Run:
             down_delivered=delivered[DOWN], down_dropped=dropped[DOWN]))
         if evaluate:
             g = self.scorer.scores(s.global_map())
-            own = [self.own_scorer[k].path(w.own_view(k, b)) for k, b in enumerate(beliefs)]
+            own = [self.own_scorer[k].path(v) for k, v in enumerate(views)]
             self.evals.append(EvalRow(step=t, psnr=g.psnr, ssim=g.ssim, accuracy=g.accuracy, f1=g.path.f1,
                                       f1_tolerant=g.path.tolerant.f1, belief_f1=tuple(p.f1 for p in own),
                                       belief_success=tuple(p.success for p in own)))
@@ -128,7 +131,7 @@ class _Run:
             c = self.config
             self.on_snapshot(Snapshot(
                 strategy=self.name, step=t, truth=self.truth, beliefs=beliefs,
-                views=[w.own_view(k, b) for k, b in enumerate(beliefs)], global_map=s.global_map(),
+                views=views, global_map=s.global_map(),
                 global_heights=s.global_heights(), positions=w.positions(), targets=[r.target for r in self.team],
                 kinds=[r.kind for r in self.team],
                 sensor_radius=[c.helicopter.sensor_radius if r.kind == "helicopter" else c.sensor_radius
@@ -174,7 +177,7 @@ class _Run:
                            dropped_updates=None if journal.dropped is None else tuple(journal.dropped),
                            model_lag=None if journal.lags is None else tuple(journal.lags),
                            sharing=self.sharing,
-                           views=tuple(w.own_view(k, self.sharing.belief(k)) for k in range(len(self.team))))
+                           views=tuple(self.views))  # the last step's, recorded after its deliveries
 
 
 def mission_terrain(config: MissionConfig, source: TerrainSource) -> tuple[GridMap, np.ndarray | None,
