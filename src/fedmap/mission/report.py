@@ -230,15 +230,11 @@ def verdict(result: MissionResult, repeats: Sequence[MissionResult] | None = Non
     than = "sharing nothing" if "none" in runs else "step 0"
     if gain:
         top, tied_g = _winner(gain, high=True)  # type: ignore[arg-type]
-        if top is not None:
-            r0 = results[0].runs[top].summary
+        if top is not None:  # the mean over the repeats (one run: its own figures)
             points = float(np.mean([(r.runs[top].summary.final_belief_accuracy_mean - base(r, top)) * 100
                                     for r in results]))
             line += (f" Best map per byte: **{top}** (+{points:.2f} accuracy points over {than} "
-                     f"for {round(float(np.mean(spent[top]))):,} B of the team's traffic)."
-                     if len(results) > 1 else
-                     f" Best map per byte: **{top}** (+{points:.2f} accuracy points over {than} "
-                     f"for {r0.bytes_up + r0.bytes_down:,} B of the team's traffic).")
+                     f"for {round(float(np.mean(spent[top]))):,} B of the team's traffic).")
         else:
             line += f" Best map per byte: no clear difference between {', '.join(tied_g)}."
     elif any(max(b) for b in spent.values()):
