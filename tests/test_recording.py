@@ -18,6 +18,7 @@ from affine import Affine
 from fedmap.cli import main
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import GridMap
+from fedmap.maps.ros import lower_left_origin
 from fedmap.maps.sources import TerrainSource, load_truth
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
 from fedmap.mission.recording import (
@@ -27,7 +28,6 @@ from fedmap.mission.recording import (
     decode,
     foxglove_layout,
     grid_arrays,
-    map_origin,
     read_recording,
     topics,
     xy_cell,
@@ -135,9 +135,9 @@ def test_scores_and_link_messages_equal_the_series_and_ledger(recorded):
 def test_georeferenced_map_frame():
     classes = np.zeros((10, 20), dtype=np.uint8)
     g = GridMap(classes, pixel_size=2.0, transform=Affine(2.0, 0, 500_000.0, 0, -2.0, 4_000_020.0), crs="EPSG:32633")
-    assert map_origin(g) == (500_000.0, 4_000_000.0)  # the lower-left corner, in the CRS's metres
+    assert lower_left_origin(g) == (500_000.0, 4_000_000.0)  # the lower-left corner, in the CRS's metres
     geo = GridMap(classes, pixel_size=2.0, transform=Affine(0.1, 0, 10.0, 0, -0.1, 50.0), crs="EPSG:4326")
-    assert map_origin(geo) == (0.0, 0.0)  # degrees are no metres: identity
+    assert lower_left_origin(geo) == (0.0, 0.0)  # degrees are no metres: identity
 
 
 def test_a_truncated_recording_is_a_one_line_error(recorded, tmp_path):

@@ -75,13 +75,20 @@ def _fmt(v: float) -> str:
     return repr(float(v))
 
 
+def lower_left_origin(grid: GridMap) -> tuple[float, float]:
+    """The lower-left corner of ``grid`` in its CRS when that CRS is metric (north-up: the
+    transform's ``e`` < 0), else (0, 0): a map_server ``origin``, an OccupancyGrid's
+    ``info.origin``, a recording's ``map`` frame."""
+    t = grid.transform
+    if t is None or not is_metric(grid.crs):
+        return 0.0, 0.0
+    return float(t.c), float(t.f + t.e * grid.shape[0])
+
+
 def map_yaml_text(grid: GridMap, image: str, *, occupied_thresh: float = OCCUPIED_THRESH,
                   free_thresh: float = FREE_THRESH) -> str:
     """The map_server YAML of ``grid`` whose image file is ``image``."""
-    x0 = y0 = 0.0
-    t = grid.transform
-    if t is not None and is_metric(grid.crs):
-        x0, y0 = t.c, t.f + t.e * grid.shape[0]  # lower-left corner (north-up: e < 0)
+    x0, y0 = lower_left_origin(grid)
     if any(c in image for c in ":#\n'\"[]{}") or image != image.strip():
         raise FedmapError(f"ROS map image name {image!r} must be a plain file name")
     return (f"image: {image}\nmode: trinary\nresolution: {_fmt(grid.pixel_size)}\n"

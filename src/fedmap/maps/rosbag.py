@@ -49,9 +49,8 @@ from affine import Affine
 
 from fedmap._util import one_line
 from fedmap.errors import FedmapError
-from fedmap.maps.georef import is_metric
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
-from fedmap.maps.ros import FREE_THRESH, OCCUPIED_THRESH, classes_from_occupancy
+from fedmap.maps.ros import FREE_THRESH, OCCUPIED_THRESH, classes_from_occupancy, lower_left_origin
 
 #: The message type read and written.
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
@@ -260,16 +259,6 @@ def read_bag_map(path, *, topic: str | None = None, index: int = -1) -> GridMap:
 # --------------------------------------------------------------------------- writing
 
 
-def grid_origin(grid: GridMap) -> tuple[float, float]:
-    """The lower-left corner of ``grid`` in its CRS when that is metric (north-up), else (0, 0):
-    an OccupancyGrid's ``info.origin``, as :func:`fedmap.maps.ros.map_yaml_text` writes a
-    map_server ``origin``."""
-    t = grid.transform
-    if t is not None and is_metric(grid.crs):
-        return float(t.c), float(t.f + t.e * grid.shape[0])
-    return 0.0, 0.0
-
-
 def occupancy_message(typestore, classes: np.ndarray, *, resolution: float, origin: tuple[float, float],
                       time_ns: int, frame_id: str = "map"):
     """The ``nav_msgs/msg/OccupancyGrid`` of a class map (H, W): map_server's values, rows from
@@ -288,7 +277,7 @@ def occupancy_message(typestore, classes: np.ndarray, *, resolution: float, orig
 
 def _message(typestore, grid: GridMap, time_ns: int, frame_id: str):
     """The OccupancyGrid message of ``grid`` stamped ``time_ns``."""
-    return occupancy_message(typestore, grid.classes, resolution=grid.pixel_size, origin=grid_origin(grid),
+    return occupancy_message(typestore, grid.classes, resolution=grid.pixel_size, origin=lower_left_origin(grid),
                              time_ns=time_ns, frame_id=frame_id)
 
 
@@ -367,5 +356,5 @@ def write_maps_bag(maps: Mapping[str, GridMap], path, *, frame_id: str = "map", 
 
 
 __all__ = ["BAG_SUFFIXES", "BAG_VERSION", "OCCUPANCY_GRID", "OCCUPANCY_VALUES", "STORAGES", "bag_map_feed",
-           "bag_storage", "bag_topics", "classes_from_occupancy", "grid_from_message", "grid_origin", "is_bag",
+           "bag_storage", "bag_topics", "classes_from_occupancy", "grid_from_message", "is_bag",
            "occupancy_from_classes", "occupancy_message", "read_bag_map", "write_bag", "write_map_bag", "write_maps_bag"]

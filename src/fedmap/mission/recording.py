@@ -58,8 +58,8 @@ from typing import Any
 import numpy as np
 
 from fedmap.errors import FedmapError
-from fedmap.maps.georef import is_metric
 from fedmap.maps.grid import PALETTE, GridMap
+from fedmap.maps.ros import lower_left_origin
 from fedmap.mission.link import BASE
 from fedmap.mission.results import Snapshot
 from fedmap.mission.settings import MissionConfig
@@ -130,15 +130,6 @@ def topics(config: MissionConfig) -> list[str]:
         out += [*(f"/{s}/belief/{k}" for k in range(members)), f"/{s}/global_map", f"/{s}/scene", f"/{s}/poses",
                 f"/{s}/link", f"/{s}/scores", f"/{s}/eval"]
     return out
-
-
-def map_origin(truth: GridMap) -> tuple[float, float]:
-    """The ``map`` frame's origin (the map's lower-left corner) in the ``crs`` frame, metres:
-    from the truth's transform when its CRS is metric, else ``(0, 0)`` (module docstring)."""
-    t = truth.transform
-    if t is None or not is_metric(truth.crs):
-        return 0.0, 0.0
-    return float(t.c), float(t.f + t.e * truth.shape[0])
 
 
 def cell_xy(cell: tuple[int, int], shape: tuple[int, int], pixel_size: float) -> tuple[float, float]:
@@ -295,7 +286,7 @@ class Recorder:
 
     def _static(self, out: _Out, ns: int) -> None:
         FrameTransform, FrameTransforms = _fm().FrameTransform, _fm().FrameTransforms
-        x0, y0 = map_origin(self.truth)
+        x0, y0 = lower_left_origin(self.truth)  # the map frame's origin in the crs frame
         out.channels["/tf"].log(FrameTransforms(transforms=[FrameTransform(
             timestamp=self._stamp(ns), parent_frame_id=CRS_FRAME, child_frame_id=MAP_FRAME,
             translation=_vec(x0, y0, 0.0), rotation=_quat())]), log_time=ns)
@@ -619,4 +610,4 @@ def grid_arrays(grid: dict) -> dict[str, np.ndarray]:
 
 
 __all__ = ["CRS_FRAME", "MAP_FRAME", "MEMBER_COLOURS", "STEP_SECONDS", "Recorded", "Recorder", "cell_xy", "decode",
-           "foxglove_layout", "grid_arrays", "map_origin", "read_recording", "topics", "xy_cell"]
+           "foxglove_layout", "grid_arrays", "read_recording", "topics", "xy_cell"]

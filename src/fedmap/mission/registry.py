@@ -24,7 +24,7 @@ from fedmap.coding.streamcodec import LEAST_BYTES
 from fedmap.config import method_config
 from fedmap.federation.runner import init_held
 from fedmap.maps.grid import UNKNOWN, GridMap
-from fedmap.maps.rosbag import grid_origin
+from fedmap.maps.ros import lower_left_origin
 from fedmap.mission.gossip import AdmmPeer, GossipPeer
 from fedmap.mission.link import BASE
 from fedmap.mission.model import MISSION_DEFAULTS, ModelBase, ModelRover, Training, model_lags
@@ -178,7 +178,7 @@ def _predictive(s: Setup) -> Sharing:
 def _rosgrid(level: int | None) -> Factory:
     def build(s: Setup) -> Sharing:
         lc = s.config.link
-        grids = GridCodec(s.truth.shape, resolution=s.truth.pixel_size, origin=grid_origin(s.truth),
+        grids = GridCodec(s.truth.shape, resolution=s.truth.pixel_size, origin=lower_left_origin(s.truth),
                           sync_every=s.config.sync_every, level=level)
         rovers = [RosgridRover(k, r, s.starts, grids=grids, budget=lc.uplink_bytes) for k, r in enumerate(s.team)]
         base = RosgridBase(s.truth.shape, s.starts, grids=grids, budget=lc.downlink_bytes, journal=s.journal)
