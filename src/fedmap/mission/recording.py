@@ -58,6 +58,7 @@ from typing import Any
 import numpy as np
 
 from fedmap.errors import FedmapError
+from fedmap.maps.georef import cell_centre, local_transform
 from fedmap.maps.grid import PALETTE, GridMap
 from fedmap.maps.ros import lower_left_origin
 from fedmap.mission.link import BASE
@@ -133,9 +134,9 @@ def topics(config: MissionConfig) -> list[str]:
 
 
 def cell_xy(cell: tuple[int, int], shape: tuple[int, int], pixel_size: float) -> tuple[float, float]:
-    """The ``map``-frame (x, y) in metres of the centre of ``cell`` (row, col)."""
-    r, c = cell
-    return (c + 0.5) * pixel_size, (shape[0] - r - 0.5) * pixel_size
+    """The ``map``-frame (x, y) in metres of the centre of ``cell`` (row, col): the ``map`` frame
+    is :func:`~fedmap.maps.georef.local_transform`'s (the lower-left corner at 0, 0)."""
+    return cell_centre(local_transform(pixel_size, shape), *cell)
 
 
 def xy_cell(x: float, y: float, shape: tuple[int, int], pixel_size: float) -> tuple[int, int]:
