@@ -49,6 +49,7 @@ from fedmap.federation.heights import HeightCodec, residual_apply, residual_enco
 from fedmap.maps.dem import Dem
 from fedmap.maps.sources import TerrainSource, load_source_dem
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, resolved_slope
+from fedmap.mission.results import F1_GOAL
 from fedmap.nets.heightfield import HeightNetConfig, encode_heightnet, fit_heights, render_fit
 
 #: LERC max errors, as multiples of the heights' standard deviation.
@@ -59,8 +60,9 @@ J2K_PSNR: tuple[float, ...] = (45.0, 55.0, 65.0, 75.0)
 NEURAL_SIZES: tuple[tuple[int, int], ...] = ((16, 16), (32, 32), (48, 48))
 #: Codec families, in the order tables list them.
 FAMILIES: tuple[str, ...] = ("lossless", "lerc", "jxl", "j2k", "neural", "neural+residual")
-#: Path F1 of the re-derived classes at which heights are "good enough to plan on".
-F1_TARGET = 0.9
+#: Path F1 of the re-derived classes at which heights are "good enough to plan on": the
+#: missions' plannable-map goal (:data:`fedmap.mission.results.F1_GOAL`), one number for both.
+F1_TARGET = F1_GOAL
 #: Map side of every terrain unless the caller sets one.
 DEFAULT_SIZE = 128
 #: The six terrains of the benchmark: three built in, three from ``shared/data`` (path relative to it).
