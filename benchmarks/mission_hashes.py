@@ -22,6 +22,7 @@ import tempfile
 from pathlib import Path
 
 from fedmap.cli import main
+from fedmap.mission.report import without_timings
 
 ROOT = Path(__file__).resolve().parent.parent
 #: name -> the ``fedmap mission`` arguments
@@ -35,14 +36,6 @@ MISSIONS: dict[str, list[str]] = {
     "mission_hadley": [str(ROOT / "examples/mission_hadley.toml")],
     "mission_elevation": [str(ROOT / "examples/mission_elevation.toml")],
 }
-
-
-def _without_timings(x):
-    if isinstance(x, dict):
-        return {k: _without_timings(v) for k, v in x.items() if k != "seconds"}
-    if isinstance(x, list):
-        return [_without_timings(v) for v in x]
-    return x
 
 
 def digest(metrics: dict, n: int) -> str:
@@ -67,7 +60,7 @@ def main_(argv: list[str] | None = None) -> int:
             if code:
                 print(f"{name}: fedmap mission failed (exit {code})", file=sys.stderr)
                 return code
-            m = _without_timings(json.loads((folder / "metrics.json").read_text()))
+            m = without_timings(json.loads((folder / "metrics.json").read_text()))
             per = {s: digest(r, 12) for s, r in m["strategies"].items()}
             print(f"{name:18s} {digest(m, 16)}  " + "  ".join(f"{s} {h}" for s, h in per.items()), flush=True)
     return 0

@@ -201,11 +201,13 @@ def _model(s: Setup) -> Sharing:
     base = ModelBase(s.truth.shape, s.starts, pc=pc, init=init, budget=lc.downlink_bytes, journal=s.journal)
     lags = s.journal.lags
     assert lags is not None
+    sharing = Sharing(s.name, s.team, rovers, base, journal=s.journal)
 
-    def on_sync(round_no: int) -> None:
-        lags.append({"round": round_no, "lag": model_lags(base, rovers)})
+    def on_sync(round_no: int) -> None:  # the rover ends the run holds (stand-ins for rovers elsewhere)
+        lags.append({"round": round_no, "lag": model_lags(base, sharing.rovers)})
 
-    return Sharing(s.name, s.team, rovers, base, journal=s.journal, on_sync=on_sync)
+    sharing.on_sync = on_sync
+    return sharing
 
 
 def _gossip(cls: type[GossipPeer]) -> Factory:

@@ -51,6 +51,16 @@ def _pyplot():
     return plt
 
 
+def without_timings(data):
+    """``metrics.json`` data (or any part of it) without its wall times (every ``seconds``):
+    what two runs of the same mission must agree on."""
+    if isinstance(data, dict):
+        return {k: without_timings(v) for k, v in data.items() if k != "seconds"}
+    if isinstance(data, list):
+        return [without_timings(v) for v in data]
+    return data
+
+
 def metrics(result: MissionResult, *, settings: dict | None = None) -> dict:
     """The ``metrics.json`` of a mission."""
     h, w = result.truth.shape

@@ -15,7 +15,8 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -57,23 +58,30 @@ Cell = tuple[int, int]
 Ends = Callable[[str, Setup], Sharing]
 
 
+@dataclass
+class TeamState:
+    """What the record of one step reads of the team (team order: rovers, then helicopters)."""
+
+    beliefs: list[np.ndarray]  #: every member's belief (classes)
+    views: list[np.ndarray]  #: every member's view: its belief in its own classes
+    observed: np.ndarray  #: ``(members, h, w)`` bool: the cells each has observed itself
+    positions: list[Cell]
+    targets: list[Cell | None]
+    distances: list[float]  #: cells driven (or flown) so far
+    trail_len: list[int]  #: cells in its trail so far
+
+
 class _Run:
     """One strategy's mission, step by step: the world, the strategy's ends on the
     topology's exchange, and the record."""
 
-    def __init__(self, name: str, config: MissionConfig, truth: GridMap, elevation: np.ndarray | None,
-                 starts: list[Cell], base: Cell, waypoints: list[list[Cell]], scorer: Scorer,
-                 frame_every: int, prior: np.ndarray | None = None,
-                 profiles: dict[str, np.ndarray] | None = None,
-                 thresholds: TraversabilityThresholds | None = None,
-                 profile_scorers: dict[str, Scorer] | None = None, ends: Ends | None = None,
+    def __init__(self, name: str, mission: Mission, ends: Ends | None = None,
                  on_snapshot: Callable[[Snapshot], None] | None = None) -> None:
-        self.name, self.config, self.truth, self.elevation = name, config, truth, elevation
-        self.scorer, self.frame_every = scorer, frame_every
-        self.topology = make_topology(config.link, base)
-        allowed = self.topology.region(truth.shape) if config.stay_in_range else None
-        self.world = world = World(config, truth, elevation, starts, base, waypoints, prior=prior, profiles=profiles,
-                                   thresholds=thresholds, allowed=allowed)
+        config, truth = mission.config, mission.truth
+        self.name, self.config, self.truth, self.elevation = name, config, truth, mission.elevation
+        self.scorer, self.frame_every = mission.scorer, mission.frame_every
+        self.topology = make_topology(config.link, mission.base)
+        self.world = world = mission.world(self.topology)
         self.team = world.team
         self.link = Link(replace(config.link, seed=config.link_seed), self.topology)
         self.sharing = (ends or build)(name, Setup(config, truth, self.team, self.topology))
@@ -84,7 +92,7 @@ class _Run:
                 r.replan = True
 
         self.exchange = Exchange(self.topology, self.link, self.sharing, world.positions, replan)
-        self.own_scorer = [scorer if p == "team" else (profile_scorers or {})[p] for p in world.profiles]
+        self.own_scorer = [self.scorer if p == "team" else mission.profile_scorers[p] for p in world.profiles]
         self.on_snapshot = on_snapshot
         self._seen = 0  # ledger entries already handed to on_snapshot
         self.views: list[np.ndarray] = []  # every member's view at the last recorded step
@@ -92,11 +100,24 @@ class _Run:
         self.evals: list[EvalRow] = []
         self.frames: list[Frame] = []
 
-    def record(self, t: int, evaluate: bool) -> None:
-        s, w, truth = self.sharing, self.world, self.truth.classes
-        observed = np.stack([r.local != UNKNOWN for r in self.team])
-        n_seen = observed.sum(axis=0)
+    def observe(self) -> TeamState:
+        """What the record reads of the team now: every member's belief and view (its
+        belief in its own classes, computed once per step: what it plans on and is scored
+        on), what it has observed, where it is and how far it has come."""
+        s, w = self.sharing, self.world
         beliefs = [s.belief(k) for k in range(len(self.team))]
+        return TeamState(beliefs=beliefs, views=[w.own_view(k, b) for k, b in enumerate(beliefs)],
+                         observed=np.stack([r.local != UNKNOWN for r in self.team]), positions=w.positions(),
+                         targets=[r.target for r in self.team], distances=[r.distance for r in self.team],
+                         trail_len=[len(r.trail) for r in self.team])
+
+    def record(self, t: int, evaluate: bool, team: TeamState | None = None) -> None:
+        """Record step ``t`` (score it when ``evaluate``) from ``team`` (None: :meth:`observe`;
+        a mission on processes passes what its rovers reported)."""
+        s, w, truth = self.sharing, self.world, self.truth.classes
+        team = self.observe() if team is None else team
+        n_seen = team.observed.sum(axis=0)
+        beliefs = team.beliefs
         n = len(self.team)
         up, down = [0] * n, [0] * n
         delivered, dropped = {UP: 0, DOWN: 0}, {UP: 0, DOWN: 0}
@@ -108,8 +129,7 @@ class _Run:
             if m.status == "delivered" and not ok:
                 continue  # still on its way
             (delivered if ok else dropped)[side] += 1
-        # every member's view (its belief in its own classes), once: what it plans on and is scored on
-        self.views = views = [w.own_view(k, b) for k, b in enumerate(beliefs)]
+        self.views = views = team.views
         free = [w.planning_map(v) == FREE for v in views]
         self.rows.append(StepRow(
             step=t, coverage=float((n_seen > 0).mean()), redundant=float((n_seen > 1).mean()),
@@ -118,8 +138,8 @@ class _Run:
             accuracy_unobserved=tuple(share(b == truth, n_seen == 0) for b in beliefs),
             false_free=tuple(float((f & ((truth if o is None else o) == IMPASSABLE)).sum() / max(int(f.sum()), 1))
                              for f, o in zip(free, w.own_truth)),
-            distance=tuple(r.distance for r in self.team),
-            bytes_up=tuple(up), bytes_down=tuple(down), up_delivered=delivered[UP], up_dropped=dropped[UP],
+            distance=tuple(team.distances), bytes_up=tuple(up), bytes_down=tuple(down),
+            up_delivered=delivered[UP], up_dropped=dropped[UP],
             down_delivered=delivered[DOWN], down_dropped=dropped[DOWN]))
         if evaluate:
             g = self.scorer.scores(s.global_map())
@@ -132,7 +152,7 @@ class _Run:
             self.on_snapshot(Snapshot(
                 strategy=self.name, step=t, truth=self.truth, beliefs=beliefs,
                 views=views, global_map=s.global_map(),
-                global_heights=s.global_heights(), positions=w.positions(), targets=[r.target for r in self.team],
+                global_heights=s.global_heights(), positions=list(team.positions), targets=list(team.targets),
                 kinds=[r.kind for r in self.team],
                 sensor_radius=[c.helicopter.sensor_radius if r.kind == "helicopter" else c.sensor_radius
                                for r in self.team],
@@ -143,7 +163,7 @@ class _Run:
         if t % self.frame_every == 0 or t == self.config.steps:
             x = self.exchange
             self.frames.append(Frame(step=t, beliefs=beliefs, global_map=s.global_map().copy(),
-                                     positions=w.positions(), trail_len=[len(r.trail) for r in self.team],
+                                     positions=list(team.positions), trail_len=list(team.trail_len),
                                      links=x.links, leaders=x.leaders))
 
     def run(self, on_step: Callable[[str, int, float], None] | None = None) -> StrategyRun:
@@ -162,7 +182,11 @@ class _Run:
             self.record(t, evaluate=t in syncs or t == c.steps)
             if on_step is not None:
                 on_step(self.name, t, self.rows[-1].coverage)
-        seconds = time.perf_counter() - t0
+        return self.result(time.perf_counter() - t0, [list(r.trail) for r in self.team])
+
+    def result(self, seconds: float, trails: list[list[Cell]]) -> StrategyRun:
+        """The run's record once its last step is recorded (``trails``: every member's cells driven)."""
+        c = self.config
         series = series_of(self.rows, self.evals)
         journal = self.sharing.journal
         summary = summarise(series, self.link.ledger, c, self.link.slots)
@@ -172,8 +196,7 @@ class _Run:
             err = (z[held] - self.elevation[held]).astype(np.float64)
             summary = replace(summary, final_height_rmse_m=float(np.sqrt(np.mean(err ** 2))) if held.any() else 0.0,
                               final_height_coverage=float(held.mean()))
-        return StrategyRun(self.name, series, summary, self.link.ledger, self.frames,
-                           [list(r.trail) for r in self.team], seconds,
+        return StrategyRun(self.name, series, summary, self.link.ledger, self.frames, trails, seconds,
                            dropped_updates=None if journal.dropped is None else tuple(journal.dropped),
                            model_lag=None if journal.lags is None else tuple(journal.lags),
                            sharing=self.sharing,
@@ -224,6 +247,59 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     at every step as it runs (a recording, a live view).
     """
     t0 = time.perf_counter()
+    m = prepare_mission(config, truth, elevation=elevation, prior=prior, profiles=profiles, thresholds=thresholds,
+                        frames=frames)
+    runs = {}
+    for name in config.strategies:
+        if on_strategy is not None:
+            on_strategy(name)
+        runs[name] = m.new_run(name, ends=ends, on_snapshot=on_snapshot).run(on_step)
+    return MissionResult(config, truth, m.starts, m.base, runs, time.perf_counter() - t0)
+
+
+@dataclass
+class Mission:
+    """What every strategy's run of one mission shares: the terrain, the starts and the
+    base station, the waypoints, the team's limits and the scorers (:func:`prepare_mission`)."""
+
+    config: MissionConfig
+    truth: GridMap
+    elevation: np.ndarray | None
+    prior: np.ndarray | None
+    profiles: dict[str, np.ndarray]
+    thresholds: TraversabilityThresholds | None
+    starts: list[Cell]
+    base: Cell
+    waypoints: list[list[Cell]]
+    frame_every: int
+
+    @cached_property
+    def scorer(self) -> Scorer:
+        return Scorer(self.truth, self.config.eval_pairs, self.config.seed)
+
+    @cached_property
+    def profile_scorers(self) -> dict[str, Scorer]:
+        """One scorer per rover profile, shared by every strategy and rover (the truth's paths are planned once)."""
+        c = self.config
+        return {p: Scorer(self.truth.with_classes(k, p), c.eval_pairs, c.seed) for p, k in self.profiles.items()}
+
+    def new_run(self, name: str, *, ends: Ends | None = None,
+                on_snapshot: Callable[[Snapshot], None] | None = None) -> _Run:
+        """Strategy ``name``'s run, before its first step."""
+        return _Run(name, self, ends, on_snapshot)
+
+    def world(self, topology) -> World:
+        """The team on the terrain (as every run builds it; a rover on a machine of its own builds one too)."""
+        c = self.config
+        allowed = topology.region(self.truth.shape) if c.stay_in_range else None
+        return World(c, self.truth, self.elevation, self.starts, self.base, self.waypoints, prior=self.prior,
+                     profiles=self.profiles, thresholds=self.thresholds, allowed=allowed)
+
+
+def prepare_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray | None = None,
+                    prior: np.ndarray | None = None, profiles: dict[str, np.ndarray] | None = None,
+                    thresholds: TraversabilityThresholds | None = None, frames: int = 60) -> Mission:
+    """Check a mission's inputs (see :func:`run_mission`) and place its starts, base and waypoints."""
     if config.line_of_sight and elevation is None:
         raise needs_dem("line of sight")
     if "elevation" in config.layers and elevation is None:
@@ -244,19 +320,10 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
         thresholds = resolved_slope(thresholds, truth)
     starts, base = place_starts(truth, config)
     waypoints = plan_waypoints(truth, config) if config.mode == "waypoints" else [[] for _ in starts]
-    scorer = Scorer(truth, config.eval_pairs, config.seed)
-    # one scorer per rover profile, shared by every strategy and rover (the truth's paths are planned once)
-    profile_scorers = {p: Scorer(truth.with_classes(c, p), config.eval_pairs, config.seed) for p, c in profiles.items()}
     frame_every = max(1, math.ceil(config.steps / max(frames, 1)))
-    runs = {}
-    for name in config.strategies:
-        if on_strategy is not None:
-            on_strategy(name)
-        runs[name] = _Run(name, config, truth, elevation, starts, base, waypoints, scorer, frame_every,
-                          prior, profiles, thresholds, profile_scorers, ends, on_snapshot).run(on_step)
-    return MissionResult(config, truth, starts, base, runs, time.perf_counter() - t0)
+    return Mission(config, truth, elevation, prior, profiles, thresholds, starts, base, waypoints, frame_every)
 
 
-__all__ = ["COVERAGE_LEVELS", "F1_GOAL", "EvalSeries", "Frame", "MissionResult", "MissionSummary", "Rover", "Snapshot",
-           "StrategyRun", "TimeSeries", "mission_terrain", "place_starts", "plan_waypoints", "run_mission",
-           "start_pocket_warning"]
+__all__ = ["COVERAGE_LEVELS", "F1_GOAL", "EvalSeries", "Frame", "Mission", "MissionResult", "MissionSummary", "Rover",
+           "Snapshot", "StrategyRun", "TimeSeries", "mission_terrain", "place_starts", "plan_waypoints",
+           "prepare_mission", "run_mission", "start_pocket_warning"]

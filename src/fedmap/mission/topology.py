@@ -60,6 +60,8 @@ class Exchange:
         self.seq = 0
         self.links: tuple[tuple[int, int], ...] = ()  #: peer topologies: the links up at the last sync
         self.leaders: tuple[int, ...] = ()  #: leader topology: the agents leading at the last sync
+        #: star: per rover, the downlinks it was handed but has not answered yet (round, ledger entry)
+        self.pending: dict[int, list[tuple[int, Message]]] = {}
 
     def at(self, due: int, event: Callable[[int], None]) -> None:
         """Run ``event(due)`` when the clock reaches ``due``."""
@@ -114,11 +116,28 @@ class Exchange:
 
     def _down(self, k: int, payload: bytes, round_no: int, msg: Message) -> None:
         ok = self.sharing.rovers[k].receive(payload)
+        if ok is None:  # a rover on another machine: its answer comes with its next report
+            self.pending.setdefault(k, []).append((round_no, msg))
+            return
+        self.answered(k, round_no, msg, ok)
+
+    def answered(self, k: int, round_no: int, msg: Message, ok: bool) -> None:
+        """Rover ``k``'s answer to the downlink ``msg`` of round ``round_no``: the base's
+        acknowledgement, and a stale downlink marked as such."""
         self.sharing.base.delivered(k, round_no, ok)
         if ok:
             self.replan(k)
         else:
             msg.status = "stale"
+
+    def answers(self, k: int, oks: Sequence[bool]) -> None:
+        """Rover ``k``'s answers to its downlinks still pending, in the order they arrived."""
+        waiting = self.pending.get(k, [])
+        if len(oks) != len(waiting):
+            raise ValueError(f"rover {k} answered {len(oks)} downlink(s), {len(waiting)} were pending")
+        for (round_no, msg), ok in zip(waiting, oks):
+            self.answered(k, round_no, msg, ok)
+        self.pending[k] = []
 
     # -- peer messages
     def peer_links(self, round_no: int, pairs: Sequence[tuple[int, int]]) -> None:

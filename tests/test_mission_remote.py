@@ -1,0 +1,134 @@
+"""A mission whose rovers run elsewhere (:mod:`fedmap.mission.remote`): every rover's world
+and end behind bytes only, the base station's end and the radio on the other side. With
+the same seed and config it records the same mission as the simulator, message for
+message; a frame that was damaged on the way is refused by its check."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fedmap.errors import FedmapError
+from fedmap.mission import load_mission, mission_terrain
+from fedmap.mission.remote import (
+    BaseNode,
+    CorruptMessage,
+    Order,
+    Report,
+    RoverNode,
+    loopback,
+    pack_frame,
+    rounds,
+    unpack_frame,
+)
+from fedmap.mission.report import metrics, without_timings
+from fedmap.mission.results import MissionResult
+from fedmap.mission.sim import prepare_mission, run_mission
+
+
+def _mission(strategies, *, steps=40, size=64, **link):
+    over = {"mission": {"steps": steps, "strategies": list(strategies)}, "terrain": {"size": size}}
+    if link:
+        over["link"] = link
+    config, source, _ = load_mission(overrides=[over])
+    truth, elevation, prior, profiles = mission_terrain(config, source)
+    kw = dict(elevation=elevation, prior=prior, profiles=profiles, thresholds=source.thresholds, frames=1)
+    return config, truth, kw
+
+
+def _remote(config, truth, kw) -> MissionResult:
+    m = prepare_mission(config, truth, **kw)
+    runs = {}
+    for name in config.strategies:
+        base = BaseNode(m, name)
+        steps = list(rounds(base, loopback(m, name)))
+        assert steps == [*config.sync_steps, config.steps][:len(steps)] and steps[-1] == config.steps
+        runs[name] = base.result(0.0)
+    return MissionResult(config, truth, m.starts, m.base, runs, 0.0)
+
+
+@pytest.mark.parametrize("strategies,link", [
+    (("none", "raw", "predictive"), {}),  # the default link: 10 % of messages lost
+    (("raw", "predictive"), {"loss": 0.4, "uplink_bytes": 300, "downlink_bytes": 600}),  # losses, cut messages
+    (("fedmap",), {"loss": 0.0}),
+])
+def test_a_mission_over_bytes_records_what_the_simulator_records(strategies, link):
+    config, truth, kw = _mission(strategies, **link)
+    here = run_mission(config, truth, **kw)
+    apart = _remote(config, truth, kw)
+    a, b = without_timings(metrics(here)), without_timings(metrics(apart))
+    for name in strategies:
+        ra, rb = here.runs[name], apart.runs[name]
+        assert [(m.bytes, m.status) for m in ra.ledger] == [(m.bytes, m.status) for m in rb.ledger]
+        if name != "none":
+            assert sum(m.bytes for m in rb.ledger) > 0
+        assert json.dumps(a["strategies"][name], sort_keys=True) == json.dumps(b["strategies"][name], sort_keys=True)
+        np.testing.assert_array_equal(ra.sharing.global_map(), rb.sharing.global_map())
+        for va, vb in zip(ra.views, rb.views):
+            np.testing.assert_array_equal(va, vb)
+        assert ra.trails == rb.trails
+    if "raw" in strategies and link.get("loss", 0.1) > 0:  # the lossy link really dropped messages
+        assert any(m.status != "delivered" for m in apart.runs["raw"].ledger)
+
+
+def test_orders_and_reports_survive_bytes():
+    config, truth, kw = _mission(("raw",), steps=12)
+    m = prepare_mission(config, truth, **kw)
+    node = RoverNode(m, "raw", 1)
+    order = Order("raw", 1, 1, config.sync_every, events=[("ack", 0, True), ("down", 0, b"\x00\xffabc")])
+    again = Order.from_bytes(order.to_bytes())
+    assert again == order
+    node_order = Order("raw", 1, 1, config.sync_every)
+    rep = node.handle(node_order)
+    back = Report.from_bytes(rep.to_bytes())
+    assert [s.step for s in back.states] == list(range(config.sync_every))
+    for s0, s1 in zip(rep.states, back.states):
+        np.testing.assert_array_equal(s0.belief, s1.belief)
+        np.testing.assert_array_equal(s0.view, s1.view)
+        np.testing.assert_array_equal(s0.observed, s1.observed)
+        assert (s0.pos, s0.target, s0.distance, s0.trail_len) == (s1.pos, s1.target, s1.distance, s1.trail_len)
+    assert back.uplink is not None and rep.uplink is not None and back.uplink.payload == rep.uplink.payload
+    assert back.trail == rep.trail and back.pos == rep.pos
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.binary(min_size=0, max_size=64), st.data())
+def test_a_damaged_frame_is_refused_by_its_check(blob, data):
+    raw = bytearray(pack_frame({"kind": "order", "step": 3}, [blob, b"xyz"]))
+    assert unpack_frame(bytes(raw)) == ({"kind": "order", "step": 3}, [blob, b"xyz"])
+    i = data.draw(st.integers(0, len(raw) - 1))
+    raw[i] ^= data.draw(st.integers(1, 255))
+    with pytest.raises(CorruptMessage):
+        unpack_frame(bytes(raw))
+    with pytest.raises(CorruptMessage):
+        unpack_frame(bytes(raw[: data.draw(st.integers(0, len(raw) - 1))]))
+
+
+def test_what_cannot_run_on_processes_is_refused_in_one_line():
+    for over, names, words in [({"link": {"latency": 1}}, ("raw",), "latency"),
+                               ({"link": {"topology": "mesh"}}, ("raw",), "star"),
+                               ({}, ("central",), "central")]:
+        config, source, _ = load_mission(overrides=[{"terrain": {"size": 64}, **over}])
+        truth, *_ = mission_terrain(config, source)
+        m = prepare_mission(config, truth)
+        with pytest.raises(FedmapError, match=words) as e:
+            BaseNode(m, names[0])
+        assert "\n" not in str(e.value)
+
+
+def test_a_stale_or_misdirected_order_is_refused():
+    config, truth, kw = _mission(("raw",), steps=12)
+    m = prepare_mission(config, truth, **kw)
+    node = RoverNode(m, "raw", 0)
+    node.handle(Order("raw", 0, 1, config.sync_every))
+    with pytest.raises(FedmapError, match="stale"):
+        node.handle(Order("raw", 0, 1, config.sync_every))
+    with pytest.raises(FedmapError, match="reached raw rover 0"):
+        node.handle(Order("raw", 2, 2, 2 * config.sync_every))
+    with pytest.raises(FedmapError, match="reached raw rover 0"):
+        node.handle(replace(Order("raw", 0, 2, 2 * config.sync_every), strategy="predictive"))
