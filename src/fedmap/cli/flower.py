@@ -112,15 +112,19 @@ def rover(
     warm: bool = typer.Option(True, "--warm/--cold",
                               help="Fork each message's ClientApp from one process that imported torch and "
                                    "fedmap once (--cold: a fresh process per message, Flower's default)."),
+    mission: bool = typer.Option(False, "--mission", help="A rover of a mission on processes (fedmap mission --deploy base): it drives, senses and shares on the base station's mission; no --map or --terrain."),
 ) -> None:
-    """Rover: run a Flower SuperNode that trains on this rover's local map; exits when its run ends."""
+    """Rover: run a Flower SuperNode (a snapshot federation on its local map, or with --mission a rover of a mission); exits when its run ends."""
     cfg = rover_node_config(partition_id=partition_id, map_path=map_path, terrain=terrain, size=size,
-                            agents=agents, explore=explore, seed=seed, out=out, fault=fault)
+                            agents=agents, explore=explore, seed=seed, out=out, fault=fault, mission=mission)
     if root_cert is None:
         console.print("warning: no --root-cert, connecting without TLS (fine on a trusted local network only)")
     console.print(f"rover {partition_id}: connecting to {superlink}")
     code = run_rover(cfg, superlink=superlink, root_cert=root_cert, auth_key=auth_key, port=port, max_wait=max_wait,
                      warm=warm, log=log)
+    if mission:
+        console.print(f"rover {partition_id}: mission over")
+        raise typer.Exit(code)
     console.print(f"rover {partition_id}: run finished, final global model received"
                   + (f"; saved in {out}/" if out else ""))
     raise typer.Exit(code)

@@ -17,9 +17,12 @@ from fedmap._util import to_json
 from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import console, fit, progress_bar, terrain_line
 from fedmap.config import dumps_toml
+from fedmap.errors import FedmapError
+from fedmap.flower.deploy import deploy_logs, deploy_mission
 from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.bag import SyncMaps
 from fedmap.mission.recording import Recorder
+from fedmap.mission.remote import DEPLOYABLE
 from fedmap.mission.repeats import run_repeats, what_varies
 from fedmap.mission.report import global_meaning, has_peers, repeat_rows, table_rows, verdict, write_mission
 from fedmap.mission.results import movement_warnings
@@ -46,6 +49,11 @@ def mission(
     live: bool = typer.Option(False, "--live/--no-live", help="Stream the same channels from a Foxglove WebSocket server while the mission runs (stopped at the end)."),
     rosbag: Optional[Path] = typer.Option(None, "--rosbag", help="Also write every strategy's global map and every rover's belief at step 0, every sync and the last step as a ROS 2 bag folder of nav_msgs/OccupancyGrid (1 s a step; with --repeats, repeat 1's)."),
     port: int = typer.Option(8765, "--port", min=0, max=65535, help="The --live server's port on 127.0.0.1 (0: any free port)."),
+    deploy: Optional[str] = typer.Option(None, "--deploy", help="Run the mission on real processes with Flower: local (a SuperLink, one rover process per rover and the base station on this machine, TLS and authentication), or base (only the base station; rovers join with fedmap rover --mission). Star topology, latency 0."),
+    listen: str = typer.Option("127.0.0.1:9092", "--listen", help="--deploy base: the SuperLink's HOST:PORT (rovers connect to it)."),
+    certs: Optional[Path] = typer.Option(None, "--certs", help="--deploy base: TLS folder from fedmap certs (ca.crt, server.pem, server.key)."),
+    auth_keys: Optional[Path] = typer.Option(None, "--auth-keys", help="--deploy base: folder of the rovers' *.pub keys (SuperNode authentication)."),
+    insecure: bool = typer.Option(False, "--insecure", help="--deploy base: listen beyond this machine without TLS or authentication (a trusted network only)."),
     settings: Optional[dict] = None,
     terrain: Optional[dict] = None,
 ) -> None:
@@ -53,6 +61,11 @@ def mission(
     t0 = time.perf_counter()
     cfg, source, resolved = load_mission(config, preset=preset, terrain=terrain,
                                          overrides=[*parse_sets(set_), settings or {}])
+    if deploy is not None:
+        inprocess = [o for o, on in (("--repeats", repeats > 1), ("--record", record is not None), ("--live", live),
+                                     ("--rosbag", rosbag is not None)) if on]
+        if inprocess:
+            raise FedmapError(f"{', '.join(inprocess)} run in process only, not with --deploy")
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
         truth, elevation, prior, profiles = mission_terrain(cfg, source)
@@ -90,18 +103,26 @@ def mission(
         def on_step(name: str, step: int, coverage: float) -> None:
             progress.update(task, completed=step, loss=f"coverage {coverage:.0%}")
 
-        with recorder if recorder is not None else nullcontext():  # stops the server, keeps the MCAP only on success
-            results = run_repeats(cfg, truth, repeats, on_repeat=on_repeat, elevation=elevation, prior=prior,
-                                  profiles=profiles, thresholds=source.thresholds, on_strategy=on_strategy,
-                                  on_step=on_step, on_snapshot=on_snapshot if recorder is not None or bag is not None else None,
-                                  frames=60 if animation else 1)  # without an animation, keep no frames' maps
+        if deploy is not None:
+            results = [_deployed(cfg, resolved, deploy, out=out, animation=animation, progress=progress, listen=listen,
+                                 certs=certs, auth_keys=auth_keys, insecure=insecure)]
+        else:
+            with recorder if recorder is not None else nullcontext():  # stops the server, keeps the MCAP only on success
+                results = run_repeats(cfg, truth, repeats, on_repeat=on_repeat, elevation=elevation, prior=prior,
+                                      profiles=profiles, thresholds=source.thresholds, on_strategy=on_strategy,
+                                      on_step=on_step,
+                                      on_snapshot=on_snapshot if recorder is not None or bag is not None else None,
+                                      frames=60 if animation else 1)  # without an animation, keep no frames' maps
         result = results[0]
         for warning in movement_warnings(result):
             console.print(f"warning: {warning}", soft_wrap=True)
         task = progress.add_task("write outputs", total=None, loss="")
         title = f"{source.label}, {truth.shape[0]}x{truth.shape[1]}"
+        extra = {"mission.toml": dumps_toml(_toml_ready(resolved)), "mission.json": to_json(resolved)}
+        if deploy is not None:
+            extra.update(deploy_logs(out))
         write_mission(result, out, title=title, settings=resolved, animation=animation, repeats=results, beliefs=export,
-                      extra={"mission.toml": dumps_toml(_toml_ready(resolved)), "mission.json": to_json(resolved)})
+                      extra=extra)
         if bag is not None:
             bag.write(rosbag)
         progress.update(task, total=1, completed=1)
@@ -141,6 +162,42 @@ def mission(
     console.print(f"outputs: {out}/  (metrics.json, report.md, maps/, coverage.png, f1.png, accuracy_bytes.png, knowing.png"
                   f"{', mission_<strategy>.gif' if animation else ''})")
     console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
+
+
+def _deployed(cfg, resolved: dict, mode: str, *, out: Path, animation: bool, progress, listen: str,
+              certs: Optional[Path], auth_keys: Optional[Path], insecure: bool):
+    """The mission on real processes (:func:`fedmap.flower.deploy.deploy_mission`), with a
+    progress bar per strategy from the base station's status."""
+    names = tuple(n for n in cfg.strategies if n in DEPLOYABLE)
+    left = [n for n in cfg.strategies if n not in DEPLOYABLE]
+    if not names:
+        raise FedmapError(f"none of the strategies {', '.join(cfg.strategies)} runs on processes; these do: "
+                          f"{', '.join(DEPLOYABLE)}")
+    if left:
+        console.print(f"note: {', '.join(left)} stay(s) out of a mission on processes (not one end per machine)")
+    host, _, port = listen.rpartition(":")
+    if mode == "base" and not (host and port.isdigit()):
+        raise FedmapError(f"--listen must be HOST:PORT, got {listen!r}")
+    tasks: dict[str, int] = {}
+
+    def on_status(st: dict) -> None:
+        name = st.get("strategy")
+        if name and name not in tasks:
+            tasks[name] = progress.add_task(f"mission on processes: {name}", total=cfg.steps, loss="")
+        if name:
+            progress.update(tasks[name], completed=st.get("step", 0), loss="")
+
+    def on_ready(address: str) -> None:
+        if mode == "base":
+            console.print(f"base station listening on {address}; start each rover k with: fedmap rover --mission "
+                          f"--partition-id k --superlink {address} [--root-cert ca.crt --auth-key roverk]",
+                          soft_wrap=True)
+
+    return deploy_mission(dumps_toml(_toml_ready(resolved)), members=cfg.rovers + cfg.helicopters, out=out, mode=mode,
+                          strategies=names, frames=60 if animation else 1,
+                          host=host if mode == "base" else "127.0.0.1", port=int(port) if mode == "base" else 0,
+                          certs=certs, auth_keys=auth_keys, insecure=insecure, rounds=len(cfg.sync_steps) + 1,
+                          on_status=on_status, on_ready=on_ready)
 
 
 def _print_repeats(results: list, title: str) -> None:

@@ -247,11 +247,12 @@ def _one_line(text: str) -> str:
     return " ".join(words[-6:]) or "(no output)"
 
 
-def submit_run(flwr_home: Path, run_config: dict, *, env: dict, timeout: float = 120.0) -> None:
-    """``flwr run <fedmap app> fedmap --run-config <toml>``: submit the base station's run."""
+def submit_run(flwr_home: Path, run_config: dict, *, env: dict, timeout: float = 120.0, app: Path | None = None) -> None:
+    """``flwr run <app> fedmap --run-config <toml>``: submit the base station's run (``app``:
+    the Flower App's folder; default :func:`app_dir`, the snapshot federation)."""
     overrides = flwr_home / "fedmap-run-config.toml"
     overrides.write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in run_config.items()))
-    flwr_cli(["run", str(app_dir()), CONNECTION, "--run-config", str(overrides)], env=env, timeout=timeout)
+    flwr_cli(["run", str(app or app_dir()), CONNECTION, "--run-config", str(overrides)], env=env, timeout=timeout)
 
 
 def read_status(out: Path) -> dict | None:

@@ -50,6 +50,7 @@ from fedmap.flower.launch import (
     set_death_signal,
     sigterm_as_interrupt,
 )
+from fedmap.flower.mission_task import parse_mission_fault
 from fedmap.flower.task import load_local_map
 
 #: Seconds a rover keeps trying to reach its SuperLink before it gives up (``fedmap rover --max-wait``).
@@ -88,10 +89,20 @@ def supernode_argv(*, superlink: str, port: int, node_config: dict, root_cert: P
 
 
 def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str | None, size: int, agents: int,
-                      explore: str, seed: int, out: Path | None, fault: str | None = None) -> dict:
+                      explore: str, seed: int, out: Path | None, fault: str | None = None,
+                      mission: bool = False) -> dict:
     """The SuperNode's node config for one rover (checked by loading the map once);
-    ``fault``: see :mod:`fedmap.flower.faults` (tests only)."""
+    ``fault``: see :mod:`fedmap.flower.faults` (tests only). ``mission``: a rover of a
+    mission on processes, which builds its world from the mission the base sends (no map)."""
     cfg: dict = {"partition-id": partition_id}
+    if mission:
+        if map_path is not None or terrain is not None or out is not None:
+            raise FedmapError("a mission rover (--mission) takes its terrain from the base station's mission: "
+                              "no --map, --terrain or --out")
+        if fault:
+            parse_mission_fault(fault)
+            cfg["fault"] = fault
+        return {**cfg, "mission": True}
     if fault:
         parse_fault(fault)
         cfg["fault"] = fault

@@ -244,6 +244,7 @@ class RoverNode:
         self.rover = world.team[k]
         self.step = 0
         self._told = 0  # trail cells already reported
+        self._last: tuple[bytes, bytes] | None = None  # the last order it answered, and its report
         self._seen = {"dropped": 0, "losses": 0, "trained_cells": 0}
         world.sense(k, 0)
         self._states = [self._state(0)]  # recorded, not yet reported (the record of a step follows its deliveries)
@@ -263,6 +264,16 @@ class RoverNode:
             self._seen[key] = len(entries)
             out[key] = [e.to_dict() if isinstance(e, DroppedUpdate) else e for e in new]
         return out
+
+    def answer(self, raw: bytes) -> bytes:
+        """The report (bytes) to an order (bytes). The same order again (its report was lost
+        or damaged on the way) gets the same report again; a damaged order raises
+        :class:`CorruptMessage` (the base sends it again)."""
+        if self._last is not None and raw == self._last[0]:
+            return self._last[1]
+        report = self.handle(Order.from_bytes(raw)).to_bytes()
+        self._last = (raw, report)
+        return report
 
     def handle(self, order: Order) -> Report:
         """Apply the order's events, drive to its step, sync, and report."""
@@ -466,7 +477,7 @@ def loopback(mission: Mission, name: str) -> Transport:
         for k, raw in orders.items():
             if k not in nodes:
                 nodes[k] = RoverNode(mission, name, k)
-            out[k] = nodes[k].handle(Order.from_bytes(raw)).to_bytes()
+            out[k] = nodes[k].answer(raw)
         return out
 
     return send

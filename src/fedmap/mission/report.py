@@ -71,6 +71,7 @@ def metrics(result: MissionResult, *, settings: dict | None = None) -> dict:
         "starts": [list(s) for s in result.starts], "base": list(result.base),
         "seconds": result.seconds,
         "strategies": {name: run.to_dict() for name, run in result.runs.items()},
+        **({"faults": list(result.faults)} if result.faults else {}),
     }
 
 

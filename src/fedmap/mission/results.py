@@ -237,6 +237,8 @@ class MissionResult:
     base: Cell  #: the base station's cell (row, col)
     runs: dict[str, StrategyRun]  #: strategy name -> its run, in the order they ran
     seconds: float  #: wall time of the whole mission, seconds
+    #: on processes: one record per fault met and how it was handled (``{"strategy", "rover", "fault"}``)
+    faults: tuple[dict, ...] = ()
 
 
 

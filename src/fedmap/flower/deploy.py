@@ -1,0 +1,161 @@
+"""``fedmap mission --deploy``: a mission on real processes, started and waited for.
+
+``local``: on this machine, a SuperLink with TLS and SuperNode authentication (a fresh CA,
+server certificate and one key pair per rover, :func:`~fedmap.flower.launch.make_certs`),
+one rover process per member of the team (``fedmap rover --mission``: its SuperNode, kept
+connected), and the mission's ServerApp (:mod:`fedmap.flower.mission_server`), all on
+127.0.0.1. ``base``: only the base station, for rovers on other machines (``--certs`` and
+``--auth-keys`` unless it listens on loopback or ``--insecure``). Either way the command
+returns the finished :class:`~fedmap.mission.results.MissionResult` and every process's log
+is in ``<out>.run/`` (kept beside the outputs as ``logs/``).
+
+Nothing here imports ``flwr``.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from fedmap.errors import FedmapError
+from fedmap.flower.checkpoint import run_dir
+from fedmap.flower.launch import (
+    CONNECTION,
+    SUPERLINK_EXES,
+    Processes,
+    Tls,
+    check_exposure,
+    flower_env,
+    flwr_cli,
+    free_port,
+    make_certs,
+    read_status,
+    require_executables,
+    sigterm_as_interrupt,
+    submit_run,
+    superlink_argv,
+    wait_for_port,
+    wait_for_result,
+    write_connection,
+)
+from fedmap.flower.mission_task import MissionRun, read_result, result_path
+from fedmap.flower.task import run_status_path, write_status
+from fedmap.mission.results import MissionResult
+
+#: Where ``fedmap mission --deploy`` runs.
+DEPLOY_MODES = ("local", "base")
+
+
+def mission_app_dir() -> Path:
+    """The mission's Flower App (its ``pyproject.toml``) that ``flwr run`` submits."""
+    return Path(__file__).resolve().parent / "mission_app"
+
+
+def rover_argv(k: int, *, superlink: str, root_cert: Path | None, auth_key: Path | None, log: Path,
+               fault: str | None = None) -> list[str]:
+    """``fedmap rover --mission`` for member ``k`` (what each rover machine runs)."""
+    argv = [sys.executable, "-m", "fedmap", "rover", "--mission", "--partition-id", str(k), "--superlink", superlink,
+            "--log", str(log), "--max-wait", "120"]
+    if root_cert is not None:
+        argv += ["--root-cert", str(root_cert)]
+    if auth_key is not None:
+        argv += ["--auth-key", str(auth_key)]
+    if fault:
+        argv += ["--fault", fault]
+    return argv
+
+
+def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "local", strategies: tuple[str, ...] = (),
+                   frames: int = 60, host: str = "127.0.0.1", port: int = 0, certs: Path | None = None,
+                   auth_keys: Path | None = None, insecure: bool = False, deadline: float = 600.0,
+                   connect_timeout: float = 120.0, rounds: int = 1, faults: dict[int, str] | None = None,
+                   on_status: Callable[[dict], None] | None = None,
+                   on_ready: Callable[[str], None] | None = None) -> MissionResult:
+    """Run the mission ``mission_toml`` (resolved TOML) on real processes; its result.
+
+    ``members``: rovers and helicopters (one process each with ``local``). ``out``: where
+    the outputs will go; the run's files (certificates, Flower's home, logs, status,
+    result) are in ``<out>.run/``. ``on_ready(address)`` is called once the SuperLink
+    listens (``base``: start the rovers then). ``rounds``: the orders of one strategy's
+    mission (its syncs and the last), which bound the wait with ``deadline``. ``faults``: per rover, a fault it injects
+    (tests only, :func:`fedmap.flower.mission_task.parse_mission_fault`).
+    """
+    if mode not in DEPLOY_MODES:
+        raise FedmapError(f"unknown --deploy {mode!r}: choose one of {', '.join(DEPLOY_MODES)}")
+    out = Path(out).resolve()
+    work = run_dir(out)
+    work.mkdir(parents=True, exist_ok=True)
+    require_executables(SUPERLINK_EXES)
+    if mode == "local":
+        if host != "127.0.0.1" or certs is not None or auth_keys is not None:
+            raise FedmapError("--deploy local makes its own certificates on 127.0.0.1; --host, --certs and --auth-keys "
+                              "are for --deploy base")
+        make_certs(work / "certs", hosts=["127.0.0.1", "localhost"], rovers=members)
+        certs = auth_keys = work / "certs"
+    check_exposure(host, tls=certs is not None, auth=auth_keys is not None, insecure=insecure)
+    tls = Tls.from_dir(certs) if certs is not None else None
+    keys = sorted(Path(auth_keys).resolve().glob("*.pub")) if auth_keys is not None else []
+    if auth_keys is not None and not keys:
+        raise FedmapError(f"no rover public keys (*.pub) in {auth_keys}; make them with: fedmap certs DIR --rovers N")
+    env = flower_env(work / "flwr-home")
+    run_config = {"mission": mission_toml, "strategies": ",".join(strategies), "out": str(out), "frames": frames,
+                  "connect-timeout": connect_timeout, "deadline": deadline}
+    MissionRun.from_run_config(run_config)  # a bad run config fails here, before any process starts
+    run_status_path(out).unlink(missing_ok=True)
+    result_path(out).unlink(missing_ok=True)
+    port = port or free_port(host if host not in ("0.0.0.0", "::", "") else "127.0.0.1")
+    try:
+        with Processes() as procs, sigterm_as_interrupt():
+            procs.start("superlink", superlink_argv(host=host, port=port, tls=tls, auth=auth_keys is not None),
+                        env=env, log=work / "superlink.log", die_with_parent=True)
+            local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
+            wait_for_port(local, port, timeout=60, alive=lambda: procs.check_alive("superlink"))
+            write_connection(Path(env["FLWR_HOME"]), address=f"{local}:{port}", root_cert=tls.ca if tls else None)
+            for pub in keys:
+                flwr_cli(["supernode", "register", str(pub), CONNECTION], env=env, timeout=60)
+            rovers = []
+            if mode == "local":
+                for k in range(members):
+                    name = f"rover{k}"
+                    procs.start(name, rover_argv(k, superlink=f"127.0.0.1:{port}", root_cert=work / "certs" / "ca.crt",
+                                                 auth_key=work / "certs" / name, log=work / f"{name}.supernode.log",
+                                                 fault=(faults or {}).get(k)),
+                                env=env, log=work / f"{name}.log", die_with_parent=True)
+                    rovers.append(name)
+            since = time.time() - 1
+            submit_run(Path(env["FLWR_HOME"]), run_config, env=env, app=mission_app_dir())
+            if on_ready is not None:
+                on_ready(f"{local}:{port}")
+
+            def alive() -> None:
+                procs.check_alive("superlink")
+                for name in rovers:
+                    p = procs.procs[name]
+                    if p.poll() not in (None, 0):
+                        procs.check_alive(name)
+
+            budget = connect_timeout + 600 + max(len(strategies), 1) * rounds * deadline
+            wait_for_result(out, since=since, timeout=budget, alive=alive,
+                            on_status=on_status)
+            for name in rovers:  # each stops once the base said the mission is over
+                try:
+                    procs.procs[name].wait(timeout=30)
+                except Exception:  # noqa: BLE001 - a rover that lingers is stopped with the rest
+                    pass
+    except KeyboardInterrupt:
+        st = read_status(out) or {}
+        write_status(out, "interrupted", message="interrupted")
+        raise FedmapError(f"mission interrupted ({st.get('strategy', 'before the first strategy')}, step "
+                          f"{st.get('step', 0)}); its processes are stopped; logs in {work}") from None
+    return read_result(out)
+
+
+def deploy_logs(out: Path) -> dict[str, str]:
+    """Every process's log of the mission run for ``out`` (``logs/<name>.log`` -> text), for its outputs."""
+    work = run_dir(Path(out).resolve())
+    return {f"logs/{p.name}": p.read_text(errors="replace") for p in sorted(work.glob("*.log"))}
+
+
+__all__ = ["DEPLOY_MODES", "deploy_logs", "deploy_mission", "mission_app_dir", "rover_argv"]
