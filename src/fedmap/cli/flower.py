@@ -112,16 +112,20 @@ def rover(
     warm: bool = typer.Option(True, "--warm/--cold",
                               help="Fork each message's ClientApp from one process that imported torch and "
                                    "fedmap once (--cold: a fresh process per message, Flower's default)."),
+    poll: Optional[float] = typer.Option(None, "--poll", min=0.01, help="Seconds between the SuperNode's polls of the SuperLink when idle (default: Flower's 3 s; a mission's rounds come every sync: 0.1 on a fast link)."),
+    state: Optional[Path] = typer.Option(None, "--state", help="--mission: the folder the rover keeps its state in between messages (a restarted rover carries on from it; default: a temporary folder)."),
+    rejoin: bool = typer.Option(False, "--rejoin", help="This rover was restarted: its key was accepted before, so a refusal may be the SuperLink still listing its old node; keep trying."),
     mission: bool = typer.Option(False, "--mission", help="A rover of a mission on processes (fedmap mission --deploy base): it drives, senses and shares on the base station's mission; no --map or --terrain."),
 ) -> None:
     """Rover: run a Flower SuperNode (a snapshot federation on its local map, or with --mission a rover of a mission); exits when its run ends."""
     cfg = rover_node_config(partition_id=partition_id, map_path=map_path, terrain=terrain, size=size,
-                            agents=agents, explore=explore, seed=seed, out=out, fault=fault, mission=mission)
+                            agents=agents, explore=explore, seed=seed, out=out, fault=fault, mission=mission,
+                            state=state)
     if root_cert is None:
         console.print("warning: no --root-cert, connecting without TLS (fine on a trusted local network only)")
     console.print(f"rover {partition_id}: connecting to {superlink}")
     code = run_rover(cfg, superlink=superlink, root_cert=root_cert, auth_key=auth_key, port=port, max_wait=max_wait,
-                     warm=warm, log=log)
+                     warm=warm, log=log, poll=poll, rejoin=rejoin)
     if mission:
         console.print(f"rover {partition_id}: mission over")
         raise typer.Exit(code)

@@ -27,6 +27,11 @@ import importlib.util
 from fedmap.errors import FedmapError
 
 INSTALL_HINT = "Flower is not installed; run: pip install 'fedmap[flower]'"
+#: Environment variable of fedmap's SuperNode (:mod:`fedmap.flower.supernode`): seconds between
+#: its polls of its SuperLink when it has no message (Flower's own: 3 s); ``fedmap rover --poll``.
+POLL_ENV = "FEDMAP_SUPERNODE_POLL"
+#: Flower's SuperExec: seconds between its polls for a task (a ClientApp to start; Flower's own: 1 s).
+SUPEREXEC_POLL_ENV = "FLWR_SUPEREXEC_TASK_POLL_INTERVAL"
 
 
 def require_flwr() -> None:

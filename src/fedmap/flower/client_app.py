@@ -35,6 +35,7 @@ from flwr.app import (
     RecordDict,
 )
 from flwr.clientapp import ClientApp
+from flwr.supernode.cli.flwr_clientapp import flwr_clientapp
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError, RejectedUpdate
@@ -145,10 +146,10 @@ def evaluate(msg: Message, context: Context) -> Message:
 
 def flwr_clientapp_main(argv: list[str]) -> None:
     """Flower's ``flwr-clientapp`` command with ``argv``, in this process (the warm
-    ClientApp server's forked children, :mod:`fedmap.flower.warm`); exits like the command."""
+    ClientApp server's forked children, :mod:`fedmap.flower.warm`); exits like the command.
+    Its module is imported with this one, so the warm server's children inherit it (it
+    pulls in Flower's runtime API: FastAPI, SQLAlchemy, seconds of imports per message)."""
     import sys
-
-    from flwr.supernode.cli.flwr_clientapp import flwr_clientapp
 
     sys.argv = ["flwr-clientapp", *argv]
     flwr_clientapp()

@@ -17,6 +17,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 from fedmap.errors import FedmapError
@@ -44,6 +45,10 @@ from fedmap.flower.mission_task import MissionRun, read_result, result_path
 from fedmap.flower.task import run_status_path, write_status
 from fedmap.mission.results import MissionResult
 
+#: Seconds between a local rover's polls of its SuperLink (loopback: polls cost nothing).
+LOCAL_POLL = 0.05
+#: ``--deploy local``: rover processes started again after they died, in all, before the mission fails.
+ROVER_PROCESS_RESTARTS = 20
 #: Where ``fedmap mission --deploy`` runs.
 DEPLOY_MODES = ("local", "base")
 
@@ -53,11 +58,11 @@ def mission_app_dir() -> Path:
     return Path(__file__).resolve().parent / "mission_app"
 
 
-def rover_argv(k: int, *, superlink: str, root_cert: Path | None, auth_key: Path | None, log: Path,
+def rover_argv(k: int, *, superlink: str, root_cert: Path | None, auth_key: Path | None, log: Path, state: Path,
                fault: str | None = None) -> list[str]:
     """``fedmap rover --mission`` for member ``k`` (what each rover machine runs)."""
     argv = [sys.executable, "-m", "fedmap", "rover", "--mission", "--partition-id", str(k), "--superlink", superlink,
-            "--log", str(log), "--max-wait", "120"]
+            "--log", str(log), "--max-wait", "120", "--poll", str(LOCAL_POLL), "--state", str(state)]
     if root_cert is not None:
         argv += ["--root-cert", str(root_cert)]
     if auth_key is not None:
@@ -115,14 +120,16 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
             write_connection(Path(env["FLWR_HOME"]), address=f"{local}:{port}", root_cert=tls.ca if tls else None)
             for pub in keys:
                 flwr_cli(["supernode", "register", str(pub), CONNECTION], env=env, timeout=60)
-            rovers = []
+            rovers: list[str] = []
+            argvs: dict[str, list[str]] = {}
+            restarted: list[dict] = []
             if mode == "local":
                 for k in range(members):
                     name = f"rover{k}"
-                    procs.start(name, rover_argv(k, superlink=f"127.0.0.1:{port}", root_cert=work / "certs" / "ca.crt",
-                                                 auth_key=work / "certs" / name, log=work / f"{name}.supernode.log",
-                                                 fault=(faults or {}).get(k)),
-                                env=env, log=work / f"{name}.log", die_with_parent=True)
+                    argvs[name] = rover_argv(k, superlink=f"127.0.0.1:{port}", root_cert=work / "certs" / "ca.crt",
+                                             auth_key=work / "certs" / name, log=work / f"{name}.supernode.log",
+                                             state=work / f"{name}.state", fault=(faults or {}).get(k))
+                    procs.start(name, argvs[name], env=env, log=work / f"{name}.log", die_with_parent=True)
                     rovers.append(name)
             since = time.time() - 1
             submit_run(Path(env["FLWR_HOME"]), run_config, env=env, app=mission_app_dir())
@@ -131,10 +138,18 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
 
             def alive() -> None:
                 procs.check_alive("superlink")
-                for name in rovers:
-                    p = procs.procs[name]
-                    if p.poll() not in (None, 0):
+                for k, name in enumerate(rovers):
+                    code = procs.procs[name].poll()
+                    if code in (None, 0):
+                        continue
+                    if len(restarted) >= ROVER_PROCESS_RESTARTS:
                         procs.check_alive(name)
+                    st = read_status(out) or {}
+                    restarted.append({"strategy": st.get("strategy", ""), "rover": k,
+                                      "fault": f"rover process exited (code {code}) near step {st.get('step', 0)}; "
+                                               "started again"})
+                    procs.start(name, [*argvs[name], "--rejoin"], env=env, log=work / f"{name}.log",
+                                die_with_parent=True)
 
             budget = connect_timeout + 600 + max(len(strategies), 1) * rounds * deadline
             wait_for_result(out, since=since, timeout=budget, alive=alive,
@@ -149,7 +164,8 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
         write_status(out, "interrupted", message="interrupted")
         raise FedmapError(f"mission interrupted ({st.get('strategy', 'before the first strategy')}, step "
                           f"{st.get('step', 0)}); its processes are stopped; logs in {work}") from None
-    return read_result(out)
+    result = read_result(out)
+    return replace(result, faults=(*result.faults, *restarted))
 
 
 def deploy_logs(out: Path) -> dict[str, str]:

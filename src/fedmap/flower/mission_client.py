@@ -4,8 +4,9 @@
 ``query``: say which rover it is (node config ``partition-id``). ``train``: the base's
 order of a sync round; the rover drives to its step, syncs and replies with its report. A
 damaged order is answered with ``error`` / ``corrupt`` (the base sends it again). The node
-lives in ``context.state`` between messages, one per strategy, and is dropped when its
-strategy's mission is over. ``evaluate``: the mission is over; with ``done-file=<path>`` in
+lives in the rover's own folder between messages (node config ``state-dir``), one per
+mission and strategy (:func:`fedmap.flower.mission_task.rover_answer`), so a rover
+process killed and started again carries on. ``evaluate``: the mission is over; with ``done-file=<path>`` in
 the node config it writes that file (``fedmap rover`` then stops its SuperNode).
 """
 
@@ -24,8 +25,6 @@ from fedmap.mission.remote import Order
 
 app = ClientApp()
 
-_NODE = "fedmap.mission."  # + strategy: the pickled RoverNode
-_FAULTS = "fedmap.mission-faults"  # faults already injected
 
 
 def _rover(context: Context) -> int:
@@ -42,32 +41,31 @@ def which(msg: Message, context: Context) -> Message:
 
 @app.train()
 def order(msg: Message, context: Context) -> Message:
-    strategy = str(msg.content["config"]["strategy"])
     k = _rover(context)
+    state = context.node_config.get("state-dir")
+    if not state:
+        return _error(msg, "node config state-dir (where the rover keeps its state) is missing", corrupt=False)
     raw = from_record(msg.content.array_records.get("order"))
-    key = _NODE + strategy
-    blob = context.state[key]["pickle"] if key in context.state else None  # this rover's own state
-    assert blob is None or isinstance(blob, bytes)
     try:
-        report, blob = rover_answer(blob, str(context.run_config["mission"]), strategy, k, raw)
+        report = rover_answer(Path(str(state)), str(context.run_config["mission"]), k, raw)
     except CorruptMessage as e:
-        return Message(RecordDict({"error": ConfigRecord({"reason": str(e), "corrupt": True})}), reply_to=msg)
+        return _error(msg, str(e), corrupt=True)
     except FedmapError as e:
-        return Message(RecordDict({"error": ConfigRecord({"reason": str(e), "corrupt": False})}), reply_to=msg)
-    done = Order.from_bytes(raw).finish
-    if done:
-        context.state.pop(key, None)
-    else:
-        context.state[key] = ConfigRecord({"pickle": blob})
+        return _error(msg, str(e), corrupt=False)
     fault = context.node_config.get("fault")
     if fault:  # fault-injection tests only: damage one report, once
         _, at = parse_mission_fault(str(fault))
-        seen = str(context.state[_FAULTS]["done"]) if _FAULTS in context.state else ""
-        tag = f"{strategy}@{at};"
-        if Order.from_bytes(raw).step == at and tag not in seen:
-            context.state[_FAULTS] = ConfigRecord({"done": f"{seen}{tag}"})
+        order = Order.from_bytes(raw)
+        mark = Path(str(state)) / f"fault-{order.mission}-{order.strategy}-{at}"
+        if order.step == at and not mark.exists():
+            atomic_write_bytes(mark, b"")
             report = damaged(report)
     return Message(RecordDict({"report": to_record(report)}), reply_to=msg)
+
+
+def _error(msg: Message, reason: str, *, corrupt: bool) -> Message:
+    """Reported, not raised: a damaged order is sent again, any other error stops the run with this line."""
+    return Message(RecordDict({"error": ConfigRecord({"reason": reason, "corrupt": corrupt})}), reply_to=msg)
 
 
 @app.evaluate()

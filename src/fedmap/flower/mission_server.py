@@ -16,6 +16,7 @@ is a line of the run's ``faults`` and of the log. At the end every rover gets a
 from __future__ import annotations
 
 import time
+import uuid
 from logging import INFO, WARNING
 
 from flwr.app import ConfigRecord, Context, Message, MessageType, RecordDict
@@ -33,6 +34,23 @@ app = ServerApp()
 
 #: Times an order is sent again after a damaged order or report before the run fails.
 RESENDS = 3
+#: Seconds between the base's polls for replies (Flower's ``send_and_receive`` waits 3 s).
+POLL = 0.02
+
+
+def exchange(grid: Grid, msgs: list[Message], timeout: float) -> list[Message]:
+    """Push ``msgs``, then pull their replies every :data:`POLL` s until all are in or
+    ``timeout`` s have passed."""
+    ids = set(grid.push_messages(msgs))
+    replies: list[Message] = []
+    t_end = time.monotonic() + timeout
+    while ids and time.monotonic() < t_end:
+        got = list(grid.pull_messages(ids))
+        replies += got
+        ids -= {m.metadata.reply_to_message_id for m in got}
+        if ids:
+            time.sleep(POLL)
+    return replies
 
 
 class _Team:
@@ -45,51 +63,60 @@ class _Team:
 
     def _connect(self) -> dict[int, int]:
         t_end = time.monotonic() + self.run.connect_timeout
-        while len(nodes := sorted(self.grid.get_node_ids())) < self.members and time.monotonic() < t_end:
-            time.sleep(0.5)
-        if len(nodes) < self.members:
-            raise FedmapError(f"{len(nodes)} of {self.members} rovers connected after {self.run.connect_timeout:g} s")
-        msgs = [Message(RecordDict({"config": ConfigRecord({})}), dst_node_id=n, message_type=MessageType.QUERY)
-                for n in nodes]
-        sent = {m.object_id: n for m, n in zip(msgs, nodes)}
         node_of: dict[int, int] = {}
-        for reply in self.grid.send_and_receive(msgs, timeout=self.run.deadline):
-            if reply.has_error():
-                raise FedmapError(f"a rover did not say which it is: {reply.error.reason}".splitlines()[0])
-            k = int(reply.content["config"]["rover"])  # type: ignore[arg-type]
-            node = sent[reply.metadata.reply_to_message_id]
-            if k in node_of:
-                raise FedmapError(f"two nodes ({node_of[k]} and {node}) say they are rover {k}")
-            node_of[k] = node
+        while len(node_of) < self.members and time.monotonic() < t_end:
+            node_of.update(self._which(set(self.grid.get_node_ids()) - set(node_of.values())))
+            if len(node_of) < self.members:
+                time.sleep(0.5)
         missing = sorted(set(range(self.members)) - set(node_of))
-        if missing or len(node_of) != self.members:
-            raise FedmapError(f"the mission needs rovers 0..{self.members - 1}; connected: {sorted(node_of)}"
-                              + (f", missing {missing}" if missing else ""))
+        if missing:
+            raise FedmapError(f"rover(s) {missing} did not connect within {self.run.connect_timeout:g} s "
+                              f"({len(node_of)} of {self.members} did)")
         return node_of
 
+    def _which(self, nodes: set[int]) -> dict[int, int]:
+        """Ask ``nodes`` which rover each is: ``{rover: node}`` (a node that does not answer is left out)."""
+        if not nodes:
+            return {}
+        msgs = [Message(RecordDict({"config": ConfigRecord({})}), dst_node_id=n, message_type=MessageType.QUERY)
+                for n in sorted(nodes)]
+        sent = {m.object_id: n for m, n in zip(msgs, sorted(nodes))}
+        found: dict[int, int] = {}
+        for reply in exchange(self.grid, msgs, min(self.run.deadline, 30.0)):
+            if reply.has_error() or "config" not in reply.content.config_records:
+                continue
+            k = int(reply.content["config"]["rover"])  # type: ignore[arg-type]
+            if not 0 <= k < self.members:
+                raise FedmapError(f"a node says it is rover {k}; the mission's team is 0..{self.members - 1}")
+            found[k] = sent[reply.metadata.reply_to_message_id]
+        return found
+
     def send(self, strategy: str, orders: dict[int, bytes]) -> dict[int, bytes]:
-        """Every order to its rover, every report back; a damaged one's order goes again."""
+        """Every order to its rover, every report back. A damaged order or report: the order
+        goes again. A rover that does not answer (its process died, its link is down): the
+        order goes again, to its new node once it has come back, for up to ``rejoin`` s."""
         reports: dict[int, bytes] = {}
         todo = dict(orders)
-        for _ in range(RESENDS + 1):
+        damaged = 0
+        gone: dict[int, float] = {}  # rover -> when it first failed to answer
+        while todo:
             msgs = [Message(RecordDict({"order": to_record(raw), "config": ConfigRecord({"strategy": strategy})}),
                             dst_node_id=self.node_of[k], message_type=MessageType.TRAIN) for k, raw in todo.items()]
             sent = {m.object_id: k for m, k in zip(msgs, todo)}
             again: dict[int, bytes] = {}
-            replies = list(self.grid.send_and_receive(msgs, timeout=self.run.deadline))
-            got = set()
-            for reply in replies:
+            wait = self.run.deadline if not gone else min(self.run.deadline, 10.0)
+            answered = set()
+            for reply in exchange(self.grid, msgs, wait):
                 k = sent.get(reply.metadata.reply_to_message_id)
-                if k is None:
-                    continue
-                got.add(k)
-                if reply.has_error():
-                    raise FedmapError(f"rover {k} failed: {reply.error.reason}".splitlines()[0])
+                if k is None or reply.has_error():
+                    continue  # a Flower error: the node is gone, as if it had not answered
+                answered.add(k)
                 if "error" in reply.content.config_records:
                     why = str(reply.content["error"]["reason"])
                     if not reply.content["error"].get("corrupt"):
                         raise FedmapError(f"rover {k}: {why}")
                     again[k] = todo[k]
+                    damaged += 1
                     self._fault(strategy, k, f"order damaged on the way ({why}); sent again")
                     continue
                 raw = from_record(reply.content.array_records.get("report"))
@@ -97,15 +124,26 @@ class _Team:
                     Report.from_bytes(raw)
                 except CorruptMessage as e:
                     again[k] = todo[k]
+                    damaged += 1
                     self._fault(strategy, k, f"report damaged on the way ({e}); order sent again")
                     continue
                 reports[k] = raw
-            for k in set(todo) - got:
-                raise FedmapError(f"rover {k} did not answer within {self.run.deadline:g} s")
-            if not again:
-                return reports
+                if k in gone:
+                    self._fault(strategy, k, f"back after {time.monotonic() - gone.pop(k):.0f} s; its order sent again")
+            if damaged > RESENDS * max(len(orders), 1):
+                raise FedmapError(f"rover(s) {sorted(again)}: every copy of the order or report was damaged")
+            for k in set(todo) - answered:
+                if k not in gone:
+                    gone[k] = time.monotonic()
+                    self._fault(strategy, k, "did not answer; waiting for it to come back")
+                elif time.monotonic() - gone[k] > self.run.rejoin:
+                    raise FedmapError(f"rover {k} did not come back within {self.run.rejoin:g} s")
+                again[k] = todo[k]
+            if gone:  # a rover that came back has a new node: find it
+                time.sleep(1.0)
+                self.node_of.update(self._which(set(self.grid.get_node_ids()) - set(self.node_of.values())))
             todo = again
-        raise FedmapError(f"rover(s) {sorted(todo)}: every copy of the order or report was damaged ({RESENDS + 1} sent)")
+        return reports
 
     def _fault(self, strategy: str, k: int, what: str) -> None:
         self.faults.append({"strategy": strategy, "rover": k, "fault": what})
@@ -115,7 +153,7 @@ class _Team:
         """Tell every rover the mission is over (its SuperNode may stop)."""
         msgs = [Message(RecordDict({"config": ConfigRecord({"done": True})}), dst_node_id=n,
                         message_type=MessageType.EVALUATE) for n in self.node_of.values()]
-        list(self.grid.send_and_receive(msgs, timeout=60))
+        exchange(self.grid, msgs, 60)
 
 
 def run_mission_base(grid: Grid, run: MissionRun) -> MissionResult:
@@ -127,11 +165,12 @@ def run_mission_base(grid: Grid, run: MissionRun) -> MissionResult:
     check_deployable(mission, names)
     c = mission.config
     team = _Team(grid, run, c.rovers + c.helicopters)
+    mission_id = uuid.uuid4().hex[:12]  # the rovers keep their state under it
     runs = {}
     for name in names:
         t1 = time.perf_counter()
         log(INFO, "fedmap: mission %s on %d rovers", name, team.members)
-        base = BaseNode(mission, name)
+        base = BaseNode(mission, name, mission_id=mission_id)
         for step in rounds(base, lambda orders: team.send(name, orders)):
             write_status(run.out, "running", strategy=name, step=step, steps=c.steps)
         runs[name] = base.result(time.perf_counter() - t1)

@@ -21,7 +21,7 @@ from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
 from fedmap.mission import load_mission, mission_terrain
-from fedmap.mission.remote import DEPLOYABLE, CorruptMessage, RoverNode
+from fedmap.mission.remote import DEPLOYABLE, CorruptMessage, Order, RoverNode
 from fedmap.mission.results import MissionResult
 from fedmap.mission.sim import Mission, prepare_mission
 
@@ -33,6 +33,7 @@ MISSION_RUN_DEFAULTS: dict[str, Any] = {
     "frames": 60,  # the animation's frames per strategy (1: none kept)
     "connect-timeout": 120.0,  # seconds to wait for every rover to connect
     "deadline": 600.0,  # seconds a sync round may take
+    "rejoin": 300.0,  # seconds a rover that stopped answering may take to come back
 }
 
 
@@ -46,6 +47,7 @@ class MissionRun:
     frames: int
     connect_timeout: float
     deadline: float
+    rejoin: float
 
     @classmethod
     def from_run_config(cls, cfg: dict) -> MissionRun:
@@ -57,7 +59,7 @@ class MissionRun:
             raise FedmapError("the mission run config has no mission (the resolved mission TOML)")
         names = tuple(s.strip() for s in str(c["strategies"]).split(",") if s.strip())
         return cls(str(c["mission"]), names, Path(str(c["out"])), int(c["frames"]), float(c["connect-timeout"]),
-                   float(c["deadline"]))
+                   float(c["deadline"]), float(c["rejoin"]))
 
 
 def mission_from_text(text: str, *, frames: int = 60) -> Mission:
@@ -80,13 +82,28 @@ def strategies_of(run: MissionRun, mission: Mission) -> tuple[str, ...]:
 # -- a rover between messages ----------------------------------------------------------------
 
 
-def rover_answer(blob: bytes | None, mission_text: str, strategy: str, k: int, order: bytes) -> tuple[bytes, bytes]:
-    """Rover ``k``'s report to ``order`` and its node to keep until the next message
-    (``blob``: the node it kept, None before its first order of ``strategy``). Both are
-    this rover's own state, written by this rover. :class:`CorruptMessage` for a damaged order."""
-    node = pickle.loads(blob) if blob is not None else RoverNode(mission_from_text(mission_text, frames=1), strategy, k)
-    report = node.answer(order)
-    return report, pickle.dumps(node, protocol=pickle.HIGHEST_PROTOCOL)
+def state_file(state_dir: Path, order: Order) -> Path:
+    """Where a rover keeps its node of ``order``'s mission and strategy between messages."""
+    return Path(state_dir) / f"{order.mission or 'mission'}-{order.strategy}.pickle"
+
+
+def rover_answer(state_dir: Path, mission_text: str, k: int, raw: bytes) -> bytes:
+    """Rover ``k``'s report to the order ``raw``. Its node (its world, end and clock) lives in
+    ``state_dir`` between messages (its own state, written by itself, atomically with each
+    report: a rover process killed and started again carries on where it was; the file goes
+    when the mission's last order is answered). :class:`CorruptMessage` for a damaged order."""
+    order = Order.from_bytes(raw)
+    path = state_file(state_dir, order)
+    if path.is_file():
+        node = pickle.loads(path.read_bytes())
+    else:
+        node = RoverNode(mission_from_text(mission_text, frames=1), order.strategy, k)
+    report = node.answer(raw)
+    if order.finish:
+        path.unlink(missing_ok=True)
+    else:
+        atomic_write_bytes(path, pickle.dumps(node, protocol=pickle.HIGHEST_PROTOCOL))
+    return report
 
 
 def parse_mission_fault(text: str) -> tuple[str, int]:
@@ -131,4 +148,5 @@ def read_result(out: Path) -> MissionResult:
 
 
 __all__ = ["MISSION_RUN_DEFAULTS", "CorruptMessage", "MissionRun", "damaged", "mission_from_text",
-           "parse_mission_fault", "read_result", "result_path", "rover_answer", "strategies_of", "write_result"]
+           "parse_mission_fault", "read_result", "result_path", "rover_answer", "state_file", "strategies_of",
+           "write_result"]

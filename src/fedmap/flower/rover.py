@@ -38,6 +38,7 @@ import time
 from pathlib import Path
 
 from fedmap.errors import FedmapError
+from fedmap.flower import POLL_ENV, SUPEREXEC_POLL_ENV
 from fedmap.flower import warm as warm_server
 from fedmap.flower.faults import parse_fault
 from fedmap.flower.launch import (
@@ -90,10 +91,11 @@ def supernode_argv(*, superlink: str, port: int, node_config: dict, root_cert: P
 
 def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str | None, size: int, agents: int,
                       explore: str, seed: int, out: Path | None, fault: str | None = None,
-                      mission: bool = False) -> dict:
+                      mission: bool = False, state: Path | None = None) -> dict:
     """The SuperNode's node config for one rover (checked by loading the map once);
     ``fault``: see :mod:`fedmap.flower.faults` (tests only). ``mission``: a rover of a
-    mission on processes, which builds its world from the mission the base sends (no map)."""
+    mission on processes, which builds its world from the mission the base sends (no map),
+    and keeps its state in ``state`` (None: a temporary folder, gone when the rover exits)."""
     cfg: dict = {"partition-id": partition_id}
     if mission:
         if map_path is not None or terrain is not None or out is not None:
@@ -102,6 +104,8 @@ def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str 
         if fault:
             parse_mission_fault(fault)
             cfg["fault"] = fault
+        if state is not None:
+            cfg["state-dir"] = str(Path(state).resolve())
         return {**cfg, "mission": True}
     if fault:
         parse_fault(fault)
@@ -175,7 +179,8 @@ def _marks(text: str, marks: tuple[str, ...]) -> bool:
 
 def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = None, auth_key: Path | None = None,
               port: int = 0, flwr_home: Path | None = None, log: Path | None = None,
-              max_wait: float = ROVER_MAX_WAIT, warm: bool = True) -> int:
+              max_wait: float = ROVER_MAX_WAIT, warm: bool = True, poll: float | None = None,
+              rejoin: bool = False) -> int:
     """Run this rover's SuperNode until its run ends; returns 0.
 
     The SuperNode runs in a process group of its own, stopped as a group (with the SuperExec
@@ -188,7 +193,11 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
     rover. Flower's log goes to ``log`` (default: a temporary folder, removed with
     ``flwr_home``'s default when the rover exits). ``warm``: Flower's per-message ClientApp
     processes are forked from one process that imported torch and fedmap and read the map
-    once (:mod:`fedmap.flower.warm`) instead of starting cold.
+    once (:mod:`fedmap.flower.warm`) instead of starting cold. ``poll``: seconds between the
+    SuperNode's polls of its SuperLink, and its SuperExec's for a task, when idle (None:
+    Flower's 3 s and 1 s; a mission sends a message a sync). ``rejoin``: this rover's key was
+    accepted before (the rover was restarted), so a refusal may be the SuperLink still
+    listing its old node: it keeps trying, within the bounds above.
     """
     pid = node_config.get("partition-id", "?")
     if root_cert is not None and not Path(root_cert).is_file():
@@ -203,10 +212,14 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
     with tempfile.TemporaryDirectory(prefix="fedmap-rover-flwr-") as tmp, Processes() as procs, \
             sigterm_as_interrupt():
         done = Path(tmp) / "done"
+        if node_config.get("mission") and not node_config.get("state-dir"):  # kept only while this rover runs
+            node_config = {**node_config, "state-dir": str(Path(tmp) / "state")}
         argv = supernode_argv(superlink=superlink, port=port or free_port(), node_config={**node_config,
                               "done-file": str(done)}, root_cert=root_cert, auth_key=auth_key, max_wait=max_wait)
         log = Path(log) if log is not None else Path(tmp) / "supernode.log"
         env = flower_env(Path(flwr_home) if flwr_home else Path(tmp) / "flwr-home")
+        if poll is not None:  # how often the SuperNode asks for a message, and its SuperExec for a task
+            env[POLL_ENV] = env[SUPEREXEC_POLL_ENV] = str(poll)
         server = None
         if warm:  # one process imports torch and fedmap once and forks a ClientApp per message
             sock = str(Path(tmp) / "clientapp.sock")
@@ -215,7 +228,7 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
             server = fork_warm_server(sock, node_config, env=env, log=log)
         try:
             return _supervise(procs, pid, superlink, argv, env=env, log=log, done=done, tls=root_cert is not None,
-                              max_wait=max_wait, self_registered=auth_key is None)
+                              max_wait=max_wait, self_registered=auth_key is None, rejoin=rejoin)
         finally:
             if server is not None:
                 _reap(server)
@@ -261,9 +274,10 @@ def _reap(pid: int) -> None:
 
 
 def _supervise(procs: Processes, pid, superlink: str, argv: list[str], *, env: dict, log: Path, done: Path,
-               tls: bool, max_wait: float, self_registered: bool) -> int:
+               tls: bool, max_wait: float, self_registered: bool, rejoin: bool = False) -> int:
     """Run SuperNodes until the run ends for this rover (0) or a one-line failure."""
     watch = _Watch(superlink, tls=tls, max_wait=max_wait, self_registered=self_registered)
+    watch.ever_reached = rejoin
     restarts = 0  # in a row, without the SuperNode reaching its SuperLink in between
     for total in range(1, ROVER_RESTARTS_TOTAL + 2):
         text = watch.run(procs, argv, env=env, log=log, done=done)

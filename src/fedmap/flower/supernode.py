@@ -15,11 +15,15 @@ SuperNode at once. Everything else is Flower's own ``flower-supernode``.
 
 from __future__ import annotations
 
+import os
 import sys
+import time
 
 import flwr.supernode.fleet_http_connection as fleet
 from flwr.supercore.retry import RetryInvoker, make_simple_http_retry_invoker
 from flwr.supernode.cli import flower_supernode
+
+from fedmap.flower import POLL_ENV
 
 #: Substrings of an SSL error raised by a link that went away mid-handshake (not a TLS problem).
 LINK_DROPPED = ("unexpected_eof_while_reading", "eof occurred in violation of protocol")
@@ -45,8 +49,26 @@ def retry_invoker() -> RetryInvoker:
     return invoker
 
 
+class _Polling:
+    """Flower's ``time`` module for its SuperNode loop, with every wait capped at ``poll`` s."""
+
+    def __init__(self, poll: float) -> None:
+        self.poll = poll
+
+    def sleep(self, seconds: float) -> None:
+        time.sleep(min(seconds, self.poll))
+
+    def __getattr__(self, name: str):
+        return getattr(time, name)
+
+
 def main(argv: list[str]) -> int:
     fleet.make_simple_http_retry_invoker = retry_invoker  # the SuperNode's connection to its SuperLink
+    poll = os.environ.get(POLL_ENV)
+    if poll:
+        import flwr.supernode.start_client_internal as loop
+
+        loop.time = _Polling(float(poll))  # type: ignore[assignment]
     sys.argv = ["flower-supernode", *argv]
     flower_supernode()
     return 0

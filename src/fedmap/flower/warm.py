@@ -54,10 +54,11 @@ def _answer(conn: socket.socket, pid: int) -> None:
 
 def serve(sock: str, node_config: dict) -> None:  # pragma: no cover - a long-lived process
     """Import once, then fork a ClientApp process per request until killed."""
+    import fedmap.flower.client_app  # noqa: F401 - the imports the children no longer pay (Flower's runtime too)
+
     if node_config.get("mission"):  # a mission rover: its world comes with the base's first order
-        import fedmap.flower.mission_client  # noqa: F401 - the import the children no longer pay
+        import fedmap.flower.mission_client  # noqa: F401
     else:
-        import fedmap.flower.client_app  # noqa: F401
         from fedmap.flower.task import load_local_map
 
         load_local_map(node_config)  # cached: the children inherit the rover's map

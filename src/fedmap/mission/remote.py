@@ -104,6 +104,7 @@ class Order:
     finish: bool = False
     #: ``("ack", round, ok)`` for its uplink of ``round``, ``("down", round, payload)`` for a downlink
     events: list[tuple] = field(default_factory=list)
+    mission: str = ""  #: the mission's id (a rover keeps one state per mission and strategy)
 
     def to_bytes(self) -> bytes:
         heads: list[list] = []
@@ -115,7 +116,7 @@ class Order:
             else:
                 heads.append(list(ev))
         return pack_frame({"kind": "order", "strategy": self.strategy, "rover": self.rover, "round": self.round_no,
-                           "step": self.step, "finish": self.finish, "events": heads}, blobs)
+                           "step": self.step, "finish": self.finish, "events": heads, "mission": self.mission}, blobs)
 
     @classmethod
     def from_bytes(cls, raw: bytes) -> Order:
@@ -123,7 +124,7 @@ class Order:
         if h.get("kind") != "order":
             raise CorruptMessage(f"expected an order, got a {h.get('kind')!r} message")
         events = [("down", e[1], blobs[e[2]]) if e[0] == "down" else ("ack", e[1], bool(e[2])) for e in h["events"]]
-        return cls(h["strategy"], h["rover"], h["round"], h["step"], h["finish"], events)
+        return cls(h["strategy"], h["rover"], h["round"], h["step"], h["finish"], events, h.get("mission", ""))
 
 
 @dataclass
@@ -359,9 +360,9 @@ class BaseNode:
     every rover's report and gives the next orders (none: the mission is over, :meth:`result`)."""
 
     def __init__(self, mission: Mission, name: str, *, on_step: Callable[[str, int, float], None] | None = None,
-                 on_snapshot: Callable | None = None) -> None:
+                 on_snapshot: Callable | None = None, mission_id: str = "") -> None:
         check_deployable(mission, [name])
-        self.name, self.config = name, mission.config
+        self.name, self.config, self.mission_id = name, mission.config, mission_id
         self.stand_ins: list[RemoteRover] = []
         self.trails: list[list[Cell]] = []  # every member's cells driven, as reported (its start first)
         self.run = mission.new_run(name, ends=self._ends, on_snapshot=on_snapshot)
@@ -390,7 +391,8 @@ class BaseNode:
         step, finish = (nxt[0], False) if nxt else (self.config.steps, True)
         orders = {}
         for s in self.stand_ins:
-            orders[s.k] = Order(self.name, s.k, 0 if finish else self.syncs[step], step, finish, s.events)
+            orders[s.k] = Order(self.name, s.k, 0 if finish else self.syncs[step], step, finish, s.events,
+                                self.mission_id)
             s.events = []
         return orders
 
