@@ -16,7 +16,6 @@ from fedmap import _schema
 from fedmap._util import to_json
 from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import console, fit, progress_bar, terrain_line
-from fedmap.config import dumps_toml
 from fedmap.errors import FedmapError
 from fedmap.flower.deploy import deploy_logs, deploy_mission
 from fedmap.mission import load_mission, mission_terrain
@@ -26,7 +25,7 @@ from fedmap.mission.remote import DEPLOYABLE
 from fedmap.mission.repeats import run_repeats, what_varies
 from fedmap.mission.report import global_meaning, has_peers, repeat_rows, table_rows, verdict, write_mission
 from fedmap.mission.results import movement_warnings
-from fedmap.mission.settings import MISSION_SECTIONS, parse_sets
+from fedmap.mission.settings import MISSION_SECTIONS, mission_toml, parse_sets
 from fedmap.mission.sim import start_pocket_warning
 from fedmap.pipeline import PipelineConfig
 
@@ -118,7 +117,7 @@ def mission(
             console.print(f"warning: {warning}", soft_wrap=True)
         task = progress.add_task("write outputs", total=None, loss="")
         title = f"{source.label}, {truth.shape[0]}x{truth.shape[1]}"
-        extra = {"mission.toml": dumps_toml(_toml_ready(resolved)), "mission.json": to_json(resolved)}
+        extra = {"mission.toml": mission_toml(resolved), "mission.json": to_json(resolved)}
         if deploy is not None:
             extra.update(deploy_logs(out))
         write_mission(result, out, title=title, settings=resolved, animation=animation, repeats=results, beliefs=export,
@@ -193,7 +192,7 @@ def _deployed(cfg, resolved: dict, mode: str, *, out: Path, animation: bool, pro
                           f"--partition-id k --superlink {address} [--root-cert ca.crt --auth-key roverk]",
                           soft_wrap=True)
 
-    return deploy_mission(dumps_toml(_toml_ready(resolved)), members=cfg.rovers + cfg.helicopters, out=out, mode=mode,
+    return deploy_mission(mission_toml(resolved), members=cfg.rovers + cfg.helicopters, out=out, mode=mode,
                           strategies=names, frames=60 if animation else 1,
                           host=host if mode == "base" else "127.0.0.1", port=int(port) if mode == "base" else 0,
                           certs=certs, auth_keys=auth_keys, insecure=insecure, rounds=len(cfg.sync_steps) + 1,
@@ -224,12 +223,3 @@ _CONSOLE = {"strategy": "strategy", "steps to 50 %": "50 %", "steps to 80 %": "8
 _CONSOLE_HEIGHTS = {"base height RMSE m": "z RMSE m"}
 #: Console columns of a mission with peer messages (mesh, leader, gossip).
 _CONSOLE_PEER = {"B/link/round": "B/link/rnd", "peer messages not delivered": "peer lost"}
-
-
-def _toml_ready(d: dict) -> dict:
-    """The resolved settings without None values (TOML has no null)."""
-    if isinstance(d, dict):
-        return {k: _toml_ready(v) for k, v in d.items() if v is not None}
-    if isinstance(d, (list, tuple)):
-        return [_toml_ready(v) for v in d]
-    return d

@@ -33,6 +33,7 @@ from fedmap._util import check_keys, suggest
 from fedmap.config import (
     KEYWORDS,
     base_defaults,
+    dumps_toml,
     merge,
     parse_set,
     read_toml,
@@ -433,6 +434,19 @@ def _preset_data(name: str) -> dict:
     if name not in names:
         raise FedmapError(f"unknown mission preset {name!r}{suggest(name, names)}")
     return tomllib.loads(resources.files("fedmap.mission").joinpath("presets", f"{name}.toml").read_text("utf-8"))
+
+
+def mission_toml(resolved: dict) -> str:
+    """The resolved mission (:func:`load_mission`'s third value) as the TOML text that runs
+    it again (``mission.toml`` of the outputs; what a mission on processes sends its rovers)."""
+    def ready(d):
+        if isinstance(d, dict):
+            return {k: ready(v) for k, v in d.items() if v is not None}  # TOML has no null
+        if isinstance(d, (list, tuple)):
+            return [ready(v) for v in d]
+        return d
+
+    return dumps_toml(ready(resolved))
 
 
 def load_mission(path: str | Path | None = None, *, preset: str | None = None, mission: dict | None = None,

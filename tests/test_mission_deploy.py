@@ -1,0 +1,125 @@
+"""A mission on real processes (``fedmap mission --deploy local``): a SuperLink with TLS and
+SuperNode authentication, one rover process per rover, the mission's ServerApp, all on
+loopback. It records what the in-process mission records, message for message, and
+carries on through faults: a damaged report, a rover process killed mid-mission and
+started again, the link down for several syncs."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("flwr")
+
+from fedmap.errors import FedmapError  # noqa: E402
+from fedmap.flower.deploy import deploy_mission  # noqa: E402
+from fedmap.flower.mission_task import MISSION_RUN_DEFAULTS  # noqa: E402
+from fedmap.maps.grid import UNKNOWN  # noqa: E402
+from fedmap.mission import load_mission, mission_terrain, run_mission  # noqa: E402
+from fedmap.mission.report import metrics, without_timings  # noqa: E402
+from fedmap.mission.settings import mission_toml  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+
+def _in_process(mission_toml):
+    config, source, _ = load_mission(mission_toml)
+    truth, elevation, prior, profiles = mission_terrain(config, source)
+    return run_mission(config, truth, elevation=elevation, prior=prior, profiles=profiles,
+                       thresholds=source.thresholds, frames=1)
+
+
+def _same(here, apart, names):
+    a, b = without_timings(metrics(here)), without_timings(metrics(apart))
+    for name in names:
+        assert [(m.bytes, m.status) for m in here.runs[name].ledger] == \
+               [(m.bytes, m.status) for m in apart.runs[name].ledger], name
+        assert json.dumps(a["strategies"][name], sort_keys=True) == json.dumps(b["strategies"][name], sort_keys=True), name
+        assert here.runs[name].trails == apart.runs[name].trails
+        for va, vb in zip(here.runs[name].views, apart.runs[name].views):
+            np.testing.assert_array_equal(va, vb)
+
+
+@pytest.mark.xdist_group("loopback-a")  # a long loopback run: see addopts in pyproject.toml
+def test_the_default_mission_on_processes_equals_the_mission_in_process(tmp_path):
+    out = tmp_path / "out"
+    names = ("raw", "predictive", "fedmap")
+    r = subprocess.run([sys.executable, "-m", "fedmap", "mission", "--deploy", "local", "--strategies", ",".join(names),
+                        "--set", "mission.steps=40", "--no-animation", "-o", str(out)],
+                       capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    deployed = json.loads((out / "metrics.json").read_text())
+    assert set(deployed["strategies"]) == set(names)
+    assert "faults" not in deployed  # nothing went wrong
+    here = _in_process(out / "mission.toml")  # the mission as deployed, resolved
+    assert without_timings(deployed["strategies"]) == without_timings(metrics(here)["strategies"])
+    for name in names:
+        assert sum(m["bytes"] for m in deployed["strategies"][name]["ledger"]) > 0
+    logs = {p.name for p in (out / "logs").iterdir()}
+    assert {"superlink.log", *(f"rover{k}.log" for k in range(4)), *(f"rover{k}.supernode.log" for k in range(4))} <= logs
+    assert "TLS" not in r.stderr and "insecure" not in (out / "logs" / "rover0.log").read_text().lower()
+
+
+@pytest.mark.xdist_group("loopback-b")
+def test_a_mission_on_processes_loses_nothing_to_faults(tmp_path):
+    """Rover 1 damages its report of the order to step 30 (its check fails: the order goes
+    again); rover 2's process is killed at step 40 and started again (it carries on from
+    its state); the lander's link is down for steps 20-40. The result equals the
+    uninterrupted in-process mission's, and every cell observed reached the base."""
+    config, source, resolved = load_mission(overrides=[{"mission": {"steps": 60, "strategies": ["predictive"]},
+                                                        "link": {"loss": 0.0, "lander_cut": [20, 40]}}])
+    text = mission_toml(resolved)
+    (tmp_path / "mission.toml").write_text(text)
+    work = tmp_path / "out.run"
+    killed: list[int] = []
+
+    def on_status(st: dict) -> None:
+        if st.get("step", 0) >= 40 and not killed:  # the rover's own process, with its SuperNode
+            pids = subprocess.run(["pgrep", "-f", "--", f"--partition-id 2 .*{work}"], capture_output=True,
+                                  text=True).stdout
+            for pid in map(int, pids.split()):
+                if "rover" in open(f"/proc/{pid}/cmdline").read() and pid != os.getpid():
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+
+    apart = deploy_mission(text, members=config.rovers, out=tmp_path / "out", strategies=("predictive",), frames=1,
+                           rounds=len(config.sync_steps) + 1, faults={1: "corrupt@30"}, on_status=on_status)
+    assert killed
+    here = _in_process(tmp_path / "mission.toml")
+    _same(here, apart, ("predictive",))
+    what = [f["fault"] for f in apart.faults]
+    assert any("report damaged" in w for w in what) and any(f["rover"] == 1 for f in apart.faults)
+    assert any("rover process exited" in w for w in what) and any(f["rover"] == 2 for f in apart.faults)
+    ledger = apart.runs["predictive"].ledger
+    assert any(m.status == "link down" for m in ledger)
+    # nothing observed is lost: the base holds every cell any rover observed by the last sync
+    run = apart.runs["predictive"]
+    last = run.series.coverage[-1]
+    held = run.frames[-1].global_map != UNKNOWN
+    assert abs(held.mean() - last) < 1e-12
+
+
+def test_the_mission_app_declares_every_run_config_key():
+    import tomllib
+    from pathlib import Path
+
+    from fedmap.flower.deploy import mission_app_dir
+
+    app = tomllib.loads((Path(mission_app_dir()) / "pyproject.toml").read_text())
+    assert app["tool"]["flwr"]["app"]["config"] == MISSION_RUN_DEFAULTS
+
+
+def test_a_base_station_beyond_loopback_needs_tls_and_authentication(tmp_path):
+    with pytest.raises(FedmapError, match="refusing to listen on 0.0.0.0 without TLS") as e:
+        deploy_mission("[mission]\n", members=1, out=tmp_path / "out", mode="base", host="0.0.0.0", port=1)
+    assert "\n" not in str(e.value)
+    with pytest.raises(FedmapError, match="--deploy local makes its own certificates"):
+        deploy_mission("[mission]\n", members=1, out=tmp_path / "out", mode="local", certs=tmp_path)
+    with pytest.raises(FedmapError, match="unknown --deploy"):
+        deploy_mission("[mission]\n", members=1, out=tmp_path / "out", mode="cloud")
