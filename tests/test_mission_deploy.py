@@ -11,6 +11,7 @@ import os
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -84,7 +85,7 @@ def test_a_mission_on_processes_loses_nothing_to_faults(tmp_path):
             pids = subprocess.run(["pgrep", "-f", "--", f"--partition-id 2 .*{work}"], capture_output=True,
                                   text=True).stdout
             for pid in map(int, pids.split()):
-                if "rover" in open(f"/proc/{pid}/cmdline").read() and pid != os.getpid():
+                if b"rover" in Path(f"/proc/{pid}/cmdline").read_bytes() and pid != os.getpid():
                     os.kill(pid, signal.SIGKILL)
                     killed.append(pid)
 
