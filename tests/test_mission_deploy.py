@@ -11,6 +11,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -104,6 +105,70 @@ def test_a_mission_on_processes_loses_nothing_to_faults(tmp_path):
     last = run.series.coverage[-1]
     held = run.frames[-1].global_map != UNKNOWN
     assert abs(held.mean() - last) < 1e-12
+
+
+def _kill_everything_of(tmp_path) -> int:
+    """SIGKILL every process started for this test (its environment names ``tmp_path``): the
+    base station's machine crashing, with every rover on it."""
+    killed = 0
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit() or int(d.name) == os.getpid():
+            continue
+        try:
+            if str(tmp_path).encode() in (d / "environ").read_bytes() or \
+                    str(tmp_path).encode() in (d / "cmdline").read_bytes():
+                os.kill(int(d.name), signal.SIGKILL)
+                killed += 1
+        except (OSError, ProcessLookupError):
+            continue
+    return killed
+
+
+@pytest.mark.xdist_group("loopback-b")
+def test_a_base_station_killed_mid_mission_resumes_bit_for_bit(tmp_path):
+    """Everything is killed at once at step >= 30 (SIGKILL: no clean-up); the same command
+    with --resume replays the base's journal, the rovers carry on from their state folders,
+    and the result equals the uninterrupted in-process mission's."""
+    out = tmp_path / "out"
+    argv = [sys.executable, "-m", "fedmap", "mission", "--deploy", "local", "--strategies", "raw,predictive",
+            "--set", "mission.steps=60", "--no-animation", "-o", str(out)]
+    env = {**os.environ, "FEDMAP_TEST_RUN": str(tmp_path)}
+    first = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+                             start_new_session=True)
+    status = tmp_path / "out.run" / "status.json"
+    t_end = time.monotonic() + 600
+    try:
+        while time.monotonic() < t_end:
+            st = json.loads(status.read_text()) if status.is_file() else {}
+            if st.get("strategy") == "predictive" and st.get("step", 0) >= 30:
+                break
+            assert first.poll() is None, "the first run ended before it could be killed"
+            time.sleep(0.2)
+        assert _kill_everything_of(tmp_path) > 0
+    finally:
+        first.kill()
+        first.wait()
+    time.sleep(1.0)
+    r = subprocess.run([*argv, "--resume"], capture_output=True, text=True, timeout=900, env=env)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    deployed = json.loads((out / "metrics.json").read_text())
+    assert any("base station resumed" in f["fault"] for f in deployed["faults"])
+    here = _in_process(out / "mission.toml")
+    assert without_timings(deployed["strategies"]) == without_timings(metrics(here)["strategies"])
+
+
+def test_resuming_without_a_journal_or_with_another_mission_is_refused(tmp_path):
+    from fedmap.flower.mission_task import BaseJournal
+
+    with pytest.raises(FedmapError, match="nothing to resume"):
+        BaseJournal(tmp_path / "out", "[mission]\nsteps = 10\n", resume=True)
+    j = BaseJournal(tmp_path / "out", "[mission]\nsteps = 10\n", resume=False)
+    j.save("raw", 0, {0: b"a", 1: b"bc"}, [{"rover": 1, "fault": "x"}])
+    again = BaseJournal(tmp_path / "out", "[mission]\nsteps = 10\n", resume=True)
+    assert again.mission_id == j.mission_id and again.saved("raw") == 1 and again.saved("fedmap") == 0
+    assert again.load("raw", 0) == ({0: b"a", 1: b"bc"}, [{"rover": 1, "fault": "x"}])
+    with pytest.raises(FedmapError, match="another mission"):
+        BaseJournal(tmp_path / "out", "[mission]\nsteps = 20\n", resume=True)
 
 
 def test_the_mission_app_declares_every_run_config_key():

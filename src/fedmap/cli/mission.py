@@ -52,6 +52,7 @@ def mission(
     listen: str = typer.Option("127.0.0.1:9092", "--listen", help="--deploy base: the SuperLink's HOST:PORT (rovers connect to it)."),
     certs: Optional[Path] = typer.Option(None, "--certs", help="--deploy base: TLS folder from fedmap certs (ca.crt, server.pem, server.key)."),
     auth_keys: Optional[Path] = typer.Option(None, "--auth-keys", help="--deploy base: folder of the rovers' *.pub keys (SuperNode authentication)."),
+    resume: bool = typer.Option(False, "--resume", help="--deploy: carry on from the base station's journal of an earlier run into the same --out that was killed (the rovers carry on from their state folders)."),
     insecure: bool = typer.Option(False, "--insecure", help="--deploy base: listen beyond this machine without TLS or authentication (a trusted network only)."),
     settings: Optional[dict] = None,
     terrain: Optional[dict] = None,
@@ -104,7 +105,7 @@ def mission(
 
         if deploy is not None:
             results = [_deployed(cfg, resolved, deploy, out=out, animation=animation, progress=progress, listen=listen,
-                                 certs=certs, auth_keys=auth_keys, insecure=insecure)]
+                                 certs=certs, auth_keys=auth_keys, insecure=insecure, resume=resume)]
         else:
             with recorder if recorder is not None else nullcontext():  # stops the server, keeps the MCAP only on success
                 results = run_repeats(cfg, truth, repeats, on_repeat=on_repeat, elevation=elevation, prior=prior,
@@ -164,7 +165,7 @@ def mission(
 
 
 def _deployed(cfg, resolved: dict, mode: str, *, out: Path, animation: bool, progress, listen: str,
-              certs: Optional[Path], auth_keys: Optional[Path], insecure: bool):
+              certs: Optional[Path], auth_keys: Optional[Path], insecure: bool, resume: bool):
     """The mission on real processes (:func:`fedmap.flower.deploy.deploy_mission`), with a
     progress bar per strategy from the base station's status."""
     names = tuple(n for n in cfg.strategies if n in DEPLOYABLE)
@@ -196,6 +197,7 @@ def _deployed(cfg, resolved: dict, mode: str, *, out: Path, animation: bool, pro
                           strategies=names, frames=60 if animation else 1,
                           host=host if mode == "base" else "127.0.0.1", port=int(port) if mode == "base" else 0,
                           certs=certs, auth_keys=auth_keys, insecure=insecure, rounds=len(cfg.sync_steps) + 1,
+                          resume=resume,
                           on_status=on_status, on_ready=on_ready)
 
 

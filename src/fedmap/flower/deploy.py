@@ -14,6 +14,7 @@ Nothing here imports ``flwr``.
 
 from __future__ import annotations
 
+import shutil
 import sys
 import time
 from collections.abc import Callable
@@ -75,7 +76,8 @@ def rover_argv(k: int, *, superlink: str, root_cert: Path | None, auth_key: Path
 def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "local", strategies: tuple[str, ...] = (),
                    frames: int = 60, host: str = "127.0.0.1", port: int = 0, certs: Path | None = None,
                    auth_keys: Path | None = None, insecure: bool = False, deadline: float = 600.0,
-                   connect_timeout: float = 120.0, rounds: int = 1, faults: dict[int, str] | None = None,
+                   connect_timeout: float = 120.0, rounds: int = 1, resume: bool = False,
+                   faults: dict[int, str] | None = None,
                    on_status: Callable[[dict], None] | None = None,
                    on_ready: Callable[[str], None] | None = None) -> MissionResult:
     """Run the mission ``mission_toml`` (resolved TOML) on real processes; its result.
@@ -93,6 +95,9 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
     work = run_dir(out)
     work.mkdir(parents=True, exist_ok=True)
     require_executables(SUPERLINK_EXES)
+    if mode == "local" and not resume:  # a rover's state from an earlier run is not this run's
+        for old in work.glob("rover*.state"):
+            shutil.rmtree(old, ignore_errors=True)
     if mode == "local":
         if host != "127.0.0.1" or certs is not None or auth_keys is not None:
             raise FedmapError("--deploy local makes its own certificates on 127.0.0.1; --host, --certs and --auth-keys "
@@ -106,7 +111,7 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
         raise FedmapError(f"no rover public keys (*.pub) in {auth_keys}; make them with: fedmap certs DIR --rovers N")
     env = flower_env(work / "flwr-home")
     run_config = {"mission": mission_toml, "strategies": ",".join(strategies), "out": str(out), "frames": frames,
-                  "connect-timeout": connect_timeout, "deadline": deadline}
+                  "connect-timeout": connect_timeout, "deadline": deadline, "resume": resume}
     MissionRun.from_run_config(run_config)  # a bad run config fails here, before any process starts
     run_status_path(out).unlink(missing_ok=True)
     result_path(out).unlink(missing_ok=True)

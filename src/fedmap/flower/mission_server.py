@@ -16,7 +16,6 @@ is a line of the run's ``faults`` and of the log. At the end every rover gets a
 from __future__ import annotations
 
 import time
-import uuid
 from logging import INFO, WARNING
 
 from flwr.app import ConfigRecord, Context, Message, MessageType, RecordDict
@@ -24,7 +23,7 @@ from flwr.serverapp import Grid, ServerApp
 from flwr.supercore import log
 
 from fedmap.errors import FedmapError
-from fedmap.flower.mission_task import MissionRun, mission_from_text, strategies_of, write_result
+from fedmap.flower.mission_task import BaseJournal, MissionRun, mission_from_text, strategies_of, write_result
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.task import write_status
 from fedmap.mission.remote import BaseNode, CorruptMessage, Report, check_deployable, rounds
@@ -145,6 +144,10 @@ class _Team:
             todo = again
         return reports
 
+    def note(self, strategy: str, what: str) -> None:
+        """A fault of the base station itself (rover -1)."""
+        self._fault(strategy, -1, what)
+
     def _fault(self, strategy: str, k: int, what: str) -> None:
         self.faults.append({"strategy": strategy, "rover": k, "fault": what})
         log(WARNING, "fedmap: %s rover %d: %s", strategy, k, what)
@@ -157,21 +160,38 @@ class _Team:
 
 
 def run_mission_base(grid: Grid, run: MissionRun) -> MissionResult:
-    """Every strategy's mission over the rovers on ``grid``."""
+    """Every strategy's mission over the rovers on ``grid``; with ``run.resume``, the rounds in
+    the base's journal are replayed first (:class:`~fedmap.flower.mission_task.BaseJournal`)."""
     t0 = time.perf_counter()
     write_status(run.out, "running", message="loading the mission")
     mission = mission_from_text(run.mission, frames=run.frames)
     names = strategies_of(run, mission)
     check_deployable(mission, names)
+    journal = BaseJournal(run.out, run.mission, resume=run.resume)
     c = mission.config
     team = _Team(grid, run, c.rovers + c.helicopters)
-    mission_id = uuid.uuid4().hex[:12]  # the rovers keep their state under it
     runs = {}
     for name in names:
         t1 = time.perf_counter()
         log(INFO, "fedmap: mission %s on %d rovers", name, team.members)
-        base = BaseNode(mission, name, mission_id=mission_id)
-        for step in rounds(base, lambda orders: team.send(name, orders)):
+        base = BaseNode(mission, name, mission_id=journal.mission_id)
+        saved, done = journal.saved(name), 0
+
+        def send(orders: dict[int, bytes]) -> dict[int, bytes]:
+            nonlocal done
+            if done < saved:  # replayed: the base's state is rebuilt from what the rovers reported
+                reports, faults = journal.load(name, done)
+                team.faults += faults
+            else:
+                if done == saved and saved:
+                    team.note(name, f"base station resumed: {saved} round(s) replayed from its journal")
+                before = len(team.faults)
+                reports = team.send(name, orders)
+                journal.save(name, done, reports, team.faults[before:])
+            done += 1
+            return reports
+
+        for step in rounds(base, send):
             write_status(run.out, "running", strategy=name, step=step, steps=c.steps)
         runs[name] = base.result(time.perf_counter() - t1)
     team.finish()

@@ -11,8 +11,12 @@ machine: a file of this run, read once), next to ``status.json``.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import pickle
+import shutil
 import tomllib
+import uuid
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -21,7 +25,7 @@ from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
 from fedmap.mission import load_mission, mission_terrain
-from fedmap.mission.remote import DEPLOYABLE, CorruptMessage, Order, RoverNode
+from fedmap.mission.remote import DEPLOYABLE, CorruptMessage, Order, RoverNode, pack_frame, unpack_frame
 from fedmap.mission.results import MissionResult
 from fedmap.mission.sim import Mission, prepare_mission
 
@@ -34,6 +38,7 @@ MISSION_RUN_DEFAULTS: dict[str, Any] = {
     "connect-timeout": 120.0,  # seconds to wait for every rover to connect
     "deadline": 600.0,  # seconds a sync round may take
     "rejoin": 300.0,  # seconds a rover that stopped answering may take to come back
+    "resume": False,  # carry on from the base station's journal (a base that was killed)
 }
 
 
@@ -48,6 +53,7 @@ class MissionRun:
     connect_timeout: float
     deadline: float
     rejoin: float
+    resume: bool
 
     @classmethod
     def from_run_config(cls, cfg: dict) -> MissionRun:
@@ -59,7 +65,7 @@ class MissionRun:
             raise FedmapError("the mission run config has no mission (the resolved mission TOML)")
         names = tuple(s.strip() for s in str(c["strategies"]).split(",") if s.strip())
         return cls(str(c["mission"]), names, Path(str(c["out"])), int(c["frames"]), float(c["connect-timeout"]),
-                   float(c["deadline"]), float(c["rejoin"]))
+                   float(c["deadline"]), float(c["rejoin"]), bool(c["resume"]))
 
 
 def mission_from_text(text: str, *, frames: int = 60) -> Mission:
@@ -121,6 +127,54 @@ def damaged(report: bytes) -> bytes:
     return bytes(b)
 
 
+# -- the base station's journal ----------------------------------------------------------------
+
+
+class BaseJournal:
+    """The base station's mission so far, in ``<out>.run/mission-journal/``: the mission's id
+    and digest, and every round's reports (and faults), written atomically as each round's
+    reports are in. The base's state is a function of the mission and those reports, so a
+    base that was killed rebuilds it bit for bit by replaying them (``resume``), then
+    carries on; a rover asked again for an order it already answered sends the same report."""
+
+    def __init__(self, out: Path, mission_text: str, *, resume: bool) -> None:
+        self.dir = run_dir(out) / "mission-journal"
+        digest = hashlib.sha256(mission_text.encode()).hexdigest()[:16]
+        meta = self.dir / "meta.json"
+        if resume:
+            try:
+                saved = json.loads(meta.read_text())
+            except (FileNotFoundError, ValueError):
+                raise FedmapError(f"nothing to resume: no base station journal in {self.dir}") from None
+            if saved.get("mission") != digest:
+                raise FedmapError(f"the journal in {self.dir} is of another mission (its settings differ): run the "
+                                  "same mission to resume it, or start again without --resume")
+            self.mission_id = str(saved["id"])
+        else:
+            shutil.rmtree(self.dir, ignore_errors=True)
+            self.mission_id = uuid.uuid4().hex[:12]
+            atomic_write_bytes(meta, json.dumps({"id": self.mission_id, "mission": digest}).encode())
+
+    def _path(self, strategy: str, i: int) -> Path:
+        return self.dir / f"{strategy}-{i:05d}.frame"
+
+    def saved(self, strategy: str) -> int:
+        """How many rounds of ``strategy`` are in the journal (its first rounds, in order)."""
+        n = 0
+        while self._path(strategy, n).is_file():
+            n += 1
+        return n
+
+    def load(self, strategy: str, i: int) -> tuple[dict[int, bytes], list[dict]]:
+        header, blobs = unpack_frame(self._path(strategy, i).read_bytes())
+        return dict(zip(header["rovers"], blobs)), list(header["faults"])
+
+    def save(self, strategy: str, i: int, reports: dict[int, bytes], faults: list[dict]) -> None:
+        ks = sorted(reports)
+        atomic_write_bytes(self._path(strategy, i), pack_frame({"rovers": ks, "faults": faults},
+                                                               [reports[k] for k in ks]))
+
+
 # -- the base station's result ----------------------------------------------------------------
 
 
@@ -147,6 +201,6 @@ def read_result(out: Path) -> MissionResult:
     return result
 
 
-__all__ = ["MISSION_RUN_DEFAULTS", "CorruptMessage", "MissionRun", "damaged", "mission_from_text",
+__all__ = ["MISSION_RUN_DEFAULTS", "BaseJournal", "CorruptMessage", "MissionRun", "damaged", "mission_from_text",
            "parse_mission_fault", "read_result", "result_path", "rover_answer", "state_file", "strategies_of",
            "write_result"]

@@ -241,8 +241,8 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     ``on_strategy(name)`` announces each strategy and ``on_step(name, step, coverage)``
     follows it (progress bars); ``frames`` bounds the animation's frames per strategy.
     ``ends(name, setup)`` builds a strategy's ends (default: the registry's
-    :func:`~fedmap.mission.registry.build`, every end in this process;
-    :func:`fedmap.mission.processes.ends_in_processes` puts each in an OS process of its own).
+    :func:`~fedmap.mission.registry.build`, every end in this process; a mission whose
+    rovers run elsewhere is :mod:`fedmap.mission.remote`).
     ``on_snapshot(snapshot)`` gets every strategy's :class:`~fedmap.mission.results.Snapshot`
     at every step as it runs (a recording, a live view).
     """
