@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fedmap.errors import FedmapError
+from fedmap.maps.grid import FREE, UNKNOWN
 from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.remote import (
     BaseNode,
@@ -132,3 +133,70 @@ def test_a_stale_or_misdirected_order_is_refused():
         node.handle(Order("raw", 2, 2, 2 * config.sync_every))
     with pytest.raises(FedmapError, match="reached raw rover 0"):
         node.handle(replace(Order("raw", 0, 2, 2 * config.sync_every), strategy="predictive"))
+
+
+# -- a rover whose observations come from its own mapping software -----------------------------
+
+
+def _snapshots(truth, steps, seed=0):
+    """What a rover's mapping software might write: the truth around a trail of points,
+    growing with the steps (UNKNOWN elsewhere)."""
+    rng = np.random.default_rng(seed)
+    h, w = truth.shape
+    rows, cols = np.indices(truth.shape)
+    seen = np.zeros(truth.shape, bool)
+    out = []
+    for s in steps:
+        r, c = rng.integers(8, h - 8), rng.integers(8, w - 8)
+        seen |= (rows - r) ** 2 + (cols - c) ** 2 <= 36
+        out.append((s, np.where(seen, truth.classes, UNKNOWN).astype(np.uint8)))
+    return out
+
+
+@pytest.mark.parametrize("kind", ["folder", "bag"])
+def test_a_rover_fed_by_its_own_maps_shares_every_cell_they_hold(tmp_path, kind):
+    from fedmap.maps.io import save_map
+    from fedmap.maps.rosbag import write_bag
+    from fedmap.mission.feed import MapFeed
+
+    config, truth, kw = _mission(("raw",), steps=40, loss=0.0)
+    snaps = _snapshots(truth, [0, 10, 20, 30])
+    if kind == "folder":
+        for s, classes in snaps:
+            save_map(truth.with_classes(classes, "feed"), tmp_path / f"map_{s:04d}.png")
+        path = tmp_path
+    else:
+        path = write_bag([("/map", s * 10**9, truth.with_classes(c, "feed")) for s, c in snaps], tmp_path / "bag")
+    feed = MapFeed.open(path)
+    assert feed.steps == [0, 10, 20, 30]
+    for (_, classes), got in zip(snaps, feed.maps):
+        np.testing.assert_array_equal(classes, got)
+    m = prepare_mission(config, truth, **kw)
+    base = BaseNode(m, "raw")
+    for _ in rounds(base, loopback(m, "raw", feeds={0: feed})):
+        pass
+    run = base.result(0.0)
+    fed = snaps[-1][1] != UNKNOWN
+    g = run.sharing.global_map()
+    np.testing.assert_array_equal(g[fed], truth.classes[fed])  # every cell the feed held reached the base
+    assert run.trails[0] and all(truth.classes[c] == FREE for c in run.trails[0])
+
+
+def test_a_bad_map_feed_is_refused_in_one_line(tmp_path):
+    from fedmap.maps.io import save_map
+    from fedmap.mission.feed import MapFeed
+
+    config, truth, kw = _mission(("raw",), steps=12)
+    m = prepare_mission(config, truth, **kw)
+    with pytest.raises(FedmapError, match="does not exist"):
+        MapFeed.open(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FedmapError, match="holds no maps"):
+        MapFeed.open(tmp_path / "empty")
+    small = tmp_path / "small"
+    save_map(truth.with_classes(truth.classes[:32, :32], "small"), small / "map_0005.png")
+    with pytest.raises(FedmapError, match="the map of step 5 is 32x32, the mission's grid is 64x64"):
+        RoverNode(m, "raw", 0, feed=MapFeed.open(small))
+    save_map(truth, tmp_path / "nostep" / "latest.png")
+    with pytest.raises(FedmapError, match="no step number"):
+        MapFeed.open(tmp_path / "nostep")

@@ -115,12 +115,14 @@ def rover(
     poll: Optional[float] = typer.Option(None, "--poll", min=0.01, help="Seconds between the SuperNode's polls of the SuperLink when idle (default: Flower's 3 s; a mission's rounds come every sync: 0.1 on a fast link)."),
     state: Optional[Path] = typer.Option(None, "--state", help="--mission: the folder the rover keeps its state in between messages (a restarted rover carries on from it; default: a temporary folder)."),
     rejoin: bool = typer.Option(False, "--rejoin", help="This rover was restarted: its key was accepted before, so a refusal may be the SuperLink still listing its old node; keep trying."),
+    feed: Optional[Path] = typer.Option(None, "--feed", help="--mission: take this rover's observations from its own mapping software: a folder of map snapshots named with their step (map_0040.png, GeoTIFF, ...) or a ROS 2 bag of nav_msgs/OccupancyGrid."),
+    feed_topic: Optional[str] = typer.Option(None, "--feed-topic", help="--feed: the bag's OccupancyGrid topic (default: its only one)."),
     mission: bool = typer.Option(False, "--mission", help="A rover of a mission on processes (fedmap mission --deploy base): it drives, senses and shares on the base station's mission; no --map or --terrain."),
 ) -> None:
     """Rover: run a Flower SuperNode (a snapshot federation on its local map, or with --mission a rover of a mission); exits when its run ends."""
     cfg = rover_node_config(partition_id=partition_id, map_path=map_path, terrain=terrain, size=size,
                             agents=agents, explore=explore, seed=seed, out=out, fault=fault, mission=mission,
-                            state=state)
+                            state=state, feed=feed, feed_topic=feed_topic)
     if root_cert is None:
         console.print("warning: no --root-cert, connecting without TLS (fine on a trusted local network only)")
     console.print(f"rover {partition_id}: connecting to {superlink}")

@@ -19,7 +19,7 @@ from flwr.clientapp import ClientApp
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
-from fedmap.flower.mission_task import CorruptMessage, damaged, parse_mission_fault, rover_answer
+from fedmap.flower.mission_task import CorruptMessage, damaged, node_feed, parse_mission_fault, rover_answer
 from fedmap.flower.records import from_record, to_record
 from fedmap.mission.remote import Order
 
@@ -47,7 +47,8 @@ def order(msg: Message, context: Context) -> Message:
         return _error(msg, "node config state-dir (where the rover keeps its state) is missing", corrupt=False)
     raw = from_record(msg.content.array_records.get("order"))
     try:
-        report = rover_answer(Path(str(state)), str(context.run_config["mission"]), k, raw)
+        report = rover_answer(Path(str(state)), str(context.run_config["mission"]), k, raw,
+                              feed=node_feed(dict(context.node_config)))
     except CorruptMessage as e:
         return _error(msg, str(e), corrupt=True)
     except FedmapError as e:

@@ -25,6 +25,7 @@ from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
 from fedmap.mission import load_mission, mission_terrain
+from fedmap.mission.feed import MapFeed
 from fedmap.mission.remote import DEPLOYABLE, CorruptMessage, Order, RoverNode, pack_frame, unpack_frame
 from fedmap.mission.results import MissionResult
 from fedmap.mission.sim import Mission, prepare_mission
@@ -93,23 +94,32 @@ def state_file(state_dir: Path, order: Order) -> Path:
     return Path(state_dir) / f"{order.mission or 'mission'}-{order.strategy}.pickle"
 
 
-def rover_answer(state_dir: Path, mission_text: str, k: int, raw: bytes) -> bytes:
+def rover_answer(state_dir: Path, mission_text: str, k: int, raw: bytes, *, feed: MapFeed | None = None) -> bytes:
     """Rover ``k``'s report to the order ``raw``. Its node (its world, end and clock) lives in
     ``state_dir`` between messages (its own state, written by itself, atomically with each
     report: a rover process killed and started again carries on where it was; the file goes
-    when the mission's last order is answered). :class:`CorruptMessage` for a damaged order."""
+    when the mission's last order is answered). ``feed``: its observations come from its
+    own mapping software (:mod:`fedmap.mission.feed`). :class:`CorruptMessage` for a damaged order."""
     order = Order.from_bytes(raw)
     path = state_file(state_dir, order)
     if path.is_file():
         node = pickle.loads(path.read_bytes())
     else:
-        node = RoverNode(mission_from_text(mission_text, frames=1), order.strategy, k)
+        node = RoverNode(mission_from_text(mission_text, frames=1), order.strategy, k, feed=feed)
     report = node.answer(raw)
     if order.finish:
         path.unlink(missing_ok=True)
     else:
         atomic_write_bytes(path, pickle.dumps(node, protocol=pickle.HIGHEST_PROTOCOL))
     return report
+
+
+def node_feed(node_config: dict) -> MapFeed | None:
+    """A mission rover's map feed from its node config (``feed``, ``feed-topic``), or None."""
+    path = node_config.get("feed")
+    if not path:
+        return None
+    return MapFeed.open(Path(str(path)), topic=str(node_config.get("feed-topic") or "") or None)
 
 
 def parse_mission_fault(text: str) -> tuple[str, int]:
@@ -202,5 +212,5 @@ def read_result(out: Path) -> MissionResult:
 
 
 __all__ = ["MISSION_RUN_DEFAULTS", "BaseJournal", "CorruptMessage", "MissionRun", "damaged", "mission_from_text",
-           "parse_mission_fault", "read_result", "result_path", "rover_answer", "state_file", "strategies_of",
-           "write_result"]
+           "node_feed", "parse_mission_fault", "read_result", "result_path", "rover_answer", "state_file",
+           "strategies_of", "write_result"]

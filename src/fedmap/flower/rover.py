@@ -51,7 +51,7 @@ from fedmap.flower.launch import (
     set_death_signal,
     sigterm_as_interrupt,
 )
-from fedmap.flower.mission_task import parse_mission_fault
+from fedmap.flower.mission_task import node_feed, parse_mission_fault
 from fedmap.flower.task import load_local_map
 
 #: Seconds a rover keeps trying to reach its SuperLink before it gives up (``fedmap rover --max-wait``).
@@ -91,11 +91,14 @@ def supernode_argv(*, superlink: str, port: int, node_config: dict, root_cert: P
 
 def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str | None, size: int, agents: int,
                       explore: str, seed: int, out: Path | None, fault: str | None = None,
-                      mission: bool = False, state: Path | None = None) -> dict:
+                      mission: bool = False, state: Path | None = None, feed: Path | None = None,
+                      feed_topic: str | None = None) -> dict:
     """The SuperNode's node config for one rover (checked by loading the map once);
     ``fault``: see :mod:`fedmap.flower.faults` (tests only). ``mission``: a rover of a
     mission on processes, which builds its world from the mission the base sends (no map),
-    and keeps its state in ``state`` (None: a temporary folder, gone when the rover exits)."""
+    and keeps its state in ``state`` (None: a temporary folder, gone when the rover exits);
+    ``feed`` (``feed_topic``): its observations come from its own mapping software
+    (:mod:`fedmap.mission.feed`; checked by opening it once)."""
     cfg: dict = {"partition-id": partition_id}
     if mission:
         if map_path is not None or terrain is not None or out is not None:
@@ -106,6 +109,11 @@ def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str 
             cfg["fault"] = fault
         if state is not None:
             cfg["state-dir"] = str(Path(state).resolve())
+        if feed is not None:
+            cfg["feed"] = str(Path(feed).resolve())
+            if feed_topic:
+                cfg["feed-topic"] = feed_topic
+            node_feed(cfg)  # a missing or unreadable feed: say so before connecting
         return {**cfg, "mission": True}
     if fault:
         parse_fault(fault)

@@ -38,6 +38,7 @@ import zstandard
 
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import UNKNOWN
+from fedmap.mission.feed import FeedWorld, MapFeed
 from fedmap.mission.protocol import DroppedUpdate, Outgoing
 from fedmap.mission.registry import Setup, Sharing, build
 from fedmap.mission.sim import Mission, StrategyRun, TeamState
@@ -230,15 +231,19 @@ def check_deployable(mission: Mission, strategies: list[str] | tuple[str, ...]) 
 
 class RoverNode:
     """One rover of strategy ``name``: its world (the mission's terrain, seeded as the
-    simulator's), its end, and its clock. :meth:`handle` takes an order, returns the report."""
+    simulator's; or with ``feed`` the maps its own software writes), its end, and its
+    clock. :meth:`handle` takes an order, returns the report."""
 
-    def __init__(self, mission: Mission, name: str, k: int) -> None:
+    def __init__(self, mission: Mission, name: str, k: int, *, feed: MapFeed | None = None) -> None:
         check_deployable(mission, [name])
         self.name, self.k, self.config = name, k, mission.config
         self.topology = make_topology(mission.config.link, mission.base)
-        self.world = world = mission.world(self.topology)
+        world = mission.world(self.topology)
         if not 0 <= k < len(world.team):
             raise FedmapError(f"rover {k} is not in the team of {len(world.team)}")
+        if feed is not None:  # its observations come from its own mapping software (fedmap.mission.feed)
+            world = FeedWorld(world, k, feed)
+        self.world = world
         sharing = build(name, Setup(mission.config, mission.truth, world.team, self.topology))
         world.ends = sharing.rovers  # only its own end is ever asked
         self.end, self.journal = sharing.rovers[k], sharing.journal
@@ -469,16 +474,17 @@ def rounds(base: BaseNode, send: Transport) -> Iterator[int]:
         yield step
 
 
-def loopback(mission: Mission, name: str) -> Transport:
+def loopback(mission: Mission, name: str, *, feeds: dict[int, MapFeed] | None = None) -> Transport:
     """Every rover of strategy ``name`` in this process, reached only through bytes (tests,
-    and the reference a mission on processes is checked against)."""
+    and the reference a mission on processes is checked against); ``feeds``: rovers whose
+    observations come from a map feed."""
     nodes: dict[int, RoverNode] = {}
 
     def send(orders: dict[int, bytes]) -> dict[int, bytes]:
         out = {}
         for k, raw in orders.items():
             if k not in nodes:
-                nodes[k] = RoverNode(mission, name, k)
+                nodes[k] = RoverNode(mission, name, k, feed=(feeds or {}).get(k))
             out[k] = nodes[k].answer(raw)
         return out
 
