@@ -189,3 +189,46 @@ def test_a_base_station_beyond_loopback_needs_tls_and_authentication(tmp_path):
         deploy_mission("[mission]\n", members=1, out=tmp_path / "out", mode="local", certs=tmp_path)
     with pytest.raises(FedmapError, match="unknown --deploy"):
         deploy_mission("[mission]\n", members=1, out=tmp_path / "out", mode="cloud")
+
+
+@pytest.mark.xdist_group("loopback-a")
+def test_a_mission_base_refuses_an_unregistered_key_and_a_wrong_ca(tmp_path):
+    """The mission's base station (``--deploy base``) with TLS and two registered rover keys:
+    a rover with an unregistered key is refused, one that does not trust the base's CA
+    fails, each with one line naming the problem."""
+    from fedmap.flower.launch import flower_env, free_port, make_certs
+
+    certs, other, keys = tmp_path / "certs", tmp_path / "other-ca", tmp_path / "registered"
+    make_certs(certs, hosts=["127.0.0.1", "localhost"], rovers=3)
+    make_certs(other, hosts=["127.0.0.1"], rovers=0)
+    keys.mkdir()
+    for k in range(2):  # rover2's key is never registered
+        (keys / f"rover{k}.pub").write_bytes((certs / f"rover{k}.pub").read_bytes())
+    port = free_port()
+    base = subprocess.Popen([sys.executable, "-m", "fedmap", "mission", "--set", "mission.rovers=2", "--strategies", "raw",
+                             "--deploy", "base", "--listen", f"127.0.0.1:{port}", "--certs", str(certs), "--auth-keys",
+                             str(keys), "--no-animation", "-o", str(tmp_path / "out")],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=flower_env(tmp_path / "home-base"), start_new_session=True)
+    try:
+        status = tmp_path / "out.run" / "superlink.log"
+        t_end = time.monotonic() + 120
+        while not status.is_file() and time.monotonic() < t_end:
+            time.sleep(0.2)
+
+        def rover(key, ca, name):
+            return subprocess.run([sys.executable, "-m", "fedmap", "rover", "--mission", "--partition-id", "0",
+                                   "--superlink", f"127.0.0.1:{port}", "--root-cert", str(ca), "--auth-key", str(key),
+                                   "--max-wait", "30", "--log", str(tmp_path / f"{name}.log")],
+                                  capture_output=True, text=True, timeout=180, env=flower_env(tmp_path / f"home-{name}"))
+
+        bad_key = rover(certs / "rover2", certs / "ca.crt", "unregistered")
+        wrong_ca = rover(certs / "rover0", other / "ca.crt", "wrong-ca")
+    finally:
+        os.killpg(base.pid, signal.SIGTERM)
+        base.communicate(timeout=60)
+    assert bad_key.returncode != 0 and "refused this rover's key" in bad_key.stderr, bad_key.stderr[-1500:]
+    assert wrong_ca.returncode != 0 and "TLS certificate problem" in wrong_ca.stderr, wrong_ca.stderr[-1500:]
+    for r in (bad_key, wrong_ca):
+        err = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
+        assert len(err) == 1 and "Traceback" not in r.stderr
