@@ -21,7 +21,7 @@ import sys
 import click
 import typer
 
-from fedmap.cli import experiments, export, flower, meta, mission, run, ui
+from fedmap.cli import experiments, export, flower, merge, meta, mission, run, ui
 from fedmap.errors import FedmapError
 
 app = typer.Typer(
@@ -52,6 +52,7 @@ app.command()(experiments.bandwidth)
 app.command()(run.terrain)
 app.command()(run.evaluate)
 app.command()(export.export)
+app.command()(merge.merge)
 app.command("base-station")(flower.base_station)
 app.command()(flower.rover)
 app.command()(flower.certs)
