@@ -52,8 +52,9 @@ def test_a_well_formed_nan_update_is_dropped_by_the_base():
 
 
 class Proxy:
-    """A TCP proxy on loopback: forwards to ``target``, can delay every chunk, drop every
-    open connection, or refuse the link for a while. Counts what it did."""
+    """A TCP proxy on loopback: forwards to ``target``, can delay every chunk, reset every
+    open connection mid-transfer (:meth:`drop_all`), or take the link down for a while
+    between exchanges (:meth:`cut`). Counts what it did."""
 
     def __init__(self, target_port: int, *, delay: float = 0.0) -> None:
         self.target, self.delay = target_port, delay
@@ -61,6 +62,7 @@ class Proxy:
         self.port = self.srv.getsockname()[1]
         self.down_until = 0.0
         self.conns: list[socket.socket] = []
+        self.open: dict[int, threading.Event] = {}  # open connection -> set when the link goes down under it
         self.counts = {"connections": 0, "refused": 0, "dropped": 0, "delayed_chunks": 0, "cut_dropped": 0}
         self.lock = threading.Lock()
         threading.Thread(target=self._accept, daemon=True).start()
@@ -80,22 +82,33 @@ class Proxy:
             except OSError:
                 c.close()
                 continue
+            # 5 s to connect, not to answer: with the timeout left on, a connection that idled for 5 s, or
+            # whose request the SuperLink (on a loaded machine) took 5 s to answer, was dropped with the
+            # answer after the SuperLink had acted on the request
+            u.settimeout(None)
+            down = threading.Event()
             with self.lock:
                 self.counts["connections"] += 1
+                n = self.counts["connections"]
                 self.conns += [c, u]
-            for a, b in ((c, u), (u, c)):
-                threading.Thread(target=self._pipe, args=(a, b), daemon=True).start()
+                self.open[n] = down
+            threading.Thread(target=self._pipe, args=(c, u, n, down), daemon=True).start()  # the rover's bytes
+            threading.Thread(target=self._pipe, args=(u, c, n, None), daemon=True).start()  # the SuperLink's
 
-    def _pipe(self, a: socket.socket, b: socket.socket) -> None:
+    def _pipe(self, a: socket.socket, b: socket.socket, n: int, down: threading.Event | None) -> None:
         try:
             while data := a.recv(65536):
                 if self.delay:
                     time.sleep(self.delay)
                     self.counts["delayed_chunks"] += 1
+                if down is not None and down.is_set():
+                    break  # the link went down since the last exchange: these bytes never reach the SuperLink
                 b.sendall(data)
         except OSError:
             pass
         finally:
+            with self.lock:
+                self.open.pop(n, None)
             for s in (a, b):
                 try:
                     s.shutdown(socket.SHUT_RDWR)
@@ -115,11 +128,22 @@ class Proxy:
             s.close()
 
     def cut(self, seconds: float) -> None:
-        """Drop every connection and refuse new ones for ``seconds``."""
+        """Take the link down for ``seconds``: new connections are refused, and every open
+        connection is lost at the next bytes a rover sends on it, which never reach the
+        SuperLink. A request the SuperLink has received is still answered: Flower 1.41's
+        SuperLink marks a round's instruction delivered when it answers PullMessages (and
+        opens a reply's upload when it answers PushMessages), so an answer lost on the link
+        costs that rover its round however soon it reconnects (the retried PullMessages finds
+        nothing). Resetting the connections mid-answer made the outcome depend on whether the
+        cut, 0-0.5 s after round 2's status, fell on a rover's answer in flight; answers lost
+        mid-transfer are test_a_link_that_keeps_dropping's fault."""
         self.down_until = time.monotonic() + seconds
-        before = self.counts["dropped"]
-        self.drop_all()
-        self.counts["cut_dropped"] += self.counts["dropped"] - before
+        with self.lock:
+            links = list(self.open.values())
+        for down in links:
+            down.set()
+        self.counts["dropped"] += len(links)
+        self.counts["cut_dropped"] += len(links)
 
     def close(self) -> None:
         self.srv.close()
@@ -158,10 +182,11 @@ RUN = {"net": "small", "init": "random", "epochs": 3, "lr": 1e-2, "seed": 1, "mi
 @pytest.mark.slow
 def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
     """2 rounds, 4 rovers over TLS with registered keys, all through the proxy (20 ms per
-    chunk; as round 2 goes out every connection is dropped and the link is down for 3 s). Rover 2's
-    round-1 payload has a flipped bit, rover 3 sends a NaN update in round 2: each is dropped
-    for that round with the reason, every other rover is aggregated in both rounds (the cut
-    costs nobody a round), and the global model equals the in-process runner with the same
+    chunk; as round 2 goes out the link goes down for 3 s: every open connection is lost at its
+    next request and new ones are refused, see Proxy.cut). Rover 2's round-1 payload has a
+    flipped bit, rover 3 sends a NaN update in round 2: each is dropped for that round with the
+    reason, every other rover is aggregated in both rounds (the cut costs nobody a round,
+    whenever it lands), and the global model equals the in-process runner with the same
     survivors. A rover with an unregistered key is refused and one with the wrong CA fails,
     each with one line, while the base serves the others; every rover exits by itself."""
     pytest.importorskip("flwr")
@@ -187,9 +212,9 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
     def start(rovers: Processes) -> None:
         faults = {2: "bitflip@1", 3: "nan@2"}
         for k in range(4):
-            # a rover keeps reconnecting for 60 s: on a loaded machine 30 s was once too short to come
-            # back after the 3 s cut (rover 0 gave up and missed round 2)
-            rovers.start(f"rover{k}", _rover_argv(proxy.port, k, tmp_path, certs, fault=faults.get(k), max_wait=60),
+            # a rover keeps reconnecting for 30 s: Flower's backoff waits at most 20 s between tries, so
+            # every call is through within 3 + 20 s of the cut
+            rovers.start(f"rover{k}", _rover_argv(proxy.port, k, tmp_path, certs, fault=faults.get(k), max_wait=30),
                          env=flower_env(tmp_path / f"home{k}"), log=tmp_path / f"rover{k}.log")
         # each stops at its first answer from the link; the wait only bounds a loaded machine's start-up
         for name, argv in (("unregistered", _rover_argv(proxy.port, 0, tmp_path, certs, key=certs / "rover4",
@@ -201,7 +226,7 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
 
     def on_status(st: dict, rovers: Processes) -> None:
         if st.get("round", 0) >= 2 and not cut:
-            proxy.cut(3.0)  # as round 2 goes out: every rover loses its connection for 3 s
+            proxy.cut(3.0)  # as round 2 goes out: every rover loses its connections, the link is down for 3 s
             cut.append(True)
 
     try:
