@@ -15,14 +15,17 @@ is a line of the run's ``faults`` and of the log. At the end every rover gets a
 
 from __future__ import annotations
 
+import logging
 import time
 from logging import INFO, WARNING
+from pathlib import Path
 
 from flwr.app import ConfigRecord, Context, Message, MessageType, RecordDict
 from flwr.serverapp import Grid, ServerApp
 from flwr.supercore import log
 
 from fedmap.errors import FedmapError
+from fedmap.flower.checkpoint import run_dir
 from fedmap.flower.mission_task import BaseJournal, MissionRun, mission_from_text, strategies_of, write_result
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.task import write_status
@@ -30,6 +33,13 @@ from fedmap.mission.remote import BaseNode, CorruptMessage, Report, check_deploy
 from fedmap.mission.results import MissionResult
 
 app = ServerApp()
+
+
+def say(out: Path, level: int, line: str) -> None:
+    """One line in Flower's log and in the base station's own, ``<out>.run/base.log``."""
+    log(level, "fedmap: %s", line)
+    with open(run_dir(out) / "base.log", "a") as fh:
+        fh.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} {logging.getLevelName(level)} {line}\n")
 
 #: Times an order is sent again after a damaged order or report before the run fails.
 RESENDS = 3
@@ -150,7 +160,7 @@ class _Team:
 
     def _fault(self, strategy: str, k: int, what: str) -> None:
         self.faults.append({"strategy": strategy, "rover": k, "fault": what})
-        log(WARNING, "fedmap: %s rover %d: %s", strategy, k, what)
+        say(self.run.out, WARNING, f"{strategy} rover {k}: {what}")
 
     def finish(self) -> None:
         """Tell every rover the mission is over (its SuperNode may stop)."""
@@ -173,7 +183,7 @@ def run_mission_base(grid: Grid, run: MissionRun) -> MissionResult:
     runs = {}
     for name in names:
         t1 = time.perf_counter()
-        log(INFO, "fedmap: mission %s on %d rovers", name, team.members)
+        say(run.out, INFO, f"mission {name} on {team.members} rovers")
         base = BaseNode(mission, name, mission_id=journal.mission_id)
         saved, done = journal.saved(name), 0
 
@@ -185,9 +195,11 @@ def run_mission_base(grid: Grid, run: MissionRun) -> MissionResult:
             else:
                 if done == saved and saved:
                     team.note(name, f"base station resumed: {saved} round(s) replayed from its journal")
-                before = len(team.faults)
+                before, t_round = len(team.faults), time.perf_counter()
                 reports = team.send(name, orders)
                 journal.save(name, done, reports, team.faults[before:])
+                say(run.out, INFO, f"{name} order {done + 1}: {len(reports)} rovers answered in "
+                                   f"{time.perf_counter() - t_round:.2f} s")
             done += 1
             return reports
 
@@ -209,6 +221,6 @@ def main(grid: Grid, context: Context) -> None:
     except Exception as e:  # the command that started the base waits on this file: never leave it "running"
         msg = str(e) if isinstance(e, FedmapError) else f"{type(e).__name__}: {e}".splitlines()[0]
         write_status(run.out, "failed", message=msg)
-        log(INFO, "fedmap: error: %s", msg)
+        say(run.out, INFO, f"error: {msg}")
         raise
     write_status(run.out, "done", message="mission over")
