@@ -20,10 +20,12 @@ from flwr.clientapp import ClientApp
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.flower.mission_task import CorruptMessage, damaged, node_feed, parse_mission_fault, rover_answer
+from fedmap.flower.polling import quick_pulls
 from fedmap.flower.records import from_record, to_record
 from fedmap.mission.remote import Order
 
 app = ClientApp()
+quick_pulls()  # a round is a message per rover: Flower's 1 s first retry would be most of it
 
 
 

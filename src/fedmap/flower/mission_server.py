@@ -27,12 +27,14 @@ from flwr.supercore import log
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
 from fedmap.flower.mission_task import BaseJournal, MissionRun, mission_from_text, strategies_of, write_result
+from fedmap.flower.polling import quick_pulls
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.task import write_status
 from fedmap.mission.remote import BaseNode, CorruptMessage, Report, check_deployable, rounds
 from fedmap.mission.results import MissionResult
 
 app = ServerApp()
+quick_pulls()  # a round is a message per rover: Flower's 1 s first retry would be most of it
 
 
 def say(out: Path, level: int, line: str) -> None:

@@ -24,6 +24,7 @@ from flwr.supercore.retry import RetryInvoker, make_simple_http_retry_invoker
 from flwr.supernode.cli import flower_supernode
 
 from fedmap.flower import POLL_ENV
+from fedmap.flower.polling import quick_pulls
 
 #: Substrings of an SSL error raised by a link that went away mid-handshake (not a TLS problem).
 LINK_DROPPED = ("unexpected_eof_while_reading", "eof occurred in violation of protocol")
@@ -69,6 +70,7 @@ def main(argv: list[str]) -> int:
         import flwr.supernode.start_client_internal as loop
 
         loop.time = _Polling(float(poll))  # type: ignore[assignment]
+        quick_pulls()
     sys.argv = ["flower-supernode", *argv]
     flower_supernode()
     return 0

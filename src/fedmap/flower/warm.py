@@ -58,6 +58,9 @@ def serve(sock: str, node_config: dict) -> None:  # pragma: no cover - a long-li
 
     if node_config.get("mission"):  # a mission rover: its world comes with the base's first order
         import fedmap.flower.mission_client  # noqa: F401
+        from fedmap.mission.remote import warm_up
+
+        warm_up()  # the compiled planners, loaded once: the children inherit them
     else:
         from fedmap.flower.task import load_local_map
 
