@@ -131,6 +131,9 @@ def test_a_stale_or_misdirected_order_is_refused():
         node.handle(Order("raw", 0, 1, config.sync_every))
     with pytest.raises(FedmapError, match="reached raw rover 0"):
         node.handle(Order("raw", 2, 2, 2 * config.sync_every))
+    fresh = RoverNode(m, "raw", 0)  # a rover that lost its state: the base holds it further on
+    with pytest.raises(FedmapError, match="lost its state"):
+        fresh.handle(Order("raw", 0, 2, 2 * config.sync_every, since=config.sync_every))
     with pytest.raises(FedmapError, match="reached raw rover 0"):
         node.handle(replace(Order("raw", 0, 2, 2 * config.sync_every), strategy="predictive"))
 

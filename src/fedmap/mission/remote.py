@@ -108,6 +108,7 @@ class Order:
     #: ``("ack", round, ok)`` for its uplink of ``round``, ``("down", round, payload)`` for a downlink
     events: list[tuple] = field(default_factory=list)
     mission: str = ""  #: the mission's id (a rover keeps one state per mission and strategy)
+    since: int = 0  #: the step the base holds the rover at (the step of its last order)
 
     def to_bytes(self) -> bytes:
         heads: list[list] = []
@@ -119,7 +120,8 @@ class Order:
             else:
                 heads.append(list(ev))
         return pack_frame({"kind": "order", "strategy": self.strategy, "rover": self.rover, "round": self.round_no,
-                           "step": self.step, "finish": self.finish, "events": heads, "mission": self.mission}, blobs)
+                           "step": self.step, "finish": self.finish, "events": heads, "mission": self.mission,
+                           "since": self.since}, blobs)
 
     @classmethod
     def from_bytes(cls, raw: bytes) -> Order:
@@ -127,7 +129,8 @@ class Order:
         if h.get("kind") != "order":
             raise CorruptMessage(f"expected an order, got a {h.get('kind')!r} message")
         events = [("down", e[1], blobs[e[2]]) if e[0] == "down" else ("ack", e[1], bool(e[2])) for e in h["events"]]
-        return cls(h["strategy"], h["rover"], h["round"], h["step"], h["finish"], events, h.get("mission", ""))
+        return cls(h["strategy"], h["rover"], h["round"], h["step"], h["finish"], events, h.get("mission", ""),
+                   h.get("since", 0))
 
 
 @dataclass
@@ -289,6 +292,9 @@ class RoverNode:
             raise FedmapError(f"an order for {order.strategy} rover {order.rover} reached {self.name} rover {self.k}")
         if order.step < self.step or (order.step == self.step and not order.finish):
             raise FedmapError(f"rover {self.k} is at step {self.step}: an order to drive to step {order.step} is stale")
+        if order.since != self.step:
+            raise FedmapError(f"rover {self.k} is at step {self.step}, the base holds it at step {order.since}: it lost "
+                              "its state (its --state folder); a rover cannot be resynchronised yet")
         answers = []
         for ev in order.events:
             if ev[0] == "ack":
@@ -399,7 +405,7 @@ class BaseNode:
         orders = {}
         for s in self.stand_ins:
             orders[s.k] = Order(self.name, s.k, 0 if finish else self.syncs[step], step, finish, s.events,
-                                self.mission_id)
+                                self.mission_id, after)
             s.events = []
         return orders
 
