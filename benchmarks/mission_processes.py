@@ -25,7 +25,7 @@ import threading
 import time
 from pathlib import Path
 
-from fedmap.flower.deploy import deploy_mission
+from fedmap.flower.deploy import LOCAL_POLL, deploy_mission
 from fedmap.mission import load_mission, mission_terrain, run_mission
 from fedmap.mission.report import metrics, without_timings
 from fedmap.mission.settings import mission_toml
@@ -95,7 +95,7 @@ class Sampler(threading.Thread):
                     "peak_rss_mb_median": round(sorted(v)[len(v) // 2] / 1024, 1)} for k, v in sorted(kinds.items())}
 
 
-def one(strategy: str, rovers: int, steps: int) -> dict:
+def one(strategy: str, rovers: int, steps: int, poll: float) -> dict:
     config, source, resolved = load_mission(overrides=[{"mission": {"rovers": rovers, "steps": steps,
                                                                     "strategies": [strategy]}}])
     truth, elevation, prior, profiles = mission_terrain(config, source)
@@ -110,21 +110,22 @@ def one(strategy: str, rovers: int, steps: int) -> dict:
     with tempfile.TemporaryDirectory(prefix="fedmap-mission-processes-") as tmp:
         t1 = time.perf_counter()
         apart = deploy_mission(mission_toml(resolved), members=rovers, out=Path(tmp) / "out", strategies=(strategy,),
-                               frames=1, rounds=rounds,
+                               frames=1, rounds=rounds, poll=poll,
                                on_status=lambda st: started.append(time.perf_counter()) if not started else None)
         total = time.perf_counter() - t1
     sampler.stop.set()
     sampler.join()
     same = without_timings(metrics(here)["strategies"]) == without_timings(metrics(apart)["strategies"])
     run_s = apart.runs[strategy].seconds
-    row = {"strategy": strategy, "rovers": rovers, "steps": steps, "sync_rounds": rounds - 1,
+    row = {"strategy": strategy, "rovers": rovers, "steps": steps, "sync_rounds": rounds - 1, "poll_s": poll,
            "in_process_s": round(here.runs[strategy].seconds, 2), "in_process_wall_s": round(inproc, 2),
            "on_processes_run_s": round(run_s, 2), "on_processes_wall_s": round(total, 2),
            "start_up_s": round((started[0] - t1) if started else float("nan"), 2),
            "ratio_run": round(run_s / here.runs[strategy].seconds, 2),
            "ratio_wall": round(total / inproc, 2), "per_round_s": round(run_s / rounds, 3),
            "same_metrics": same, "memory": sampler.by_kind()}
-    print(f"{strategy}, {rovers} rovers, {steps} steps ({rounds - 1} syncs): in process {row['in_process_s']} s; "
+    print(f"{strategy}, {rovers} rovers, {steps} steps ({rounds - 1} syncs), polls every {poll} s: "
+          f"in process {row['in_process_s']} s; "
           f"on processes {row['on_processes_run_s']} s ({row['ratio_run']}x; {row['per_round_s']} s a round), "
           f"{row['on_processes_wall_s']} s with start-up {row['start_up_s']} s ({row['ratio_wall']}x wall); "
           f"same metrics: {same}")
@@ -139,8 +140,9 @@ def main() -> None:
     p.add_argument("--rovers", type=int, nargs="+", default=[4])
     p.add_argument("--strategy", default="predictive")
     p.add_argument("--steps", type=int, default=150)
+    p.add_argument("--poll", type=float, default=LOCAL_POLL, help="seconds between a rover's polls when idle")
     a = p.parse_args()
-    rows = [one(a.strategy, n, a.steps) for n in a.rovers]
+    rows = [one(a.strategy, n, a.steps, a.poll) for n in a.rovers]
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps({"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
                                "rows": rows}, indent=1))

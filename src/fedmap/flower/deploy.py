@@ -60,10 +60,10 @@ def mission_app_dir() -> Path:
 
 
 def rover_argv(k: int, *, superlink: str, root_cert: Path | None, auth_key: Path | None, log: Path, state: Path,
-               fault: str | None = None) -> list[str]:
+               poll: float = LOCAL_POLL, fault: str | None = None) -> list[str]:
     """``fedmap rover --mission`` for member ``k`` (what each rover machine runs)."""
     argv = [sys.executable, "-m", "fedmap", "rover", "--mission", "--partition-id", str(k), "--superlink", superlink,
-            "--log", str(log), "--max-wait", "120", "--poll", str(LOCAL_POLL), "--state", str(state)]
+            "--log", str(log), "--max-wait", "120", "--poll", str(poll), "--state", str(state)]
     if root_cert is not None:
         argv += ["--root-cert", str(root_cert)]
     if auth_key is not None:
@@ -76,7 +76,7 @@ def rover_argv(k: int, *, superlink: str, root_cert: Path | None, auth_key: Path
 def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "local", strategies: tuple[str, ...] = (),
                    frames: int = 60, host: str = "127.0.0.1", port: int = 0, certs: Path | None = None,
                    auth_keys: Path | None = None, insecure: bool = False, deadline: float = 600.0,
-                   connect_timeout: float = 120.0, rounds: int = 1, resume: bool = False,
+                   connect_timeout: float = 120.0, rounds: int = 1, resume: bool = False, poll: float = LOCAL_POLL,
                    faults: dict[int, str] | None = None,
                    on_status: Callable[[dict], None] | None = None,
                    on_ready: Callable[[str], None] | None = None) -> MissionResult:
@@ -133,7 +133,7 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
                     name = f"rover{k}"
                     argvs[name] = rover_argv(k, superlink=f"127.0.0.1:{port}", root_cert=work / "certs" / "ca.crt",
                                              auth_key=work / "certs" / name, log=work / f"{name}.supernode.log",
-                                             state=work / f"{name}.state", fault=(faults or {}).get(k))
+                                             state=work / f"{name}.state", poll=poll, fault=(faults or {}).get(k))
                     procs.start(name, argvs[name], env=env, log=work / f"{name}.log", die_with_parent=True)
                     rovers.append(name)
             since = time.time() - 1
