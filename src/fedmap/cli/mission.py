@@ -17,11 +17,11 @@ from fedmap._util import to_json
 from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import console, fit, progress_bar, terrain_line
 from fedmap.errors import FedmapError
-from fedmap.flower.deploy import deploy_logs, deploy_mission
+from fedmap.flower.deploy import DEPLOY_MODES, deploy_logs, deploy_mission
 from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.bag import SyncMaps
 from fedmap.mission.recording import Recorder
-from fedmap.mission.remote import DEPLOYABLE
+from fedmap.mission.remote import DEPLOYABLE, check_deployable
 from fedmap.mission.repeats import run_repeats, what_varies
 from fedmap.mission.report import global_meaning, has_peers, repeat_rows, table_rows, verdict, write_mission
 from fedmap.mission.results import movement_warnings
@@ -168,11 +168,14 @@ def _deployed(cfg, resolved: dict, mode: str, *, out: Path, animation: bool, pro
               certs: Optional[Path], auth_keys: Optional[Path], insecure: bool, resume: bool):
     """The mission on real processes (:func:`fedmap.flower.deploy.deploy_mission`), with a
     progress bar per strategy from the base station's status."""
+    if mode not in DEPLOY_MODES:
+        raise FedmapError(f"unknown --deploy {mode!r}: choose one of {', '.join(DEPLOY_MODES)}")
     names = tuple(n for n in cfg.strategies if n in DEPLOYABLE)
     left = [n for n in cfg.strategies if n not in DEPLOYABLE]
     if not names:
         raise FedmapError(f"none of the strategies {', '.join(cfg.strategies)} runs on processes; these do: "
                           f"{', '.join(DEPLOYABLE)}")
+    check_deployable(cfg, names)  # the topology and latency, before any process starts
     if left:
         console.print(f"note: {', '.join(left)} stay(s) out of a mission on processes (not one end per machine)")
     host, _, port = listen.rpartition(":")

@@ -178,7 +178,7 @@ def run_mission_base(grid: Grid, run: MissionRun) -> MissionResult:
     write_status(run.out, "running", message="loading the mission")
     mission = mission_from_text(run.mission, frames=run.frames)
     names = strategies_of(run, mission)
-    check_deployable(mission, names)
+    check_deployable(mission.config, names)
     journal = BaseJournal(run.out, run.mission, resume=run.resume)
     c = mission.config
     team = _Team(grid, run, c.rovers + c.helicopters)

@@ -43,6 +43,7 @@ from fedmap.mission.feed import FeedWorld, MapFeed
 from fedmap.mission.frontiers import choose_target
 from fedmap.mission.protocol import DroppedUpdate, Outgoing
 from fedmap.mission.registry import Setup, Sharing, build
+from fedmap.mission.settings import MissionConfig
 from fedmap.mission.sim import Mission, StrategyRun, TeamState
 from fedmap.mission.topology import make_topology
 
@@ -220,9 +221,8 @@ def _unpack_maps(raw: bytes, n: int) -> list[tuple[np.ndarray, np.ndarray, np.nd
 # -- the rover's side -----------------------------------------------------------------------
 
 
-def check_deployable(mission: Mission, strategies: list[str] | tuple[str, ...]) -> None:
-    """One line when the mission or a strategy cannot run on processes (see the module's limits)."""
-    c = mission.config
+def check_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) -> None:
+    """One line when the mission ``c`` or a strategy cannot run on processes (see the module's limits)."""
     if c.link.topology != "star":
         raise FedmapError(f"a mission on processes runs the star topology, not {c.link.topology!r}")
     if c.link.latency != 0:
@@ -240,7 +240,7 @@ class RoverNode:
     clock. :meth:`handle` takes an order, returns the report."""
 
     def __init__(self, mission: Mission, name: str, k: int, *, feed: MapFeed | None = None) -> None:
-        check_deployable(mission, [name])
+        check_deployable(mission.config, [name])
         self.name, self.k, self.config = name, k, mission.config
         self.topology = make_topology(mission.config.link, mission.base)
         world = mission.world(self.topology)
@@ -374,7 +374,7 @@ class BaseNode:
 
     def __init__(self, mission: Mission, name: str, *, on_step: Callable[[str, int, float], None] | None = None,
                  on_snapshot: Callable | None = None, mission_id: str = "") -> None:
-        check_deployable(mission, [name])
+        check_deployable(mission.config, [name])
         self.name, self.config, self.mission_id = name, mission.config, mission_id
         self.stand_ins: list[RemoteRover] = []
         self.trails: list[list[Cell]] = []  # every member's cells driven, as reported (its start first)
