@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -71,9 +72,10 @@ def test_the_default_mission_on_processes_equals_the_mission_in_process(tmp_path
 @pytest.mark.xdist_group("loopback-b")
 def test_a_mission_on_processes_loses_nothing_to_faults(tmp_path):
     """Rover 1 damages its report of the order to step 30 (its check fails: the order goes
-    again); rover 2's process is killed at step 40 and started again (it carries on from
-    its state); the lander's link is down for steps 20-40. The result equals the
-    uninterrupted in-process mission's, and every cell observed reached the base."""
+    again); rover 2's process is killed at step 40 and its state folder deleted, then it is
+    started again (it refuses the next order, the base sends it with every earlier order,
+    and the rover rebuilds itself from them); the lander's link is down for steps 20-40. The
+    result equals the uninterrupted in-process mission's, and every cell observed reached the base."""
     config, source, resolved = load_mission(overrides=[{"mission": {"steps": 60, "strategies": ["predictive"]},
                                                         "link": {"loss": 0.0, "lander_cut": [20, 40]}}])
     text = mission_toml(resolved)
@@ -89,6 +91,7 @@ def test_a_mission_on_processes_loses_nothing_to_faults(tmp_path):
                 if b"rover" in Path(f"/proc/{pid}/cmdline").read_bytes() and pid != os.getpid():
                     os.kill(pid, signal.SIGKILL)
                     killed.append(pid)
+            shutil.rmtree(work / "rover2.state", ignore_errors=True)  # everything it held is gone
 
     apart = deploy_mission(text, members=config.rovers, out=tmp_path / "out", strategies=("predictive",), frames=1,
                            rounds=len(config.sync_steps) + 1, faults={1: "corrupt@30"}, on_status=on_status)
@@ -98,6 +101,8 @@ def test_a_mission_on_processes_loses_nothing_to_faults(tmp_path):
     what = [f["fault"] for f in apart.faults]
     assert any("report damaged" in w for w in what) and any(f["rover"] == 1 for f in apart.faults)
     assert any("rover process exited" in w for w in what) and any(f["rover"] == 2 for f in apart.faults)
+    assert [f["rover"] for f in apart.faults if "lost its state" in f["fault"]] == [2]
+    assert any(f["rover"] == 2 and "rebuilt from its orders" in f["fault"] for f in apart.faults)
     ledger = apart.runs["predictive"].ledger
     assert any(m.status == "link down" for m in ledger)
     # nothing observed is lost: the base holds every cell any rover observed by the last sync

@@ -19,13 +19,16 @@ from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.remote import (
     BaseNode,
     CorruptMessage,
+    LostState,
     Order,
     Report,
     RoverNode,
     loopback,
     pack_frame,
+    pack_history,
     rounds,
     unpack_frame,
+    unpack_history,
 )
 from fedmap.mission.report import metrics, without_timings
 from fedmap.mission.results import MissionResult
@@ -203,3 +206,62 @@ def test_a_bad_map_feed_is_refused_in_one_line(tmp_path):
     save_map(truth, tmp_path / "nostep" / "latest.png")
     with pytest.raises(FedmapError, match="no step number"):
         MapFeed.open(tmp_path / "nostep")
+
+
+def test_a_rover_that_lost_its_state_is_rebuilt_from_its_orders():
+    """Rover 2 loses everything (its process came back without its state folder) at the
+    order to step 25: it refuses the order, is rebuilt from every order it was sent
+    before (sent again as one frame), and the mission records what the uninterrupted
+    mission records (the predictive coder's state on both ends included)."""
+    name = "predictive"
+    config, truth, kw = _mission([name], steps=40, loss=0.2)
+    m = prepare_mission(config, truth, **kw)
+    here = BaseNode(m, name)
+    list(rounds(here, loopback(m, name)))
+
+    nodes: dict[int, RoverNode] = {}
+    history: dict[int, list[bytes]] = {}
+    rebuilt = []
+
+    def send(orders: dict[int, bytes]) -> dict[int, bytes]:
+        out = {}
+        for k, raw in orders.items():
+            if k not in nodes or (k == 2 and Order.from_bytes(raw).step >= 25 and not rebuilt):
+                nodes[k] = RoverNode(m, name, k)  # a new rover process with nothing saved
+            try:
+                out[k] = nodes[k].answer(raw)
+            except LostState:
+                assert k == 2 and not rebuilt
+                old = unpack_history(pack_history(history[k]))
+                assert old == history[k] and len(old) >= 2
+                nodes[k] = RoverNode.rebuild(m, name, k, old)
+                rebuilt.append(len(old))
+                out[k] = nodes[k].answer(raw)
+            history.setdefault(k, []).append(raw)
+        return out
+
+    apart = BaseNode(m, name)
+    list(rounds(apart, send))
+    assert rebuilt
+    a, b = here.result(0.0), apart.result(0.0)
+    assert [(x.bytes, x.status) for x in a.ledger] == [(x.bytes, x.status) for x in b.ledger]
+    assert a.trails == b.trails
+    for va, vb in zip(a.views, b.views):
+        np.testing.assert_array_equal(va, vb)
+    np.testing.assert_array_equal(a.sharing.global_map(), b.sharing.global_map())
+
+
+def test_a_rover_ahead_of_the_base_or_given_a_damaged_history_is_refused():
+    config, truth, kw = _mission(["raw"], steps=30)
+    m = prepare_mission(config, truth, **kw)
+    base = BaseNode(m, "raw")
+    first = base.first_orders()
+    node = RoverNode(m, "raw", 0)
+    node.answer(first[0].to_bytes())
+    stale = replace(first[0], step=first[0].step + 5, since=0)  # the base holds it at step 0; it is further on
+    with pytest.raises(FedmapError, match="ahead of the base"):
+        node.answer(stale.to_bytes())
+    raw = bytearray(pack_history([first[0].to_bytes()]))
+    raw[-3] ^= 0xFF
+    with pytest.raises(CorruptMessage):
+        unpack_history(bytes(raw))

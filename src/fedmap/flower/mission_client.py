@@ -6,7 +6,9 @@ order of a sync round; the rover drives to its step, syncs and replies with its 
 damaged order is answered with ``error`` / ``corrupt`` (the base sends it again). The node
 lives in the rover's own folder between messages (node config ``state-dir``), one per
 mission and strategy (:func:`fedmap.flower.mission_task.rover_answer`), so a rover
-process killed and started again carries on. ``evaluate``: the mission is over; with ``done-file=<path>`` in
+process killed and started again carries on. A rover that lost that folder answers
+``error`` / ``lost``; the base sends the order again with every order it sent before
+(``history``), and the rover rebuilds its node from them. ``evaluate``: the mission is over; with ``done-file=<path>`` in
 the node config it writes that file (``fedmap rover`` then stops its SuperNode).
 """
 
@@ -19,7 +21,7 @@ from flwr.clientapp import ClientApp
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
-from fedmap.flower.mission_task import CorruptMessage, damaged, node_feed, parse_mission_fault, rover_answer
+from fedmap.flower.mission_task import CorruptMessage, LostState, damaged, node_feed, parse_mission_fault, rover_answer
 from fedmap.flower.polling import quick_pulls
 from fedmap.flower.records import from_record, to_record
 from fedmap.mission.remote import Order
@@ -48,11 +50,15 @@ def order(msg: Message, context: Context) -> Message:
     if not state:
         return _error(msg, "node config state-dir (where the rover keeps its state) is missing", corrupt=False)
     raw = from_record(msg.content.array_records.get("order"))
+    history = msg.content.array_records.get("history")  # sent with the order to a rover that lost its state
     try:
         report = rover_answer(Path(str(state)), str(context.run_config["mission"]), k, raw,
-                              feed=node_feed(dict(context.node_config)))
+                              feed=node_feed(dict(context.node_config)),
+                              history=None if history is None else from_record(history))
     except CorruptMessage as e:
         return _error(msg, str(e), corrupt=True)
+    except LostState as e:
+        return _error(msg, str(e), corrupt=False, lost=True)
     except FedmapError as e:
         return _error(msg, str(e), corrupt=False)
     fault = context.node_config.get("fault")
@@ -66,9 +72,11 @@ def order(msg: Message, context: Context) -> Message:
     return Message(RecordDict({"report": to_record(report)}), reply_to=msg)
 
 
-def _error(msg: Message, reason: str, *, corrupt: bool) -> Message:
-    """Reported, not raised: a damaged order is sent again, any other error stops the run with this line."""
-    return Message(RecordDict({"error": ConfigRecord({"reason": reason, "corrupt": corrupt})}), reply_to=msg)
+def _error(msg: Message, reason: str, *, corrupt: bool, lost: bool = False) -> Message:
+    """Reported, not raised: a damaged order is sent again, a rover that lost its state gets its
+    orders again, any other error stops the run with this line."""
+    return Message(RecordDict({"error": ConfigRecord({"reason": reason, "corrupt": corrupt, "lost": lost})}),
+                   reply_to=msg)
 
 
 @app.evaluate()

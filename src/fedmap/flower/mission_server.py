@@ -7,8 +7,10 @@ each sync round (a ``train`` message carrying the order's bytes) and takes its r
 What crosses is fedmap's own frames (:mod:`fedmap.mission.remote`) as a ``uint8`` array
 (:mod:`fedmap.flower.records`); the ledger counts the strategy's messages inside them, as
 the simulator does. A report or order damaged on the way fails its check and the order
-is sent again (the rover answers a repeated order with the same report); each such fault
-is a line of the run's ``faults`` and of the log. At the end every rover gets a
+is sent again (the rover answers a repeated order with the same report). A rover that lost
+its state gets its order again with every order it was sent before, and rebuilds itself
+from them (:meth:`~fedmap.mission.remote.RoverNode.rebuild`). Each fault is a line of the
+run's ``faults`` and of the log. At the end every rover gets a
 ``evaluate`` message (its SuperNode may stop) and the result goes to
 ``<out>.run/result.pickle`` (:mod:`fedmap.flower.mission_task`).
 """
@@ -30,7 +32,7 @@ from fedmap.flower.mission_task import BaseJournal, MissionRun, mission_from_tex
 from fedmap.flower.polling import quick_pulls
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.task import write_status
-from fedmap.mission.remote import BaseNode, CorruptMessage, Report, check_deployable, rounds
+from fedmap.mission.remote import BaseNode, CorruptMessage, Report, check_deployable, pack_history, rounds
 from fedmap.mission.results import MissionResult
 
 app = ServerApp()
@@ -102,17 +104,24 @@ class _Team:
             found[k] = sent[reply.metadata.reply_to_message_id]
         return found
 
-    def send(self, strategy: str, orders: dict[int, bytes]) -> dict[int, bytes]:
+    def send(self, strategy: str, orders: dict[int, bytes], history: dict[int, list[bytes]]) -> dict[int, bytes]:
         """Every order to its rover, every report back. A damaged order or report: the order
         goes again. A rover that does not answer (its process died, its link is down): the
-        order goes again, to its new node once it has come back, for up to ``rejoin`` s."""
+        order goes again, to its new node once it has come back, for up to ``rejoin`` s. A
+        rover that lost its state: the order goes again with ``history[k]``, every order it
+        was sent before, to rebuild it from."""
         reports: dict[int, bytes] = {}
         todo = dict(orders)
         damaged = 0
         gone: dict[int, float] = {}  # rover -> when it first failed to answer
+        lost: dict[int, bytes] = {}  # rover -> its order history, sent with its order until it answers
         while todo:
-            msgs = [Message(RecordDict({"order": to_record(raw), "config": ConfigRecord({"strategy": strategy})}),
-                            dst_node_id=self.node_of[k], message_type=MessageType.TRAIN) for k, raw in todo.items()]
+            msgs = []
+            for r, raw in todo.items():
+                content = RecordDict({"order": to_record(raw), "config": ConfigRecord({"strategy": strategy})})
+                if r in lost:
+                    content["history"] = to_record(lost[r])
+                msgs.append(Message(content, dst_node_id=self.node_of[r], message_type=MessageType.TRAIN))
             sent = {m.object_id: k for m, k in zip(msgs, todo)}
             again: dict[int, bytes] = {}
             wait = self.run.deadline if not gone else min(self.run.deadline, 10.0)
@@ -124,6 +133,13 @@ class _Team:
                 answered.add(k)
                 if "error" in reply.content.config_records:
                     why = str(reply.content["error"]["reason"])
+                    if reply.content["error"].get("lost") and k not in lost:
+                        lost[k] = pack_history(history.get(k, []))
+                        again[k] = todo[k]
+                        self._fault(strategy, k, f"lost its state ({why}); its {len(history.get(k, []))} earlier "
+                                                 f"order(s) sent again with this one ({len(lost[k]) / 1e3:.1f} kB) "
+                                                 "to rebuild it")
+                        continue
                     if not reply.content["error"].get("corrupt"):
                         raise FedmapError(f"rover {k}: {why}")
                     again[k] = todo[k]
@@ -139,6 +155,8 @@ class _Team:
                     self._fault(strategy, k, f"report damaged on the way ({e}); order sent again")
                     continue
                 reports[k] = raw
+                if lost.pop(k, None) is not None:
+                    self._fault(strategy, k, "rebuilt from its orders; it answered its order")
                 if k in gone:
                     self._fault(strategy, k, f"back after {time.monotonic() - gone.pop(k):.0f} s; its order sent again")
             if damaged > RESENDS * max(len(orders), 1):
@@ -188,6 +206,7 @@ def run_mission_base(grid: Grid, run: MissionRun) -> MissionResult:
         say(run.out, INFO, f"mission {name} on {team.members} rovers")
         base = BaseNode(mission, name, mission_id=journal.mission_id)
         saved, done = journal.saved(name), 0
+        history: dict[int, list[bytes]] = {}  # every order each rover was sent (to rebuild one that lost its state)
 
         def send(orders: dict[int, bytes]) -> dict[int, bytes]:
             nonlocal done
@@ -198,11 +217,13 @@ def run_mission_base(grid: Grid, run: MissionRun) -> MissionResult:
                 if done == saved and saved:
                     team.note(name, f"base station resumed: {saved} round(s) replayed from its journal")
                 before, t_round = len(team.faults), time.perf_counter()
-                reports = team.send(name, orders)
+                reports = team.send(name, orders, history)
                 journal.save(name, done, reports, team.faults[before:])
                 say(run.out, INFO, f"{name} order {done + 1}: {len(reports)} rovers answered in "
                                    f"{time.perf_counter() - t_round:.2f} s")
             done += 1
+            for k, raw in orders.items():
+                history.setdefault(k, []).append(raw)
             return reports
 
         for step in rounds(base, send):

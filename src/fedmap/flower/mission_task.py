@@ -26,7 +26,16 @@ from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
 from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.feed import MapFeed
-from fedmap.mission.remote import DEPLOYABLE, CorruptMessage, Order, RoverNode, pack_frame, unpack_frame
+from fedmap.mission.remote import (
+    DEPLOYABLE,
+    CorruptMessage,
+    LostState,
+    Order,
+    RoverNode,
+    pack_frame,
+    unpack_frame,
+    unpack_history,
+)
 from fedmap.mission.results import MissionResult
 from fedmap.mission.sim import Mission, prepare_mission
 
@@ -94,16 +103,27 @@ def state_file(state_dir: Path, order: Order) -> Path:
     return Path(state_dir) / f"{order.mission or 'mission'}-{order.strategy}.pickle"
 
 
-def rover_answer(state_dir: Path, mission_text: str, k: int, raw: bytes, *, feed: MapFeed | None = None) -> bytes:
+def rover_answer(state_dir: Path, mission_text: str, k: int, raw: bytes, *, feed: MapFeed | None = None,
+                 history: bytes | None = None) -> bytes:
     """Rover ``k``'s report to the order ``raw``. Its node (its world, end and clock) lives in
     ``state_dir`` between messages (its own state, written by itself, atomically with each
     report: a rover process killed and started again carries on where it was; the file goes
-    when the mission's last order is answered). ``feed``: its observations come from its
-    own mapping software (:mod:`fedmap.mission.feed`). :class:`CorruptMessage` for a damaged order."""
+    when the mission's last order is answered). A rover whose state is gone refuses an order
+    that carries on from a later step (:class:`LostState`); the base sends it again with
+    ``history``, every order it sent this rover before (:func:`~fedmap.mission.remote.pack_history`),
+    and the node is rebuilt from them (:meth:`RoverNode.rebuild`). ``feed``: its observations
+    come from its own mapping software (:mod:`fedmap.mission.feed`). :class:`CorruptMessage`
+    for a damaged order."""
     order = Order.from_bytes(raw)
     path = state_file(state_dir, order)
-    if path.is_file():
-        node = pickle.loads(path.read_bytes())
+    if history is not None:
+        node = RoverNode.rebuild(mission_from_text(mission_text, frames=1), order.strategy, k,
+                                 unpack_history(history), feed=feed)
+    elif path.is_file():
+        try:
+            node = pickle.loads(path.read_bytes())
+        except Exception:  # a state file cut short or damaged: as good as lost (the base rebuilds it)
+            raise LostState(f"rover {k}'s state file {path} does not load") from None
     else:
         node = RoverNode(mission_from_text(mission_text, frames=1), order.strategy, k, feed=feed)
     report = node.answer(raw)
@@ -211,6 +231,6 @@ def read_result(out: Path) -> MissionResult:
     return result
 
 
-__all__ = ["MISSION_RUN_DEFAULTS", "BaseJournal", "CorruptMessage", "MissionRun", "damaged", "mission_from_text",
-           "node_feed", "parse_mission_fault", "read_result", "result_path", "rover_answer", "state_file",
-           "strategies_of", "write_result"]
+__all__ = ["MISSION_RUN_DEFAULTS", "BaseJournal", "CorruptMessage", "LostState", "MissionRun", "damaged",
+           "mission_from_text", "node_feed", "parse_mission_fault", "read_result", "result_path", "rover_answer",
+           "state_file", "strategies_of", "write_result"]

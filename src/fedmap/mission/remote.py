@@ -20,6 +20,14 @@ Orders and reports are bytes (:func:`pack_frame`): a version byte, a CRC-32 chec
 rest, a JSON header and length-prefixed blobs. A frame that fails its check is refused with
 one line (:class:`CorruptMessage`); the transport sends it again.
 
+A rover that lost its state (its process started again without its state folder) refuses
+the order with :class:`LostState`. The base keeps every order it sent each rover, and sends
+them all again with the order (:func:`pack_history`): the rover answers each again, as it
+did the first time (its world is seeded and its end is a function of what it was told,
+so it ends where it was, coder state and all, bit for bit; :meth:`RoverNode.rebuild`),
+then answers the order. That replay is the rover's keyframe: it is sent whenever the base
+cannot know what the rover holds, and its bytes are a line of the run's faults.
+
 Limits: the star topology with ``latency = 0`` (on real processes the link's own delay is
 the latency), and strategies whose rover ends hold only their own rover (:data:`DEPLOYABLE`).
 """
@@ -59,6 +67,10 @@ DEPLOYABLE = ("none", "raw", "predictive", "rosgrid", "rosgrid-zlib", "paper", "
 
 class CorruptMessage(FedmapError):
     """A frame whose check failed or whose layout is wrong."""
+
+
+class LostState(FedmapError):
+    """A rover asked to carry on from a step it holds no state for: it needs its orders again."""
 
 
 def pack_frame(header: dict, blobs: list[bytes] = ()) -> bytes:  # type: ignore[assignment]
@@ -218,6 +230,18 @@ def _unpack_maps(raw: bytes, n: int) -> list[tuple[np.ndarray, np.ndarray, np.nd
     return [(s[0], s[1], s[2].astype(bool)) for s in stack]
 
 
+def pack_history(orders: list[bytes]) -> bytes:
+    """Every order a rover was sent, in order, as one frame (a rover that lost its state is rebuilt from it)."""
+    return pack_frame({"kind": "history", "orders": len(orders)}, orders)
+
+
+def unpack_history(raw: bytes) -> list[bytes]:
+    h, blobs = unpack_frame(raw)
+    if h.get("kind") != "history" or h.get("orders") != len(blobs):
+        raise CorruptMessage(f"expected a rover's order history, got a {h.get('kind')!r} message")
+    return blobs
+
+
 # -- the rover's side -----------------------------------------------------------------------
 
 
@@ -276,6 +300,17 @@ class RoverNode:
             out[key] = [e.to_dict() if isinstance(e, DroppedUpdate) else e for e in new]
         return out
 
+    @classmethod
+    def rebuild(cls, mission: Mission, name: str, k: int, history: list[bytes], *,
+                feed: MapFeed | None = None) -> RoverNode:
+        """Rover ``k`` as it was after answering ``history`` (every order the base sent it, in
+        order): a new node answers each of them again. Its world is seeded and its end is a
+        function of what it was told, so it is the node that lost its state, bit for bit."""
+        node = cls(mission, name, k, feed=feed)
+        for raw in history:
+            node.answer(raw)
+        return node
+
     def answer(self, raw: bytes) -> bytes:
         """The report (bytes) to an order (bytes). The same order again (its report was lost
         or damaged on the way) gets the same report again; a damaged order raises
@@ -292,9 +327,12 @@ class RoverNode:
             raise FedmapError(f"an order for {order.strategy} rover {order.rover} reached {self.name} rover {self.k}")
         if order.step < self.step or (order.step == self.step and not order.finish):
             raise FedmapError(f"rover {self.k} is at step {self.step}: an order to drive to step {order.step} is stale")
+        if order.since > self.step:
+            raise LostState(f"rover {self.k} is at step {self.step}, the base holds it at step {order.since}: it lost "
+                            "its state")
         if order.since != self.step:
-            raise FedmapError(f"rover {self.k} is at step {self.step}, the base holds it at step {order.since}: it lost "
-                              "its state (its --state folder); a rover cannot be resynchronised yet")
+            raise FedmapError(f"rover {self.k} is at step {self.step}, ahead of the base's step {order.since}: the "
+                              "base station's journal is older than this rover's state")
         answers = []
         for ev in order.events:
             if ev[0] == "ack":
@@ -509,5 +547,6 @@ def loopback(mission: Mission, name: str, *, feeds: dict[int, MapFeed] | None = 
     return send
 
 
-__all__ = ["DEPLOYABLE", "WIRE_VERSION", "BaseNode", "CorruptMessage", "Order", "Report", "RoverNode", "StepState",
-           "check_deployable", "loopback", "pack_frame", "rounds", "unpack_frame", "warm_up"]
+__all__ = ["DEPLOYABLE", "WIRE_VERSION", "BaseNode", "CorruptMessage", "LostState", "Order", "Report", "RoverNode",
+           "StepState", "check_deployable", "loopback", "pack_frame", "pack_history", "rounds", "unpack_frame",
+           "unpack_history", "warm_up"]
