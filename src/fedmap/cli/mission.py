@@ -181,10 +181,15 @@ def _deployed(cfg, resolved: dict, mode: str, *, out: Path, animation: bool, pro
     host, _, port = listen.rpartition(":")
     if mode == "base" and not (host and port.isdigit()):
         raise FedmapError(f"--listen must be HOST:PORT, got {listen!r}")
+    members = cfg.rovers + cfg.helicopters
+    start = progress.add_task(f"start the SuperLink, {members} rover processes and the base station" if mode == "local"
+                              else "start the SuperLink and the base station; wait for the rovers", total=None, loss="")
     tasks: dict[str, int] = {}
 
     def on_status(st: dict) -> None:
         name = st.get("strategy")
+        if name and not tasks:
+            progress.update(start, total=1, completed=1)
         if name and name not in tasks:
             tasks[name] = progress.add_task(f"mission on processes: {name}", total=cfg.steps, loss="")
         if name:
@@ -196,7 +201,7 @@ def _deployed(cfg, resolved: dict, mode: str, *, out: Path, animation: bool, pro
                           f"--partition-id k --superlink {address} [--root-cert ca.crt --auth-key roverk]",
                           soft_wrap=True)
 
-    return deploy_mission(mission_toml(resolved), members=cfg.rovers + cfg.helicopters, out=out, mode=mode,
+    return deploy_mission(mission_toml(resolved), members=members, out=out, mode=mode,
                           strategies=names, frames=60 if animation else 1,
                           host=host if mode == "base" else "127.0.0.1", port=int(port) if mode == "base" else 0,
                           certs=certs, auth_keys=auth_keys, insecure=insecure, rounds=len(cfg.sync_steps) + 1,
