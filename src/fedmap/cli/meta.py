@@ -22,7 +22,9 @@ from fedmap.meta.collections import BUILTIN_CATEGORIES, MapCollection, earth_lik
 from fedmap.meta.reptile import MetaConfig
 from fedmap.meta.reptile import meta_train as run_meta_train
 from fedmap.mission.coderprior import learn_coder_prior, save_coder_prior
+from fedmap.mission.predictorprior import exploration_samples, save_shipped_predictor
 from fedmap.nets.model import NetConfig, preset
+from fedmap.nets.predictor import PredictorTraining, count_parameters, train_predictor
 
 
 def _collection(source: str, *, layout: str, size: int, per_category: int, categories: Optional[str],
@@ -173,13 +175,20 @@ def table_of(result: dict) -> Table:
     return t
 
 
+#: The options of the offline learners (meta-coder, meta-predictor) that pick their maps.
+_OFFLINE_COLLECTION = typer.Option("builtin", help="'builtin' (Earth-like generator) or a folder of maps; never a "
+                                   "test site.")
+_LAYOUT = typer.Option("maps", help="Folder layout: maps, kitti, domars or dem (see fedmap.meta.collections).")
+_CATEGORIES = typer.Option(None, help="Comma-separated categories to use (default: all).")
+_MAX_SLOPE = typer.Option(None, "--max-slope", help="dem layout: slope limit in degrees [15].")
+
+
 def meta_coder(
-    collection: str = typer.Option("builtin", help="'builtin' (Earth-like generator) or a folder of maps; never a "
-                                   "test site."),
-    layout: str = typer.Option("maps", help="Folder layout: maps, kitti, domars or dem (see fedmap.meta.collections)."),
-    categories: Optional[str] = typer.Option(None, help="Comma-separated categories to use (default: all)."),
+    collection: str = _OFFLINE_COLLECTION,
+    layout: str = _LAYOUT,
+    categories: Optional[str] = _CATEGORIES,
     per_category: int = typer.Option(4, "--per-category", help="Maps per category (generated, or a seeded subset)."),
-    max_slope: Optional[float] = typer.Option(None, "--max-slope", help="dem layout: slope limit in degrees [15]."),
+    max_slope: Optional[float] = _MAX_SLOPE,
     size: int = typer.Option(128, help="Map side in cells."),
     steps: int = typer.Option(150, help="Steps of the predictive mission run on every map."),
     seed: int = typer.Option(0),
@@ -198,3 +207,40 @@ def meta_coder(
     console.print(f"{coll.name}: {coll.n_maps} maps in {len(coll.categories)} categories; "
                   f"{int(state.cells.sum()):,} cell counts, {int(state.moves.sum()):,} move counts")
     console.print(f"coder prior: {path}  wall time {time.perf_counter() - t0:.1f} s")
+
+
+def meta_predictor(
+    collection: str = _OFFLINE_COLLECTION,
+    layout: str = _LAYOUT,
+    categories: Optional[str] = _CATEGORIES,
+    per_category: int = typer.Option(6, "--per-category", help="Maps per category (generated, or a seeded subset)."),
+    max_slope: Optional[float] = _MAX_SLOPE,
+    size: int = typer.Option(128, help="Map side in cells."),
+    steps: int = typer.Option(150, help="Steps of the raw mission run on every map (its rovers' maps are the inputs)."),
+    every: int = typer.Option(10, help="Keep every rover's map every this many steps."),
+    train_steps: int = typer.Option(600, "--train-steps", help="Adam steps of the network."),
+    batch: int = typer.Option(8, help="Maps per Adam step."),
+    crop: int = typer.Option(96, help="Side of the random crop of every map, cells."),
+    lr: float = typer.Option(2e-3, help="Adam learning rate (cosine-decayed to 5 %)."),
+    seed: int = typer.Option(0),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Where to write the weights (default: the file "
+                                       "the installed fedmap ships and reads)."),
+) -> None:
+    """Learn the map predictor: raw missions on a collection, then the network fitted to guess what the rovers' maps miss (one thread, deterministic: the same seed gives the same file)."""
+    training = PredictorTraining(steps=train_steps, batch=batch, crop=crop, lr=lr, seed=seed)
+    coll = _collection(collection, layout=layout, size=size, per_category=per_category, categories=categories,
+                       max_slope=max_slope, seed=seed)
+    t0 = time.perf_counter()
+    with progress_bar() as progress:
+        task = progress.add_task("missions", total=coll.n_maps, loss="")
+        beliefs, truths = exploration_samples(coll, steps=steps, every=every, seed=seed,
+                                              on_map=lambda done, total: progress.update(task, completed=done))
+        progress.update(task, description="train", total=train_steps, completed=0)
+        model = train_predictor(beliefs, truths, training=training,
+                                on_step=lambda i, loss: progress.update(task, completed=i, loss=f"loss {loss:.3f}"))
+    extra = {"command": _command_line(), "fedmap_version": __version__, "collection": coll.summary(),
+             "samples": int(len(beliefs))}
+    path = save_shipped_predictor(model, out, extra=extra)
+    console.print(f"{coll.name}: {coll.n_maps} maps in {len(coll.categories)} categories; {len(beliefs):,} rover maps; "
+                  f"{count_parameters(model):,} parameters")
+    console.print(f"predictor: {path}  wall time {time.perf_counter() - t0:.1f} s")

@@ -1,0 +1,242 @@
+"""The map predictor: a small convolutional network that guesses what unknown cells hold.
+
+For every cell of a class map (FREE / IMPASSABLE / UNKNOWN) it gives P(free) and
+P(impassable). Its input is the map's classes as three one-hot channels; heights are not
+an input yet (the Earth-like training collection has no heights for most of its maps).
+A known cell keeps its class with certainty (:func:`predict`): a guess never overrides an
+observation.
+
+Every rover runs the same network on the map it holds, so rovers that hold the same map
+make the same guesses, and the guesses cost no link bytes. The shipped weights,
+``fedmap/weights/predictor.safetensors``, are learned offline by ``fedmap meta-predictor``
+(:mod:`fedmap.mission.predictorprior`) on the built-in Earth-like collection, never on a
+test site.
+
+Architecture (about 68 k parameters, no normalisation layers, so nothing but the weights
+is state)::
+
+    one-hot classes (3, H, W)
+      stem   3x3 conv 3 -> s, ReLU                          full resolution
+      down   3x3 conv s -> w, stride 2, ReLU                half resolution
+      body   3x3 conv w -> w, dilation d, ReLU, residual    for d in dilations (1, 2, 4, 8, 16, 1)
+      up     bilinear x2, concat stem, 3x3 conv -> s, ReLU  full resolution
+      head   1x1 conv s -> 1: the logit of P(impassable)
+
+The dilated body at half resolution sees about 128 cells either way, so the guess for a
+cell deep in unknown ground still comes from the known ground around it, at about a
+quarter of the arithmetic of a full-resolution body.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from fedmap._util import atomic_write_bytes
+from fedmap.errors import FedmapError
+from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
+
+#: The shipped weights (learned by ``fedmap meta-predictor``; its command is in the file's metadata).
+PREDICTOR_FILE = "predictor.safetensors"
+SHIPPED_PREDICTOR = Path(__file__).resolve().parent.parent / "weights" / PREDICTOR_FILE
+
+
+@dataclass(frozen=True)
+class PredictorConfig:
+    """The predictor's shape (stored in its weights file, so the file alone rebuilds it)."""
+
+    stem: int = 16  #: channels at full resolution
+    width: int = 32  #: channels of the half-resolution body
+    dilations: tuple[int, ...] = (1, 2, 4, 8, 16, 1)  #: one residual 3x3 layer per dilation
+
+    def __post_init__(self) -> None:
+        if self.stem < 1 or self.width < 1 or not self.dilations or min(self.dilations) < 1:
+            raise FedmapError(f"bad predictor shape: {self}")
+        object.__setattr__(self, "dilations", tuple(int(d) for d in self.dilations))
+
+
+class MapPredictor(nn.Module):
+    """``(N, 3, H, W)`` one-hot classes -> ``(N, 1, H, W)`` logits of P(impassable)."""
+
+    def __init__(self, config: PredictorConfig | None = None) -> None:
+        super().__init__()
+        self.config = c = config or PredictorConfig()
+        self.stem = nn.Conv2d(3, c.stem, 3, padding=1)
+        self.down = nn.Conv2d(c.stem, c.width, 3, stride=2, padding=1)
+        self.body = nn.ModuleList(nn.Conv2d(c.width, c.width, 3, padding=d, dilation=d) for d in c.dilations)
+        self.up = nn.Conv2d(c.width + c.stem, c.stem, 3, padding=1)
+        self.head = nn.Conv2d(c.stem, 1, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        s = F.relu(self.stem(x))  # (N, stem, H, W)
+        z = F.relu(self.down(s))  # (N, width, ceil(H/2), ceil(W/2))
+        for conv in self.body:
+            z = z + F.relu(conv(z))
+        z = F.interpolate(z, size=s.shape[-2:], mode="bilinear", align_corners=False)
+        return self.head(F.relu(self.up(torch.cat([z, s], dim=1))))  # (N, 1, H, W)
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+def one_hot(classes: np.ndarray) -> torch.Tensor:
+    """``(..., H, W)`` classes -> ``(..., 3, H, W)`` float one-hot (FREE, IMPASSABLE, UNKNOWN)."""
+    c = torch.from_numpy(np.ascontiguousarray(classes, dtype=np.uint8)).long()
+    return torch.stack([(c == FREE), (c == IMPASSABLE), (c == UNKNOWN)], dim=-3).float()
+
+
+def predict(model: MapPredictor, classes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(P(free), P(impassable))`` of every cell of the ``(H, W)`` map ``classes``, float32.
+
+    A known cell is certain (1 for its class, 0 for the other); an unknown cell gets the
+    network's guess. The two sum to 1 (the terrain under an unknown cell is one or the
+    other). Deterministic: the same map gives the same bits in the same process.
+    """
+    b = np.asarray(classes)
+    if b.ndim != 2:
+        raise FedmapError(f"the predictor takes one (H, W) class map, got shape {b.shape}")
+    with torch.inference_mode():
+        p = torch.sigmoid(model(one_hot(b)[None]))[0, 0].numpy()
+    p_imp = np.where(b == IMPASSABLE, 1.0, np.where(b == FREE, 0.0, p)).astype(np.float32)
+    return (1.0 - p_imp).astype(np.float32), p_imp
+
+
+# -- training ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class PredictorTraining:
+    """How :func:`train_predictor` fits the network."""
+
+    steps: int = 600  #: Adam steps
+    batch: int = 8  #: samples per step
+    crop: int = 96  #: side of the random square crop of every sample (the whole map when larger)
+    lr: float = 2e-3  #: Adam learning rate, cosine-decayed to 5 % over the steps
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "batch", "crop"):
+            if getattr(self, name) < 1:
+                raise FedmapError(f"predictor training {name} must be >= 1, got {getattr(self, name)}")
+        if not self.lr > 0:
+            raise FedmapError(f"predictor training lr must be > 0, got {self.lr}")
+
+
+def _dihedral(a: np.ndarray, k: int) -> np.ndarray:
+    """One of the 8 rotations/reflections of the last two axes (terrain has no preferred heading)."""
+    a = np.rot90(a, k % 4, axes=(-2, -1))
+    return a[..., ::-1] if k >= 4 else a
+
+
+def train_predictor(beliefs: np.ndarray, truths: np.ndarray, *, config: PredictorConfig | None = None,
+                    training: PredictorTraining | None = None,
+                    on_step: Callable[[int, float], None] | None = None) -> MapPredictor:
+    """Fit a predictor to ``(N, H, W)`` maps ``beliefs`` (what rovers held: classes, UNKNOWN
+    where unobserved) and their ``(N, H, W)`` ``truths``.
+
+    Loss: binary cross-entropy of P(impassable) on the cells UNKNOWN in the belief and
+    known in the truth (the cells the predictor exists for). Every step draws ``batch``
+    samples, a random crop and one of the 8 rotations/reflections of each, all from the
+    seed. Runs with one thread and deterministic algorithms, so the same inputs and seed
+    give the same weights bit for bit. ``on_step(step, loss)`` follows the progress.
+    """
+    t = training or PredictorTraining()
+    b, y = np.asarray(beliefs, dtype=np.uint8), np.asarray(truths, dtype=np.uint8)
+    if b.ndim != 3 or b.shape != y.shape or not len(b):
+        raise FedmapError(f"need (N, H, W) beliefs and truths of the same shape, got {b.shape} and {y.shape}")
+    n, h, w = b.shape
+    crop_h, crop_w = min(t.crop, h), min(t.crop, w)
+    rng = np.random.default_rng(np.random.SeedSequence([t.seed, 35]))
+    threads, deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
+    torch.set_num_threads(1)
+    torch.use_deterministic_algorithms(True)
+    try:
+        torch.manual_seed(t.seed)
+        model = MapPredictor(config)
+        opt = torch.optim.Adam(model.parameters(), lr=t.lr)
+        sched = torch.optim.lr_scheduler.LambdaLR(
+            opt, lambda i: 0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * min(i, t.steps) / t.steps)))
+        for step in range(1, t.steps + 1):
+            idx = rng.integers(n, size=t.batch)
+            r0, c0 = rng.integers(h - crop_h + 1, size=t.batch), rng.integers(w - crop_w + 1, size=t.batch)
+            flips = rng.integers(8, size=t.batch)
+            xb = np.stack([_dihedral(b[i, r:r + crop_h, c:c + crop_w], k) for i, r, c, k in zip(idx, r0, c0, flips)])
+            yb = np.stack([_dihedral(y[i, r:r + crop_h, c:c + crop_w], k) for i, r, c, k in zip(idx, r0, c0, flips)])
+            target = torch.from_numpy((yb == IMPASSABLE).astype(np.float32))
+            weight = torch.from_numpy(((xb == UNKNOWN) & (yb != UNKNOWN)).astype(np.float32))
+            logits = model(one_hot(xb))[:, 0]
+            loss = (F.binary_cross_entropy_with_logits(logits, target, reduction="none") * weight).sum() \
+                / weight.sum().clamp(min=1.0)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            if on_step is not None:
+                on_step(step, loss.item())
+    finally:
+        torch.set_num_threads(threads)
+        torch.use_deterministic_algorithms(deterministic)
+    return model.eval()
+
+
+# -- weights files -------------------------------------------------------------------------
+
+def save_predictor(model: MapPredictor, path: str | os.PathLike, *, extra: dict | None = None) -> Path:
+    """Write the weights and the config that built them as safetensors, atomically (one
+    metadata key, sorted: the same model gives the same bytes)."""
+    from safetensors.torch import save
+
+    meta = {"fedmap": json.dumps({"predictor": asdict(model.config), "extra": extra or {}}, sort_keys=True)}
+    atomic_write_bytes(path, save({k: v.contiguous() for k, v in model.state_dict().items()}, metadata=meta))
+    return Path(path)
+
+
+def _read(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], dict]:
+    """The tensors and the ``fedmap`` metadata of a predictor file (one-line errors)."""
+    from safetensors import SafetensorError, safe_open
+
+    p = Path(path)
+    if not p.is_file():
+        raise FedmapError(f"no such predictor file: {p} (fedmap meta-predictor writes it)")
+    try:
+        with safe_open(str(p), framework="pt") as f:
+            meta = json.loads((f.metadata() or {})["fedmap"])
+            return {k: f.get_tensor(k) for k in f.keys()}, meta
+    except (SafetensorError, OSError, KeyError, ValueError, TypeError) as e:
+        raise FedmapError(f"{p} is not a fedmap predictor file ({type(e).__name__}: {e})".splitlines()[0]) from e
+
+
+def load_predictor(path: str | os.PathLike) -> MapPredictor:
+    """Rebuild a predictor from its weights file alone."""
+    tensors, meta = _read(path)
+    try:
+        model = MapPredictor(PredictorConfig(**meta["predictor"]))
+        model.load_state_dict(tensors)
+    except (KeyError, TypeError, RuntimeError) as e:
+        raise FedmapError(f"{path} is not a fedmap predictor file ({type(e).__name__}: {e})".splitlines()[0]) from e
+    return model.eval()
+
+
+def predictor_metadata(path: str | os.PathLike) -> dict:
+    """What a predictor file says about itself (config and ``extra``: the command that made it)."""
+    return _read(path)[1]
+
+
+@functools.cache
+def shipped_predictor() -> MapPredictor:
+    """The shipped predictor (loaded once per process)."""
+    return load_predictor(SHIPPED_PREDICTOR)
+
+
+__all__ = ["MapPredictor", "PredictorConfig", "PredictorTraining", "SHIPPED_PREDICTOR", "count_parameters",
+           "load_predictor", "one_hot", "predict", "predictor_metadata", "save_predictor", "shipped_predictor",
+           "train_predictor"]
