@@ -18,6 +18,17 @@ number of UNKNOWN cells within sensor range of it. Targets are coordinated using
 what the rover knows: cells within two sensor radii of another rover's last known
 position or target (as of the last sync it heard of) are penalised, so rovers spread
 out instead of chasing the same frontier.
+
+**With a predictor** (``[mission] predictor = "learned"``, :mod:`fedmap.nets.predictor`)
+the rover also holds P(impassable) of every unknown cell, a guess that costs no bytes
+and is never an observation. Three things change, nothing else:
+
+* an unknown cell costs :func:`predicted_cost`: the expected cost of entering it,
+  ``(1 - p) unknown_cost + p DETOUR``, so likely walls are avoided but never barred;
+* a frontier's gain counts each unknown cell by the binary entropy of its prediction
+  (bits, 1 for p = 1/2, 0 for a certain guess): the information a look would bring;
+* the path is the cheapest one under the same costs (:func:`cheapest_path`), not the
+  shortest.
 """
 
 from __future__ import annotations
@@ -44,8 +55,39 @@ def frontier_mask(belief: np.ndarray) -> np.ndarray:
     return (b == FREE) & near
 
 
+#: What a cell that turns out impassable costs the rover, in cells: a detour of about a
+#: sensor radius (8 cells at the default) around the blocked ground it belongs to.
+DETOUR = 8.0
+
+
+def predicted_cost(p_impassable: np.ndarray, unknown_cost: float) -> np.ndarray:
+    """The travel cost of unknown cells whose predicted P(impassable) is ``p_impassable``:
+    ``(1 - p) unknown_cost + p max(DETOUR, unknown_cost)``, the expected cost of entering
+    the cell when a free one costs ``unknown_cost`` (the optimism premium of an unseen
+    cell) and a blocked one a detour of :data:`DETOUR` cells. Grows with ``p``; equals
+    ``unknown_cost`` at ``p = 0``. A guess never bars a cell: only an observation does."""
+    p = np.clip(np.asarray(p_impassable, dtype=np.float64), 0.0, 1.0)
+    return (1.0 - p) * unknown_cost + p * max(DETOUR, unknown_cost)
+
+
+def entropy_bits(p: np.ndarray) -> np.ndarray:
+    """Binary entropy of probabilities ``p``, bits (0 at 0 and 1, 1 at 1/2)."""
+    q = np.clip(np.asarray(p, dtype=np.float64), 1e-12, 1 - 1e-12)
+    return -(q * np.log2(q) + (1 - q) * np.log2(1 - q))
+
+
+def _cell_costs(b: np.ndarray, unknown_cost: float, p_impassable: np.ndarray | None) -> np.ndarray:
+    """Per-cell costs of ``b`` (1 free, ``unknown_cost`` or :func:`predicted_cost` unknown,
+    -1 impassable: a barrier)."""
+    unknown = unknown_cost if p_impassable is None else predicted_cost(p_impassable, unknown_cost)
+    costs = np.where(b == FREE, 1.0, unknown)
+    costs[b == IMPASSABLE] = -1.0
+    return costs
+
+
 def travel_costs(belief: np.ndarray, start: tuple[int, int], unknown_cost: float, *,
-                 targets: np.ndarray | None = None, slack: float = np.inf) -> np.ndarray:
+                 targets: np.ndarray | None = None, slack: float = np.inf,
+                 p_impassable: np.ndarray | None = None) -> np.ndarray:
     """Geodesic cost from ``start`` to every cell (inf where unreachable).
 
     8-connected, a step between cells of costs ``a`` and ``b`` costs ``(a + b) / 2`` times
@@ -54,13 +96,12 @@ def travel_costs(belief: np.ndarray, start: tuple[int, int], unknown_cost: float
     settled every cell within ``slack`` of the cheapest target; the cells it did not settle
     are inf, the ones it did have their whole-map cost. A compiled Dijkstra (numba, cached
     on disk): the bound makes a target pick cost what the neighbourhood of the rover costs,
-    not the whole map.
+    not the whole map. With ``p_impassable`` an unknown cell costs :func:`predicted_cost`.
     """
     b = np.asarray(belief)
     h, w = b.shape
     costs = np.full((h + 2, w + 2), -1.0)  # a border of impassable cells: no bounds checks
-    costs[1:-1, 1:-1] = np.where(b == FREE, 1.0, unknown_cost)
-    costs[1:-1, 1:-1][b == IMPASSABLE] = -1.0
+    costs[1:-1, 1:-1] = _cell_costs(b, unknown_cost, p_impassable)
     stop = np.zeros((h + 2, w + 2), dtype=bool)
     if targets is not None:
         stop[1:-1, 1:-1] = targets
@@ -113,19 +154,22 @@ def _settle(costs: np.ndarray, stop: np.ndarray, W: int, s: int, bounded: bool, 
     return np.where(done, cum, np.inf)  # a settled cell's cost is the one it was popped with
 
 
-def gain_at(belief: np.ndarray, cells: np.ndarray, radius: float) -> np.ndarray:
+def gain_at(belief: np.ndarray, cells: np.ndarray, radius: float, *,
+            weights: np.ndarray | None = None) -> np.ndarray:
     """The *gain* of the cells at flat indices ``cells``: the number of UNKNOWN cells within
-    ``radius`` of each (cells outside the map count 0)."""
+    ``radius`` of each (cells outside the map count 0); with ``weights`` (a float per cell
+    of the map), the sum of the UNKNOWN cells' weights instead."""
     off = disk_offsets(radius)
     r = int(np.abs(off).max())
     b = np.asarray(belief)
     h, w = b.shape
-    pad = np.zeros((h + 2 * r, w + 2 * r), dtype=np.int64)
-    pad[r:-r or None, r:-r or None] = b == UNKNOWN
+    dtype = np.int64 if weights is None else np.float64
+    pad = np.zeros((h + 2 * r, w + 2 * r), dtype=dtype)
+    pad[r:-r or None, r:-r or None] = b == UNKNOWN if weights is None else np.where(b == UNKNOWN, weights, 0.0)
     flat = pad.ravel()
     rows, cols = np.divmod(cells, w)
     base = (rows + r) * (w + 2 * r) + cols + r
-    gain = np.zeros(len(cells), dtype=np.int64)
+    gain = np.zeros(len(cells), dtype=dtype)
     for dr, dc in off:
         gain += flat[base + dr * (w + 2 * r) + dc]
     return gain
@@ -134,7 +178,8 @@ def gain_at(belief: np.ndarray, cells: np.ndarray, radius: float) -> np.ndarray:
 def choose_target(belief: np.ndarray, pos: tuple[int, int], *, radius: float, unknown_cost: float,
                   others: list[tuple[int, int]], allowed: np.ndarray | None = None,
                   excluded: set[tuple[int, int]] | frozenset = frozenset(),
-                  heading: tuple[float, float, float] | None = None) -> tuple[int, int] | None:
+                  heading: tuple[float, float, float] | None = None,
+                  p_impassable: np.ndarray | None = None) -> tuple[int, int] | None:
     """The frontier cell this rover should head for, or None when none is left.
 
     Score (lower is better): travel cost, minus the gain scaled to at most ``2 radius``,
@@ -149,6 +194,10 @@ def choose_target(belief: np.ndarray, pos: tuple[int, int], *, radius: float, un
     scores above it whatever its gain (at most ``2 radius``), heading (at most ``radius``
     either way) and crowding (``4 radius``), so the choice is the one a whole-map rating
     makes (the tests compare them).
+
+    ``p_impassable`` (a predictor's P(impassable) of every cell): unknown cells cost
+    :func:`predicted_cost` and count :func:`entropy_bits` of their prediction in the gain.
+    The candidates stay the frontier cells with an unknown cell in range.
     """
     b = np.asarray(belief)
     front = frontier_mask(b)
@@ -164,9 +213,12 @@ def choose_target(belief: np.ndarray, pos: tuple[int, int], *, radius: float, un
     cells, gain = cells[keep], gain[keep]
     if not len(cells):
         return None
+    if p_impassable is not None:
+        gain = gain_at(b, cells, radius, weights=entropy_bits(p_impassable))
     front = np.zeros(b.shape, dtype=bool)
     front.flat[cells] = True
-    cost = travel_costs(b, pos, unknown_cost, targets=front, slack=8 * radius + 1).ravel()[cells]
+    cost = travel_costs(b, pos, unknown_cost, targets=front, slack=8 * radius + 1,
+                        p_impassable=p_impassable).ravel()[cells]
     keep = np.isfinite(cost)
     cells, gain, cost = cells[keep], gain[keep], cost[keep]
     if not len(cells):
@@ -191,3 +243,41 @@ def plan_path(belief: np.ndarray, pos: tuple[int, int], goal: tuple[int, int]) -
     b = np.asarray(belief)
     path = astar((b == FREE) | (b == UNKNOWN), pos, goal)
     return None if path is None else path[1:]
+
+
+def cheapest_path(belief: np.ndarray, pos: tuple[int, int], goal: tuple[int, int], unknown_cost: float,
+                  p_impassable: np.ndarray) -> list[tuple[int, int]] | None:
+    """The cheapest 8-connected path from ``pos`` to ``goal`` under :func:`travel_costs` with
+    a prediction (unknown cells cost :func:`predicted_cost`), without ``pos`` (None: none).
+
+    Dijkstra from ``pos`` until ``goal`` is settled, then back from ``goal``: each cell's
+    predecessor is the settled neighbour through which its cost was reached (the lowest
+    flat index among equals), so the path is deterministic.
+    """
+    b = np.asarray(belief)
+    h, w = b.shape
+    if b[pos] == IMPASSABLE or b[goal] == IMPASSABLE:
+        return None
+    at_goal = np.zeros(b.shape, dtype=bool)
+    at_goal[goal] = True
+    cum = travel_costs(b, pos, unknown_cost, targets=at_goal, slack=0.0, p_impassable=p_impassable)
+    if not np.isfinite(cum[goal]):
+        return None
+    costs = _cell_costs(b, unknown_cost, p_impassable)
+    path = [goal]
+    cell = goal
+    while cell != pos:
+        r, c = cell
+        best, best_cost = None, np.inf
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                rr, cc = r + dr, c + dc
+                if (dr or dc) and 0 <= rr < h and 0 <= cc < w and np.isfinite(cum[rr, cc]) and costs[rr, cc] >= 0:
+                    step = (1.0 if dr == 0 or dc == 0 else np.sqrt(2.0)) * 0.5 * (costs[rr, cc] + costs[r, c])
+                    if cum[rr, cc] + step < best_cost and cum[rr, cc] < cum[r, c]:
+                        best, best_cost = (rr, cc), cum[rr, cc] + step
+        if best is None:  # cannot happen on a settled cell; never loop
+            return None
+        cell = best
+        path.append(cell)
+    return path[::-1][1:]

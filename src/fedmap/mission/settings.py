@@ -65,6 +65,9 @@ TOPOLOGIES: tuple[str, ...] = tuple(TOPOLOGY_CLASSES)
 MODES: tuple[str, ...] = ("frontier", "waypoints")
 #: What a model strategy's rover trains on at a sync (``[mission] train_on``).
 TRAIN_ON: tuple[str, ...] = ("map", "changed")
+#: What rovers plan with beside their maps (``[mission] predictor``): nothing, or the shipped
+#: map predictor's guesses (:mod:`fedmap.nets.predictor`).
+PREDICTORS: tuple[str, ...] = ("none", "learned")
 def check_strategies(names) -> tuple[str, ...]:
     """``names`` as a tuple of known strategies (one-line error with a suggestion otherwise)."""
     names = tuple(names)
@@ -267,6 +270,10 @@ class MissionConfig:
         Pick only targets within the link's ``max_range`` of the base.
     unknown_cost : float
         Cost of one unknown cell relative to a known free one when rating targets.
+    predictor : str
+        ``none``, or ``learned``: every rover runs the shipped map predictor on the map it
+        holds and plans with its guesses (:mod:`fedmap.mission.frontiers`); the guesses
+        cost no bytes and are never shared, scored or counted as observed.
     strategies : tuple of str
         Which of :data:`STRATEGIES` to run, on the same terrain, starts, seeds and link.
     eval_pairs : int
@@ -306,6 +313,10 @@ class MissionConfig:
     stay_in_range: bool = setting(False, help="Pick only targets within the link's range of the base",
                                   cli="--stay-in-range/--roam")
     unknown_cost: float = setting(1.5, help="Cost of an unknown cell relative to a known free one when rating targets")
+    predictor: str = setting("none", help="learned: every rover runs the shipped map predictor on its map; an unknown "
+                             "cell costs more the likelier it is impassable and a frontier's gain counts the guesses' "
+                             "uncertainty (no bytes; guesses are never shared or counted as observed)",
+                             choices=PREDICTORS)
     strategies: tuple[str, ...] = setting(DEFAULT_STRATEGIES, help="Ways of sharing to run side by side, "
                                           "comma-separated", choices=STRATEGIES)
     train_on: str = setting("map", help="Model strategies: what a rover trains on at a sync: map (its whole map) or "
@@ -338,6 +349,8 @@ class MissionConfig:
                               f"got {self.sensor_radius!r}")
         if not (math.isfinite(self.unknown_cost) and self.unknown_cost >= 1):
             raise FedmapError(f"unknown_cost must be >= 1, got {self.unknown_cost!r}")
+        if self.predictor not in PREDICTORS:
+            raise FedmapError(f"unknown predictor {self.predictor!r}{suggest(self.predictor, PREDICTORS)}")
         if self.train_on not in TRAIN_ON:
             raise FedmapError(f"unknown train_on {self.train_on!r}{suggest(self.train_on, TRAIN_ON)}")
         if not (math.isfinite(self.replay) and self.replay >= 0):
@@ -414,7 +427,13 @@ class MissionConfig:
         return self.seed if self.link.seed is None else self.link.seed
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        return _without_unset_predictor(asdict(self))
+
+
+def _without_unset_predictor(mission: dict) -> dict:
+    """``mission`` without ``predictor`` when it is ``none``: missions that plan without a
+    predictor keep the settings (and the ``metrics.json``) they had before it existed."""
+    return {k: v for k, v in mission.items() if not (k == "predictor" and v == "none")}
 
 
 #: The tables of a mission file besides the run config's ``seed``, ``[terrain]`` and ``[thresholds]``.
@@ -507,9 +526,9 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
             if asked:
                 raise needs_dem(what)
     out = {"seed": resolved["seed"], "terrain": {k: v for k, v in source.to_dict().items() if k != "thresholds"},
-           "thresholds": used_thresholds(resolved["thresholds"]), "mission": {k: v for k, v in asdict(config).items()
-                                                            if k not in ("link", "prior", "helicopter", "methods",
-                                                                         "seed")},
+           "thresholds": used_thresholds(resolved["thresholds"]),
+           "mission": _without_unset_predictor({k: v for k, v in asdict(config).items()
+                                                if k not in ("link", "prior", "helicopter", "methods", "seed")}),
            "link": config.link.to_dict(), "prior": config.prior.to_dict(), "helicopter": config.helicopter.to_dict(),
            "strategies": methods}
     return config, source, out

@@ -6,10 +6,16 @@ One step, for every rover in turn: drive up to ``speed`` cells along the planned
 observing the footprint from every cell entered (the next cell is always observed before
 the move, so a rover never enters a cell that is impassable in the truth: the world checks
 it against the truth and stops with an error if it ever would).
+
+With ``[mission] predictor = "learned"`` every rover also runs the shipped map predictor
+(:mod:`fedmap.nets.predictor`) on the map it holds (:meth:`World.predicted`) and plans
+with the guesses (:mod:`fedmap.mission.frontiers`). The guesses live only in this
+planning view: they never enter a rover's observations, what it shares, or its belief.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass, field
 
@@ -21,9 +27,10 @@ from fedmap.maps.dem import Dem
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.planning import path_is_valid
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, rover_profile
-from fedmap.mission.frontiers import choose_target, plan_path
+from fedmap.mission.frontiers import cheapest_path, choose_target, plan_path
 from fedmap.mission.sensing import block_classes, coarse_footprint, disk_offsets, footprint
 from fedmap.mission.settings import MissionConfig
+from fedmap.nets.predictor import MapPredictor, predict, shipped_predictor
 
 Cell = tuple[int, int]
 
@@ -125,6 +132,25 @@ def plan_waypoints(truth: GridMap, config: MissionConfig) -> list[list[Cell]]:
 
 
 
+@dataclass(frozen=True)
+class PredictedView:
+    """A map with the predictor's guesses, for planning only: ``classes`` is the map with
+    every unknown cell filled with its likelier class, ``predicted`` marks those cells, and
+    ``p_impassable`` is P(impassable) of every cell (0 or 1 where the map knows the cell).
+    A predicted cell is never an observation: nothing here is shared or scored as observed."""
+
+    classes: np.ndarray
+    predicted: np.ndarray
+    p_impassable: np.ndarray
+
+    @classmethod
+    def of(cls, predictor: MapPredictor, belief: np.ndarray) -> PredictedView:
+        _, p_imp = predict(predictor, belief)
+        predicted = belief == UNKNOWN
+        classes = np.where(predicted, np.where(p_imp > 0.5, IMPASSABLE, FREE), belief).astype(np.uint8)
+        return cls(classes, predicted, p_imp)
+
+
 class World:
     """Every member of the team on ``truth``: rovers from ``starts`` (their ``waypoints`` in
     ``waypoints`` mode), then the helicopters from the base. ``ends[k]`` is member ``k``'s
@@ -160,6 +186,9 @@ class World:
         self._derived: dict[int, tuple[tuple, np.ndarray]] = {}
         self.allowed = allowed
         self.ends: list = []
+        #: the map predictor every rover runs on the map it holds (None: plan without guesses)
+        self.predictor: MapPredictor | None = shipped_predictor() if config.predictor == "learned" else None
+        self._predicted: dict[int, tuple[bytes, PredictedView]] = {}
 
     def positions(self) -> list[Cell]:
         """Every member's cell now, in team order."""
@@ -212,9 +241,24 @@ class World:
                 r.waypoints.pop(0)
             return r.waypoints[0] if r.waypoints else None
         heading = (*self.origin, 2 * math.pi * k / self.config.rovers)
+        guess = None if self.predictor is None else self.predicted(k, belief).p_impassable
         return choose_target(belief, r.pos, radius=self.config.sensor_radius, unknown_cost=self.config.unknown_cost,
                              others=self.ends[k].others(), allowed=self.allowed, excluded=r.excluded,
-                             heading=heading)
+                             heading=heading, p_impassable=guess)
+
+    def predicted(self, k: int, belief: np.ndarray) -> PredictedView:
+        """Rover ``k``'s planning view with the predictor's guesses (cached while its map is
+        unchanged): the map it holds, every unknown cell filled with its likelier class and
+        marked as predicted. Needs ``predictor = "learned"``."""
+        assert self.predictor is not None
+        b = np.ascontiguousarray(belief, dtype=np.uint8)
+        key = hashlib.blake2b(b.tobytes(), digest_size=16).digest()
+        hit = self._predicted.get(k)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        view = PredictedView.of(self.predictor, b)
+        self._predicted[k] = (key, view)
+        return view
 
     def own_view(self, k: int, belief: np.ndarray) -> np.ndarray:
         """Rover ``k``'s belief with the cells it observed itself in its own classes (its
@@ -281,7 +325,11 @@ class World:
             target = self._pick(k, belief)
             if target is None:
                 return
-            path = plan_path(on, r.pos, target)
+            if self.predictor is None:
+                path = plan_path(on, r.pos, target)
+            else:
+                path = cheapest_path(on, r.pos, target, self.config.unknown_cost,
+                                     self.predicted(k, belief).p_impassable)
             if not path and self.prior is not None:  # the prior is a guess: never let it trap a rover
                 path = plan_path(self.own_view(k, belief), r.pos, target)
             if path:
