@@ -15,7 +15,18 @@ import torch  # noqa: E402
 from fedmap.maps.grid import FREE, IMPASSABLE, GridMap  # noqa: E402
 from fedmap.nets.model import NetConfig  # noqa: E402
 
-torch.set_num_threads(1 if WORKER else 2)
+THREADS = 1 if WORKER else 2
+torch.set_num_threads(THREADS)
+
+
+@pytest.fixture(autouse=True)
+def _torch_threads_stay_put():
+    """A command run in-process may set torch's thread count (``--threads``): put it back, so
+    one test cannot leave a worker on two threads that wait on each other under load (a
+    worker left on 2 threads made a later 4 s test take 300 s)."""
+    yield
+    if torch.get_num_threads() != THREADS:
+        torch.set_num_threads(THREADS)
 
 #: A small network so tests of training and federation run in milliseconds.
 TINY_NET = NetConfig(mapping_size=16, hidden=32)

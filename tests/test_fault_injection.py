@@ -178,7 +178,7 @@ RUN = {"net": "small", "init": "random", "epochs": 3, "lr": 1e-2, "seed": 1, "mi
        "rounds": 2, "connect-timeout": 240.0, "deadline": 240.0, "pairs": 5}
 
 
-@pytest.mark.xdist_group("loopback-a")  # a long loopback run: see addopts in pyproject.toml
+@pytest.mark.xdist_group("loopback-c")  # a long loopback run: see addopts in pyproject.toml
 @pytest.mark.slow
 def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
     """2 rounds, 4 rovers over TLS with registered keys, all through the proxy (20 ms per
@@ -262,7 +262,7 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
 CLEAN_ROVER = 0
 
 
-@pytest.mark.xdist_group("loopback-b")  # a long loopback run: see addopts in pyproject.toml
+@pytest.mark.xdist_group("loopback-c")  # a long loopback run: see addopts in pyproject.toml
 @pytest.mark.slow
 def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     """4 rovers without TLS; rovers 1-3 go through a proxy that resets every open connection

@@ -281,7 +281,8 @@ def test_pipeline_meta_init_config_errors():
 def test_cli_meta_train_then_ablate(tmp_path, capsys):
     w = tmp_path / "w.safetensors"
     rc = main(["meta-train", "--net", "small", "--size", "16", "--per-category", "3", "--iterations", "2",
-               "--inner-steps", "1", "--meta-batch", "1", "--prior-steps", "2", "--holdout", "1", "-o", str(w)])
+               "--inner-steps", "1", "--meta-batch", "1", "--prior-steps", "2", "--holdout", "1", "--threads", "1",
+               "-o", str(w)])
     out = capsys.readouterr()
     assert rc == 0, out.err
     assert load_model(w).config == preset("small")
@@ -293,7 +294,7 @@ def test_cli_meta_train_then_ablate(tmp_path, capsys):
     assert not (tmp_path / "a").exists()
 
     rc = main(["ablate-init", "--size", "16", "--maps", "2", "--max-steps", "4", "--prior-steps", "2",
-               "-o", str(tmp_path / "a")])
+               "--threads", "1", "-o", str(tmp_path / "a")])
     out = capsys.readouterr()
     assert rc == 0, out.err
     res = json.loads((tmp_path / "a" / "ablation.json").read_text())

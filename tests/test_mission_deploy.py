@@ -54,7 +54,7 @@ def test_the_default_mission_on_processes_equals_the_mission_in_process(tmp_path
     out = tmp_path / "out"
     names = ("raw", "predictive", "fedmap")
     r = subprocess.run([sys.executable, "-m", "fedmap", "mission", "--deploy", "local", "--strategies", ",".join(names),
-                        "--set", "mission.steps=40", "--no-animation", "-o", str(out)],
+                        "--set", "mission.steps=30", "--no-animation", "-o", str(out)],
                        capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     deployed = json.loads((out / "metrics.json").read_text())
@@ -136,7 +136,7 @@ def test_a_base_station_killed_mid_mission_resumes_bit_for_bit(tmp_path):
     and the result equals the uninterrupted in-process mission's."""
     out = tmp_path / "out"
     argv = [sys.executable, "-m", "fedmap", "mission", "--deploy", "local", "--strategies", "raw,predictive",
-            "--set", "mission.steps=40", "--no-animation", "-o", str(out)]
+            "--set", "mission.steps=30", "--no-animation", "-o", str(out)]
     env = {**os.environ, "FEDMAP_TEST_RUN": str(tmp_path)}
     first = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
                              start_new_session=True)
