@@ -20,8 +20,9 @@ Parts:
 
 Sites (never seen in training: the predictor learns on fedmap's Earth-like collection):
 Gale 1 m (examples/mission_gale.toml: line of sight, small-rover limits), Hadley Rille
-(examples/mission_hadley.toml) and the lunar block east of it (the same mission on the
-tiles at lon 14, lat 22). Needs ``../shared/data``; the package itself never does.
+(examples/mission_hadley.toml) and Big Tujunga, an Earth mountain DEM (30 m; the Hadley
+mission on a 256-cell crop, slope limit 25 degrees: 33 % impassable). Needs
+``../shared/data``; the package itself never does.
 Writes ``predictor.json``, ``predictor.md`` and ``reliability.png`` to ``--out``.
 """
 
@@ -48,13 +49,12 @@ AT = (50, 100, 150, 200)  #: the fixed steps of the tables
 BINS = 10
 
 
-def sites(data: Path) -> dict[str, tuple[Path, dict | None]]:
-    """name -> (mission file, terrain replacing the file's, or None)."""
-    east = {"kind": "tiles", "path": str(data / "moon/gld100_256p"), "lon": 14, "lat": 22, "tiles": 8,
-            "options": {"pixel_size": 118.45}}
-    return {"gale": (ROOT / "examples/mission_gale.toml", None),
-            "hadley": (ROOT / "examples/mission_hadley.toml", None),
-            "hadley-east": (ROOT / "examples/mission_hadley.toml", east)}
+def sites(data: Path) -> dict[str, tuple[Path, dict | None, dict | None]]:
+    """name -> (mission file, terrain replacing the file's or None, thresholds laid over the file's or None)."""
+    tujunga = {"kind": "dem", "path": str(data / "earth/bigtujunga.tif"), "crop": 256, "size": 128}
+    return {"gale": (ROOT / "examples/mission_gale.toml", None, None),
+            "hadley": (ROOT / "examples/mission_hadley.toml", None, None),
+            "tujunga": (ROOT / "examples/mission_hadley.toml", tujunga, {"max_slope_deg": 25.0})}
 
 
 def speed() -> dict:
@@ -77,10 +77,12 @@ def speed() -> dict:
     return out
 
 
-def run_one(path: Path, terrain: dict | None, *, seed: int, strategy: str, predictor: str, steps: int) -> tuple[dict, dict]:
+def run_one(path: Path, terrain: dict | None, thresholds: dict | None, *, seed: int, strategy: str, predictor: str,
+            steps: int) -> tuple[dict, dict]:
     """One mission: its row of the tables, and the cells nobody observed at the fixed steps
     (``{"p": P(impassable), "truth": impassable?}``) for the calibration."""
     config, source, _ = load_mission(path, terrain=terrain, seed=seed,
+                                     overrides=[{"thresholds": thresholds}] if thresholds else None,
                                      mission={"steps": steps, "strategies": [strategy], "predictor": predictor})
     truth, elevation, prior, profiles = mission_terrain(config, source)
     m = prepare_mission(config, truth, elevation=elevation, prior=prior, profiles=profiles, thresholds=source.thresholds)
@@ -221,7 +223,7 @@ def main() -> None:
     ap.add_argument("--part", choices=["all", "speed", "missions"], default="all",
                     help="missions includes the calibration")
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared/data")
-    ap.add_argument("--sites", nargs="+", default=None, help="some of gale, hadley, hadley-east (default: all)")
+    ap.add_argument("--sites", nargs="+", default=None, help="some of gale, hadley, tujunga (default: all)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--strategies", nargs="+", default=["raw", "predictive"])
     ap.add_argument("--steps", type=int, default=200)
@@ -239,11 +241,11 @@ def main() -> None:
         names = args.sites or list(all_sites)
         runs, cals = [], {}
         for name in names:
-            path, terrain = all_sites[name]
+            path, terrain, thresholds = all_sites[name]
             for seed in args.seeds:
                 for strategy in args.strategies:
                     for predictor in ("none", "learned"):
-                        row, cal = run_one(path, terrain, seed=seed, strategy=strategy, predictor=predictor,
+                        row, cal = run_one(path, terrain, thresholds, seed=seed, strategy=strategy, predictor=predictor,
                                            steps=args.steps)
                         row = {"site": name, "seed": seed, "strategy": strategy, "predictor": predictor, **row}
                         runs.append(row)

@@ -29,6 +29,7 @@ from fedmap.nets.predictor import (
     PredictorConfig,
     PredictorTraining,
     count_parameters,
+    known_rate,
     load_predictor,
     predict,
     predictor_metadata,
@@ -73,6 +74,21 @@ def test_shipped_weights_give_probabilities_and_keep_known_cells():
     assert np.ptp(p_imp[unknown]) > 0.1  # the guesses depend on the map, not one constant
     again = predict(model, belief)[1]
     assert np.array_equal(again, p_imp)  # deterministic: rovers holding the same map guess the same
+
+
+def test_the_guesses_follow_the_maps_own_base_rate():
+    model = shipped_predictor()
+    _, belief = _explored()
+    _, raw = predict(model, belief, adapt=False)
+    _, p = predict(model, belief)
+    # the impassable share of the known cells, one pseudo-count each way
+    assert known_rate(belief) == ((belief == IMPASSABLE).sum() + 1) / ((belief != UNKNOWN).sum() + 2)
+    assert 0.05 < float(model.base_rate) < 0.95  # learned from the training maps, not the 0.5 placeholder
+    logit = lambda q: np.log(q) - np.log1p(-q)
+    shift = logit(known_rate(belief)) - logit(float(model.base_rate))
+    sure = (belief == UNKNOWN) & (raw > 0.01) & (raw < 0.99) & (p > 0.01) & (p < 0.99)
+    assert sure.sum() > 100 and abs(shift) > 0.1
+    assert np.allclose(logit(p[sure].astype(np.float64)), logit(raw[sure].astype(np.float64)) + shift, atol=1e-3)
 
 
 def test_predicted_cost_by_hand_and_monotone():

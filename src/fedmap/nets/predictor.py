@@ -25,6 +25,13 @@ is state)::
 The dilated body at half resolution sees about 128 cells either way, so the guess for a
 cell deep in unknown ground still comes from the known ground around it, at about a
 quarter of the arithmetic of a full-resolution body.
+
+**Base rates.** The Earth-like training maps are 28-76 % impassable; planetary sites are
+often 10 % or less, so the raw network over-predicts walls there. :func:`predict`
+corrects for this *label shift* (Saerens, Latinne and Decaestecker 2002) with nothing
+but the map it is given: it adds ``logit(r_map) - logit(r_train)`` to every logit, where
+``r_map`` is the impassable share of the map's known cells and ``r_train`` the same share
+averaged over the training maps (stored in the weights file as ``base_rate``).
 """
 
 from __future__ import annotations
@@ -67,6 +74,8 @@ class PredictorConfig:
 class MapPredictor(nn.Module):
     """``(N, 3, H, W)`` one-hot classes -> ``(N, 1, H, W)`` logits of P(impassable)."""
 
+    base_rate: torch.Tensor
+
     def __init__(self, config: PredictorConfig | None = None) -> None:
         super().__init__()
         self.config = c = config or PredictorConfig()
@@ -75,6 +84,8 @@ class MapPredictor(nn.Module):
         self.body = nn.ModuleList(nn.Conv2d(c.width, c.width, 3, padding=d, dilation=d) for d in c.dilations)
         self.up = nn.Conv2d(c.width + c.stem, c.stem, 3, padding=1)
         self.head = nn.Conv2d(c.stem, 1, 1)
+        #: the impassable share of the known cells of the training maps (see :func:`predict`)
+        self.register_buffer("base_rate", torch.tensor(0.5))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         s = F.relu(self.stem(x))  # (N, stem, H, W)
@@ -95,18 +106,32 @@ def one_hot(classes: np.ndarray) -> torch.Tensor:
     return torch.stack([(c == FREE), (c == IMPASSABLE), (c == UNKNOWN)], dim=-3).float()
 
 
-def predict(model: MapPredictor, classes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def known_rate(classes: np.ndarray) -> float:
+    """The impassable share of a map's known cells, with one pseudo-count of each class
+    (a map with nothing known gives 1/2)."""
+    b = np.asarray(classes)
+    return (int((b == IMPASSABLE).sum()) + 1) / (int((b != UNKNOWN).sum()) + 2)
+
+
+def _logit(p: float) -> float:
+    return float(np.log(p) - np.log1p(-p))
+
+
+def predict(model: MapPredictor, classes: np.ndarray, *, adapt: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """``(P(free), P(impassable))`` of every cell of the ``(H, W)`` map ``classes``, float32.
 
     A known cell is certain (1 for its class, 0 for the other); an unknown cell gets the
-    network's guess. The two sum to 1 (the terrain under an unknown cell is one or the
-    other). Deterministic: the same map gives the same bits in the same process.
+    network's guess, moved to the map's own base rate when ``adapt`` (see the module
+    notes: ``logit(known_rate(classes)) - logit(model.base_rate)`` added to its logit).
+    The two sum to 1 (the terrain under an unknown cell is one or the other).
+    Deterministic: the same map gives the same bits in the same process.
     """
     b = np.asarray(classes)
     if b.ndim != 2:
         raise FedmapError(f"the predictor takes one (H, W) class map, got shape {b.shape}")
+    shift = _logit(known_rate(b)) - _logit(float(model.base_rate)) if adapt else 0.0
     with torch.inference_mode():
-        p = torch.sigmoid(model(one_hot(b)[None]))[0, 0].numpy()
+        p = torch.sigmoid(model(one_hot(b)[None]) + shift)[0, 0].numpy()
     p_imp = np.where(b == IMPASSABLE, 1.0, np.where(b == FREE, 0.0, p)).astype(np.float32)
     return (1.0 - p_imp).astype(np.float32), p_imp
 
@@ -144,7 +169,8 @@ def train_predictor(beliefs: np.ndarray, truths: np.ndarray, *, config: Predicto
     where unobserved) and their ``(N, H, W)`` ``truths``.
 
     Loss: binary cross-entropy of P(impassable) on the cells UNKNOWN in the belief and
-    known in the truth (the cells the predictor exists for). Every step draws ``batch``
+    known in the truth (the cells the predictor exists for). The model's ``base_rate`` is
+    the mean :func:`known_rate` of ``beliefs``. Every step draws ``batch``
     samples, a random crop and one of the 8 rotations/reflections of each, all from the
     seed. Runs with one thread and deterministic algorithms, so the same inputs and seed
     give the same weights bit for bit. ``on_step(step, loss)`` follows the progress.
@@ -162,6 +188,7 @@ def train_predictor(beliefs: np.ndarray, truths: np.ndarray, *, config: Predicto
     try:
         torch.manual_seed(t.seed)
         model = MapPredictor(config)
+        model.base_rate.fill_(float(np.mean([known_rate(x) for x in b])))
         opt = torch.optim.Adam(model.parameters(), lr=t.lr)
         sched = torch.optim.lr_scheduler.LambdaLR(
             opt, lambda i: 0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * min(i, t.steps) / t.steps)))
@@ -238,5 +265,5 @@ def shipped_predictor() -> MapPredictor:
 
 
 __all__ = ["MapPredictor", "PredictorConfig", "PredictorTraining", "SHIPPED_PREDICTOR", "count_parameters",
-           "load_predictor", "one_hot", "predict", "predictor_metadata", "save_predictor", "shipped_predictor",
+           "known_rate", "load_predictor", "one_hot", "predict", "predictor_metadata", "save_predictor", "shipped_predictor",
            "train_predictor"]
