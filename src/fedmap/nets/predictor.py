@@ -36,10 +36,11 @@ averaged over the training maps (stored in the weights file as ``base_rate``).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -106,6 +107,23 @@ def one_hot(classes: np.ndarray) -> torch.Tensor:
     return torch.stack([(c == FREE), (c == IMPASSABLE), (c == UNKNOWN)], dim=-3).float()
 
 
+@contextlib.contextmanager
+def _one_thread(deterministic: bool = False) -> Iterator[None]:
+    """torch on one thread (and deterministic algorithms when asked) inside, as before after."""
+    threads, was = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
+    if threads != 1:
+        torch.set_num_threads(1)
+    if deterministic:
+        torch.use_deterministic_algorithms(True)
+    try:
+        yield
+    finally:
+        if threads != 1:
+            torch.set_num_threads(threads)
+        if deterministic:
+            torch.use_deterministic_algorithms(was)
+
+
 def known_rate(classes: np.ndarray) -> float:
     """The impassable share of a map's known cells, with one pseudo-count of each class
     (a map with nothing known gives 1/2)."""
@@ -124,13 +142,15 @@ def predict(model: MapPredictor, classes: np.ndarray, *, adapt: bool = True) -> 
     network's guess, moved to the map's own base rate when ``adapt`` (see the module
     notes: ``logit(known_rate(classes)) - logit(model.base_rate)`` added to its logit).
     The two sum to 1 (the terrain under an unknown cell is one or the other).
-    Deterministic: the same map gives the same bits in the same process.
+    Runs on one thread whatever torch's setting: the same map gives the same bits on
+    every rover, and a second thread gains nothing at 128² (``benchmarks/predictor.py``)
+    while it costs many times over on a busy CPU (threads waiting for each other).
     """
     b = np.asarray(classes)
     if b.ndim != 2:
         raise FedmapError(f"the predictor takes one (H, W) class map, got shape {b.shape}")
     shift = _logit(known_rate(b)) - _logit(float(model.base_rate)) if adapt else 0.0
-    with torch.inference_mode():
+    with _one_thread(), torch.inference_mode():
         p = torch.sigmoid(model(one_hot(b)[None]) + shift)[0, 0].numpy()
     p_imp = np.where(b == IMPASSABLE, 1.0, np.where(b == FREE, 0.0, p)).astype(np.float32)
     return (1.0 - p_imp).astype(np.float32), p_imp
@@ -182,10 +202,7 @@ def train_predictor(beliefs: np.ndarray, truths: np.ndarray, *, config: Predicto
     n, h, w = b.shape
     crop_h, crop_w = min(t.crop, h), min(t.crop, w)
     rng = np.random.default_rng(np.random.SeedSequence([t.seed, 35]))
-    threads, deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
-    torch.set_num_threads(1)
-    torch.use_deterministic_algorithms(True)
-    try:
+    with _one_thread(deterministic=True):
         torch.manual_seed(t.seed)
         model = MapPredictor(config)
         model.base_rate.fill_(float(np.mean([known_rate(x) for x in b])))
@@ -209,9 +226,6 @@ def train_predictor(beliefs: np.ndarray, truths: np.ndarray, *, config: Predicto
             sched.step()
             if on_step is not None:
                 on_step(step, loss.item())
-    finally:
-        torch.set_num_threads(threads)
-        torch.use_deterministic_algorithms(deterministic)
     return model.eval()
 
 
