@@ -2,7 +2,7 @@
 calibration, and whether planning with it pays (``[mission] predictor = "learned"``).
 
     python benchmarks/predictor.py                      # speed, calibration and missions
-    python benchmarks/predictor.py --part speed         # only the inference time
+    python benchmarks/predictor.py --part speed         # only the inference time (kept with earlier missions)
     python benchmarks/predictor.py --seeds 0 --steps 100 --sites gale   # a quick look
 
 Parts:
@@ -272,6 +272,9 @@ def main() -> None:
         result["calibration_per_site"] = per_site
         plot_reliability(result["calibration"], per_site, args.out / "reliability.png")
     result = json.loads(json.dumps(result, default=str))  # the step keys as JSON has them (strings)
+    old = args.out / "predictor.json"
+    if args.part == "speed" and old.is_file():  # keep the missions of an earlier run
+        result = {**json.loads(old.read_text()), **{k: result[k] for k in ("machine", "speed")}}
     text = markdown(result)
     print(text)
     (args.out / "predictor.json").write_text(json.dumps(result, indent=1))
