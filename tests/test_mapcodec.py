@@ -18,7 +18,19 @@ from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.maps.sources import TerrainSource, load_truth
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-HEAD = mapcodec._HEADER.size + 4  # header + trailing CRC
+HEAD = mapcodec._HEADER.size + 4  # header + trailing CRC (a payload of the whole grid: no window fields)
+
+
+def _window_fields(data: bytes) -> int:
+    """Bytes of the window's varints (0 without a window)."""
+    if not data[5] & mapcodec._F_WINDOW:
+        return 0
+    off = mapcodec._HEADER.size
+    for _ in range(4):
+        while data[off] & 0x80:
+            off += 1
+        off += 1
+    return off - mapcodec._HEADER.size
 
 
 def _roundtrip(m: np.ndarray, reference: np.ndarray | None = None) -> bytes:
@@ -150,8 +162,10 @@ def _reference_bits(m: np.ndarray) -> float:
 def test_payload_size_is_the_models_ideal_code_length(shape, seed):
     """The range coder spends within a few bytes of -sum log2 p under the documented model."""
     m = _blobs(shape, seed, block=4)
-    body = len(encode_map(m)) - HEAD
-    ideal = _reference_bits(m) / 8
+    data = encode_map(m)
+    body = len(data) - HEAD - _window_fields(data)
+    top, left, h, w = mapcodec.changed_window(m, None)
+    ideal = _reference_bits(m[top:top + h, left:left + w]) / 8  # only the window that differs from UNKNOWN
     assert ideal - 1 <= body <= ideal + 8, (body, ideal)
 
 
@@ -244,3 +258,82 @@ def test_context_is_an_image_codec_row():
     assert codec.lossless and payload == encode_map(m)
     with pytest.raises(RejectedUpdate, match="a 64x64 map, expected 64x65"):
         codec.decode(payload, (64, 65))
+
+
+# ----------------------------------------------------------------------------- windows
+
+
+def _brute_window(m: np.ndarray, background) -> tuple[int, int, int, int]:
+    cells = [(r, c) for r in range(m.shape[0]) for c in range(m.shape[1])
+             if m[r, c] != (background if np.isscalar(background) else background[r, c])]
+    if not cells:
+        return 0, 0, 0, 0
+    rs, cs = [r for r, _ in cells], [c for _, c in cells]
+    return min(rs), min(cs), max(rs) - min(rs) + 1, max(cs) - min(cs) + 1
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_window_is_every_changed_cell_and_no_more(seed):
+    rng = np.random.default_rng(seed)
+    h, w = (int(v) for v in rng.integers(1, 40, size=2))
+    ref = rng.integers(0, 3, size=(h, w)).astype(np.uint8)
+    m = np.full((h, w), UNKNOWN, np.uint8)
+    new = ref.copy()
+    for _ in range(int(rng.integers(0, 4))):  # a few changed patches (none: nothing differs)
+        r, c = int(rng.integers(0, h)), int(rng.integers(0, w))
+        m[r:r + 3, c:c + 5] = rng.integers(0, 2, size=m[r:r + 3, c:c + 5].shape)
+        new[r:r + 2, c:c + 2] = (new[r:r + 2, c:c + 2] + 1) % 3
+    assert mapcodec.changed_window(m, None) == _brute_window(m, UNKNOWN)
+    assert mapcodec.changed_window(new, ref) == _brute_window(new, ref)
+    _roundtrip(m)
+    _roundtrip(new, reference=ref)
+
+
+def test_a_small_update_on_a_large_grid_codes_its_window():
+    """A rover's few new cells on a 2048x2048 grid: the payload is the window coded alone,
+    plus the window's place (a few bytes)."""
+    truth = _blobs((2048, 2048), seed=7, block=16)
+    update = np.full(truth.shape, UNKNOWN, np.uint8)
+    update[1500:1540, 300:364] = truth[1500:1540, 300:364]
+    data = _roundtrip(update)
+    alone = encode_map(truth[1500:1540, 300:364])
+    assert data[5] & mapcodec._F_WINDOW
+    assert len(data) - _window_fields(data) == len(alone)
+    assert data[-len(alone) + mapcodec._HEADER.size:-4] == alone[mapcodec._HEADER.size:-4]  # the same coder words
+    nothing = _roundtrip(np.full((300, 200), UNKNOWN, np.uint8))  # nothing to say: no coder words
+    assert len(nothing) == HEAD + _window_fields(nothing) == HEAD + 4
+
+
+#: Payloads of format version 1 (whole grid, no window), written by fedmap before windows:
+#: a 9x13 map, and the same map against a reference; both still decode.
+V1_PLAIN = bytes.fromhex("464d434d0100090000000d00000079babefc1350811615fe03a37ee2d65b0c724cd72fe9557299020a1ee29eb4de")
+V1_REFERENCE = bytes.fromhex("464d434d0101090000000d00000079babefca1dc3217d44f7b735d5791bafb995800aa4e25e5")
+
+
+def test_version_1_payloads_still_decode():
+    rng = np.random.default_rng(11)  # the maps they were made from
+    m = rng.choice(3, p=[0.6, 0.3, 0.1], size=(9, 13)).astype(np.uint8)
+    ref = m.copy()
+    ref[2:5, 3:8] = UNKNOWN
+    assert V1_PLAIN[4] == 1 and V1_REFERENCE[4] == 1
+    np.testing.assert_array_equal(decode_map(V1_PLAIN), m)
+    np.testing.assert_array_equal(decode_map(V1_REFERENCE, reference=ref), m)
+    # a version-1 payload with the window bit is not one fedmap wrote
+    bad = V1_PLAIN[:5] + bytes([mapcodec._F_WINDOW]) + V1_PLAIN[6:-4]
+    with pytest.raises(RejectedUpdate, match="bad header"):
+        decode_map(bad + struct_crc(bad))
+
+
+@pytest.mark.parametrize("window, why", [
+    ((0, 0, 3, 0), "bad window"),  # a height without a width
+    ((5, 0, 6, 4), "bad window"),  # past the bottom of a 10x10 map
+    ((0, 0, 10, 10), "bad window"),  # the whole grid is not a window
+])
+def test_a_bad_window_is_refused_in_one_line(window, why):
+    head = mapcodec._HEADER.pack(mapcodec.MAGIC, mapcodec.VERSION, mapcodec._F_WINDOW, 10, 10, 0)
+    head += b"".join(mapcodec._varint(v) for v in window) + bytes(4)
+    with pytest.raises(RejectedUpdate, match=f"^malformed map payload: {why}"):
+        decode_map(head + struct_crc(head))
+    cut = mapcodec._HEADER.pack(mapcodec.MAGIC, mapcodec.VERSION, mapcodec._F_WINDOW, 10, 10, 0) + b"\x80\x80"
+    with pytest.raises(RejectedUpdate, match="window is cut short"):
+        decode_map(cut + struct_crc(cut))

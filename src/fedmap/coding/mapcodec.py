@@ -37,9 +37,18 @@ in round ``k.bit_length()``, with the counts as they were after the previous rou
 context thus learns from its first cells (1, 1, 2, 4, 8, ... cells between updates), and
 each round is one vectorised call on both ends.
 
-Payload: ``b"FMCM"``, format version, flags (bit 0: coded against a reference), height,
-width and a CRC-32 of the map's class bytes (uint32 little-endian), the range coder's
-32-bit words, and a CRC-32 of everything before it. The first CRC catches a decode that
+Only the **window that changed** is coded: the smallest rectangle holding every cell that
+differs from the background both ends already hold (the reference map, or UNKNOWN without
+one). The window is coded as a map of its own (against the reference's window), and every
+cell outside it is the background, so a rover's update of a few new cells on a large grid
+costs the work of those cells' rectangle, not of the grid.
+
+Payload (format version 2): ``b"FMCM"``, format version, flags (bit 0: coded against a
+reference; bit 1: a window), height, width and a CRC-32 of the whole map's class bytes
+(uint32 little-endian); with bit 1, the window's top row, left column, height and width
+(LEB128 varints; a window of height 0: nothing differs, no coder words); the range coder's
+32-bit words, and a CRC-32 of everything before it. Version 1 payloads (the whole grid, no
+window bit) still decode; any other version is refused in one line. The first CRC catches a decode that
 went wrong for any reason, e.g. a reference other than the encoder's. A payload that fails any check raises
 :class:`~fedmap.errors.RejectedUpdate` (``malformed map payload: ...``).
 """
@@ -57,8 +66,11 @@ from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.maps.grid import UNKNOWN, check_classes
 
 MAGIC = b"FMCM"
-VERSION = 1
+VERSION = 2
+#: Format versions this module decodes (1: the whole grid, before windows).
+READS = (1, 2)
 _F_REFERENCE = 1
+_F_WINDOW = 2
 _HEADER = struct.Struct("<4sBBIII")  # magic, version, flags, height, width, CRC-32 of the map
 _CRC = 4
 
@@ -169,12 +181,38 @@ def context_rounds(ctx: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
     return order, [np.flatnonzero(rnd == r) for r in range(int(rnd.max()) + 1)]
 
 
-def encode_map(classes: np.ndarray, *, reference: np.ndarray | None = None) -> bytes:
-    """Code a class map losslessly; with ``reference`` (same shape) the decoder needs it too."""
-    m = _check_classes(classes, "map")
-    ref = None if reference is None else _check_classes(reference, "reference map")
-    if ref is not None and ref.shape != m.shape:
-        raise FedmapError(f"reference map is {ref.shape[0]}x{ref.shape[1]}, the map is {m.shape[0]}x{m.shape[1]}")
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        b, n = n & 0x7F, n >> 7
+        out.append(b | (0x80 if n else 0))
+        if not n:
+            return bytes(out)
+
+
+def _read_varint(buf: bytes, off: int, end: int) -> tuple[int, int]:
+    n = shift = 0
+    while off < end and shift < 35:
+        b = buf[off]
+        off += 1
+        n |= (b & 0x7F) << shift
+        if not b & 0x80:
+            return n, off
+        shift += 7
+    raise RejectedUpdate("malformed map payload: its window is cut short")
+
+
+def changed_window(m: np.ndarray, reference: np.ndarray | None) -> tuple[int, int, int, int]:
+    """``(top, left, height, width)`` of the smallest rectangle holding every cell of ``m``
+    that differs from the background (``reference``, or UNKNOWN); height 0 when none does."""
+    diff = m != (UNKNOWN if reference is None else reference)
+    rows, cols = np.flatnonzero(diff.any(axis=1)), np.flatnonzero(diff.any(axis=0))
+    if rows.size == 0:
+        return 0, 0, 0, 0
+    return int(rows[0]), int(cols[0]), int(rows[-1] - rows[0] + 1), int(cols[-1] - cols[0] + 1)
+
+
+def _encode_body(m: np.ndarray, ref: np.ndarray | None) -> bytes:
     h, w = m.shape
     model = _Model(ref is not None)
     enc = constriction.stream.queue.RangeEncoder()
@@ -188,8 +226,29 @@ def encode_map(classes: np.ndarray, *, reference: np.ndarray | None = None) -> b
         for part in rounds:
             enc.encode(sym[part].astype(np.int32), model.family, model.probabilities(table, ctx[part]))
             model.update(table, ctx[part], sym[part])
-    body = enc.get_compressed().astype("<u4").tobytes()
-    head = _HEADER.pack(MAGIC, VERSION, _F_REFERENCE if ref is not None else 0, h, w, _map_crc(m))
+    return enc.get_compressed().astype("<u4").tobytes()
+
+
+def encode_map(classes: np.ndarray, *, reference: np.ndarray | None = None) -> bytes:
+    """Code a class map losslessly; with ``reference`` (same shape) the decoder needs it too.
+    Only the window that differs from the background is coded (see the module's docstring)."""
+    m = _check_classes(classes, "map")
+    ref = None if reference is None else _check_classes(reference, "reference map")
+    if ref is not None and ref.shape != m.shape:
+        raise FedmapError(f"reference map is {ref.shape[0]}x{ref.shape[1]}, the map is {m.shape[0]}x{m.shape[1]}")
+    h, w = m.shape
+    flags = _F_REFERENCE if ref is not None else 0
+    top, left, wh, ww = changed_window(m, ref)
+    window = b""
+    if (wh, ww) != (h, w):  # a window: the rest of the grid is the background
+        flags |= _F_WINDOW
+        window = b"".join(_varint(v) for v in (top, left, wh, ww))
+    if wh == 0:
+        body = b""
+    else:
+        sl = np.s_[top:top + wh, left:left + ww]
+        body = _encode_body(np.ascontiguousarray(m[sl]), None if ref is None else np.ascontiguousarray(ref[sl]))
+    head = _HEADER.pack(MAGIC, VERSION, flags, h, w, _map_crc(m)) + window
     return head + body + struct.pack("<I", zlib.crc32(head + body))
 
 
@@ -205,15 +264,29 @@ def decode_map(data: bytes, *, reference: np.ndarray | None = None,
     magic, version, flags, h, w, map_crc = _HEADER.unpack_from(buf)
     if magic != MAGIC:
         raise RejectedUpdate("malformed map payload: bad magic (not a fedmap map payload)")
-    if version != VERSION:
-        raise RejectedUpdate(f"malformed map payload: format version {version}, this fedmap reads version {VERSION}")
+    if version not in READS:
+        raise RejectedUpdate(f"malformed map payload: format version {version}, this fedmap reads versions "
+                             f"{', '.join(map(str, READS))}")
     (crc,) = struct.unpack("<I", buf[-_CRC:])
     if zlib.crc32(buf[:-_CRC]) != crc:
         raise RejectedUpdate(f"malformed map payload: CRC mismatch ({len(buf)} bytes; truncated or corrupted)")
-    if flags & ~_F_REFERENCE or h == 0 or w == 0 or h * w > MAX_CELLS or (len(buf) - _HEADER.size - _CRC) % 4:
+    known = _F_REFERENCE | (_F_WINDOW if version >= 2 else 0)
+    if flags & ~known or h == 0 or w == 0 or h * w > MAX_CELLS:
         raise RejectedUpdate(f"malformed map payload: bad header (flags {flags:#x}, {h}x{w})")
     if expected_shape is not None and (h, w) != tuple(expected_shape):
         raise RejectedUpdate(f"malformed map payload: a {h}x{w} map, expected {expected_shape[0]}x{expected_shape[1]}")
+    off, end = _HEADER.size, len(buf) - _CRC
+    top, left, wh, ww = 0, 0, h, w
+    if flags & _F_WINDOW:
+        fields = []
+        for _ in range(4):
+            v, off = _read_varint(buf, off, end)
+            fields.append(v)
+        top, left, wh, ww = fields
+        if top + wh > h or left + ww > w or (wh == 0) != (ww == 0) or (wh, ww) == (h, w):
+            raise RejectedUpdate(f"malformed map payload: bad window ({wh}x{ww} at {top},{left} of {h}x{w})")
+    if (end - off) % 4 or (wh == 0) != (end == off):
+        raise RejectedUpdate(f"malformed map payload: bad header (flags {flags:#x}, {h}x{w})")
     ref = None
     if flags & _F_REFERENCE:
         if reference is None:
@@ -222,9 +295,12 @@ def decode_map(data: bytes, *, reference: np.ndarray | None = None,
         ref = _check_classes(reference, "reference map")
         if ref.shape != (h, w):
             raise RejectedUpdate(f"malformed map payload: it is {h}x{w}, the reference is {ref.shape[0]}x{ref.shape[1]}")
-    words = np.frombuffer(buf[_HEADER.size:-_CRC], dtype="<u4").astype(np.uint32)
+    words = np.frombuffer(buf[off:end], dtype="<u4").astype(np.uint32)
+    m = np.full((h, w), UNKNOWN, dtype=np.uint8) if ref is None else ref.astype(np.uint8, copy=True)
     try:
-        m = _decode_body(words, h, w, ref)
+        if wh:
+            sl = np.s_[top:top + wh, left:left + ww]
+            m[sl] = _decode_body(words, wh, ww, None if ref is None else np.ascontiguousarray(ref[sl]))
     except (AssertionError, ValueError, RuntimeError) as e:  # constriction: data invalid for the model
         what = "the reference map differs from the encoder's" if ref is not None else "the data does not decode"
         raise RejectedUpdate(f"malformed map payload: {what} ({' '.join(str(e).split())})") from None
