@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fedmap._util import varint
 from fedmap.coding import mapcodec
 from fedmap.coding.mapcodec import decode_map, encode_map
 from fedmap.errors import FedmapError, RejectedUpdate
@@ -331,7 +332,7 @@ def test_version_1_payloads_still_decode():
 ])
 def test_a_bad_window_is_refused_in_one_line(window, why):
     head = mapcodec._HEADER.pack(mapcodec.MAGIC, mapcodec.VERSION, mapcodec._F_WINDOW, 10, 10, 0)
-    head += b"".join(mapcodec._varint(v) for v in window) + bytes(4)
+    head += b"".join(varint(v) for v in window) + bytes(4)
     with pytest.raises(RejectedUpdate, match=f"^malformed map payload: {why}"):
         decode_map(head + struct_crc(head))
     cut = mapcodec._HEADER.pack(mapcodec.MAGIC, mapcodec.VERSION, mapcodec._F_WINDOW, 10, 10, 0) + b"\x80\x80"

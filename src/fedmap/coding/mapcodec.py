@@ -62,6 +62,7 @@ from collections.abc import Iterator
 import constriction
 import numpy as np
 
+from fedmap._util import varint
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.maps.grid import UNKNOWN, check_classes
 
@@ -181,15 +182,6 @@ def context_rounds(ctx: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
     return order, [np.flatnonzero(rnd == r) for r in range(int(rnd.max()) + 1)]
 
 
-def _varint(n: int) -> bytes:
-    out = bytearray()
-    while True:
-        b, n = n & 0x7F, n >> 7
-        out.append(b | (0x80 if n else 0))
-        if not n:
-            return bytes(out)
-
-
 def _read_varint(buf: bytes, off: int, end: int) -> tuple[int, int]:
     n = shift = 0
     while off < end and shift < 35:
@@ -242,7 +234,7 @@ def encode_map(classes: np.ndarray, *, reference: np.ndarray | None = None) -> b
     window = b""
     if (wh, ww) != (h, w):  # a window: the rest of the grid is the background
         flags |= _F_WINDOW
-        window = b"".join(_varint(v) for v in (top, left, wh, ww))
+        window = b"".join(varint(v) for v in (top, left, wh, ww))
     if wh == 0:
         body = b""
     else:

@@ -102,6 +102,7 @@ from dataclasses import dataclass
 import numpy as np
 import zstandard
 
+from fedmap._util import varint
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.nets.model import Weights
 
@@ -357,18 +358,6 @@ def _check_fits(layout: _Layout, weights: Weights, what: str) -> None:
             raise FedmapError(f"{what} {n!r} has shape {got}, expected {s}")
 
 
-def _varint(x: int) -> bytes:
-    out = bytearray()
-    while True:
-        b = x & 0x7F
-        x >>= 7
-        if x:
-            out.append(b | 0x80)
-        else:
-            out.append(b)
-            return bytes(out)
-
-
 class _Reader:
     def __init__(self, buf: memoryview) -> None:
         self.buf, self.pos = buf, 0
@@ -399,7 +388,7 @@ class _Reader:
 
 
 def _encode_table(layout: _Layout) -> bytes:
-    out = bytearray(_varint(len(layout.names)))
+    out = bytearray(varint(len(layout.names)))
     prev = b""
     for name, shape in zip(layout.names, layout.shapes):
         nb = name.encode("utf-8")
@@ -408,12 +397,12 @@ def _encode_table(layout: _Layout) -> bytes:
             if a != b:
                 break
             common += 1
-        out += _varint(common) + _varint(len(nb) - common) + nb[common:]
+        out += varint(common) + varint(len(nb) - common) + nb[common:]
         if len(shape) > 255:
             raise FedmapError(f"weight {name!r} has {len(shape)} dimensions; at most 255 fit a payload")
         out.append(len(shape))
         for d in shape:
-            out += _varint(d)
+            out += varint(d)
         prev = nb
     return bytes(out)
 
@@ -678,7 +667,7 @@ class Encoder:
             mask = np.zeros(n, dtype=bool)
             mask[idx] = True
             mode, index_bytes = _IDX_BITMAP, np.packbits(mask, bitorder="little").tobytes()
-        extra = _varint(k) + bytes([mode]) + _varint(len(index_bytes))
+        extra = varint(k) + bytes([mode]) + varint(len(index_bytes))
         return self._frame(layout, index_bytes + value_bytes, extra)
 
     def _frame(self, layout: _Layout, body: bytes, extra: bytes = b"") -> bytes:
