@@ -10,6 +10,7 @@ TOML layout (every key optional)::
     [link]         # LinkConfig: uplink_bytes, downlink_bytes, loss, latency, max_range, seed
     [prior]        # PriorConfig: kind (none | orbital), factor
     [helicopter]   # HelicopterConfig: speed, sensor_radius, resolution, flight_budget, recharge
+    [frames]       # FramesConfig: unknown start poses and odometry drift (fedmap.mission.frames)
     [strategies.fedmap]   # method_config keywords for a model strategy, e.g. epochs = 30
     [strategies.paper]
     [strategies.predictive]  # the coder's parts (PREDICTIVE_OPTIONS), e.g. prior = "none"
@@ -237,6 +238,51 @@ class HelicopterConfig:
 
 
 @dataclass(frozen=True)
+class FramesConfig:
+    """Rovers that do not know their poses exactly (``[frames]``; :mod:`fedmap.mission.frames`).
+
+    Each rover's start pose is off by a seeded draw (an offset of ``start_offset`` cells std
+    per axis, a heading of ``start_heading`` degrees std), and its odometry drifts as it
+    drives: a scale error of ``drift`` std (0.02: 2 % of the distance) and a heading drift
+    of ``heading_drift`` degrees std per metre, each drawn once per rover. A rover maps in
+    the frame its estimated pose implies; ``raw`` on the star then merges through
+    registration (:mod:`fedmap.maps.registration`). All zero (the default): known poses,
+    the mission as without this table.
+    """
+
+    start_offset: float = setting(0.0, help="Std of each rover's start offset per axis, cells (0: known)",
+                                  cli="--frames-offset")
+    start_heading: float = setting(0.0, help="Std of each rover's start heading error, degrees (0: known)",
+                                   cli="--frames-heading")
+    drift: float = setting(0.0, help="Std of each rover's odometry scale error (0.02: 2 percent of the distance driven)",
+                           cli="--frames-drift")
+    heading_drift: float = setting(0.0, help="Std of each rover's heading drift, degrees per metre driven",
+                                   cli="--frames-heading-drift")
+    window: int = setting(3, help="Sync rounds of a rover's cells the base re-registers (loop closure)",
+                          cli="--frames-window")
+    gate: float = setting(0.5, help="Registration gate: the kappa a placement must reach to be merged",
+                          cli="--frames-gate")
+
+    def __post_init__(self) -> None:
+        for name in ("start_offset", "start_heading", "drift", "heading_drift"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
+                raise FedmapError(f"frames {name} must be a number >= 0, got {v!r}")
+        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
+            raise FedmapError(f"frames window must be an integer >= 1, got {self.window!r}")
+        if not (isinstance(self.gate, (int, float)) and -1.0 <= self.gate <= 1.0):
+            raise FedmapError(f"frames gate must be a kappa in [-1, 1], got {self.gate!r}")
+
+    @property
+    def enabled(self) -> bool:
+        """True when any pose is unknown or any odometry drifts."""
+        return any(v > 0 for v in (self.start_offset, self.start_heading, self.drift, self.heading_drift))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
 class MissionConfig:
     """One mission: the team, the clock, sensing, planning, the link and the strategies.
 
@@ -328,6 +374,7 @@ class MissionConfig:
     link: LinkConfig = wiring(default_factory=LinkConfig)
     prior: PriorConfig = wiring(default_factory=PriorConfig)
     helicopter: HelicopterConfig = wiring(default_factory=HelicopterConfig)
+    frames: FramesConfig = wiring(default_factory=FramesConfig)
     methods: dict = wiring(default_factory=dict)
     seed: int = wiring(0)
 
@@ -427,7 +474,10 @@ class MissionConfig:
         return self.seed if self.link.seed is None else self.link.seed
 
     def to_dict(self) -> dict:
-        return _without_unset_predictor(asdict(self))
+        out = _without_unset_predictor(asdict(self))
+        if not self.frames.enabled:  # known poses: the settings (and metrics.json) as before [frames] existed
+            out.pop("frames", None)
+        return out
 
 
 def _without_unset_predictor(mission: dict) -> dict:
@@ -438,7 +488,7 @@ def _without_unset_predictor(mission: dict) -> dict:
 
 #: The tables of a mission file besides the run config's ``seed``, ``[terrain]`` and ``[thresholds]``.
 MISSION_SECTIONS: dict[str, type] = {"mission": MissionConfig, "link": LinkConfig, "prior": PriorConfig,
-                                     "helicopter": HelicopterConfig}
+                                     "helicopter": HelicopterConfig, "frames": FramesConfig}
 _RUN_PART = ("seed", "terrain", "thresholds")
 
 
@@ -515,7 +565,8 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
     try:
         config = _schema.build(MissionConfig, data.get("mission", {}), link=_schema.build(LinkConfig, data.get("link", {})),
                                prior=_schema.build(PriorConfig, data.get("prior", {})),
-                               helicopter=_schema.build(HelicopterConfig, data.get("helicopter", {})), methods=methods,
+                               helicopter=_schema.build(HelicopterConfig, data.get("helicopter", {})),
+                               frames=_schema.build(FramesConfig, data.get("frames", {})), methods=methods,
                                seed=resolved["seed"])
     except TypeError as exc:  # a wrong type reaching a comparison
         raise FedmapError(f"bad mission setting: {exc}") from exc
@@ -528,9 +579,12 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
     out = {"seed": resolved["seed"], "terrain": {k: v for k, v in source.to_dict().items() if k != "thresholds"},
            "thresholds": used_thresholds(resolved["thresholds"]),
            "mission": _without_unset_predictor({k: v for k, v in asdict(config).items()
-                                                if k not in ("link", "prior", "helicopter", "methods", "seed")}),
+                                                if k not in ("link", "prior", "helicopter", "frames", "methods",
+                                                             "seed")}),
            "link": config.link.to_dict(), "prior": config.prior.to_dict(), "helicopter": config.helicopter.to_dict(),
            "strategies": methods}
+    if config.frames.enabled:  # known poses: the resolved settings as before [frames] existed
+        out["frames"] = config.frames.to_dict()
     return config, source, out
 
 
