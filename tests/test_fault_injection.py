@@ -315,7 +315,9 @@ def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     for r in m["rounds"]:
         aggregated = {int(k) for k in r["aggregation_counts"]}
         assert r["dropped"] == {} and sorted(r["missing"]) == sorted(set(range(4)) - aggregated)
-        assert CLEAN_ROVER in aggregated  # its link was never cut
+        # its link was never cut; if it is missing, say why (the base's reason and the rover's own log)
+        assert CLEAN_ROVER in aggregated, (r["round"], r["missing_why"], codes,
+                                           (tmp_path / f"rover{CLEAN_ROVER}.log").read_text()[-2000:])
         # a cut link loses a reply: none came before the deadline, or its body never arrived
         assert all(why == "no reply before the round's deadline" or why.startswith("reply lost on the link (")
                    for why in r["missing_why"].values()), r["missing_why"]

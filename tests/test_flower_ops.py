@@ -201,6 +201,12 @@ if step == "done":  # the ClientApp received the final model
 print(LOGS[step], flush=True)
 if step.startswith("hang"):  # what Flower 1.41's SuperNode can do after it logged its own end
     time.sleep(600)
+if step == "busy":  # exchanges with a SuperLink too busy to answer a probe in time, then the final model
+    for _ in range(12):
+        time.sleep(0.5)
+        print("INFO :      Received successfully", flush=True)
+    done.write_text("1")
+    sys.exit(0)
 sys.exit(1)
 """
 
@@ -214,6 +220,8 @@ FAKE_LOGS = {
     "hang-eof": ("SuperNode ID: 42\nERROR :     SSL/TLS handshake error detected.\nWARNING :   Giving up reconnection "
                  "after 0.94 seconds and 3 tries.\nERROR :     [SSL: UNEXPECTED_EOF_WHILE_READING] EOF occurred in "
                  "violation of protocol (_ssl.c:1006)\nINFO :      SuperNode terminated gracefully."),
+    # reached its SuperLink, then keeps exchanging messages (the fake logs one every 0.5 s)
+    "busy": "INFO :      SuperNode ID: 42",
     # silent: e.g. polling a SuperLink whose port went away
     "hang-silent": "INFO :      Starting Flower SuperNode",
     # a self-registering SuperNode's RegisterNode answered but the answer lost (a link reset): re-sent, refused
@@ -276,6 +284,14 @@ def test_a_rover_gives_up_after_max_wait_without_an_answer(tmp_path, monkeypatch
     assert line.startswith("rover 1: no SuperLink answered at 127.0.0.1:1 for 3 s; gave up"), line
     assert 3 <= took < 3 + rover.PROBE_EVERY + rover.END_GRACE + 4
     assert starts == 1 if script == "hang-silent" else starts >= 2
+
+
+def test_a_supernode_that_keeps_exchanging_is_not_taken_for_a_silent_superlink(tmp_path, monkeypatch):
+    """The probe (127.0.0.1:1) never answers, as a SuperLink too busy to answer within the
+    probe's timeout on a loaded machine; the SuperNode logs an exchange every 0.5 s for 6 s,
+    twice max_wait. Each exchange is an answer: the rover keeps its SuperNode (one start) and
+    ends with the final model. Counting only the first exchange stopped it after max_wait."""
+    assert _fake_rover(tmp_path, monkeypatch, "busy", max_wait=3)[:2] == (0, 1)
 
 
 def test_a_self_registered_key_already_in_use_is_retried(tmp_path, monkeypatch):

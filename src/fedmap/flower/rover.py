@@ -185,6 +185,10 @@ def _marks(text: str, marks: tuple[str, ...]) -> bool:
     return any(m in text for m in marks)
 
 
+def _count_marks(text: str, marks: tuple[str, ...]) -> int:
+    return sum(text.count(m) for m in marks)
+
+
 def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = None, auth_key: Path | None = None,
               port: int = 0, flwr_home: Path | None = None, log: Path | None = None,
               max_wait: float = ROVER_MAX_WAIT, warm: bool = True, poll: float | None = None,
@@ -320,7 +324,7 @@ class _Watch:
         # would otherwise outlive it briefly and write into the rover's temporary Flower home)
         p = procs.start("supernode", argv, env=env, log=log, new_session=True, die_with_parent=True)
         self.reached, probed, ended_at = False, time.monotonic(), None
-        text = ""
+        text, contacts = "", 0
         while p.poll() is None:
             if done.exists():  # the ClientApp has the final model; its reply is still on its way
                 try:
@@ -330,9 +334,11 @@ class _Watch:
                 return text
             text = _read_from(log, start)
             now = time.monotonic()
-            if _marks(text, CONTACT) and not self.reached:
+            # every exchange the SuperNode logs is an answer from the SuperLink, not only its first:
+            # a SuperLink too busy to answer the probe within its timeout is still there
+            if (seen := _count_marks(text, CONTACT)) > contacts:
+                contacts, self.contact = seen, now
                 self.reached = self.ever_reached = True
-                self.contact = now
             if ended_at is None and _marks(text, ENDED):
                 ended_at = now  # Flower's SuperNode can hang after this line: give it END_GRACE s
             if ended_at is not None and now - ended_at > END_GRACE:
