@@ -4,7 +4,8 @@ One module per group of commands: :mod:`~fedmap.cli.run` (demo, run, terrain, ev
 :mod:`~fedmap.cli.export` (export),
 :mod:`~fedmap.cli.mission` (mission),
 :mod:`~fedmap.cli.experiments` (reproduce, bandwidth), :mod:`~fedmap.cli.meta`
-(meta-train, ablate-init, meta-coder, meta-predictor) and :mod:`~fedmap.cli.flower` (base-station, rover, certs);
+(meta-train, ablate-init, meta-coder, meta-predictor), :mod:`~fedmap.cli.predictorfed`
+(federate-predictor) and :mod:`~fedmap.cli.flower` (base-station, rover, certs);
 :mod:`~fedmap.cli.ui` holds the console, progress bars and tables.
 
 Global options (before the command): ``--quiet`` prints no progress, ``--log-json`` prints
@@ -21,7 +22,7 @@ import sys
 import click
 import typer
 
-from fedmap.cli import experiments, export, flower, merge, meta, mission, run, ui
+from fedmap.cli import experiments, export, flower, merge, meta, mission, predictorfed, run, ui
 from fedmap.errors import FedmapError
 
 app = typer.Typer(
@@ -60,6 +61,7 @@ app.command("meta-train")(meta.meta_train)
 app.command("ablate-init")(meta.ablate_init)
 app.command("meta-coder")(meta.meta_coder)
 app.command("meta-predictor")(meta.meta_predictor)
+app.command("federate-predictor")(predictorfed.federate_predictor)
 app.command()(mission.mission)
 
 

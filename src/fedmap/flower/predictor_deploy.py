@@ -1,0 +1,99 @@
+"""``fedmap federate-predictor --deploy local``: the predictor's federated fine-tuning on real
+processes, started and waited for.
+
+On this machine: a SuperLink on 127.0.0.1, one SuperNode per site (each given only its own
+samples file, node config ``samples``), and the predictor's ServerApp
+(:mod:`fedmap.flower.predictor_server`) submitted with ``flwr run``. The command returns the
+global weights of every round; every process's log is in ``<out>.run/``. Nothing here
+imports ``flwr``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from fedmap.errors import FedmapError
+from fedmap.flower import POLL_ENV, SUPEREXEC_POLL_ENV
+from fedmap.flower.checkpoint import run_dir
+from fedmap.flower.launch import (
+    SUPERLINK_EXES,
+    SUPERNODE_EXES,
+    Processes,
+    flower_env,
+    free_port,
+    read_status,
+    require_executables,
+    sigterm_as_interrupt,
+    submit_run,
+    superlink_argv,
+    wait_for_port,
+    wait_for_result,
+    write_connection,
+)
+from fedmap.flower.predictor_task import PredictorRun, read_rounds
+from fedmap.flower.rover import supernode_argv
+from fedmap.flower.task import run_status_path, write_status
+from fedmap.nets.model import Weights
+
+#: Seconds between a local site's polls of its SuperLink (loopback: polls cost nothing).
+LOCAL_POLL = 0.05
+
+
+def predictor_app_dir() -> Path:
+    """The predictor's Flower App (its ``pyproject.toml``) that ``flwr run`` submits."""
+    return Path(__file__).resolve().parent / "predictor_app"
+
+
+def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_config: dict | None = None,
+                     on_status: Callable[[dict], None] | None = None) -> list[Weights]:
+    """Federated fine-tuning over one SuperNode per file of ``samples`` (site ``k`` reads
+    ``samples[k]`` only) for ``rounds`` rounds; the global weights after every round.
+    ``run_config``: the other keys of :data:`~fedmap.flower.predictor_task.PREDICTOR_RUN_DEFAULTS`."""
+    out = Path(out).resolve()
+    config = {**(run_config or {}), "sites": len(samples), "rounds": rounds, "out": str(out)}
+    run = PredictorRun.from_run_config(config)  # a bad run config fails here, before any process starts
+    files = [Path(s).resolve() for s in samples]
+    for f in files:
+        if not f.is_file():
+            raise FedmapError(f"no such site samples file: {f}")
+    require_executables(SUPERLINK_EXES)
+    require_executables(SUPERNODE_EXES)
+    work = run_dir(out)
+    work.mkdir(parents=True, exist_ok=True)
+    env = flower_env(work / "flwr-home")
+    run_status_path(out).unlink(missing_ok=True)
+    port = free_port()
+    try:
+        with Processes() as procs, sigterm_as_interrupt():
+            procs.start("superlink", superlink_argv(host="127.0.0.1", port=port, tls=None, auth=False), env=env,
+                        log=work / "superlink.log", die_with_parent=True)
+            wait_for_port("127.0.0.1", port, timeout=60, alive=lambda: procs.check_alive("superlink"))
+            write_connection(work / "flwr-home", address=f"127.0.0.1:{port}", root_cert=None)
+            site_env = {**env, POLL_ENV: str(LOCAL_POLL), SUPEREXEC_POLL_ENV: str(LOCAL_POLL)}
+            for k, f in enumerate(files):
+                node = {"partition-id": k, "samples": str(f), "done-file": str(work / f"site{k}.done")}
+                procs.start(f"site{k}", supernode_argv(superlink=f"127.0.0.1:{port}", port=free_port(),
+                                                       node_config=node, root_cert=None, auth_key=None, max_wait=120),
+                            env={**site_env, "FLWR_HOME": str(work / f"site{k}-home")}, log=work / f"site{k}.log",
+                            die_with_parent=True)
+            since = time.time() - 1
+            submit_run(work / "flwr-home", {k: v for k, v in config.items()}, env=env, app=predictor_app_dir())
+
+            def alive() -> None:
+                procs.check_alive("superlink")
+                for k in range(len(files)):
+                    procs.check_alive(f"site{k}")
+
+            budget = run.connect_timeout + rounds * run.deadline + 120
+            wait_for_result(out, since=since, timeout=budget, alive=alive, on_status=on_status)
+    except KeyboardInterrupt:
+        st = read_status(out) or {}
+        write_status(out, "interrupted", message="interrupted")
+        raise FedmapError(f"federated fine-tuning interrupted (round {st.get('round', 0)}); its processes are "
+                          f"stopped; logs in {work}") from None
+    return read_rounds(out, rounds)
+
+
+__all__ = ["LOCAL_POLL", "deploy_predictor", "predictor_app_dir"]
