@@ -29,6 +29,26 @@ nothing: its counts, its headers, and the mask of *which* cells are new. Here:
   range coder: counts with Elias-gamma lengths, marks (a cell such as a target: "same
   as last acknowledged", "none", or a new cell at ``log2(H W)`` bits), moves, cells.
 
+* **A guess can join the context** (optional, ``guess=``): a probability of IMPASSABLE for
+  every cell, computed by both ends from what both already hold before the message (in
+  fedmap, the map predictor's P(impassable) on the receiver's map,
+  :mod:`fedmap.nets.predictor`). It enters in one of two ways, set by the state
+  (:func:`guessing_state`):
+
+  - **mix** (a state without ``binned`` counts): logistic mixing of the carried cells'
+    split. The count model's P(IMPASSABLE | carried) and the guess are mixed as
+    ``sigmoid(a logit(p) + b logit(guess) + c)`` with fixed weights per level
+    (:data:`MIX`); P(not carried) stays the count model's. Nothing new is learned, so the
+    state's counts are those of a coder without the guess.
+  - **bins** (a state with ``binned`` counts): the guess, quantised into
+    ``len(GUESS_EDGES) + 1`` bins, is one more context digit: every (table, context) has
+    its own counts per bin, all starting from the counts of the state they were made
+    from, and learning apart.
+
+  Both ends must pass the identical guess (the same input map and a deterministic
+  computation): a decoder with another guess decodes other cells, and the check byte
+  rejects the message.
+
 Layout: ``seq & 0xFF`` (1 byte), the range coder's 32-bit words (big-endian, trailing
 zero bytes dropped; the decoder pads them back), and one check byte (CRC-32 of the
 decoded content, low byte) that catches a decode against the wrong state or map.
@@ -69,6 +89,16 @@ COUNT_LIMIT = 1 << 12
 PRIOR_FILE = "cell_prior.npz"
 #: The count arrays of a :class:`CoderState` (and of a :class:`Fold`), as the prior file names them.
 PARTS: tuple[str, ...] = ("cells", "moves", "lengths", "marks")
+#: Upper edges of the guess bins (P(impassable)) of a ``bins`` state: 7 bins.
+GUESS_EDGES = np.array([0.05, 0.1, 0.2, 0.4, 0.6, 0.8])
+N_BINS = GUESS_EDGES.size + 1
+#: ``mix``: per level (s = 1, s = 2, s >= 4; cell (0, 0) is not mixed) the weights ``(a, b,
+#: c)`` of ``sigmoid(a logit(p) + b logit(guess) + c)``, p the count model's P(IMPASSABLE |
+#: carried). Fitted (logistic regression, rounded) on the default mission's uplink cells
+#: only (built-in mars); ``benchmarks/predictor_coding.py`` measures them elsewhere. Next to
+#: its four neighbours a guess made before the message adds nothing at s = 1.
+MIX: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.85, 0.15, 0.0), (0.45, 0.45, -0.25))
+_CLIP = 1e-4  # probabilities are clipped to [_CLIP, 1 - _CLIP] before a logit
 
 
 @dataclass
@@ -84,9 +114,13 @@ class CoderState:
     lengths: np.ndarray
     marks: np.ndarray
     seq: int = 0
+    #: a ``bins`` state's cell counts per guess bin: (table, feature x 256 contexts x bin, 3
+    #: classes); None: a guess, if given, is mixed (see the module notes)
+    binned: np.ndarray | None = None
 
     def copy(self) -> CoderState:
-        return replace(self, **{n: getattr(self, n).copy() for n in PARTS})
+        return replace(self, **{n: getattr(self, n).copy() for n in PARTS},
+                       binned=None if self.binned is None else self.binned.copy())
 
     def fold(self, delta: Fold) -> None:
         """Add an acknowledged message's counts (both ends, once per delivered message)."""
@@ -94,10 +128,28 @@ class CoderState:
             a = getattr(self, name)
             a += getattr(delta, name)
             _halve(a, COUNT_LIMIT)
+        if self.binned is not None and delta.binned is not None:
+            self.binned += delta.binned
+            _halve(self.binned, COUNT_LIMIT)
         self.seq += 1
 
     def same_as(self, other: CoderState) -> bool:
+        if (self.binned is None) != (other.binned is None):
+            return False
+        if self.binned is not None and other.binned is not None and not np.array_equal(self.binned, other.binned):
+            return False
         return self.seq == other.seq and all(np.array_equal(getattr(self, n), getattr(other, n)) for n in PARTS)
+
+
+def guessing_state(state: CoderState, mode: str) -> CoderState:
+    """A copy of ``state`` that takes a guess as ``mode``: ``mix`` (the same counts) or
+    ``bins`` (every context's cell counts copied into each guess bin)."""
+    if mode not in ("mix", "bins"):
+        raise FedmapError(f"a guess enters the coder by mix or bins, not {mode!r}")
+    out = replace(state.copy(), binned=None)
+    if mode == "bins":
+        out.binned = np.repeat(state.cells, N_BINS, axis=1)
+    return out
 
 
 def _halve(a: np.ndarray, limit: int) -> None:
@@ -115,12 +167,14 @@ class Fold:
     moves: np.ndarray
     lengths: np.ndarray
     marks: np.ndarray
+    binned: np.ndarray | None = None
 
     @classmethod
-    def empty(cls) -> Fold:
+    def empty(cls, binned: bool = False) -> Fold:
         return cls(np.zeros((N_TABLES, N_FEATURES * N_CTX, N_CLASSES), np.int64),
                    np.zeros((_NO_MOVE + 1, len(MOVES)), np.int64), np.zeros(_MAX_LEN_BITS + 1, np.int64),
-                   np.zeros(3, np.int64))
+                   np.zeros(3, np.int64),
+                   np.zeros((N_TABLES, N_FEATURES * N_CTX * N_BINS, N_CLASSES), np.int64) if binned else None)
 
 
 def blank_state() -> CoderState:
@@ -251,10 +305,33 @@ def _track(io: _Io, positions: Sequence[Cell] | None, anchor: Cell, shape: tuple
     return out
 
 
+def _logit(p: np.ndarray) -> np.ndarray:
+    p = np.clip(p, _CLIP, 1.0 - _CLIP)
+    return np.log(p) - np.log1p(-p)
+
+
+def _mixed(probs: np.ndarray, guess: np.ndarray, table: int) -> np.ndarray:
+    """``probs`` (n, 3) with the carried cells' split mixed with ``guess`` (n,) (:data:`MIX`)."""
+    a, b, c = MIX[(table - 1) % LEVELS]
+    if b == 0.0 and c == 0.0 and a == 1.0:
+        return probs
+    carried = probs[:, 0] + probs[:, 1]
+    z = a * _logit(probs[:, 1] / carried) + b * _logit(guess) + c
+    imp = carried / (1.0 + np.exp(-z))
+    out = np.empty_like(probs)
+    out[:, 0], out[:, 1], out[:, 2] = carried - imp, imp, probs[:, 2]
+    return out
+
+
 def _cells(io: _Io, cells: np.ndarray | None, known: np.ndarray, todo: np.ndarray, feature: int,
-           state: CoderState, fold: Fold) -> None:
-    """Code the classes of the ``todo`` cells (a class or UNKNOWN each) into ``known`` in place."""
+           state: CoderState, fold: Fold, guess: np.ndarray | None = None) -> None:
+    """Code the classes of the ``todo`` cells (a class or UNKNOWN each) into ``known`` in place;
+    with a ``guess`` (P(IMPASSABLE) of every cell, float64) as the state says (mix or bins)."""
     h, w = known.shape
+    binned, fold_binned = state.binned, fold.binned
+    if guess is not None and binned is not None:
+        assert fold_binned is not None
+        digit = np.searchsorted(GUESS_EDGES, guess, side="right")
     if todo[0, 0]:
         p = _p(state.cells[0, feature * N_CTX] + fold.cells[0, feature * N_CTX])[None, :]
         v = int(io.sym(None if cells is None else np.array([cells[0, 0]]), p)[0])
@@ -271,16 +348,38 @@ def _cells(io: _Io, cells: np.ndarray | None, known: np.ndarray, todo: np.ndarra
         ctx, rr, cc = ctx[order], rr[order], cc[order]
         truth = None if cells is None else cells[rr, cc].astype(np.int64)
         sym = np.empty(ctx.size, dtype=np.int64)
-        for part in rounds:
-            probs = _p(state.cells[table, ctx[part]] + fold.cells[table, ctx[part]])
-            sym[part] = io.sym(None if truth is None else truth[part], probs)
-            np.add.at(fold.cells[table], (ctx[part], sym[part]), 1)
+        if guess is None:
+            for part in rounds:
+                probs = _p(state.cells[table, ctx[part]] + fold.cells[table, ctx[part]])
+                sym[part] = io.sym(None if truth is None else truth[part], probs)
+                np.add.at(fold.cells[table], (ctx[part], sym[part]), 1)
+        elif binned is not None and fold_binned is not None:
+            # the same grouping by neighbour context (rounds), each cell's own bin
+            bctx = ctx * N_BINS + digit[rr, cc]
+            for part in rounds:
+                probs = _p(binned[table, bctx[part]] + fold_binned[table, bctx[part]])
+                sym[part] = io.sym(None if truth is None else truth[part], probs)
+                np.add.at(fold_binned[table], (bctx[part], sym[part]), 1)
+                np.add.at(fold.cells[table], (ctx[part], sym[part]), 1)
+        else:
+            g = guess[rr, cc]
+            for part in rounds:
+                probs = _mixed(_p(state.cells[table, ctx[part]] + fold.cells[table, ctx[part]]), g[part], table)
+                sym[part] = io.sym(None if truth is None else truth[part], probs)
+                np.add.at(fold.cells[table], (ctx[part], sym[part]), 1)
         known[rr, cc] = sym
 
 
 def _walk(io: _Io, content: Content | None, *, anchors: Sequence[Cell], mark_refs: Sequence[Cell | None],
-          known: np.ndarray, candidates: Callable[[list[list[Cell]]], np.ndarray], state: CoderState) -> Content:
-    fold = Fold.empty()
+          known: np.ndarray, candidates: Callable[[list[list[Cell]]], np.ndarray], state: CoderState,
+          guess: np.ndarray | None = None) -> Content:
+    if guess is not None:
+        guess = np.asarray(guess, dtype=np.float64)
+        if guess.shape != known.shape:
+            raise FedmapError(f"a guess of shape {guess.shape} for a {known.shape[0]}x{known.shape[1]} map")
+    elif state.binned is not None:
+        raise FedmapError("a coder state with guess bins codes only with a guess")
+    fold = Fold.empty(binned=guess is not None and state.binned is not None)
     tracks = [_track(io, None if content is None else content.tracks[i], a, known.shape, state, fold)
               for i, a in enumerate(anchors)]
     marks = [_mark(io, "?" if content is None else content.marks[i], ref, known.shape, state, fold)
@@ -292,10 +391,10 @@ def _walk(io: _Io, content: Content | None, *, anchors: Sequence[Cell], mark_ref
         carried = cells != UNKNOWN
         if (carried & (known != UNKNOWN)).any():
             raise FedmapError("a message would carry cells the receiver already holds")
-    _cells(io, cells, held, cand, 0, state, fold)
+    _cells(io, cells, held, cand, 0, state, fold, guess)
     outside = None if cells is None else int((carried & ~cand).any())
     if io.uniform(outside, 2):
-        _cells(io, cells, held, (held == UNKNOWN) & ~cand, 1, state, fold)
+        _cells(io, cells, held, (held == UNKNOWN) & ~cand, 1, state, fold, guess)
     out = np.where(known == UNKNOWN, held, UNKNOWN).astype(np.uint8)
     return Content(tracks, marks, out, fold)
 
@@ -309,29 +408,34 @@ def _check(content: Content, seq: int) -> int:
 
 
 def encode(content: Content, *, state: CoderState, anchors: Sequence[Cell], mark_refs: Sequence[Cell | None],
-           known: np.ndarray, candidates: Callable[[list[list[Cell]]], np.ndarray]) -> tuple[bytes, Fold]:
+           known: np.ndarray, candidates: Callable[[list[list[Cell]]], np.ndarray],
+           guess: np.ndarray | None = None) -> tuple[bytes, Fold]:
     """Code ``content`` for a receiver that holds ``known`` (classes) and ``state``.
 
     ``anchors``: each track's previous position (the receiver holds it); ``mark_refs``: each
     mark's reference cell; ``candidates(tracks)``: the boolean map of cells the message may
-    carry, derived from the tracks (both ends call it). Returns the payload and the counts
-    to :meth:`CoderState.fold` into the sender's state when it is delivered."""
+    carry, derived from the tracks (both ends call it); ``guess``: optionally, P(IMPASSABLE) of
+    every cell, which the receiver computes alike from what it holds before the message
+    (see the module notes). Returns the payload and the counts to :meth:`CoderState.fold`
+    into the sender's state when it is delivered."""
     if len(content.tracks) != len(anchors) or len(content.marks) != len(mark_refs):
         raise FedmapError("a message's tracks and marks must match its anchors and references")
     if content.cells.shape != known.shape:
         raise FedmapError(f"a message's cells are {content.cells.shape}, the map is {known.shape}")
     io = _Io()
-    done = _walk(io, content, anchors=anchors, mark_refs=mark_refs, known=known, candidates=candidates, state=state)
+    done = _walk(io, content, anchors=anchors, mark_refs=mark_refs, known=known, candidates=candidates, state=state,
+                 guess=guess)
     assert io.enc is not None
     raw = io.enc.get_compressed().astype(">u4").tobytes().rstrip(b"\0")
     return bytes([state.seq & 0xFF]) + raw + bytes([_check(done, state.seq)]), done.fold
 
 
 def decode(payload: bytes, *, state: CoderState, anchors: Sequence[Cell], mark_refs: Sequence[Cell | None],
-           known: np.ndarray, candidates: Callable[[list[list[Cell]]], np.ndarray]) -> Content:
+           known: np.ndarray, candidates: Callable[[list[list[Cell]]], np.ndarray],
+           guess: np.ndarray | None = None) -> Content:
     """The :class:`Content` of an :func:`encode` payload, for the receiver's ``state`` and
-    ``known`` map; raises :class:`~fedmap.errors.RejectedUpdate` (one line) when the payload
-    does not decode against them."""
+    ``known`` map (and the same ``guess`` as the sender's); raises
+    :class:`~fedmap.errors.RejectedUpdate` (one line) when the payload does not decode against them."""
     buf = bytes(payload)
     if len(buf) < 2:
         raise RejectedUpdate(f"malformed cell message: {len(buf)} bytes is shorter than its two framing bytes")
@@ -345,7 +449,7 @@ def decode(payload: bytes, *, state: CoderState, anchors: Sequence[Cell], mark_r
         words = np.zeros(1, dtype=np.uint32)
     try:
         done = _walk(_Io(words), None, anchors=anchors, mark_refs=mark_refs, known=known, candidates=candidates,
-                     state=state)
+                     state=state, guess=guess)
     except (AssertionError, ValueError, RuntimeError, IndexError, FedmapError) as e:
         raise RejectedUpdate(f"malformed cell message: it does not decode ({' '.join(str(e).split())})") from None
     if _check(done, state.seq) != buf[-1]:

@@ -14,6 +14,13 @@ downlink the same share of every other rover's trail.
 A sender folds what a message taught its coder state only when the message was delivered
 and used (the acknowledgement), the receiver when it decoded it: so both ends of a link
 keep the same state.
+
+With ``[strategies.predictive] predictor = "mix"`` or ``"bins"``, both ends of a message
+also run the shipped map predictor (:mod:`fedmap.nets.predictor`, deterministic, one
+thread) on the map the receiver holds before the message (the ``known`` map both ends
+already pass to the coder), and the coder takes its P(impassable) as one more context of
+every cell (:mod:`fedmap.coding.streamcodec`: mixed into the probability, or as bins).
+It costs no bytes; it costs one predictor call per message at each end.
 """
 
 from __future__ import annotations
@@ -28,8 +35,11 @@ from fedmap.coding import streamcodec
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.maps.grid import UNKNOWN
 from fedmap.mission.protocol import BaseEnd, Cell, Outgoing, RoverEnd, cover, largest_fitting
+from fedmap.nets.predictor import MapPredictor, predict, shipped_predictor
 
 PRIORS, MASKS, STATES = ("learned", "none"), ("derived", "coded"), ("persistent", "per-message")
+#: How the map predictor's guess enters the coder: not at all, mixed, or as context bins.
+GUESSES = ("none", "mix", "bins")
 
 
 @dataclass(frozen=True)
@@ -43,16 +53,20 @@ class PredictiveOptions:
                         "cell the receiver lacks", choices=MASKS)
     state: str = setting("persistent", help="Whether both ends keep the model from message to message",
                          choices=STATES)
+    predictor: str = setting("none", help="Whether each cell's probability also takes the shipped map predictor's "
+                             "P(impassable) on the map the receiver holds: mixed into it, or as context bins",
+                             choices=GUESSES)
 
     def __post_init__(self) -> None:
-        for name, allowed in (("prior", PRIORS), ("mask", MASKS), ("state", STATES)):
+        for name, allowed in (("prior", PRIORS), ("mask", MASKS), ("state", STATES), ("predictor", GUESSES)):
             if getattr(self, name) not in allowed:
                 raise FedmapError(f"[strategies.predictive] {name} must be one of {', '.join(allowed)}, "
                                   f"got {getattr(self, name)!r}")
 
     def initial(self) -> streamcodec.CoderState:
         """A fresh copy of the coder's initial state."""
-        return streamcodec.initial_state() if self.prior == "learned" else streamcodec.blank_state()
+        init = streamcodec.initial_state() if self.prior == "learned" else streamcodec.blank_state()
+        return init if self.predictor == "none" else streamcodec.guessing_state(init, self.predictor)
 
 
 class _Coding:
@@ -63,6 +77,18 @@ class _Coding:
         self.shape, self.radius = shape, radius
         self.derive_mask = options.mask == "derived"
         self.persist = options.state == "persistent"
+        self.predictor: MapPredictor | None = None if options.predictor == "none" else shipped_predictor()
+        self._guessed: tuple[bytes, np.ndarray] | None = None
+
+    def guess(self, known: np.ndarray) -> np.ndarray | None:
+        """The predictor's P(impassable) on ``known``, the map the receiver holds before a
+        message (both ends compute it alike), or None without a predictor."""
+        if self.predictor is None:
+            return None
+        key = np.ascontiguousarray(known, dtype=np.uint8).tobytes()
+        if self._guessed is None or self._guessed[0] != key:
+            self._guessed = (key, predict(self.predictor, known)[1])
+        return self._guessed[1]
 
     def candidates(self, anchors: list[Cell]):
         def derive(tracks: list[list[Cell]]) -> np.ndarray:
@@ -109,13 +135,15 @@ class PredictiveRover(RoverEnd):
         anchor = r.trail[self.sent - 1]
         pending = r.trail[self.sent:]
         derive = self.coding.candidates([anchor])
+        guess = self.coding.guess(known)
 
         def make(n: int) -> tuple[bytes, streamcodec.Fold, np.ndarray]:
             cand = derive([pending[:n]]) & (known == UNKNOWN)
             cells = np.where(cand, r.local, UNKNOWN).astype(np.uint8)
             content = streamcodec.Content([list(pending[:n])], [r.target], cells)
             payload, fold = streamcodec.encode(content, state=self.up, anchors=[anchor],
-                                               mark_refs=[self.target_held], known=known, candidates=derive)
+                                               mark_refs=[self.target_held], known=known, candidates=derive,
+                                               guess=guess)
             return payload, fold, cells
 
         n, made = largest_fitting(make, len(pending), self.budget)
@@ -138,10 +166,11 @@ class PredictiveRover(RoverEnd):
     def receive(self, payload: bytes) -> bool:
         others = [j for j in range(len(self.trails)) if j != self.k]
         anchors = [self.trails[j][-1] for j in others]
+        known = self.known()
         try:
             got = streamcodec.decode(payload, state=self.down, anchors=anchors,
-                                     mark_refs=[self.targets[j] for j in others], known=self.known(),
-                                     candidates=self.coding.candidates(anchors))
+                                     mark_refs=[self.targets[j] for j in others], known=known,
+                                     candidates=self.coding.candidates(anchors), guess=self.coding.guess(known))
         except RejectedUpdate:  # coded against a state or map this rover no longer holds
             return False
         self.coding.fold(self.down, got.fold)
@@ -186,9 +215,11 @@ class PredictiveBase(BaseEnd):
 
     def receive(self, k: int, payload: bytes, round_no: int) -> bool:
         a = self.trails[k][-1]
+        known = self.known(k)
         try:
             got = streamcodec.decode(payload, state=self.up[k], anchors=[a], mark_refs=[self.targets[k]],
-                                     known=self.known(k), candidates=self.coding.candidates([a]))
+                                     known=known, candidates=self.coding.candidates([a]),
+                                     guess=self.coding.guess(known))
         except RejectedUpdate:
             return False
         self.coding.fold(self.up[k], got.fold)
@@ -213,9 +244,11 @@ class PredictiveBase(BaseEnd):
                 continue  # it holds everything the base has
             derive = self.coding.candidates(anchors)
             longest = max((len(t) for t in news), default=0)
+            guess = self.coding.guess(known)
 
             def make(n: int, news=news, derive=derive, known=known, lacking=lacking, anchors=anchors, marks=marks,
-                     refs=refs, k=k, longest=longest) -> tuple[bytes, streamcodec.Fold, list[list[Cell]], np.ndarray]:
+                     refs=refs, k=k, longest=longest,
+                     guess=guess) -> tuple[bytes, streamcodec.Fold, list[list[Cell]], np.ndarray]:
                 share = [t[:-(-len(t) * n // longest)] if longest else [] for t in news]
                 if n == longest:
                     cells = np.where(lacking, self.base, UNKNOWN).astype(np.uint8)
@@ -223,7 +256,7 @@ class PredictiveBase(BaseEnd):
                     cells = np.where(lacking & derive(share), self.base, UNKNOWN).astype(np.uint8)
                 content = streamcodec.Content(share, marks, cells)
                 payload, fold = streamcodec.encode(content, state=self.down[k], anchors=anchors, mark_refs=refs,
-                                                   known=known, candidates=derive)
+                                                   known=known, candidates=derive, guess=guess)
                 return payload, fold, share, cells
 
             n, made = largest_fitting(make, longest, self.budget)

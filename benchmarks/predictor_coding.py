@@ -1,0 +1,153 @@
+"""Bits per new cell of the ``predictive`` strategy with the map predictor's guess as a
+context of its coder (issue 35, coding): ``[strategies.predictive] predictor`` = ``none``
+(today's coder), ``mix`` (logistic mixing) and ``bins`` (guess bins as a context digit).
+
+    python benchmarks/predictor_coding.py --threads 1
+        [--missions default examples/mission_gale.toml examples/mission_hadley.toml]
+        [--out benchmarks/results/predictor_coding]
+
+For every mission, the ``predictive`` strategy runs once per variant; the trajectories and
+the delivered cells are the same in every run (the coder is lossless, the benchmark checks
+that the final maps are equal). Bits per new cell = 8 x the uplink bytes delivered / the
+cells of the base's final map, as ``benchmarks/cell_streams.py`` counts them (today's
+0.65-0.92 there); every header, trail, target and check byte is included. It also splits
+out the cells' own share: the ideal code length of the cell symbols (-log2 of the coder's
+probability, summed) on the uplink, to show how much of a message the guess can touch at all.
+
+Prints a table and writes ``predictor_coding.json`` and ``predictor_coding.md`` under
+``--out``. Gale and Hadley read ``../shared/data`` (not shipped with fedmap).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fedmap.coding import streamcodec
+from fedmap.maps.grid import UNKNOWN
+from fedmap.mission import load_mission, mission_terrain, run_mission
+
+ROOT = Path(__file__).resolve().parents[1]
+VARIANTS = ("none", "mix", "bins")
+
+
+class _CellBits:
+    """Counts the ideal bits of the cell symbols the coder encodes (a wrapper around
+    ``streamcodec._Io.sym`` while ``_cells`` runs; both ends code the same symbols, so only
+    encoders are counted), split by uplink (one anchor) and downlink."""
+
+    def __init__(self) -> None:
+        self.bits = {"up": 0.0, "down": 0.0}
+        self._dir: str | None = None
+
+    def __enter__(self) -> _CellBits:
+        self._walk, self._cells, self._sym = streamcodec._walk, streamcodec._cells, streamcodec._Io.sym
+        me = self
+
+        def walk(io, content, **kw):
+            me._dir = ("up" if len(kw["anchors"]) == 1 else "down") if io.enc is not None else None
+            return me._walk(io, content, **kw)
+
+        def cells(io, *a, **kw):
+            io.counting = True
+            try:
+                return me._cells(io, *a, **kw)
+            finally:
+                io.counting = False
+
+        def sym(io, values, probs):
+            out = me._sym(io, values, probs)
+            if getattr(io, "counting", False) and me._dir is not None:
+                p = np.asarray(probs, dtype=np.float64)
+                me.bits[me._dir] += float(-np.log2(p[np.arange(out.size), out]).sum())
+            return out
+
+        streamcodec._walk, streamcodec._cells, streamcodec._Io.sym = walk, cells, sym  # type: ignore[method-assign]
+        return self
+
+    def __exit__(self, *exc) -> None:
+        streamcodec._walk, streamcodec._cells, streamcodec._Io.sym = self._walk, self._cells, self._sym
+
+
+def measure(name: str) -> dict:
+    config, source, _ = load_mission(None if name == "default" else ROOT / name)
+    truth, elevation, prior, _ = mission_terrain(config, source)
+    rows, maps = [], []
+    for variant in VARIANTS:
+        c = replace(config, strategies=("predictive",),
+                    methods={**config.methods, "predictive": {**config.methods.get("predictive", {}),
+                                                              "predictor": variant}})
+        t0 = time.perf_counter()
+        with _CellBits() as counter:
+            run = run_mission(c, truth, elevation=elevation, prior=prior, frames=1).runs["predictive"]
+        wall = time.perf_counter() - t0
+        up = [m for m in run.ledger if m.direction == "up" and m.status == "delivered"]
+        down = [m for m in run.ledger if m.direction != "up" and m.status == "delivered"]
+        final = run.sharing.global_map()
+        maps.append(final)
+        n_final = int((final != UNKNOWN).sum())
+        up_bytes = sum(m.bytes for m in up)
+        rows.append({"predictor": variant, "messages": len(up), "uplink_bytes": up_bytes,
+                     "downlink_bytes": sum(m.bytes for m in down), "final_map_cells": n_final,
+                     "bits_per_new_cell": 8 * up_bytes / max(n_final, 1),
+                     "uplink_cell_symbol_bits": round(counter.bits["up"], 1),
+                     "uplink_cell_share": counter.bits["up"] / max(8 * up_bytes, 1),
+                     "wall_s": round(wall, 1)})
+    same = all(np.array_equal(maps[0], m) for m in maps[1:])
+    base = rows[0]
+    for r in rows:
+        r["ratio"] = r["bits_per_new_cell"] / base["bits_per_new_cell"]
+        r["cell_bits_ratio"] = r["uplink_cell_symbol_bits"] / max(base["uplink_cell_symbol_bits"], 1e-9)
+        r["downlink_ratio"] = r["downlink_bytes"] / max(base["downlink_bytes"], 1)
+    return {"mission": name, "terrain": source.label, "shape": list(truth.shape), "rovers": config.rovers,
+            "steps": config.steps, "same_final_map": same, "rows": rows}
+
+
+def markdown(results: list[dict]) -> str:
+    lines = ["| mission | predictor | uplink bytes | bits per new cell | × today | cell symbols' bits "
+             "(share of uplink) | × today | downlink bytes (× today) | wall s |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for res in results:
+        for r in res["rows"]:
+            lines.append(f"| {res['mission']} | {r['predictor']} | {r['uplink_bytes']:,} | "
+                         f"{r['bits_per_new_cell']:.3f} | {r['ratio']:.3f} | "
+                         f"{r['uplink_cell_symbol_bits']:,.0f} ({r['uplink_cell_share']:.0%}) | "
+                         f"{r['cell_bits_ratio']:.3f} | {r['downlink_bytes']:,} ({r['downlink_ratio']:.3f}) | "
+                         f"{r['wall_s']} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--missions", nargs="+", default=["default", "examples/mission_gale.toml",
+                                                       "examples/mission_hadley.toml"])
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (predict itself always runs on one)")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/predictor_coding")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = []
+    for name in args.missions:
+        res = measure(name)
+        results.append(res)
+        print(markdown([res]), flush=True)
+        if not res["same_final_map"]:
+            print(f"WARNING: {name}: the variants delivered different final maps", flush=True)
+    md = markdown(results)
+    meta = {"command": "python benchmarks/predictor_coding.py --threads 1", "python": platform.python_version(),
+            "torch": torch.__version__, "machine": platform.machine(), "mix_weights": streamcodec.MIX,
+            "guess_bin_edges": streamcodec.GUESS_EDGES.tolist()}
+    (args.out / "predictor_coding.json").write_text(json.dumps({"meta": meta, "missions": results}, indent=1))
+    (args.out / "predictor_coding.md").write_text(md)
+    print(md)
+
+
+if __name__ == "__main__":
+    main()
