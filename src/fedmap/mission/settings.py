@@ -246,8 +246,10 @@ class FramesConfig:
     drives: a scale error of ``drift`` std (0.02: 2 % of the distance) and a heading drift
     of ``heading_drift`` degrees std per metre, each drawn once per rover. A rover maps in
     the frame its estimated pose implies; ``raw`` on the star then merges through
-    registration (:mod:`fedmap.maps.registration`). All zero (the default): known poses,
-    the mission as without this table.
+    registration (:mod:`fedmap.maps.registration`). ``lander_view``: the lander imaged the
+    ground within this many cells of itself at landing, in its own (the true) frame; the
+    base registers rovers on that image too, but never merges or shares it. All zero (the
+    default): known poses, the mission as without this table.
     """
 
     start_offset: float = setting(0.0, help="Std of each rover's start offset per axis, cells (0: known)",
@@ -258,6 +260,9 @@ class FramesConfig:
                            cli="--frames-drift")
     heading_drift: float = setting(0.0, help="Std of each rover's heading drift, degrees per metre driven",
                                    cli="--frames-heading-drift")
+    lander_view: float = setting(0.0, help="Radius the lander imaged around itself at landing, cells: the base "
+                                 "registers on it, never merges it (0: the first rover's frame is the team's)",
+                                 cli="--frames-lander-view")
     window: int = setting(3, help="Sync rounds of a rover's cells the base re-registers (loop closure)",
                           cli="--frames-window")
     gate: float = setting(0.5, help="Registration gate: the kappa a placement must reach to be merged",
@@ -268,6 +273,9 @@ class FramesConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
                 raise FedmapError(f"frames {name} must be a number >= 0, got {v!r}")
+        lv = self.lander_view
+        if isinstance(lv, bool) or not isinstance(lv, (int, float)) or not (math.isfinite(lv) and lv >= 0):
+            raise FedmapError(f"frames lander_view must be a number >= 0, got {lv!r}")
         if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
             raise FedmapError(f"frames window must be an integer >= 1, got {self.window!r}")
         if not (isinstance(self.gate, (int, float)) and -1.0 <= self.gate <= 1.0):
