@@ -14,6 +14,12 @@ cells of the base's final map, as ``benchmarks/cell_streams.py`` counts them (to
 out the cells' own share: the ideal code length of the cell symbols (-log2 of the coder's
 probability, summed) on the uplink, to show how much of a message the guess can touch at all.
 
+And two bounds, from the uplink cells of the ``mix`` run (the count model's probabilities
+are those of today's coder: the same symbols fold into the same counts): the bits of
+the carried cells' FREE/IMPASSABLE split under today's coder; under the best logistic
+mixing of it with the guess *fitted on the same cells* per level (an oracle no coder can
+beat with these two inputs mixed this way); and with a perfect split (0 bits).
+
 Prints a table and writes ``predictor_coding.json`` and ``predictor_coding.md`` under
 ``--out``. Gale and Hadley read ``../shared/data`` (not shipped with fedmap).
 """
@@ -46,10 +52,18 @@ class _CellBits:
     def __init__(self) -> None:
         self.bits = {"up": 0.0, "down": 0.0}
         self._dir: str | None = None
+        #: uplink cells coded through ``_mixed`` (mix runs): (level, count model's probs, guess, symbol)
+        self.mixed: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._pending: tuple[int, np.ndarray, np.ndarray] | None = None
 
     def __enter__(self) -> _CellBits:
         self._walk, self._cells, self._sym = streamcodec._walk, streamcodec._cells, streamcodec._Io.sym
+        self._mixed = streamcodec._mixed
         me = self
+
+        def mixed(probs, guess, table):
+            me._pending = ((table - 1) % streamcodec.LEVELS, probs, guess)
+            return me._mixed(probs, guess, table)
 
         def walk(io, content, **kw):
             me._dir = ("up" if len(kw["anchors"]) == 1 else "down") if io.enc is not None else None
@@ -67,19 +81,59 @@ class _CellBits:
             if getattr(io, "counting", False) and me._dir is not None:
                 p = np.asarray(probs, dtype=np.float64)
                 me.bits[me._dir] += float(-np.log2(p[np.arange(out.size), out]).sum())
+                if me._pending is not None and me._dir == "up":
+                    me.mixed.append((*me._pending, out.copy()))
+            me._pending = None
             return out
 
         streamcodec._walk, streamcodec._cells, streamcodec._Io.sym = walk, cells, sym  # type: ignore[method-assign]
+        streamcodec._mixed = mixed
         return self
 
     def __exit__(self, *exc) -> None:
         streamcodec._walk, streamcodec._cells, streamcodec._Io.sym = self._walk, self._cells, self._sym
+        streamcodec._mixed = self._mixed
+
+
+def _logit(p: np.ndarray) -> np.ndarray:
+    p = np.clip(p, 1e-4, 1 - 1e-4)
+    return np.log(p) - np.log1p(-p)
+
+
+def mixing_bounds(mixed: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]) -> dict:
+    """Bits of the carried cells' FREE/IMPASSABLE split: today's, and with the per-level
+    logistic mixing of today's P(IMPASSABLE | carried) and the guess fitted on these cells."""
+    out: dict = {"levels": {}}
+    today = best = 0.0
+    for level, name in enumerate(("s=1", "s=2", "s>=4")):
+        parts = [(p, g, y) for lev, p, g, y in mixed if lev == level]
+        if not parts:
+            continue
+        p = np.concatenate([a for a, _, _ in parts])
+        g = np.concatenate([b for _, b, _ in parts]).astype(np.float64)
+        y = np.concatenate([c for _, _, c in parts])
+        carried = y != 2
+        r = (p[:, 1] / (p[:, 0] + p[:, 1]))[carried]
+        t = (y[carried] == 1).astype(np.float64)
+        x = np.stack([_logit(r), _logit(g[carried]), np.ones_like(r)], axis=1)
+        w = np.array([1.0, 0.0, 0.0])
+        for _ in range(50):  # Newton's method on the log loss
+            z = 1 / (1 + np.exp(-x @ w))
+            w -= np.linalg.solve((x * (z * (1 - z))[:, None]).T @ x + 1e-6 * np.eye(3), x.T @ (z - t))
+        z = np.clip(1 / (1 + np.exp(-x @ w)), 1e-12, 1 - 1e-12)
+        b0 = float(-np.where(t == 1, np.log2(r), np.log2(1 - r)).sum())
+        b1 = float(-np.where(t == 1, np.log2(z), np.log2(1 - z)).sum())
+        out["levels"][name] = {"carried_cells": int(carried.sum()), "split_bits": round(b0, 1),
+                               "oracle_mix_bits": round(b1, 1), "oracle_weights": [round(float(v), 3) for v in w]}
+        today, best = today + b0, best + b1
+    out["split_bits"], out["oracle_mix_bits"] = round(today, 1), round(best, 1)
+    return out
 
 
 def measure(name: str) -> dict:
     config, source, _ = load_mission(None if name == "default" else ROOT / name)
     truth, elevation, prior, _ = mission_terrain(config, source)
-    rows, maps = [], []
+    rows, maps, bounds = [], [], {}
     for variant in VARIANTS:
         c = replace(config, strategies=("predictive",),
                     methods={**config.methods, "predictive": {**config.methods.get("predictive", {}),
@@ -88,6 +142,8 @@ def measure(name: str) -> dict:
         with _CellBits() as counter:
             run = run_mission(c, truth, elevation=elevation, prior=prior, frames=1).runs["predictive"]
         wall = time.perf_counter() - t0
+        if variant == "mix":
+            bounds = mixing_bounds(counter.mixed)
         up = [m for m in run.ledger if m.direction == "up" and m.status == "delivered"]
         down = [m for m in run.ledger if m.direction != "up" and m.status == "delivered"]
         final = run.sharing.global_map()
@@ -106,7 +162,11 @@ def measure(name: str) -> dict:
         r["ratio"] = r["bits_per_new_cell"] / base["bits_per_new_cell"]
         r["cell_bits_ratio"] = r["uplink_cell_symbol_bits"] / max(base["uplink_cell_symbol_bits"], 1e-9)
         r["downlink_ratio"] = r["downlink_bytes"] / max(base["downlink_bytes"], 1)
-    return {"mission": name, "terrain": source.label, "shape": list(truth.shape), "rovers": config.rovers,
+    if bounds:  # what the uplink would cost with these split bits instead of today's
+        b = 8 * base["uplink_bytes"]
+        bounds["ratio_oracle_mix"] = (b - bounds["split_bits"] + bounds["oracle_mix_bits"]) / b
+        bounds["ratio_perfect_split"] = (b - bounds["split_bits"]) / b
+    return {"bounds": bounds, "mission": name, "terrain": source.label, "shape": list(truth.shape), "rovers": config.rovers,
             "steps": config.steps, "same_final_map": same, "rows": rows}
 
 
@@ -121,6 +181,16 @@ def markdown(results: list[dict]) -> str:
                          f"{r['uplink_cell_symbol_bits']:,.0f} ({r['uplink_cell_share']:.0%}) | "
                          f"{r['cell_bits_ratio']:.3f} | {r['downlink_bytes']:,} ({r['downlink_ratio']:.3f}) | "
                          f"{r['wall_s']} |")
+    lines += ["", "Bounds on the uplink (ratio to today's bits per new cell): the FREE/IMPASSABLE split of the "
+              "carried cells mixed with the guess by the best logistic weights per level fitted on the same cells "
+              "(oracle), or coded for free (perfect guess).", "",
+              "| mission | split bits today | oracle mix | × today (oracle) | × today (perfect split) |",
+              "|---|---:|---:|---:|---:|"]
+    for res in results:
+        b = res.get("bounds") or {}
+        if b:
+            lines.append(f"| {res['mission']} | {b['split_bits']:,.0f} | {b['oracle_mix_bits']:,.0f} | "
+                         f"{b['ratio_oracle_mix']:.3f} | {b['ratio_perfect_split']:.3f} |")
     return "\n".join(lines) + "\n"
 
 
