@@ -1,6 +1,7 @@
 """The map predictor's federated fine-tuning across sites (fedmap.mission.predictorfed and
 its Flower apps, fedmap.flower.predictor_*)."""
 
+import json
 import tomllib
 from dataclasses import replace
 from pathlib import Path
@@ -183,3 +184,28 @@ def test_flower_sites_on_real_processes_give_the_in_process_weights(tmp_path):
     for g, w in zip(got, want):
         assert set(g) == set(w)
         assert all(np.array_equal(g[k], w[k]) for k in w)
+
+
+def test_federate_predictor_command_writes_json_figure_and_weights(tmp_path):
+    from fedmap.cli import main
+    from fedmap.nets.predictor import load_predictor
+
+    files = []
+    for name, terrain in (("a", "mars"), ("b", "moon"), ("c", "ice")):
+        f = tmp_path / f"mission_{name}.toml"
+        f.write_text(f'seed = 0\n[terrain]\nkind = "builtin"\nterrain = "{terrain}"\nsize = 64\n'
+                     "[mission]\nrovers = 2\n")
+        files.append(str(f))
+    out = tmp_path / "out"
+    code = main(["federate-predictor", files[0], f"bee={files[1]}", "--held-out", files[2], "--steps", "50",
+                 "--rounds", "2", "--local-steps", "1", "--crop", "16", "--batch", "2", "--held-out-seeds", "1",
+                 "-o", str(out)])
+    assert code == 0
+    result = json.loads((out / "federated.json").read_text())
+    assert result["sites"] == ["a", "bee"] and result["held_out"] == "c" and result["rounds"] == 2
+    assert set(result["per_round"]) == {"federated", "pooled", "alone:a", "alone:bee"}
+    assert all(len(rows) == 2 for rows in result["per_round"].values())
+    assert 0 <= result["final"]["federated"]["accuracy"] <= 1
+    assert (out / "rounds.png").stat().st_size > 1000
+    load_predictor(out / "federated.safetensors")
+    assert main(["federate-predictor", files[0], "--held-out", files[0], "--steps", "50", "-o", str(out)]) == 2

@@ -352,7 +352,8 @@ def compare(init: Weights, sites: Sequence[Site], held_out: SiteMaps, training: 
     {...}, "offline": scores, "per_round": {method: [scores of round 1..R]}, "final": {method: scores}}``."""
     say = on_progress or (lambda _: None)
     runs: dict[str, list[Weights]] = {}
-    say("federated")
+    if federated is None:
+        say("federated")
     runs["federated"] = federated if federated is not None else federate(init, sites, training, rounds)
     if len(runs["federated"]) != rounds:
         raise FedmapError(f"{len(runs['federated'])} federated rounds given, {rounds} asked")
