@@ -98,6 +98,10 @@ def federate_predictor(
     result = compare(init_weights, train, held, training, rounds, federated=federated,
                      on_progress=lambda what: console.print(f"training: {what}"))
     result.update(deploy=deploy or "in-process", mission_steps=steps, seconds=time.perf_counter() - t0)
+    if deploy == "local":  # the rounds on Flower: seconds and bytes each way (fp32 payloads)
+        from fedmap.flower.predictor_task import read_rounds_log
+
+        result["flower"] = read_rounds_log(out / "flower")
     (out / "federated.json").write_text(json.dumps(result, indent=1))
     plot_rounds([result], out / "rounds.png")
     save_predictor(predictor_from_weights(federated[-1]), out / "federated.safetensors",
