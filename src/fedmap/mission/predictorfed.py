@@ -387,9 +387,10 @@ def plot_rounds(results: Sequence[dict], path: str | os.PathLike, *, metric: str
         r = np.arange(0, res["rounds"] + 1)
         off = res["offline"][metric]
         style = {"federated": dict(color="tab:blue", lw=2.2), "pooled": dict(color="tab:orange", lw=2, ls="--")}
+        others = iter(["tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"] * 8)
         for name, rows in res["per_round"].items():
             ys = [off, *(row[metric] for row in rows)]
-            kw = style.get(name, dict(lw=1, alpha=0.8))
+            kw = style.get(name) or dict(lw=1, alpha=0.8, color=next(others))
             ax.plot(r, ys, marker="o", ms=3, label=name, **kw)
         ax.axhline(off, color="grey", ls=":", lw=1.5, label="offline (shipped)")
         ax.axhline(res["offline"]["accuracy_all_free"] if metric == "accuracy" else np.nan, color="k", lw=0.8,
