@@ -45,9 +45,11 @@ nothing: its counts, its headers, and the mask of *which* cells are new. Here:
     its own counts per bin, all starting from the counts of the state they were made
     from, and learning apart.
 
-  Both ends must pass the identical guess (the same input map and a deterministic
-  computation): a decoder with another guess decodes other cells, and the check byte
-  rejects the message.
+  The guess is first quantised to the centres of :data:`GUESS_STEPS` equal steps, so two
+  ends whose guesses differ in the last bits (float32 arithmetic on another CPU) almost
+  always still agree. Otherwise both ends must pass the same guess (the same input map and
+  a deterministic computation): a decoder with another guess decodes other cells, and the
+  check byte rejects the message (all but one time in 256).
 
 Layout: ``seq & 0xFF`` (1 byte), the range coder's 32-bit words (big-endian, trailing
 zero bytes dropped; the decoder pads them back), and one check byte (CRC-32 of the
@@ -92,6 +94,8 @@ PARTS: tuple[str, ...] = ("cells", "moves", "lengths", "marks")
 #: Upper edges of the guess bins (P(impassable)) of a ``bins`` state: 7 bins.
 GUESS_EDGES = np.array([0.05, 0.1, 0.2, 0.4, 0.6, 0.8])
 N_BINS = GUESS_EDGES.size + 1
+#: A guess is used quantised to the centres of this many equal steps of [0, 1].
+GUESS_STEPS = 64
 #: ``mix``: per level (s = 1, s = 2, s >= 4; cell (0, 0) is not mixed) the weights ``(a, b,
 #: c)`` of ``sigmoid(a logit(p) + b logit(guess) + c)``, p the count model's P(IMPASSABLE |
 #: carried). Fitted (logistic regression, rounded) on the default mission's uplink cells
@@ -370,11 +374,18 @@ def _cells(io: _Io, cells: np.ndarray | None, known: np.ndarray, todo: np.ndarra
         known[rr, cc] = sym
 
 
+def quantised_guess(guess: np.ndarray) -> np.ndarray:
+    """``guess`` (probabilities) as the coder uses it: the centre of its step of
+    :data:`GUESS_STEPS`, float64."""
+    g = np.clip(np.asarray(guess, dtype=np.float64), 0.0, 1.0)
+    return (np.minimum(np.floor(g * GUESS_STEPS), GUESS_STEPS - 1) + 0.5) / GUESS_STEPS
+
+
 def _walk(io: _Io, content: Content | None, *, anchors: Sequence[Cell], mark_refs: Sequence[Cell | None],
           known: np.ndarray, candidates: Callable[[list[list[Cell]]], np.ndarray], state: CoderState,
           guess: np.ndarray | None = None) -> Content:
     if guess is not None:
-        guess = np.asarray(guess, dtype=np.float64)
+        guess = quantised_guess(guess)
         if guess.shape != known.shape:
             raise FedmapError(f"a guess of shape {guess.shape} for a {known.shape[0]}x{known.shape[1]} map")
     elif state.binned is not None:
