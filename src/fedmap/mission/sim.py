@@ -30,6 +30,8 @@ from fedmap.maps.traversability import (
     resolved_slope,
     rover_profile,
 )
+from fedmap.mission.frames import FramedWorld, check_frames
+from fedmap.mission.frames import build as frames_build
 from fedmap.mission.link import BASE, DOWN, UP, Link
 from fedmap.mission.registry import Setup, Sharing, build
 from fedmap.mission.results import (
@@ -84,7 +86,8 @@ class _Run:
         self.world = world = mission.world(self.topology)
         self.team = world.team
         self.link = Link(replace(config.link, seed=config.link_seed), self.topology)
-        self.sharing = (ends or build)(name, Setup(config, truth, self.team, self.topology))
+        self.sharing = (ends or (frames_build if config.frames.enabled else build))(
+            name, Setup(config, truth, self.team, self.topology))
         world.ends = self.sharing.rovers
 
         def replan(k: int | None) -> None:
@@ -106,8 +109,11 @@ class _Run:
         on), what it has observed, where it is and how far it has come."""
         s, w = self.sharing, self.world
         beliefs = [s.belief(k) for k in range(len(self.team))]
+        if isinstance(w, FramedWorld):  # scored in the true frame, by the transforms the team estimated
+            beliefs = [w.in_true_frame(k, b, s.base) for k, b in enumerate(beliefs)]
         return TeamState(beliefs=beliefs, views=[w.own_view(k, b) for k, b in enumerate(beliefs)],
-                         observed=np.stack([r.local != UNKNOWN for r in self.team]), positions=w.positions(),
+                         observed=w.observed() if isinstance(w, FramedWorld)
+                         else np.stack([r.local != UNKNOWN for r in self.team]), positions=w.positions(),
                          targets=[r.target for r in self.team], distances=[r.distance for r in self.team],
                          trail_len=[len(r.trail) for r in self.team])
 
@@ -292,8 +298,9 @@ class Mission:
         """The team on the terrain (as every run builds it; a rover on a machine of its own builds one too)."""
         c = self.config
         allowed = topology.region(self.truth.shape) if c.stay_in_range else None
-        return World(c, self.truth, self.elevation, self.starts, self.base, self.waypoints, prior=self.prior,
-                     profiles=self.profiles, thresholds=self.thresholds, allowed=allowed)
+        kind = FramedWorld if c.frames.enabled else World
+        return kind(c, self.truth, self.elevation, self.starts, self.base, self.waypoints, prior=self.prior,
+                    profiles=self.profiles, thresholds=self.thresholds, allowed=allowed)
 
 
 def prepare_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray | None = None,
@@ -318,6 +325,7 @@ def prepare_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndar
             raise FedmapError(f"profile {name!r} classes {np.shape(classes)} do not match the map {truth.shape}")
     if thresholds is not None and "elevation" in config.layers:
         thresholds = resolved_slope(thresholds, truth)
+    check_frames(config)
     starts, base = place_starts(truth, config)
     waypoints = plan_waypoints(truth, config) if config.mode == "waypoints" else [[] for _ in starts]
     frame_every = max(1, math.ceil(config.steps / max(frames, 1)))

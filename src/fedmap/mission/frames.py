@@ -1,0 +1,600 @@
+"""Missions whose rovers do not know their poses exactly (``[frames]``,
+:class:`~fedmap.mission.settings.FramesConfig`).
+
+**The rover.** Each rover's start pose is off by a seeded draw (an offset and a heading),
+and its odometry drifts as it drives: a scale error (wheel slip: the distance it measures
+is ``1 + scale`` times the distance it drove) and a heading drift per metre, each drawn
+once per rover from the given spreads. The truth keeps the true pose; the rover keeps its
+*estimated* pose, a point ``est`` and the heading error ``theta`` of its frame. A cell
+``p`` seen from the true cell ``x`` lands, in the rover's frame, at
+``est + R(theta) (p - x)``: the rover maps in its own frame, so start errors and drift
+misplace its cells. It plans there from its estimated cell; a move it commands to a
+neighbouring cell of its frame is driven, on the ground, along the same direction turned
+by ``-theta``; its hazard sensing (the cell it is about to enter) is in its body frame, so
+a rock misplaced on its map never makes it enter an impassable cell: it marks the cell it
+was heading for as impassable and plans again. Its trail (and every safety check) is the
+true one.
+
+**The base** (``raw`` on the star, :class:`FramedRawBase`) keeps each rover's cells in the
+rover's frame and merges them into the global map only through a transform it estimated
+(:mod:`fedmap.maps.registration`), never below the gate:
+
+* the first rover whose cells arrive fixes the global frame (nothing to register against);
+* a rover never placed is registered with :func:`~fedmap.maps.registration.register`
+  (every heading, every shift, the gate and its margin); refused, its cells wait and it is
+  tried again with more at the next sync;
+* a placed rover's recent cells (the last ``window`` sync rounds, and every cell still
+  waiting) are registered again against the global map at every sync, near its last
+  transform (:func:`track`: headings within 3 degrees, shifts within 3 cells, then a finer
+  grid), and checked by the same gate (:func:`~fedmap.maps.registration.agreement`,
+  :func:`~fedmap.maps.registration.gate_verdict`): the loop closure that corrects the drift.
+  Refused, the cells wait; when they have waited ``window`` rounds the rover is searched
+  for everywhere again.
+
+Merging lays a rover's cells through the transform with
+:func:`~fedmap.maps.registration.combine` (impassable wins: a misplaced free cell never
+covers a hazard). Each downlink carries the rover's transform back
+(:data:`TRANSFORM_BYTES` bytes, counted): the rover lays the global map into its own frame
+with it and reports positions through it. Until it is placed, a rover plans on its own
+cells only.
+
+**Scores** are honest: a rover's belief is put back in the true frame with the transform
+the team estimated for it (identity before it is placed, and for ``none``), the global map
+with the team's estimate of its own frame (the identity: the first rover's frame is taken
+for the lander's), then compared with the truth. Coverage counts the cells truly seen.
+
+Runs with ``none`` and ``raw`` on the star, rovers only, the team's profile, classes only.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fedmap.coding.mapcodec import decode_map
+from fedmap.errors import FedmapError
+from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
+from fedmap.maps.registration import (
+    Agreement,
+    RigidTransform,
+    agreement,
+    combine,
+)
+from fedmap.mission.protocol import Outgoing, RoverEnd, pack_down, unpack_down, unpack_up
+from fedmap.mission.raw import RawBase, RawRover
+from fedmap.mission.registry import Setup, Sharing
+from fedmap.mission.registry import build as build_known
+from fedmap.mission.sensing import disk_offsets, footprint
+from fedmap.mission.world import World
+
+Cell = tuple[int, int]
+#: The strategies a mission with unknown poses runs.
+FRAMED_STRATEGIES: tuple[str, ...] = ("none", "raw")
+_TRANSFORM = struct.Struct("<Bhhh")  # placed, dy and dx in 1/16 cell, heading in 1/100 degree (-180..180)
+#: Bytes of the transform each downlink carries.
+TRANSFORM_BYTES = _TRANSFORM.size
+
+
+def _rot(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s], [s, c]])
+
+
+def check_frames(config: Any) -> None:
+    """One-line error when a mission with ``[frames]`` asks for what it does not support."""
+    if not config.frames.enabled:
+        return
+    bad = [s for s in config.strategies if s not in FRAMED_STRATEGIES]
+    if bad:
+        raise FedmapError(f"[frames] (unknown poses, drift) runs {', '.join(FRAMED_STRATEGIES)} only, not "
+                          f"{', '.join(bad)}")
+    for asked, what in ((config.link.topology != "star", "a peer topology"), (config.helicopters > 0, "helicopters"),
+                        (any(p != "team" for p in config.rover_profiles), "rover profiles"),
+                        ("elevation" in config.layers, "an elevation layer"),
+                        (config.predictor != "none", "a predictor"), (config.mode != "frontier", "waypoints")):
+        if asked:
+            raise FedmapError(f"[frames] (unknown poses, drift) does not run with {what}")
+
+
+# --------------------------------------------------------------------------- poses
+
+
+@dataclass
+class Pose:
+    """A rover's true cell and its estimate: ``est`` (row, col, floats, in its own frame),
+    ``theta`` its frame's heading error (degrees), and its odometry's errors, drawn once:
+    ``scale`` (measured distance / driven - 1) and ``rate`` (heading drift, degrees per metre)."""
+
+    true: Cell
+    est: np.ndarray
+    theta: float
+    scale: float
+    rate: float
+    errors: list = field(default_factory=list)  #: per move: distance (cells) of the estimate from the truth
+    #: every cell it observed lately, in its frame as it was then (re-observations too), and when
+    recent: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.uint8))
+    recent_step: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
+    now: int = 0  #: the step it last sensed at
+    corrections: list = field(default_factory=list)  #: every loop closure: (step, dy, dx, heading)
+
+    def correct(self, t: RigidTransform) -> None:
+        """A loop closure: its estimate moved by ``t`` (its frame as it was -> as it is now)."""
+        self.est = t.map_points(self.est)[0]
+        self.theta += (t.heading_deg + 180.0) % 360.0 - 180.0
+        self.recent[:] = UNKNOWN  # in the frame it has left
+        self.recent_step[:] = -1
+        self.corrections.append((self.now, t.dy, t.dx, t.heading_deg))
+
+    @classmethod
+    def draw(cls, k: int, start: Cell, frames: Any, seed: int) -> Pose:
+        rng = np.random.default_rng(np.random.SeedSequence([seed, k, 38]))
+        offset = rng.normal(0.0, 1.0, 2) * frames.start_offset
+        theta, scale, rate = rng.normal(0.0, 1.0, 3) * (frames.start_heading, frames.drift, frames.heading_drift)
+        return cls(start, np.array(start, dtype=np.float64) + offset, float(theta), float(scale), float(rate))
+
+    def cell(self, shape: tuple[int, int]) -> Cell:
+        """Its estimated cell (in its own frame, clipped to the grid)."""
+        r, c = np.rint(self.est).astype(int)
+        return (int(np.clip(r, 0, shape[0] - 1)), int(np.clip(c, 0, shape[1] - 1)))
+
+    def to_own(self) -> RigidTransform:
+        """The transform of true cells into its own frame, now: ``p -> est + R(theta) (p - true)``."""
+        at = self.est - _rot(self.theta) @ np.array(self.true, dtype=np.float64)
+        return RigidTransform(float(at[0]), float(at[1]), self.theta)
+
+    def ground_move(self, d: Cell) -> Cell:
+        """The move on the ground of a move ``d`` commanded in its own frame (a neighbour)."""
+        g = _rot(-self.theta) @ np.array(d, dtype=np.float64)
+        return (int(np.rint(g[0])), int(np.rint(g[1])))
+
+    def moved(self, g: Cell, pixel_size: float) -> None:
+        """Dead reckoning after driving ``g`` (a move between neighbouring cells) on the ground."""
+        self.est = self.est + (1.0 + self.scale) * (_rot(self.theta) @ np.array(g, dtype=np.float64))
+        self.theta += self.rate * math.hypot(*g) * pixel_size
+        self.true = (self.true[0] + g[0], self.true[1] + g[1])
+
+
+class FramedWorld(World):
+    """:class:`~fedmap.mission.world.World` whose rovers map and plan in their own frames
+    (see the module). ``Rover.pos`` is a rover's estimated cell (what it plans from and
+    reports), ``Rover.trail`` its true cells; :attr:`poses` holds both."""
+
+    def __init__(self, config, truth, elevation, starts, base, waypoints, **kw) -> None:
+        super().__init__(config, truth, elevation, starts, base, waypoints, **kw)
+        self.poses = [Pose.draw(k, s, config.frames, config.seed) for k, s in enumerate(starts)]
+        for p in self.poses:
+            p.recent = np.full(truth.shape, UNKNOWN, dtype=np.uint8)
+            p.recent_step = np.full(truth.shape, -1, dtype=np.int64)
+        self.seen = [np.zeros(truth.shape, dtype=bool) for _ in starts]  # the true cells each has observed
+        for r, p in zip(self.team, self.poses):
+            r.pos = p.cell(truth.shape)
+            r.__dict__["frame"] = p  # its end corrects the pose (FramedRawRover.close_loop)
+
+    def positions(self) -> list[Cell]:
+        """Every rover's true cell (the link's range, the animation)."""
+        return [p.true for p in self.poses]
+
+    def observed(self) -> np.ndarray:
+        """``(rovers, h, w)``: the true cells each rover has observed."""
+        return np.stack(self.seen)
+
+    def in_true_frame(self, k: int, belief: np.ndarray, base: Any = None) -> np.ndarray:
+        """Rover ``k``'s belief put back in the true frame by the transforms the team estimated:
+        its frame into the global frame (its end's :attr:`FramedRawRover.transform`; identity
+        without one), then the global frame into the true one (``base``'s
+        :meth:`FramedRawBase.team_frame`; identity without it)."""
+        t = getattr(self.ends[k], "transform", RigidTransform())
+        if isinstance(base, FramedRawBase) and getattr(self.ends[k], "placed", False):
+            t = base.team_frame().compose(t)
+        return t.apply(belief, belief.shape)
+
+    def sense(self, k: int, t: int) -> None:
+        r, p, c = self.team[k], self.poses[k], self.config
+        shape = self.truth.shape
+        mask = footprint(p.true, shape, c.sensor_radius, elevation=self.elevation if c.line_of_sight else None,
+                         height_m=c.sensor_height_m)
+        self.seen[k] |= mask
+        # every cell of its own frame within range of its estimate looks up the true cell it shows
+        centre = np.rint(p.est).astype(int)
+        e = disk_offsets(c.sensor_radius + 1.5) + centre
+        e = e[(e[:, 0] >= 0) & (e[:, 0] < shape[0]) & (e[:, 1] >= 0) & (e[:, 1] < shape[1])]
+        g = np.rint((e - p.est) @ _rot(-p.theta).T + np.array(p.true)).astype(int)
+        ok = (g[:, 0] >= 0) & (g[:, 0] < shape[0]) & (g[:, 1] >= 0) & (g[:, 1] < shape[1])
+        e, g = e[ok], g[ok]
+        ok = mask[g[:, 0], g[:, 1]]
+        e, g = e[ok], g[ok]
+        p.recent[e[:, 0], e[:, 1]] = self.truth.classes[g[:, 0], g[:, 1]]  # what it sees now, seen before or not
+        p.recent_step[e[:, 0], e[:, 1]] = t
+        p.now = t
+        ok = r.local[e[:, 0], e[:, 1]] == UNKNOWN
+        e, g = e[ok], g[ok]
+        r.local[e[:, 0], e[:, 1]] = self.truth.classes[g[:, 0], g[:, 1]]
+        r.obs_step[e[:, 0], e[:, 1]] = t
+        here = p.cell(shape)  # it stands on free ground, wherever its map put a rock
+        if r.local[here] != FREE:
+            r.local[here] = FREE
+            r.obs_step[here] = t
+        r.pos = here
+
+    def drive(self, k: int, t: int) -> None:
+        r, p = self.team[k], self.poses[k]
+        truth = self.truth.classes
+        h, w = truth.shape
+        for _ in range(self.config.speed):
+            belief = self.ends[k].belief()
+            self.plan(k, belief)
+            if not r.path:
+                return
+            nxt = r.path[0]
+            if belief[nxt] == IMPASSABLE:
+                r.replan = True
+                return
+            g = p.ground_move((nxt[0] - r.pos[0], nxt[1] - r.pos[1]))
+            there = (p.true[0] + g[0], p.true[1] + g[1])
+            if not (0 <= there[0] < h and 0 <= there[1] < w) or truth[there] == IMPASSABLE:
+                # its hazard sensing sees the rock ahead: on its map, where it was heading
+                r.local[nxt] = IMPASSABLE
+                r.obs_step[nxt] = t
+                r.replan = True
+                return
+            r.path.pop(0)
+            r.distance += math.hypot(*g)
+            p.moved(g, self.truth.pixel_size)
+            r.trail.append(p.true)
+            self.sense(k, t)
+            p.errors.append(float(np.hypot(*(p.est - np.array(p.true)))))
+
+
+# --------------------------------------------------------------------------- the transform on the link
+
+
+def pack_transform(t: RigidTransform | None) -> bytes:
+    """``t`` (None: not placed) in :data:`TRANSFORM_BYTES` bytes: shifts to 1/16 cell, heading to 0.01 degree."""
+    if t is None:
+        return _TRANSFORM.pack(0, 0, 0, 0)
+    h = (t.heading_deg + 180.0) % 360.0 - 180.0
+    return _TRANSFORM.pack(1, int(np.clip(round(t.dy * 16), -32768, 32767)),
+                           int(np.clip(round(t.dx * 16), -32768, 32767)), int(round(h * 100)))
+
+
+def unpack_transform(raw: bytes) -> RigidTransform | None:
+    placed, dy, dx, h = _TRANSFORM.unpack_from(raw)
+    return RigidTransform(dy / 16.0, dx / 16.0, h / 100.0) if placed else None
+
+
+# --------------------------------------------------------------------------- tracking
+
+
+def _kappas(base: np.ndarray, pts: np.ndarray, imp: np.ndarray, q: np.ndarray,
+            min_class: int) -> tuple[np.ndarray, np.ndarray]:
+    """Score and kappa of every candidate: ``q`` ``(C, N, 2)`` float cells of the base where
+    the ``N`` points (impassable: ``imp``) land. The score is the kappa where the overlap is
+    enough to register on (:data:`MIN_OVERLAP` cells, ``min_class`` of each class), else -inf:
+    near the estimate agreement decides, not the overlap's size (a placement that laps over
+    more known cells is not better for it)."""
+    h, w = base.shape
+    qi = np.rint(q).astype(np.int64)
+    inside = (qi[..., 0] >= 0) & (qi[..., 0] < h) & (qi[..., 1] >= 0) & (qi[..., 1] < w)
+    v = np.full(qi.shape[:2], UNKNOWN, dtype=np.uint8)
+    v[inside] = base[qi[..., 0][inside], qi[..., 1][inside]]
+    both = v != UNKNOWN
+    n = both.sum(axis=1)
+    ia = imp[None, :] & both
+    ib = (v == IMPASSABLE) & both
+    na, nb = ia.sum(axis=1), ib.sum(axis=1)
+    agree = (n - (ia ^ ib).sum(axis=1)) / np.maximum(n, 1)
+    pa, pb = na / np.maximum(n, 1), nb / np.maximum(n, 1)
+    chance = pa * pb + (1 - pa) * (1 - pb)
+    kappa = np.where(chance < 1 - 1e-12, (agree - chance) / np.maximum(1 - chance, 1e-12), 0.0)
+    minority = np.minimum.reduce([na, n - na, nb, n - nb])
+    score = np.where((minority >= min_class) & (n >= MIN_OVERLAP), kappa, -np.inf)
+    return score, kappa
+
+
+#: Known cells a rover's cells and the global map must share to be registered near the
+#: odometry's estimate, and cells of each class on each side (the search is confined near
+#: the estimate, so fewer than a search over every placement needs: 400 and 50).
+MIN_OVERLAP, MIN_CLASS = 150, 15
+#: The kappa a placement must gain over the current estimate's for the estimate to move.
+MOVE_BY = 0.02
+
+
+def verdict(check: Agreement, gate: float, min_overlap: int = MIN_OVERLAP,
+            min_class: int = MIN_CLASS) -> tuple[str, str]:
+    """``(verdict, reason)`` of a registration near the estimate: ``accepted``; ``unsure``
+    (too few shared cells, or of one class, to tell); ``refused`` (enough of both, but a
+    kappa below ``gate``: the maps disagree)."""
+    if check.overlap < min_overlap:
+        return "unsure", f"{check.overlap} shared cells, fewer than {min_overlap}"
+    if check.minority < min_class:
+        return "unsure", f"{check.minority} shared cells of one class in one map, fewer than {min_class}"
+    if check.kappa < gate:
+        return "refused", f"confidence {check.kappa:.2f} below the gate {gate:.2f} ({check.overlap} shared cells)"
+    return "accepted", ""
+
+
+def track(base: np.ndarray, window: np.ndarray, prior: RigidTransform, *, gate: float = 0.5,
+          span_deg: float = 3.0, span_cells: int = 3, min_class: int = MIN_CLASS,
+          move_by: float = MOVE_BY) -> tuple[RigidTransform, Agreement, str, str]:
+    """Register ``window`` (a rover's recent cells, its frame) against ``base`` near ``prior``:
+    headings within ``span_deg`` and shifts within ``span_cells`` of where ``prior`` puts the
+    window's middle, by 1 degree and 1 cell, then by a quarter around the best; the best
+    is checked (:func:`~fedmap.maps.registration.agreement`, :func:`verdict`). The
+    best placement is the one of highest kappa (ties: the nearest to ``prior``); it replaces
+    ``prior`` only when its kappa is ``move_by`` higher. Too little overlap under
+    ``prior`` to tell placements apart: ``unsure``, and ``prior`` stays.
+    Returns ``(transform, check, verdict, reason)``."""
+    pts = np.argwhere(window != UNKNOWN).astype(np.float64)
+    if len(pts) == 0:
+        return prior, Agreement(0, 0.0, 0.0, 0.0), "unsure", "no cells to register"
+    imp = window[window != UNKNOWN] == IMPASSABLE
+    c = pts.mean(axis=0)
+    c_at = prior.map_points(c)[0]
+
+    def best(headings: np.ndarray, shifts: np.ndarray, centre: np.ndarray) -> tuple[float, float, np.ndarray]:
+        top = (-np.inf, prior.heading_deg, centre)
+        shifts = shifts[np.argsort(np.hypot(shifts[:, 0], shifts[:, 1]), kind="stable")]  # ties: the nearest
+        mid = float(np.mean(headings))
+        for hd in sorted(headings, key=lambda x: abs(x - mid)):
+            turned = (pts - c) @ _rot(float(hd)).T + centre
+            sc, _ = _kappas(base, pts, imp, turned[None] + shifts[:, None, :], min_class)
+            i = int(np.argmax(sc))
+            if sc[i] > top[0]:
+                top = (float(sc[i]), float(hd), centre + shifts[i])
+        return top
+
+    at_prior = agreement(base, prior.apply(window, base.shape))
+    v, why = verdict(at_prior, gate)
+    if v == "unsure":  # too little under the estimate to tell placements apart
+        return prior, at_prior, v, why
+    grid = np.arange(-span_cells, span_cells + 1, dtype=np.float64)
+    shifts = np.stack(np.meshgrid(grid, grid, indexing="ij"), axis=-1).reshape(-1, 2)
+    ev, hd, at = best(prior.heading_deg + np.arange(-span_deg, span_deg + 0.5, 1.0), shifts, c_at)
+    if not np.isfinite(ev):
+        hd, at = prior.heading_deg, c_at
+    fine = np.arange(-0.75, 0.76, 0.25)
+    shifts = np.stack(np.meshgrid(fine, fine, indexing="ij"), axis=-1).reshape(-1, 2)
+    _, hd, at = best(hd + np.arange(-0.75, 0.76, 0.25), shifts, at)
+    shift = at - _rot(hd) @ c
+    t = RigidTransform(float(shift[0]), float(shift[1]), hd)
+    check = agreement(base, t.apply(window, base.shape))
+    if check.kappa < at_prior.kappa + move_by:  # no clear gain: the estimate stays
+        t, check = prior, at_prior
+    return (t, check, *verdict(check, gate))
+
+
+# --------------------------------------------------------------------------- raw's ends
+
+
+class FramedRawRover(RawRover):
+    """A rover's end of ``raw`` when it maps in its own frame: it holds the global map in the
+    global frame and the transform of its frame into it (sent by the base); its belief is its
+    own cells over the global map laid into its frame (its own cells only until it is placed).
+
+    Its frame drifts, so its older cells sit where its odometry put them then, not where they
+    are relative to it now; the base placed them in the global map with the transform of
+    their time. So the cells it observed in the last ``recent`` steps win, then the global
+    map laid into its frame with its transform now, then its older cells."""
+
+    def __init__(self, *args, recent: int, **kw) -> None:
+        super().__init__(*args, **kw)
+        self.recent = recent
+        self.transform = RigidTransform()  #: its frame -> the global frame, as the team estimated it
+        self.placed = False
+        self._version = 0
+        self._view: tuple[tuple, np.ndarray] | None = None
+
+    def belief(self) -> np.ndarray:
+        local = self.rover.local
+        if not self.placed:
+            return local.copy()
+        key = (self._version, self.transform)
+        if self._view is None or self._view[0] != key:
+            self._view = (key, self.transform.inverse().apply(self._held, self.shape))
+        view = self._view[1]
+        steps = self.rover.obs_step
+        fresh = steps >= int(steps.max()) - self.recent  # what it saw lately: in its frame as it is now
+        out = np.where(view != UNKNOWN, view, local)  # older cells: as the base placed them, where it has them
+        return np.where(fresh & (local != UNKNOWN), local, out).astype(np.uint8)
+
+    def others(self) -> list[Cell]:
+        if not self.placed:
+            return super().others()
+        inv = self.transform.inverse()
+        return [(int(round(a)), int(round(b))) for a, b in (inv.map_points(np.array(p))[0] for p in super().others())]
+
+    def receive(self, payload: bytes) -> bool:
+        kind, ref, reports, body = unpack_down(payload)
+        t = unpack_transform(body[:TRANSFORM_BYTES])
+        ok = super().receive(pack_down(kind, ref, reports, body[TRANSFORM_BYTES:]))
+        if ok:
+            self._version += 1
+            if t is not None:
+                self.transform, self.placed = t, True
+                self.close_loop()
+        return ok
+
+    def close_loop(self) -> None:
+        """Correct its pose: register what it observed in the last ``recent`` steps (everything
+        it saw, seen before or not) on the global map laid into its frame, without the cells
+        it first saw in those steps (they came from it and would only confirm its pose), near
+        its pose as it is (:func:`track`); accepted, its estimate moves by the correction."""
+        pose = getattr(self.rover, "frame", None)
+        if pose is None or pose.recent.size == 0:
+            return
+        since = pose.now - self.recent
+        window = np.where(pose.recent_step >= since, pose.recent, UNKNOWN).astype(np.uint8)
+        view = self.transform.inverse().apply(self._held, self.shape)
+        view[self.rover.obs_step >= since] = UNKNOWN
+        t, _, verdict_, _ = track(view, window, RigidTransform())
+        if verdict_ == "accepted" and t != RigidTransform():
+            pose.correct(t)
+
+
+@dataclass
+class Placing:
+    """One registration at the base, for the record."""
+
+    round: int
+    rover: int
+    action: str  #: anchor, placed, tracked, carried (too little to register: its odometry), waiting, refused
+    kappa: float
+    overlap: int
+    transform: tuple[float, float, float] | None
+    reason: str = ""
+
+    def to_dict(self) -> dict:
+        return {"round": self.round, "rover": self.rover, "action": self.action, "kappa": round(self.kappa, 4),
+                "overlap": self.overlap, "transform": self.transform, "reason": self.reason}
+
+
+class FramedRawBase(RawBase):
+    """The base's end of ``raw`` when every rover maps in its own frame (see the module)."""
+
+    def __init__(self, shape, starts, *, budget, frames, journal=None, reference: np.ndarray | None = None) -> None:
+        super().__init__(shape, starts, budget=None if budget is None else budget - TRANSFORM_BYTES,
+                         journal=journal)
+        self.frames = frames
+        #: what the lander imaged around itself, in the true frame (registered on, never merged; None: none)
+        self.reference = reference
+        self.sub = [np.full(shape, UNKNOWN, dtype=np.uint8) for _ in starts]  # each rover's cells, its frame
+        self.sub_round = [np.full(shape, -1, dtype=np.int64) for _ in starts]
+        self.pending = [np.zeros(shape, dtype=bool) for _ in starts]
+        self.transforms: list[RigidTransform | None] = [None] * len(starts)
+        self.first: list[RigidTransform | None] = [None] * len(starts)  # each rover's placement at its start
+        self.owner = np.full(shape, -1, dtype=np.int64)  # the rover whose cell each global cell first was
+        self.owner_round = np.full(shape, -1, dtype=np.int64)  # and the round it was merged
+        self.log: list[Placing] = []
+
+    def receive(self, k: int, payload: bytes, round_no: int) -> bool:
+        _, pos, target, body = unpack_up(payload)
+        cells = decode_map(body, expected_shape=self.shape)
+        self.journal.received.append((round_no, k, payload))
+        carried = cells != UNKNOWN
+        self.sub[k][carried] = cells[carried]
+        self.sub_round[k][carried] = round_no
+        self.pending[k] |= carried
+        self.reports[k] = (pos, target)
+        self._place(k, round_no)
+        return True
+
+    def _place(self, k: int, round_no: int) -> None:
+        f, sub, pend = self.frames, self.sub[k], self.pending[k]
+        if not pend.any():
+            return
+        oldest = int(self.sub_round[k][pend].min())
+        window = np.where((self.sub_round[k] > oldest - f.window) & (sub != UNKNOWN), sub, UNKNOWN).astype(np.uint8)
+        t = self.transforms[k]
+        # registered on the global map without its own cells of the window: those sit where its
+        # last transform put them and would only confirm it (its older cells are fair: a loop closure)
+        mine = (self.owner == k) & (self.owner_round > oldest - f.window)
+        others = np.where(mine, UNKNOWN, self.base)
+        target = others if self.reference is None else np.where(self.reference != UNKNOWN, self.reference, others)
+        if self.reference is None and all(x is None for x in self.transforms):  # the first rover's frame is the team's
+            self._merge(k, RigidTransform(), round_no)
+            self.first[k] = RigidTransform()
+            self.log.append(Placing(round_no, k, "anchor", 1.0, int(pend.sum()), (0.0, 0.0, 0.0)))
+            return
+        if t is None:  # never placed: near its deployment estimate (its frame is the lander's, within the spreads)
+            span_deg = 3 * f.start_heading + 1.0
+            span_cells = int(math.ceil(3 * f.start_offset)) + 1
+            t2, check, v, why = track(target, sub, RigidTransform(), gate=f.gate, span_deg=span_deg,
+                                      span_cells=span_cells, move_by=0.0)
+            action = "placed"
+        else:  # placed: its recent cells again, near where they were (the loop closure), wider once lost a while
+            lost = round_no - oldest >= f.window
+            t2, check, v, why = track(target, window, t, gate=f.gate, span_deg=6.0 if lost else 3.0,
+                                      span_cells=6 if lost else 3)
+            action = "tracked"
+            if v == "unsure":  # too little to register on: its odometry carries the last transform
+                t2, action = t, "carried"
+        ok = v == "accepted" or action == "carried"
+        self.log.append(Placing(round_no, k, action if ok else ("waiting" if v == "unsure" else "refused"),
+                                check.kappa, check.overlap, (t2.dy, t2.dx, t2.heading_deg), why))
+        if ok:
+            if t is None:
+                self.first[k] = t2
+            self._merge(k, t2, round_no)
+
+    def team_frame(self) -> RigidTransform:
+        """The team's estimate of the transform of the global frame into the true frame
+        (the lander's): with the lander's image, the identity (every rover was placed on it);
+        else each rover's frame was the lander's at its start within the spreads, so the mean
+        of the placements of the rovers at their start, turned back (identity before any
+        placement)."""
+        placed = [t for t in self.first if t is not None]
+        if not placed or self.reference is not None:  # placed on the lander's image: the global frame is the lander's
+            return RigidTransform()
+        inv = [t.inverse() for t in placed]
+        h = math.degrees(math.atan2(np.mean([math.sin(math.radians(t.heading_deg)) for t in inv]),
+                                    np.mean([math.cos(math.radians(t.heading_deg)) for t in inv])))
+        return RigidTransform(float(np.mean([t.dy for t in inv])), float(np.mean([t.dx for t in inv])), h)
+
+    def global_map(self) -> np.ndarray:
+        """The global map put in the true frame by the team's estimate (:meth:`team_frame`): what is scored."""
+        return self.team_frame().apply(self.base, self.shape)
+
+    def _merge(self, k: int, t: RigidTransform, round_no: int) -> None:
+        self.transforms[k] = t
+        cells = t.apply(np.where(self.pending[k], self.sub[k], UNKNOWN).astype(np.uint8), self.shape)
+        merged = combine(self.base, cells)
+        changed = merged != self.base
+        fresh = (self.base == UNKNOWN) & (merged != UNKNOWN)
+        self.owner[fresh] = k
+        self.owner_round[fresh] = round_no
+        self.base = merged
+        self.base_stamp[changed] = round_no
+        self.pending[k][:] = False
+
+    def downlinks(self, round_no: int) -> dict[int, Outgoing]:
+        own = self.reports
+        self.reports = {j: self._in_global(j, p, tg) for j, (p, tg) in own.items()}
+        try:
+            out = super().downlinks(round_no)
+        finally:
+            self.reports = own
+        for k, o in out.items():
+            if o.payload is not None:
+                kind, ref, reports, body = unpack_down(o.payload)
+                out[k] = Outgoing(pack_down(kind, ref, reports, pack_transform(self.transforms[k]) + body), o.kind)
+        return out
+
+    def _in_global(self, j: int, pos: Cell, target: Cell | None) -> tuple[Cell, Cell | None]:
+        t = self.transforms[j]
+        if t is None:
+            return pos, target
+
+        def at(c: Cell) -> Cell:
+            r, cc = t.map_points(np.array(c))[0]
+            return (int(round(r)), int(round(cc)))
+
+        return at(pos), None if target is None else at(target)
+
+
+def build(name: str, setup: Setup) -> Sharing:
+    """The ends of ``name`` for a mission with ``[frames]``: ``raw`` on the star merges through
+    registration; ``none`` is as ever (its rovers keep their own frames)."""
+    if name != "raw" or not setup.config.frames.enabled:
+        return build_known(name, setup)
+    lc, f = setup.config.link, setup.config.frames
+    reference = None
+    if f.lander_view > 0:
+        h, w = setup.truth.shape
+        rows, cols = np.ogrid[:h, :w]
+        lander = setup.topology.base
+        near = np.hypot(rows - lander[0], cols - lander[1]) <= f.lander_view
+        reference = np.where(near, setup.truth.classes, UNKNOWN).astype(np.uint8)
+    rovers: list[RoverEnd] = [FramedRawRover(k, r, setup.starts, budget=lc.uplink_bytes,
+                                             recent=2 * setup.config.sync_every) for k, r in enumerate(setup.team)]
+    base = FramedRawBase(setup.truth.shape, setup.starts, budget=lc.downlink_bytes, frames=f, journal=setup.journal,
+                         reference=reference)
+    return Sharing(name, setup.team, rovers, base, journal=setup.journal)
+
+
+__all__ = ["FRAMED_STRATEGIES", "TRANSFORM_BYTES", "FramedRawBase", "FramedRawRover", "FramedWorld", "Placing", "Pose",
+           "build", "check_frames", "pack_transform", "track", "unpack_transform"]
