@@ -158,3 +158,22 @@ def test_a_mission_with_the_guess_delivers_the_same_map_and_both_ends_stay_ident
         assert binned is not None and not np.array_equal(binned, np.repeat(b.base.up[0].cells, sc.N_BINS, axis=1))
     else:
         assert binned is None and [m.bytes for m in plain.ledger] != [m.bytes for m in with_guess.ledger]
+
+
+def test_guesses_that_differ_in_the_last_float32_bits_still_decode():
+    """The coder uses the guess quantised (:data:`streamcodec.GUESS_STEPS`), so a receiver
+    whose predictor rounds differently in the last bits still gets the cells."""
+    content, kw = next(_messages(seed=4))
+    guess = _guess(kw["known"]).astype(np.float32)
+    centres = (np.arange(sc.GUESS_STEPS) + 0.5) / sc.GUESS_STEPS
+    guess = centres[np.clip((guess * sc.GUESS_STEPS).astype(int), 0, sc.GUESS_STEPS - 1)].astype(np.float32)
+    nudged = np.nextafter(guess, np.float32(1.0))  # one float32 step up, never across a step's edge here
+    assert not np.array_equal(guess, nudged)
+    for mode in MODES:
+        state = sc.guessing_state(sc.initial_state(), mode)
+        payload, _ = sc.encode(content, state=state, guess=guess, **kw)
+        got = sc.decode(payload, state=state.copy(), guess=nudged, **kw)
+        np.testing.assert_array_equal(got.cells, content.cells)
+    np.testing.assert_array_equal(sc.quantised_guess(guess), sc.quantised_guess(nudged))
+    np.testing.assert_allclose(sc.quantised_guess(np.array([0.0, 0.5, 1.0])),
+                               np.array([1, sc.GUESS_STEPS + 1, 2 * sc.GUESS_STEPS - 1]) / (2 * sc.GUESS_STEPS))
