@@ -1,0 +1,188 @@
+"""Missions with unknown poses and drift (fedmap.mission.frames): off is today's mission, the
+estimated transforms are what is scored, the gate keeps a map with no true overlap out,
+and the drift is seeded."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from fedmap.coding.mapcodec import encode_map
+from fedmap.errors import FedmapError
+from fedmap.maps.grid import IMPASSABLE, UNKNOWN
+from fedmap.maps.registration import RigidTransform
+from fedmap.mission import mission_terrain, run_mission
+from fedmap.mission.frames import (
+    TRANSFORM_BYTES,
+    FramedRawBase,
+    FramedWorld,
+    pack_transform,
+    track,
+    unpack_transform,
+)
+from fedmap.mission.protocol import pack_up
+from fedmap.mission.settings import FramesConfig, load_mission
+
+MISSION = {"rovers": 2, "steps": 40, "sync_every": 8, "sensor_radius": 6.0, "eval_pairs": 8, "strategies": ["raw"]}
+DRIFT = {"start_offset": 1.0, "start_heading": 1.0, "drift": 0.03, "heading_drift": 0.01, "lander_view": 12.0}
+
+
+def _mission(frames: dict | None = None, seed: int = 0):
+    over = [{"frames": frames}] if frames else []
+    config, source, _ = load_mission(None, size=64, seed=seed, mission=dict(MISSION), overrides=over)
+    truth, *_ = mission_terrain(config, source)
+    return config, truth
+
+
+def _run(frames: dict | None = None, seed: int = 0):
+    config, truth = _mission(frames, seed)
+    return run_mission(config, truth).runs["raw"]
+
+
+@pytest.fixture(scope="module")
+def known():
+    return _run()
+
+
+def _site() -> np.ndarray:
+    """A 64x64 class map of the built-in Mars terrain (rocks on free ground)."""
+    return _mission()[1].classes
+
+
+# ---------------------------------------------------------------- off is today's mission
+
+
+def test_frames_off_is_the_mission_as_before(known):
+    """An explicit [frames] table with every spread 0 runs exactly today's mission."""
+    config, truth = _mission({"start_offset": 0.0, "drift": 0.0, "window": 5, "lander_view": 9.0})
+    assert not config.frames.enabled and "frames" not in config.to_dict()
+    run = run_mission(config, truth).runs["raw"]
+    assert run.trails == known.trails
+    assert [m.to_dict() for m in run.ledger] == [m.to_dict() for m in known.ledger]
+    assert run.summary.to_dict() == known.summary.to_dict()
+
+
+def test_negligible_drift_drives_the_known_pose_mission_and_pays_the_transform(known):
+    """With the frames machinery on but an error far below a cell (and the lander's image to
+    place the rovers on), the rovers drive the same trails, score the same, and each
+    downlink costs exactly the transform's bytes more."""
+    run = _run({"drift": 1e-12, "lander_view": 12.0})
+    assert run.trails == known.trails
+    assert run.summary.final_belief_accuracy_mean == known.summary.final_belief_accuracy_mean
+    downs = [m for m in known.ledger if m.kind == "map"]
+    framed = [m for m in run.ledger if m.kind == "map"]
+    assert len(framed) == len(downs) > 0
+    assert [m.bytes for m in framed] == [m.bytes + TRANSFORM_BYTES for m in downs]
+
+
+def test_framed_rovers_never_enter_impassable_cells():
+    config, truth = _mission(DRIFT)
+    result = run_mission(config, truth)
+    for trail in result.runs["raw"].trails:
+        for a, b in zip(trail, trail[1:]):
+            assert max(abs(a[0] - b[0]), abs(a[1] - b[1])) == 1
+        assert all(truth.classes[c] != IMPASSABLE for c in trail)
+
+
+# ---------------------------------------------------------------- scores in the true frame
+
+
+def test_a_belief_is_scored_through_the_estimated_transform():
+    """A rover whose frame is the true frame turned by 90 degrees and shifted: its belief,
+    put back by the transform the team estimated, is the truth; by the identity it is not."""
+    site = _site()
+    t = RigidTransform(dy=63.0, dx=0.0, heading_deg=90.0)  # own frame -> true frame: (r, c) -> (63 - c, r)
+    belief = t.inverse().apply(site, site.shape)  # what it holds, in its own frame
+    world = object.__new__(FramedWorld)
+    world.ends = [SimpleNamespace(transform=t, placed=True)]
+    scored = world.in_true_frame(0, belief)
+    known = scored != UNKNOWN
+    assert known.mean() > 0.95
+    assert np.array_equal(scored[known], site[known])
+    world.ends = [SimpleNamespace(transform=RigidTransform(), placed=False)]
+    wrong = world.in_true_frame(0, belief)
+    assert (wrong[known] != site[known]).mean() > 0.1
+
+
+def test_the_global_map_is_scored_in_the_frame_the_team_estimated():
+    """Without the lander's image the global frame is the first rover's; the team takes the
+    mean of its rovers' placements at their starts, turned back, for the true frame."""
+    site = _site()
+    base = FramedRawBase(site.shape, [(0, 0), (0, 0)], budget=None, frames=FramesConfig(drift=0.01))
+    base.base = site.copy()
+    base.first = [RigidTransform(2.0, 0.0, 0.0), RigidTransform(4.0, -2.0, 0.0)]
+    assert base.team_frame() == RigidTransform(-3.0, 1.0, 0.0)
+    assert np.array_equal(base.global_map(), RigidTransform(-3.0, 1.0, 0.0).apply(site, site.shape))
+
+
+def test_the_transform_crosses_the_link_in_seven_bytes():
+    t = RigidTransform(dy=-3.4375, dx=12.0625, heading_deg=358.5)
+    raw = pack_transform(t)
+    assert len(raw) == TRANSFORM_BYTES == 7
+    back = unpack_transform(raw)
+    assert back is not None and abs(back.dy - t.dy) < 1e-9 and abs(back.dx - t.dx) < 1e-9
+    assert abs((back.heading_deg - t.heading_deg + 180) % 360 - 180) < 0.006
+    assert unpack_transform(pack_transform(None)) is None
+
+
+# ---------------------------------------------------------------- registration and the gate
+
+
+def test_tracking_finds_a_known_shift_and_turn():
+    site = _site()
+    truth_t = RigidTransform(dy=2.0, dx=-1.0, heading_deg=1.0)  # the rover's frame -> the map's
+    window = truth_t.inverse().apply(np.where(np.add.outer(np.arange(64), np.arange(64)) < 70, site, UNKNOWN)
+                                     .astype(np.uint8), site.shape)
+    t, check, verdict, _ = track(site, window, RigidTransform())
+    assert verdict == "accepted" and check.kappa > 0.95
+    at = np.array([[20.0, 20.0], [40.0, 10.0]])
+    assert np.abs(t.map_points(at) - truth_t.map_points(at)).max() < 0.75
+    # within a degree: on a window some 60 cells across, 0.75 degree moves no cell half a cell
+    assert abs((t.heading_deg - 1.0 + 180) % 360 - 180) <= 1.0
+
+
+def _uplink(cells: np.ndarray) -> bytes:
+    return pack_up("", (32, 32), None, encode_map(cells))
+
+
+def test_the_gate_keeps_a_map_with_no_true_overlap_out():
+    """The base holds the lander's image of one site; a rover's cells of another site laid on
+    the same cells share enough known cells to judge, disagree, and are never merged."""
+    site = _site()
+    other = np.ascontiguousarray(site[::-1, ::-1])  # the site turned half round: no true overlap
+    ring = np.hypot(*np.ogrid[-32:32, -32:32]) <= 20
+    frames = FramesConfig(start_offset=1.0, lander_view=20.0)
+    base = FramedRawBase(site.shape, [(32, 32), (32, 32)], budget=None, frames=frames,
+                         reference=np.where(ring, site, UNKNOWN).astype(np.uint8))
+    base.receive(0, _uplink(np.where(ring, other, UNKNOWN).astype(np.uint8)), 1)
+    (entry,) = base.log
+    assert entry.action == "refused" and entry.overlap >= 150
+    assert base.transforms[0] is None
+    assert (base.base == UNKNOWN).all() and base.pending[0].any()
+    # the same cells of the site itself are placed, and merged
+    base.receive(1, _uplink(np.where(ring, site, UNKNOWN).astype(np.uint8)), 1)
+    assert base.log[-1].action == "placed" and base.transforms[1] == RigidTransform()
+    assert np.array_equal(base.base[ring], site[ring])
+
+
+# ---------------------------------------------------------------- seeds
+
+
+def test_drift_is_seeded():
+    a, b = _run(DRIFT), _run(DRIFT)
+    assert a.trails == b.trails
+    assert [m.to_dict() for m in a.ledger] == [m.to_dict() for m in b.ledger]
+    c = _run(DRIFT, seed=1)
+    assert c.trails != a.trails
+
+
+def test_frames_refuse_what_they_do_not_run():
+    config, truth = _mission(DRIFT)
+    config = load_mission(None, size=64, mission={**MISSION, "strategies": ["predictive"]},
+                          overrides=[{"frames": DRIFT}])[0]
+    with pytest.raises(FedmapError, match="frames"):
+        run_mission(config, truth)
+    with pytest.raises(FedmapError, match="frames"):
+        FramesConfig(drift=-0.1)
