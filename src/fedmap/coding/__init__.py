@@ -7,7 +7,9 @@
   trails, targets and the cells a receiver derives from them, coded with a probability
   model (:class:`~fedmap.coding.streamcodec.CoderState`) both ends keep from message to
   message, and its learned initial state (``fedmap/weights/cell_prior.npz``,
-  :func:`~fedmap.coding.streamcodec.initial_state`).
+  :func:`~fedmap.coding.streamcodec.initial_state`); optionally with a guess both ends
+  compute alike (the map predictor's P(impassable)) as one more context of every cell
+  (:func:`~fedmap.coding.streamcodec.guessing_state`, ``docs/predictor.md``).
 
 The ends that speak them over a mission's link are in :mod:`fedmap.mission.raw` and
 :mod:`fedmap.mission.predictive`; the byte layouts are in ``docs/protocol.md``.
