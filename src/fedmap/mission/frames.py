@@ -16,32 +16,37 @@ was heading for as impassable and plans again. Its trail (and every safety check
 true one.
 
 **The base** (``raw`` on the star, :class:`FramedRawBase`) keeps each rover's cells in the
-rover's frame and merges them into the global map only through a transform it estimated
-(:mod:`fedmap.maps.registration`), never below the gate:
+rover's frame and merges them into the global map only through a transform it estimated,
+checked by the registration gate's test (:func:`~fedmap.maps.registration.agreement`:
+the share of shared known cells that agree against chance, Cohen's kappa; :func:`verdict`):
 
-* the first rover whose cells arrive fixes the global frame (nothing to register against);
-* a rover never placed is registered with :func:`~fedmap.maps.registration.register`
-  (every heading, every shift, the gate and its margin); refused, its cells wait and it is
-  tried again with more at the next sync;
+* the global frame is the lander's when the lander imaged the ground around itself at
+  landing (``lander_view``: that image is a reference to register on, never merged or
+  sent); without it, the first rover whose cells arrive fixes the global frame;
+* a rover never placed is registered near its deployment estimate (its frame is the
+  lander's within the spreads: headings within 3 spreads + 1 degree, shifts within
+  3 spreads + 1 cell; :func:`track`); too little shared to tell, its cells wait for the
+  next sync; a kappa below the gate, they are refused and wait too: never merged;
 * a placed rover's recent cells (the last ``window`` sync rounds, and every cell still
-  waiting) are registered again against the global map at every sync, near its last
-  transform (:func:`track`: headings within 3 degrees, shifts within 3 cells, then a finer
-  grid), and checked by the same gate (:func:`~fedmap.maps.registration.agreement`,
-  :func:`~fedmap.maps.registration.gate_verdict`): the loop closure that corrects the drift.
-  Refused, the cells wait; when they have waited ``window`` rounds the rover is searched
-  for everywhere again.
+  waiting) are registered again at every sync near its last transform (headings within
+  3 degrees, shifts within 3 cells, wider once its cells have waited ``window`` rounds), on
+  the global map without its own cells of those rounds (they sit where its last transform
+  put them and would only confirm it): the loop closure that corrects its pose in the
+  global frame for the drift. Accepted, the transform moves; too little shared to tell,
+  its odometry carries the last transform (``carried``); refused, its cells wait.
 
 Merging lays a rover's cells through the transform with
 :func:`~fedmap.maps.registration.combine` (impassable wins: a misplaced free cell never
 covers a hazard). Each downlink carries the rover's transform back
 (:data:`TRANSFORM_BYTES` bytes, counted): the rover lays the global map into its own frame
-with it and reports positions through it. Until it is placed, a rover plans on its own
-cells only.
+with it (:class:`FramedRawRover`) and reports positions through it. Until it is placed, a
+rover plans on its own cells only.
 
 **Scores** are honest: a rover's belief is put back in the true frame with the transform
-the team estimated for it (identity before it is placed, and for ``none``), the global map
-with the team's estimate of its own frame (the identity: the first rover's frame is taken
-for the lander's), then compared with the truth. Coverage counts the cells truly seen.
+the team estimated for it (identity before it is placed, and for ``none``), then the
+team's estimate of the global frame (:meth:`FramedRawBase.team_frame`: the lander's image
+makes it the identity; without it, the mean of the rovers' placements at their starts),
+and compared with the truth; the global map likewise. Coverage counts the cells truly seen.
 
 Runs with ``none`` and ``raw`` on the star, rovers only, the team's profile, classes only.
 """
@@ -116,19 +121,6 @@ class Pose:
     scale: float
     rate: float
     errors: list = field(default_factory=list)  #: per move: distance (cells) of the estimate from the truth
-    #: every cell it observed lately, in its frame as it was then (re-observations too), and when
-    recent: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.uint8))
-    recent_step: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
-    now: int = 0  #: the step it last sensed at
-    corrections: list = field(default_factory=list)  #: every loop closure: (step, dy, dx, heading)
-
-    def correct(self, t: RigidTransform) -> None:
-        """A loop closure: its estimate moved by ``t`` (its frame as it was -> as it is now)."""
-        self.est = t.map_points(self.est)[0]
-        self.theta += (t.heading_deg + 180.0) % 360.0 - 180.0
-        self.recent[:] = UNKNOWN  # in the frame it has left
-        self.recent_step[:] = -1
-        self.corrections.append((self.now, t.dy, t.dx, t.heading_deg))
 
     @classmethod
     def draw(cls, k: int, start: Cell, frames: Any, seed: int) -> Pose:
@@ -167,13 +159,11 @@ class FramedWorld(World):
     def __init__(self, config, truth, elevation, starts, base, waypoints, **kw) -> None:
         super().__init__(config, truth, elevation, starts, base, waypoints, **kw)
         self.poses = [Pose.draw(k, s, config.frames, config.seed) for k, s in enumerate(starts)]
-        for p in self.poses:
-            p.recent = np.full(truth.shape, UNKNOWN, dtype=np.uint8)
-            p.recent_step = np.full(truth.shape, -1, dtype=np.int64)
+
         self.seen = [np.zeros(truth.shape, dtype=bool) for _ in starts]  # the true cells each has observed
         for r, p in zip(self.team, self.poses):
             r.pos = p.cell(truth.shape)
-            r.__dict__["frame"] = p  # its end corrects the pose (FramedRawRover.close_loop)
+            r.__dict__["frame"] = p  # for the record (benchmarks/mission_frames.py)
 
     def positions(self) -> list[Cell]:
         """Every rover's true cell (the link's range, the animation)."""
@@ -206,12 +196,7 @@ class FramedWorld(World):
         g = np.rint((e - p.est) @ _rot(-p.theta).T + np.array(p.true)).astype(int)
         ok = (g[:, 0] >= 0) & (g[:, 0] < shape[0]) & (g[:, 1] >= 0) & (g[:, 1] < shape[1])
         e, g = e[ok], g[ok]
-        ok = mask[g[:, 0], g[:, 1]]
-        e, g = e[ok], g[ok]
-        p.recent[e[:, 0], e[:, 1]] = self.truth.classes[g[:, 0], g[:, 1]]  # what it sees now, seen before or not
-        p.recent_step[e[:, 0], e[:, 1]] = t
-        p.now = t
-        ok = r.local[e[:, 0], e[:, 1]] == UNKNOWN
+        ok = mask[g[:, 0], g[:, 1]] & (r.local[e[:, 0], e[:, 1]] == UNKNOWN)
         e, g = e[ok], g[ok]
         r.local[e[:, 0], e[:, 1]] = self.truth.classes[g[:, 0], g[:, 1]]
         r.obs_step[e[:, 0], e[:, 1]] = t
@@ -416,24 +401,7 @@ class FramedRawRover(RawRover):
             self._version += 1
             if t is not None:
                 self.transform, self.placed = t, True
-                self.close_loop()
         return ok
-
-    def close_loop(self) -> None:
-        """Correct its pose: register what it observed in the last ``recent`` steps (everything
-        it saw, seen before or not) on the global map laid into its frame, without the cells
-        it first saw in those steps (they came from it and would only confirm its pose), near
-        its pose as it is (:func:`track`); accepted, its estimate moves by the correction."""
-        pose = getattr(self.rover, "frame", None)
-        if pose is None or pose.recent.size == 0:
-            return
-        since = pose.now - self.recent
-        window = np.where(pose.recent_step >= since, pose.recent, UNKNOWN).astype(np.uint8)
-        view = self.transform.inverse().apply(self._held, self.shape)
-        view[self.rover.obs_step >= since] = UNKNOWN
-        t, _, verdict_, _ = track(view, window, RigidTransform())
-        if verdict_ == "accepted" and t != RigidTransform():
-            pose.correct(t)
 
 
 @dataclass

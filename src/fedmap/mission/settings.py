@@ -263,7 +263,7 @@ class FramesConfig:
     lander_view: float = setting(0.0, help="Radius the lander imaged around itself at landing, cells: the base "
                                  "registers on it, never merges it (0: the first rover's frame is the team's)",
                                  cli="--frames-lander-view")
-    window: int = setting(3, help="Sync rounds of a rover's cells the base re-registers (loop closure)",
+    window: int = setting(5, help="Sync rounds of a rover's cells the base re-registers (loop closure)",
                           cli="--frames-window")
     gate: float = setting(0.5, help="Registration gate: the kappa a placement must reach to be merged",
                           cli="--frames-gate")
