@@ -59,6 +59,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from fedmap.coding.mapcodec import decode_map
 from fedmap.errors import FedmapError
@@ -258,22 +259,24 @@ def unpack_transform(raw: bytes) -> RigidTransform | None:
 def _kappas(base: np.ndarray, pts: np.ndarray, imp: np.ndarray, q: np.ndarray,
             min_class: int) -> tuple[np.ndarray, np.ndarray]:
     """Score and kappa of every candidate: ``q`` ``(C, N, 2)`` float cells of the base where
-    the ``N`` points (impassable: ``imp``) land. The score is the kappa where the overlap is
-    enough to register on (:data:`MIN_OVERLAP` cells, ``min_class`` of each class), else -inf:
-    near the estimate agreement decides, not the overlap's size (a placement that laps over
-    more known cells is not better for it)."""
-    h, w = base.shape
-    qi = np.rint(q).astype(np.int64)
-    inside = (qi[..., 0] >= 0) & (qi[..., 0] < h) & (qi[..., 1] >= 0) & (qi[..., 1] < w)
-    v = np.full(qi.shape[:2], UNKNOWN, dtype=np.uint8)
-    v[inside] = base[qi[..., 0][inside], qi[..., 1][inside]]
-    both = v != UNKNOWN
-    n = both.sum(axis=1)
-    ia = imp[None, :] & both
-    ib = (v == IMPASSABLE) & both
-    na, nb = ia.sum(axis=1), ib.sum(axis=1)
-    agree = (n - (ia ^ ib).sum(axis=1)) / np.maximum(n, 1)
-    pa, pb = na / np.maximum(n, 1), nb / np.maximum(n, 1)
+    the ``N`` points (impassable: ``imp``) land. The base is read between its cells
+    (bilinear: a point a third of the way to a rock is a third impassable), so the kappa
+    changes smoothly with a shift below a cell and its best is not a plateau of equal
+    nearest-cell fits. The score is the kappa where the overlap is enough to register on
+    (:data:`MIN_OVERLAP` cells, ``min_class`` of each class), else -inf: near the estimate
+    agreement decides, not the overlap's size (a placement that laps over more known cells
+    is not better for it)."""
+    coords = q.reshape(-1, 2).T
+    known = (base != UNKNOWN).astype(np.float64)
+    rock = (base == IMPASSABLE).astype(np.float64)
+    wk = ndimage.map_coordinates(known, coords, order=1, mode="constant", cval=0.0).reshape(q.shape[:2])
+    wi = ndimage.map_coordinates(rock, coords, order=1, mode="constant", cval=0.0).reshape(q.shape[:2])
+    wi = np.minimum(wi, wk)
+    ia = imp[None, :].astype(np.float64)
+    n = wk.sum(axis=1)
+    na, nb = (ia * wk).sum(axis=1), wi.sum(axis=1)
+    agree = ((ia * wi) + (1 - ia) * (wk - wi)).sum(axis=1) / np.maximum(n, 1e-9)
+    pa, pb = na / np.maximum(n, 1e-9), nb / np.maximum(n, 1e-9)
     chance = pa * pb + (1 - pa) * (1 - pb)
     kappa = np.where(chance < 1 - 1e-12, (agree - chance) / np.maximum(1 - chance, 1e-12), 0.0)
     minority = np.minimum.reduce([na, n - na, nb, n - nb])
