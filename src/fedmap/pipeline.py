@@ -29,7 +29,7 @@ from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversa
 from fedmap.nets.init import ModelConfig
 from fedmap.nets.init import initial_model as build_initial_model
 from fedmap.nets.model import CoordNet, GridNet, Weights, build_model, get_weights, render, set_weights
-from fedmap.nets.training import TrainConfig, fit, steps_per_epoch
+from fedmap.nets.training import TrainConfig, fit, release_freed_memory, steps_per_epoch
 from fedmap.refine import RefineConfig
 from fedmap.stages import global_map, truth_summary, union_map
 
@@ -211,6 +211,7 @@ def run_pipeline(
     stage("federated training", total_local_steps(local_maps, config.federation))
     fed = run_federation(init_weights, net_config, local_maps, config.federation, on_step=on_step,
                          on_round=on_round, one_shot_cache=one_shot_cache)
+    release_freed_memory()  # each stage's peak, not their sum (see release_freed_memory)
     timings["federation_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -220,6 +221,7 @@ def run_pipeline(
 
     global_scores, refined_scores = config.score(truth, global_classes), config.score(truth, refined)
     agent_scores = [config.score(truth, m.classes) for m in local_maps]
+    release_freed_memory()
     timings["evaluate_s"] = time.perf_counter() - t
     central_scores, steps, central_classes = None, None, None
     if config.evaluate.central:
@@ -231,7 +233,9 @@ def run_pipeline(
         fit(central, union_map(local_maps), replace(config.train, epochs=steps), seed=config.seed,
             on_step=on_step)
         central_classes = classes_from_rgb(render(central, h, w))
+        del central
         central_scores = config.score(truth, central_classes)
+        release_freed_memory()
         timings["central_s"] = time.perf_counter() - t
     elevation = None
     if "elevation" in config.explore.layers:
