@@ -241,7 +241,10 @@ def fit(
         head = model.head
     else:
         feats, head = coords, model  # features are trained (grid encodings)
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr, eps=_adam_eps(model, feats.shape[0]))
+    # foreach: the same arithmetic per element (the same bits) in a few multi-tensor kernels
+    # instead of a loop of small ones per parameter; a GridNet step at 128² on one thread
+    # 3.4 -> 3.1 ms (torch picks foreach by default on CUDA only)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr, eps=_adam_eps(model, feats.shape[0]), foreach=True)
     gen = torch.Generator().manual_seed(seed)
     n = feats.shape[0]
     model.train()
