@@ -35,8 +35,10 @@ How the estimate is found
    expected by chance from the two maps' class frequencies on that overlap, ``p_chance =
    sum_c pA(c) pB(c)``, gives Cohen's kappa, ``(agree - p_chance) / (1 - p_chance)`` --
    the *confidence*: 0 for maps that agree no more than chance, 1 for identical ones.
-   The placement with the most evidence (``kappa ** SHARPNESS * sqrt(cells)``,
-   :attr:`Agreement.evidence`) is the estimate. It is *accepted* when the maps share at
+   The placement with the most evidence (``kappa ** EVIDENCE_POWER * sqrt(cells)``,
+   :attr:`Agreement.evidence`; a power of 2, gentler than the search's 4, so a right
+   placement on a large overlap of speckled or blobby maps is not beaten by a close fit on
+   a sliver) is the estimate. It is *accepted* when the maps share at
    least ``min_overlap`` known cells (:data:`DEFAULT_MIN_OVERLAP`) with at least
    :data:`MIN_CLASS_CELLS` of each class in each map (kappa on a few impassable cells in
    a free overlap means little), kappa reaches ``gate`` (:data:`DEFAULT_GATE`) and its
@@ -71,17 +73,19 @@ from fedmap.maps.georef import crop_transform
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap, check_classes
 
 #: Cohen's kappa an estimate must reach on the overlap to be accepted.
-DEFAULT_GATE: float = 0.5
+DEFAULT_GATE: float = 0.4
 #: Known cells the two maps must share under the estimate to be accepted.
 DEFAULT_MIN_OVERLAP: int = 400
 #: Cells of each class (free, impassable) each map must have on the overlap to be accepted.
 MIN_CLASS_CELLS: int = 50
 #: How much more evidence (:attr:`Agreement.evidence`) than any other placement found the estimate must have.
-DEFAULT_MARGIN: float = 8.0
+DEFAULT_MARGIN: float = 7.0
 #: Placements further apart than this (heading, degrees; the overlap's middle, cells) are distinct.
 DISTINCT_DEG, DISTINCT_CELLS = 4.0, 4.0
-#: Power of the agreement in the evidence of a placement (``agreement ** SHARPNESS * sqrt(cells)``).
+#: Power of the correlation in the search's score of a shift (``ncc ** SHARPNESS * sqrt(cells)``).
 SHARPNESS: float = 4.0
+#: Power of kappa in the gate's evidence of a placement (``kappa ** EVIDENCE_POWER * sqrt(cells)``).
+EVIDENCE_POWER: float = 2.0
 #: Side (cells) the coarse search reduces the larger map to, about.
 COARSE_SIDE: int = 64
 #: Headings of the coarse search screened at full resolution, at most.
@@ -191,15 +195,18 @@ class Agreement:
 
     @property
     def evidence(self) -> float:
-        """``kappa ** SHARPNESS * sqrt(overlap)`` (0 when kappa is not positive): how strongly
-        the overlap supports the placement. Agreement on many cells is stronger evidence
-        than the same agreement on a few, but neighbouring cells of a map are far from
-        independent, so a large overlap of moderately similar maps (smooth blobs lying on
-        smooth blobs) must not outweigh a smaller one that agrees closely: hence the power.
+        """``kappa ** EVIDENCE_POWER * sqrt(overlap)`` (0 when kappa is not positive): how
+        strongly the overlap supports the placement. Agreement on many cells is stronger
+        evidence than the same agreement on a few, but neighbouring cells of a map are far
+        from independent, so a large overlap of moderately similar maps (smooth blobs lying
+        on smooth blobs) must not outweigh a smaller one that agrees closely: hence the
+        power. A power of 4 (the search's) let slivers of 500-700 cells at kappa 0.7-0.9
+        beat right placements on 4,000-6,000 cells at kappa 0.5-0.7; 2 keeps those right
+        (benchmarks/registration.py).
         An overlap with fewer than :data:`MIN_CLASS_CELLS` cells of a class is no evidence (0)."""
         if self.minority < MIN_CLASS_CELLS:
             return 0.0
-        return max(self.kappa, 0.0) ** SHARPNESS * math.sqrt(self.overlap)
+        return max(self.kappa, 0.0) ** EVIDENCE_POWER * math.sqrt(self.overlap)
 
 
 def agreement(a: np.ndarray, b: np.ndarray) -> Agreement:
