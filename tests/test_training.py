@@ -111,7 +111,7 @@ def test_training_on_a_selection_is_training_on_the_map_with_the_rest_unknown(ti
 
 @pytest.mark.parametrize("masked", [True, False])
 def test_a_streamed_full_batch_step_is_the_one_pass_step(monkeypatch, blob_map, masked):
-    """Above STREAM_CELLS a full-batch step runs chunk by chunk, and above KNOWN_ONLY_CELLS a
+    """Above STREAM_CELLS a full-batch step runs chunk by chunk, and above KNOWN_ONLY_ABOVE a
     masked map trains on its known cells only; the fitted weights and losses equal the
     one-pass, every-cell step's to float rounding."""
     from fedmap.nets import training
@@ -130,7 +130,7 @@ def test_a_streamed_full_batch_step_is_the_one_pass_step(monkeypatch, blob_map, 
     runs = []
     for cells in (1 << 20, 50):  # one pass on every cell; known cells only, in chunks of 50 (576 cells in all)
         monkeypatch.setattr(training, "STREAM_CELLS", cells)
-        monkeypatch.setattr(training, "KNOWN_ONLY_CELLS", cells)
+        monkeypatch.setattr(training, "KNOWN_ONLY_ABOVE", cells)
         model = build_model(grid_config(24), seed=0)
         penalty_model["m"] = model
         losses = fit(model, grid, cfg, seed=0, penalty=penalty)
