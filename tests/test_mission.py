@@ -262,6 +262,32 @@ def test_same_seed_same_series_and_bytes(mission):
     assert a.sharing.journal.received == b.sharing.journal.received
 
 
+def test_strategies_side_by_side_in_processes_are_the_runs_one_after_another(mission):
+    """workers=2 forks a process per strategy (two at a time): every run equals the serial
+    run's (series, summary, ledger, frames, trails, last views), in the serial order, and the
+    progress callbacks still see every strategy start and every step."""
+    from fedmap.mission.sim import can_fork
+
+    if not can_fork():
+        pytest.skip("no fork on this OS")
+    truth, _ = mission
+    config = _small(strategies=("none", "raw", "fedmap"))  # fedmap: its ends hold a model
+    serial = run_mission(config, truth)
+    started, steps = [], {}
+    forked = run_mission(config, truth, workers=2, on_strategy=started.append,
+                         on_step=lambda name, t, cov: steps.setdefault(name, []).append(t))
+    assert list(forked.runs) == list(serial.runs) and sorted(started) == sorted(serial.runs)
+    assert all(steps[n] == list(range(1, 37)) for n in serial.runs), steps
+    for name, a in serial.runs.items():
+        b = forked.runs[name]
+        assert a.series == b.series and a.summary == b.summary and a.trails == b.trails
+        assert [m.to_dict() for m in a.ledger] == [m.to_dict() for m in b.ledger]
+        assert len(a.frames) == len(b.frames) and all(
+            np.array_equal(x, y) for fa, fb in zip(a.frames, b.frames) for x, y in zip(fa.beliefs, fb.beliefs))
+        assert all(np.array_equal(x, y) for x, y in zip(a.views, b.views))
+        assert b.sharing is None  # the ends' state stays in its process
+
+
 def test_budget_and_range_are_enforced():
     truth = _maze()
     cfg = _small(strategies=("raw",), steps=24, link=LinkConfig(uplink_bytes=60, downlink_bytes=80, max_range=8.0))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import typer
 from rich.markup import escape
@@ -26,7 +26,7 @@ from fedmap.mission.repeats import run_repeats, what_varies
 from fedmap.mission.report import global_meaning, has_peers, repeat_rows, table_rows, verdict, write_mission
 from fedmap.mission.results import movement_warnings
 from fedmap.mission.settings import MISSION_SECTIONS, mission_toml, parse_sets
-from fedmap.mission.sim import start_pocket_warning
+from fedmap.mission.sim import cpu_cores, start_pocket_warning
 from fedmap.pipeline import PipelineConfig
 
 #: ``mission``'s generated options: the top-level seed, the terrain and threshold settings
@@ -54,6 +54,7 @@ def mission(
     auth_keys: Optional[Path] = typer.Option(None, "--auth-keys", help="--deploy base: folder of the rovers' *.pub keys (SuperNode authentication)."),
     resume: bool = typer.Option(False, "--resume", help="--deploy: carry on from the base station's journal of an earlier run into the same --out that was killed (the rovers carry on from their state folders)."),
     insecure: bool = typer.Option(False, "--insecure", help="--deploy base: listen beyond this machine without TLS or authentication (a trusted network only)."),
+    workers: int = typer.Option(0, "--workers", min=0, help="Run the strategies side by side in this many processes (0: one per CPU core this process may use); the results are the same. With --record, --live or --rosbag they run one after another."),
     settings: Optional[dict] = None,
     terrain: Optional[dict] = None,
 ) -> None:
@@ -96,12 +97,13 @@ def mission(
             if first and bag is not None:
                 bag(snapshot)
 
+        tasks: dict[str, Any] = {}  # strategy -> its bar (strategies may run side by side)
+
         def on_strategy(name: str) -> None:
-            nonlocal task
-            task = progress.add_task(f"{label}mission: {name}", total=cfg.steps, loss="")
+            tasks[name] = progress.add_task(f"{label}mission: {name}", total=cfg.steps, loss="")
 
         def on_step(name: str, step: int, coverage: float) -> None:
-            progress.update(task, completed=step, loss=f"coverage {coverage:.0%}")
+            progress.update(tasks[name], completed=step, loss=f"coverage {coverage:.0%}")
 
         if deploy is not None:
             results = [_deployed(cfg, resolved, deploy, out=out, animation=animation, progress=progress, listen=listen,
@@ -112,7 +114,8 @@ def mission(
                                       profiles=profiles, thresholds=source.thresholds, on_strategy=on_strategy,
                                       on_step=on_step,
                                       on_snapshot=on_snapshot if recorder is not None or bag is not None else None,
-                                      frames=60 if animation else 1)  # without an animation, keep no frames' maps
+                                      frames=60 if animation else 1,  # without an animation, keep no frames' maps
+                                      workers=workers or cpu_cores())
         result = results[0]
         for warning in movement_warnings(result):
             console.print(f"warning: {warning}", soft_wrap=True)

@@ -13,10 +13,14 @@ and scores every evaluation step (every sync and the last step) into the typed r
 from __future__ import annotations
 
 import math
+import multiprocessing
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, wait
 from dataclasses import dataclass, replace
 from functools import cached_property
+from queue import Empty
 
 import numpy as np
 
@@ -233,7 +237,7 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
                 on_strategy: Callable[[str], None] | None = None,
                 on_step: Callable[[str, int, float], None] | None = None,
                 frames: int = 60, ends: Ends | None = None,
-                on_snapshot: Callable[[Snapshot], None] | None = None) -> MissionResult:
+                on_snapshot: Callable[[Snapshot], None] | None = None, workers: int = 1) -> MissionResult:
     """Run every strategy of ``config`` on the same mission over ``truth``.
 
     ``elevation`` (metres, the truth's grid) is needed for ``line_of_sight``; ``prior``
@@ -251,16 +255,103 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     rovers run elsewhere is :mod:`fedmap.mission.remote`).
     ``on_snapshot(snapshot)`` gets every strategy's :class:`~fedmap.mission.results.Snapshot`
     at every step as it runs (a recording, a live view).
+    ``workers`` > 1 runs the strategies side by side in that many forked processes (each
+    strategy's run is independent of the others': the same runs, bit for bit, as one after
+    another; see :func:`_runs_in_processes`); with ``ends`` or ``on_snapshot``, or where
+    processes cannot be forked, they run one after another here.
     """
     t0 = time.perf_counter()
     m = prepare_mission(config, truth, elevation=elevation, prior=prior, profiles=profiles, thresholds=thresholds,
                         frames=frames)
-    runs = {}
-    for name in config.strategies:
-        if on_strategy is not None:
-            on_strategy(name)
-        runs[name] = m.new_run(name, ends=ends, on_snapshot=on_snapshot).run(on_step)
+    names = list(config.strategies)
+    if workers > 1 and len(names) > 1 and ends is None and on_snapshot is None and can_fork():
+        runs = _runs_in_processes(m, names, workers, on_strategy, on_step)
+    else:
+        runs = {}
+        for name in names:
+            if on_strategy is not None:
+                on_strategy(name)
+            runs[name] = m.new_run(name, ends=ends, on_snapshot=on_snapshot).run(on_step)
     return MissionResult(config, truth, m.starts, m.base, runs, time.perf_counter() - t0)
+
+
+def cpu_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the OS says, else all)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def can_fork() -> bool:
+    """Whether strategies can run in forked processes here (Linux and other POSIX systems)."""
+    return "fork" in multiprocessing.get_all_start_methods()
+
+
+#: What a forked strategy process inherits from its parent: the mission and the progress queue.
+_FORKED: tuple[Mission, object] | None = None
+
+
+def _one_thread() -> None:
+    """A forked strategy process trains on one torch thread: the strategies share the cores,
+    and OpenMP threads started in the parent do not survive a fork."""
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _run_forked(name: str) -> StrategyRun:
+    """Strategy ``name``'s run in a forked process; its progress goes to the parent's queue."""
+    assert _FORKED is not None, "a strategy process must be forked from run_mission"
+    mission, queue = _FORKED
+    put = queue.put  # type: ignore[attr-defined]
+    put((name, 0, -1.0))  # started
+
+    def on_step(n: str, t: int, coverage: float) -> None:
+        put((n, t, coverage))
+
+    run = mission.new_run(name).run(on_step)
+    return replace(run, sharing=None)  # the ends' state stays in the process (a model's hooks do not pickle)
+
+
+def _runs_in_processes(m: Mission, names: list[str], workers: int,
+                       on_strategy: Callable[[str], None] | None,
+                       on_step: Callable[[str, int, float], None] | None) -> dict[str, StrategyRun]:
+    """Every strategy of ``names`` in up to ``workers`` forked processes, their progress
+    reported here as they go; the runs in ``names``' order, without their ends' state
+    (:attr:`StrategyRun.sharing` is None). A strategy's error is raised here."""
+    global _FORKED
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    m.scorer, m.profile_scorers  # noqa: B018  (computed once here, inherited by every process)
+    _FORKED = (m, queue)
+
+    def report() -> None:
+        while True:
+            try:
+                n, t, coverage = queue.get_nowait()
+            except Empty:
+                return
+            if t == 0 and coverage < 0:
+                if on_strategy is not None:
+                    on_strategy(n)
+            elif on_step is not None:
+                on_step(n, t, coverage)
+
+    try:
+        with ProcessPoolExecutor(max_workers=min(workers, len(names)), mp_context=ctx,
+                                 initializer=_one_thread) as pool:
+            futures = {name: pool.submit(_run_forked, name) for name in names}
+            pending = set(futures.values())
+            while pending:
+                _, pending = wait(pending, timeout=0.2)
+                report()
+            runs = {name: f.result() for name, f in futures.items()}
+        time.sleep(0.05)  # the feeder threads' last items
+        report()
+    finally:
+        _FORKED = None
+    return runs
 
 
 @dataclass
