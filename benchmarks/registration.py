@@ -23,8 +23,8 @@ Correct: heading within 2 deg and the centre of the true overlap placed within 1
 Per overlap level and method: correct merges, wrong merges accepted (the hazard; of them,
 those off by more than 5 deg or 3 cells, or with no overlap at all), refused merges (of
 them, those whose estimate was right), and milliseconds per merge (estimate + gate, wall
-and CPU). Records made under a smaller evidence margin than the library's default are
-judged by the default (:func:`regate`). AKAZE's gate is map_merge's
+and CPU). Records made under a lower kappa gate or a smaller evidence margin than the
+library's defaults are judged by the defaults (:func:`regate`). AKAZE's gate is map_merge's
 ``estimation_confidence``: OpenCV's ``AffineBestOf2NearestMatcher`` confidence
 ``inliers / (8 + 0.3 matches)`` must reach 0.6 (the ROS 2 port's params.yaml; the ROS 1
 node's default 1.0 is in the JSON too). The maps go to OpenCV as map_merge feeds them: the
@@ -266,12 +266,16 @@ def run(maps, n: int, pairs: int, seed: int, levels, out: Path) -> None:
 
 
 def regate(rec: dict) -> dict:
-    """A record made under a smaller evidence margin than :data:`DEFAULT_MARGIN`, judged by it.
+    """A record made under a lower kappa gate or a smaller evidence margin than
+    :data:`DEFAULT_GATE` and :data:`DEFAULT_MARGIN`, judged by them.
 
-    The margin is the gate's last test and a larger one only refuses more, so an accepted
-    record whose recorded margin falls short is refused now (and every other verdict stands):
-    what a new run would give, without the new run."""
+    A higher gate or a larger margin only refuses more, so an accepted record whose recorded
+    kappa or margin falls short is refused now (and every other verdict stands): what a new
+    run would give, without the new run."""
     f = dict(rec["fedmap"])
+    if f["outcome"] in ("correct", "wrong") and f["kappa"] < DEFAULT_GATE:
+        f["outcome"] = "missed" if f["outcome"] == "correct" else "refused"
+        f["reason"] = f"confidence {f['kappa']:.2f} is below the gate {DEFAULT_GATE:.2f} ({f['overlap']} shared cells)"
     if f["outcome"] in ("correct", "wrong") and f["margin"] < DEFAULT_MARGIN:
         f["outcome"] = "missed" if f["outcome"] == "correct" else "refused"
         f["reason"] = (f"ambiguous: another placement fits almost as well (evidence margin {f['margin']:.1f}, "

@@ -24,7 +24,7 @@ from fedmap.cli import main
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.io import load_map, save_map
-from fedmap.maps.registration import RigidTransform, agreement, combine, gate_verdict, merge, register
+from fedmap.maps.registration import Agreement, RigidTransform, agreement, combine, gate_verdict, merge, register
 from fedmap.maps.sources import TerrainSource, load_truth
 
 GALE = Path(__file__).resolve().parents[2] / "shared" / "data" / "mars" / "missionDEM_gale_1m.tif"
@@ -117,6 +117,18 @@ def test_kappa_by_hand():
     assert "too little" in gate_verdict(c, gate=0.5, min_overlap=4)[1]  # one impassable cell in B
     one_class = agreement(np.zeros((3, 3), np.uint8), np.zeros((3, 3), np.uint8))
     assert one_class.kappa == 0.0 and one_class.minority == 0
+
+
+def test_evidence_weighs_a_large_overlap_against_a_close_sliver():
+    """The gate's evidence, ``kappa ** 2 * sqrt(shared cells)``: a right placement on a large
+    overlap of speckled or blobby maps (numbers from the registration benchmark's misses
+    under the earlier fourth power) beats a close fit on a sliver; a close fit still beats
+    a loose one on a few more cells, and too few cells of a class are no evidence."""
+    ev = lambda kappa, n, minority=200: Agreement(n, 0.0, 0.0, kappa, minority).evidence
+    assert ev(0.49, 5566) == pytest.approx(0.49**2 * 5566**0.5)
+    assert ev(0.49, 5566) > ev(0.71, 672) and ev(0.70, 5067) > ev(0.91, 657) and ev(0.53, 4749) > ev(0.64, 682)
+    assert ev(0.85, 2000) > ev(0.60, 3000)
+    assert ev(0.9, 5000, minority=49) == 0.0 and ev(-0.2, 5000) == 0.0
 
 
 # --------------------------------------------------------------------------- estimates
