@@ -36,7 +36,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
@@ -48,11 +47,12 @@ from fedmap.nets.model import Weights, get_weights, set_weights
 from fedmap.nets.predictor import (
     MapPredictor,
     PredictorConfig,
-    _dihedral,
-    _one_thread,
     known_rate,
     one_hot,
+    one_thread,
     predict,
+    training_batch,
+    unknown_cell_loss,
 )
 
 #: The steps of a held-out site's mission its predictions are scored at (as ``benchmarks/predictor.py``).
@@ -203,25 +203,16 @@ def local_round(weights: Weights, beliefs: np.ndarray, targets: np.ndarray, trai
     b, y = np.asarray(beliefs, dtype=np.uint8), np.asarray(targets, dtype=np.uint8)
     _check_samples(b, y, f"site {site}")
     t = training
-    n, h, w = b.shape
-    ch, cw = min(t.crop, h), min(t.crop, w)
     rng = np.random.default_rng(np.random.SeedSequence([t.seed, round, site, 3535]))
-    with _one_thread(deterministic=True):
+    with one_thread(deterministic=True):
         model = predictor_from_weights(weights, config).train()
         # the base-rate correction predict() applies, per map (the whole map's known cells, as predict sees them)
         shift = np.array([_logit(known_rate(x)) for x in b]) - _logit(float(model.base_rate))
         opt = torch.optim.Adam(model.parameters(), lr=t.lr)
         for step in range(1, t.steps + 1):
-            idx = rng.integers(n, size=t.batch)
-            r0, c0 = rng.integers(h - ch + 1, size=t.batch), rng.integers(w - cw + 1, size=t.batch)
-            flips = rng.integers(8, size=t.batch)
-            xb = np.stack([_dihedral(b[i, r:r + ch, c:c + cw], k) for i, r, c, k in zip(idx, r0, c0, flips)])
-            yb = np.stack([_dihedral(y[i, r:r + ch, c:c + cw], k) for i, r, c, k in zip(idx, r0, c0, flips)])
-            target = torch.from_numpy((yb == IMPASSABLE).astype(np.float32))
-            weight = torch.from_numpy(((xb == UNKNOWN) & (yb != UNKNOWN)).astype(np.float32))
+            idx, xb, target, weight = training_batch(b, y, rng, t.batch, t.crop)
             logits = model(one_hot(xb))[:, 0] + torch.from_numpy(shift[idx].astype(np.float32))[:, None, None]
-            loss = (F.binary_cross_entropy_with_logits(logits, target, reduction="none") * weight).sum() \
-                / weight.sum().clamp(min=1.0)
+            loss = unknown_cell_loss(logits, target, weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

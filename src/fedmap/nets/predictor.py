@@ -108,7 +108,7 @@ def one_hot(classes: np.ndarray) -> torch.Tensor:
 
 
 @contextlib.contextmanager
-def _one_thread(deterministic: bool = False) -> Iterator[None]:
+def one_thread(deterministic: bool = False) -> Iterator[None]:
     """torch on one thread (and deterministic algorithms when asked) inside, as before after."""
     threads, was = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
     if threads != 1:
@@ -150,7 +150,7 @@ def predict(model: MapPredictor, classes: np.ndarray, *, adapt: bool = True) -> 
     if b.ndim != 2:
         raise FedmapError(f"the predictor takes one (H, W) class map, got shape {b.shape}")
     shift = _logit(known_rate(b)) - _logit(float(model.base_rate)) if adapt else 0.0
-    with _one_thread(), torch.inference_mode():
+    with one_thread(), torch.inference_mode():
         p = torch.sigmoid(model(one_hot(b)[None]) + shift)[0, 0].numpy()
     p_imp = np.where(b == IMPASSABLE, 1.0, np.where(b == FREE, 0.0, p)).astype(np.float32)
     return (1.0 - p_imp).astype(np.float32), p_imp
@@ -182,6 +182,31 @@ def _dihedral(a: np.ndarray, k: int) -> np.ndarray:
     return a[..., ::-1] if k >= 4 else a
 
 
+def training_batch(beliefs: np.ndarray, truths: np.ndarray, rng: np.random.Generator, batch: int,
+                   crop: int) -> tuple[np.ndarray, np.ndarray, torch.Tensor, torch.Tensor]:
+    """One training batch of ``(N, H, W)`` ``beliefs`` and ``truths``: ``batch`` maps drawn
+    from ``rng``, a random ``crop`` x ``crop`` window of each and one of the 8
+    rotations/reflections. Returns the maps drawn (their indices), the cropped beliefs,
+    the target (1 where the truth is impassable) and the weight of every cell (1 where the
+    belief is UNKNOWN and the truth known: the cells the predictor exists for)."""
+    n, h, w = beliefs.shape
+    ch, cw = min(crop, h), min(crop, w)
+    idx = rng.integers(n, size=batch)
+    r0, c0 = rng.integers(h - ch + 1, size=batch), rng.integers(w - cw + 1, size=batch)
+    flips = rng.integers(8, size=batch)
+    xb = np.stack([_dihedral(beliefs[i, r:r + ch, c:c + cw], k) for i, r, c, k in zip(idx, r0, c0, flips)])
+    yb = np.stack([_dihedral(truths[i, r:r + ch, c:c + cw], k) for i, r, c, k in zip(idx, r0, c0, flips)])
+    target = torch.from_numpy((yb == IMPASSABLE).astype(np.float32))
+    weight = torch.from_numpy(((xb == UNKNOWN) & (yb != UNKNOWN)).astype(np.float32))
+    return idx, xb, target, weight
+
+
+def unknown_cell_loss(logits: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Binary cross-entropy of P(impassable) (``logits``), averaged over the cells ``weight`` keeps."""
+    return (F.binary_cross_entropy_with_logits(logits, target, reduction="none") * weight).sum() \
+        / weight.sum().clamp(min=1.0)
+
+
 def train_predictor(beliefs: np.ndarray, truths: np.ndarray, *, config: PredictorConfig | None = None,
                     training: PredictorTraining | None = None,
                     on_step: Callable[[int, float], None] | None = None) -> MapPredictor:
@@ -199,10 +224,8 @@ def train_predictor(beliefs: np.ndarray, truths: np.ndarray, *, config: Predicto
     b, y = np.asarray(beliefs, dtype=np.uint8), np.asarray(truths, dtype=np.uint8)
     if b.ndim != 3 or b.shape != y.shape or not len(b):
         raise FedmapError(f"need (N, H, W) beliefs and truths of the same shape, got {b.shape} and {y.shape}")
-    n, h, w = b.shape
-    crop_h, crop_w = min(t.crop, h), min(t.crop, w)
     rng = np.random.default_rng(np.random.SeedSequence([t.seed, 35]))
-    with _one_thread(deterministic=True):
+    with one_thread(deterministic=True):
         torch.manual_seed(t.seed)
         model = MapPredictor(config)
         model.base_rate.fill_(float(np.mean([known_rate(x) for x in b])))
@@ -210,16 +233,8 @@ def train_predictor(beliefs: np.ndarray, truths: np.ndarray, *, config: Predicto
         sched = torch.optim.lr_scheduler.LambdaLR(
             opt, lambda i: 0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * min(i, t.steps) / t.steps)))
         for step in range(1, t.steps + 1):
-            idx = rng.integers(n, size=t.batch)
-            r0, c0 = rng.integers(h - crop_h + 1, size=t.batch), rng.integers(w - crop_w + 1, size=t.batch)
-            flips = rng.integers(8, size=t.batch)
-            xb = np.stack([_dihedral(b[i, r:r + crop_h, c:c + crop_w], k) for i, r, c, k in zip(idx, r0, c0, flips)])
-            yb = np.stack([_dihedral(y[i, r:r + crop_h, c:c + crop_w], k) for i, r, c, k in zip(idx, r0, c0, flips)])
-            target = torch.from_numpy((yb == IMPASSABLE).astype(np.float32))
-            weight = torch.from_numpy(((xb == UNKNOWN) & (yb != UNKNOWN)).astype(np.float32))
-            logits = model(one_hot(xb))[:, 0]
-            loss = (F.binary_cross_entropy_with_logits(logits, target, reduction="none") * weight).sum() \
-                / weight.sum().clamp(min=1.0)
+            _, xb, target, weight = training_batch(b, y, rng, t.batch, t.crop)
+            loss = unknown_cell_loss(model(one_hot(xb))[:, 0], target, weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
