@@ -178,6 +178,38 @@ def test_predicted_cells_are_never_observed_or_shared(strategy):
     assert result.summary is not None
 
 
+def test_prediction_scores_by_hand():
+    from fedmap.evaluation.metrics import prediction_scores
+
+    got = prediction_scores(np.array([0.1, 0.6, 0.8, 0.3]), np.array([False, True, False, False]))
+    # guesses F T T F against F T F F; one cell per calibration bin: |y - p| = .1 .4 .8 .3
+    assert got["cells"] == 4 and got["impassable"] == 0.25 and got["accuracy"] == 0.75
+    assert got["iou_impassable"] == 0.5 and got["accuracy_all_free"] == 0.75
+    assert math.isclose(got["brier"], (0.01 + 0.16 + 0.64 + 0.09) / 4)
+    assert math.isclose(got["ece"], (0.1 + 0.4 + 0.8 + 0.3) / 4)
+    with pytest.raises(FedmapError, match="3 guesses for 2 cells"):
+        prediction_scores(np.zeros(3), np.zeros(2, bool))
+
+
+def test_the_summary_scores_the_guesses_on_cells_nobody_observed():
+    """`none`: a rover's belief is what it sensed, so the cells nobody observed are the
+    cells unknown in every final belief. The summary's final_prediction is the shipped
+    predictor's guesses there, every rover's pooled, as computed here from the last frame."""
+    from fedmap.evaluation.metrics import prediction_scores
+
+    truth, mission = _small_mission("none")
+    run = mission.new_run("none").run()
+    beliefs = run.frames[-1].beliefs
+    nobody = np.all([b == UNKNOWN for b in beliefs], axis=0)
+    assert nobody.any()
+    p = np.concatenate([predict(shipped_predictor(), b)[1][nobody] for b in beliefs])
+    want = prediction_scores(p, np.tile(truth.classes[nobody] == IMPASSABLE, len(beliefs)))
+    assert run.summary.final_prediction == want
+    assert run.summary.to_dict()["final_prediction"] == want
+    plain = replace(mission.config, predictor="none")
+    assert "final_prediction" not in prepare_mission(plain, truth, frames=1).new_run("none").run().summary.to_dict()
+
+
 def test_retraining_with_the_same_seed_gives_the_same_bytes(tmp_path):
     coll = earth_like(size=32, per_category=1, seed=0, categories=("urban", "natural"))
     beliefs, truths = exploration_samples(coll, steps=12, every=6, rovers=2)

@@ -63,3 +63,33 @@ def image_scores(truth_classes: np.ndarray, pred_classes: np.ndarray) -> dict:
     """PSNR, SSIM (on renderings) and class scores of a class map against the truth."""
     t, p = render_classes(truth_classes), render_classes(pred_classes)
     return {"psnr": psnr(t, p), "ssim": ssim(t, p), **class_scores(truth_classes, pred_classes)}
+
+
+#: Equal-width bins of the expected calibration error (:func:`prediction_scores`).
+CALIBRATION_BINS = 10
+
+
+def prediction_scores(p_impassable: np.ndarray, impassable: np.ndarray) -> dict:
+    """How well guesses ``p_impassable`` (P(impassable) of some cells) match the truth
+    ``impassable`` (bool, the same cells): ``cells``, the truth's impassable share, accuracy
+    (a guess is impassable above 1/2), impassable IoU, Brier score, expected calibration
+    error over :data:`CALIBRATION_BINS` equal bins (count-weighted |frequency - mean P|),
+    and an "all free" guess's accuracy beside them."""
+    p = np.asarray(p_impassable, dtype=np.float64).ravel()
+    y = np.asarray(impassable, dtype=bool).ravel()
+    if p.shape != y.shape:
+        raise FedmapError(f"{p.size} guesses for {y.size} cells")
+    if not len(p):
+        raise FedmapError("no cells to score the guesses on")
+    guess = p > 0.5
+    edges = np.linspace(0, 1, CALIBRATION_BINS + 1)
+    which = np.clip(np.digitize(p, edges[1:-1]), 0, CALIBRATION_BINS - 1)
+    ece = 0.0
+    for i in range(CALIBRATION_BINS):
+        sel = which == i
+        if sel.any():
+            ece += sel.mean() * abs(float(y[sel].mean()) - float(p[sel].mean()))
+    union = int((guess | y).sum())
+    return {"cells": int(len(p)), "impassable": float(y.mean()), "accuracy": float((guess == y).mean()),
+            "iou_impassable": float((guess & y).sum() / union) if union else 1.0,
+            "brier": float(np.mean((p - y) ** 2)), "ece": float(ece), "accuracy_all_free": float((~y).mean())}

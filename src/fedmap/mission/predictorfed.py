@@ -39,6 +39,7 @@ import torch
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
+from fedmap.evaluation.metrics import CALIBRATION_BINS, prediction_scores
 from fedmap.federation.aggregate import FedAvg
 from fedmap.maps.grid import IMPASSABLE, UNKNOWN, GridMap
 from fedmap.mission.settings import MissionConfig
@@ -58,7 +59,7 @@ from fedmap.nets.predictor import (
 #: The steps of a held-out site's mission its predictions are scored at (as ``benchmarks/predictor.py``).
 SCORED_STEPS = (50, 100, 150, 200)
 #: Bins of the expected calibration error.
-BINS = 10
+BINS = CALIBRATION_BINS
 
 
 @dataclass(frozen=True)
@@ -311,21 +312,7 @@ def evaluate_predictor(model: MapPredictor, site: SiteMaps, *, at: Sequence[int]
 
 def scores(p: np.ndarray, y: np.ndarray) -> dict:
     """Accuracy, impassable IoU, Brier, ECE of P(impassable) ``p`` against ``y`` (bool: impassable)."""
-    y = np.asarray(y, dtype=bool)
-    guess = p > 0.5
-    edges = np.linspace(0, 1, BINS + 1)
-    which = np.clip(np.digitize(p, edges[1:-1]), 0, BINS - 1)
-    ece = 0.0
-    for i in range(BINS):
-        sel = which == i
-        if sel.any():
-            ece += sel.mean() * abs(float(y[sel].mean()) - float(p[sel].mean()))
-    union = int((guess | y).sum())
-    return {"cells": int(len(p)), "impassable": float(y.mean()), "accuracy": float((guess == y).mean()),
-            "iou_impassable": float((guess & y).sum() / union) if union else 1.0,
-            "brier": float(np.mean((p - y) ** 2)), "ece": float(ece), "accuracy_all_free": float((~y).mean())}
-
-
+    return prediction_scores(p, y)
 
 
 # -- the four-way comparison -----------------------------------------------------------------

@@ -378,6 +378,7 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
            f"first step it had and the coverage was {READY_COVERAGE:.0%}. Per-repeat values: `metrics.json` "
            "(`repeats`). The animations show the first repeat.", ""] if repeats is not None and len(repeats) > 1
           else []),
+        *_prediction_lines(result),
         side_by_side(result, repeats),
         verdict(result, repeats), "",
         f"Wall time: {result.seconds:.1f} s ("
@@ -386,6 +387,20 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         + (", ".join(f"`{name}`" for name in animations) if animations else "none (not asked for)") + ".", "",
     ]
     return "\n".join(lines)
+
+
+def _prediction_lines(result: MissionResult) -> list[str]:
+    """With ``predictor = "learned"``: a table of the guesses on the cells nobody observed at the last step."""
+    rows = [(n, r.summary.final_prediction) for n, r in result.runs.items() if r.summary.final_prediction]
+    if not rows:
+        return []
+    out = ["**The map predictor's guesses** at the last step, on the cells no rover had observed (every "
+           "rover's guesses on the map it held, pooled; a guess is impassable above P = 1/2). They are used for "
+           "planning only, never counted as observed or shared. *all free*: the accuracy of guessing FREE everywhere.",
+           "", "| strategy | cells | accuracy | all free | impassable IoU | Brier | ECE |", "|---|---|---|---|---|---|---|"]
+    out += [f"| {n} | {int(p['cells']):,} | {p['accuracy']:.3f} | {p['accuracy_all_free']:.3f} | "
+            f"{p['iou_impassable']:.3f} | {p['brier']:.3f} | {p['ece']:.3f} |" for n, p in rows]
+    return [*out, ""]
 
 
 # --------------------------------------------------------------------------- plots

@@ -140,6 +140,10 @@ class MissionSummary:
     #: the coverage at :data:`READY_COVERAGE` (None: never)
     ready_step: int | None = None
     ready_bytes: int | None = None  #: the team's bytes, both ways, spent up to :attr:`ready_step`
+    #: with ``predictor = "learned"``: the predictor's guesses at the last step on the cells
+    #: nobody had observed, every rover's on the map it held, pooled
+    #: (:func:`~fedmap.evaluation.metrics.prediction_scores`); None (and not written) without one
+    final_prediction: dict[str, float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The ``summary`` of ``metrics.json``: every field under its own name (so
@@ -150,6 +154,8 @@ class MissionSummary:
         out["first_belief_f1_step_per_rover"] = list(self.first_belief_f1_step_per_rover)
         out["messages"] = dict(self.messages)
         out["ready_coverage"] = READY_COVERAGE
+        if self.final_prediction is None:  # missions without a predictor keep the metrics they had
+            del out["final_prediction"]
         return out
 
 

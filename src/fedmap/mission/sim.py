@@ -25,6 +25,7 @@ from queue import Empty
 import numpy as np
 
 from fedmap.errors import FedmapError
+from fedmap.evaluation.metrics import prediction_scores
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.orbital import orbital_prior
 from fedmap.maps.sources import TerrainSource, load_terrain, needs_dem
@@ -103,6 +104,7 @@ class _Run:
         self.on_snapshot = on_snapshot
         self._seen = 0  # ledger entries already handed to on_snapshot
         self.views: list[np.ndarray] = []  # every member's view at the last recorded step
+        self.prediction: dict[str, float] | None = None  # the predictor's guesses scored at the last step
         self.rows: list[StepRow] = []
         self.evals: list[EvalRow] = []
         self.frames: list[Frame] = []
@@ -151,6 +153,12 @@ class _Run:
             distance=tuple(team.distances), bytes_up=tuple(up), bytes_down=tuple(down),
             up_delivered=delivered[UP], up_dropped=dropped[UP],
             down_delivered=delivered[DOWN], down_dropped=dropped[DOWN]))
+        if t == self.config.steps and w.predictor is not None and not isinstance(w, FramedWorld):
+            nobody = n_seen == 0
+            if nobody.any():
+                self.prediction = prediction_scores(
+                    np.concatenate([w.predicted(k, b).p_impassable[nobody] for k, b in enumerate(beliefs)]),
+                    np.tile(truth[nobody] == IMPASSABLE, len(beliefs)))
         if evaluate:
             g = self.scorer.scores(s.global_map())
             own = [self.own_scorer[k].path(v) for k, v in enumerate(views)]
@@ -206,6 +214,8 @@ class _Run:
             err = (z[held] - self.elevation[held]).astype(np.float64)
             summary = replace(summary, final_height_rmse_m=float(np.sqrt(np.mean(err ** 2))) if held.any() else 0.0,
                               final_height_coverage=float(held.mean()))
+        if self.prediction is not None:
+            summary = replace(summary, final_prediction=self.prediction)
         return StrategyRun(self.name, series, summary, self.link.ledger, self.frames, trails, seconds,
                            dropped_updates=None if journal.dropped is None else tuple(journal.dropped),
                            model_lag=None if journal.lags is None else tuple(journal.lags),
