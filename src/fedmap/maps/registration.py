@@ -79,7 +79,7 @@ DEFAULT_MIN_OVERLAP: int = 400
 #: Cells of each class (free, impassable) each map must have on the overlap to be accepted.
 MIN_CLASS_CELLS: int = 50
 #: How much more evidence (:attr:`Agreement.evidence`) than any other placement found the estimate must have.
-DEFAULT_MARGIN: float = 7.0
+DEFAULT_MARGIN: float = 8.0
 #: Placements further apart than this (heading, degrees; the overlap's middle, cells) are distinct.
 DISTINCT_DEG, DISTINCT_CELLS = 4.0, 4.0
 #: Power of the correlation in the search's score of a shift (``ncc ** SHARPNESS * sqrt(cells)``).
