@@ -63,6 +63,10 @@ ROVER_RESTARTS = 20
 ROVER_RESTARTS_TOTAL = 100
 #: Seconds between the rover's own probes of its SuperLink.
 PROBE_EVERY = 5.0
+#: Seconds the probe waits for the SuperLink's answer (TLS handshake included). A SuperLink on
+#: a loaded machine can take more than 2 s: with 2 s, on a 2-core machine at load 9, a rover
+#: whose key the SuperLink refused was told that no SuperLink had answered for 30 s.
+PROBE_TIMEOUT = 5.0
 #: Seconds a finished rover leaves its SuperNode running so the final reply reaches the base.
 DONE_GRACE = 5.0
 #: Seconds a SuperNode that logged its own end gets to exit before it is stopped.
@@ -162,7 +166,7 @@ def write_shim(bin_dir, sock: str) -> None:
     path.chmod(0o755)
 
 
-def superlink_answers(address: str, *, tls: bool, timeout: float = 2.0) -> bool:
+def superlink_answers(address: str, *, tls: bool, timeout: float = PROBE_TIMEOUT) -> bool:
     """Whether an HTTP(S) server answers at ``HOST:PORT`` right now: what Flower's Fleet API
     is. A port that accepts connections and closes them (a relay whose far end is gone)
     does not count. The certificate is not checked here: the SuperNode checks it."""
@@ -352,7 +356,10 @@ class _Watch:
             time.sleep(0.3)
         if p.poll() is None:
             procs.stop("supernode", grace=2.0)
-        return _read_from(log, start)
+        text = _read_from(log, start)
+        if _refused(text.lower()):  # a refusal is an answer: the SuperLink is there, the key is the problem
+            self.contact = time.monotonic()
+        return text
 
     def silent(self) -> bool:
         """Whether the SuperLink has not answered for ``max_wait`` seconds."""
