@@ -43,7 +43,7 @@ def merge(
                                "map needs to be placed."),
     min_overlap: int = typer.Option(DEFAULT_MIN_OVERLAP, "--min-overlap", help="Known cells a map must share with the "
                                     "merged map to be placed."),
-    min_margin: float = typer.Option(DEFAULT_MARGIN, "--min-margin", help="Evidence (kappa^4 x sqrt(shared cells)) by which a "
+    min_margin: float = typer.Option(DEFAULT_MARGIN, "--min-margin", help="Evidence (kappa^2 x sqrt(shared cells)) by which a "
                                      "map's placement must beat any other placement found: refuses look-alike places."),
     pixel_size: Optional[float] = typer.Option(None, "--pixel-size", help="Metres per cell, for maps that do not store it (.npy)."),
 ) -> None:
