@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 
-def one(size: int, agents: int, steps: int, strategies: str, terrain: str) -> dict:
+def one(size: int, agents: int, steps: int, strategies: str, terrain: str, workers: int = 1) -> dict:
     """One configuration, in this process: the numbers of its row."""
     from fedmap.maps.sources import load_truth
     from fedmap.mission import load_mission, run_mission
@@ -33,14 +33,16 @@ def one(size: int, agents: int, steps: int, strategies: str, terrain: str) -> di
     cfg, source, _ = load_mission(terrain={"kind": "builtin", "terrain": terrain}, size=size,
                                   mission={"rovers": agents, "steps": steps, "strategies": strategies})
     truth = load_truth(source, seed=cfg.seed)
-    result = run_mission(cfg, truth)
+    result = run_mission(cfg, truth, workers=workers)
     return {"size": size, "agents": agents, "steps": steps, "cells_x_agents": size * size * agents,
             "seconds": time.perf_counter() - t0,
             "per_strategy_s": {n: r.seconds for n, r in result.runs.items()},
             "per_step_ms": {n: 1000 * r.seconds / steps for n, r in result.runs.items()},
             "team_bytes": {n: r.summary.bytes_up + r.summary.bytes_down for n, r in result.runs.items()},
             "coverage": {n: r.summary.final_coverage for n, r in result.runs.items()},
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+            "workers": workers,  # strategies side by side in forked processes: the largest process's peak
+            "peak_rss_mb": max(resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF,
+                                                                             resource.RUSAGE_CHILDREN)) / 1024}
 
 
 def fit_exponent(x: list[float], y: list[float]) -> float | None:
@@ -87,6 +89,8 @@ def main() -> None:
     # moon: at every size its map centre (the lander) opens onto most of the free ground;
     # built-in mars at 512² puts the lander in a free pocket of 101 cells, and the rovers stay in it
     ap.add_argument("--terrain", default="moon")
+    ap.add_argument("--workers", type=int, default=1,
+                    help="strategies side by side in this many processes (fedmap mission's default: one per core)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/mission_scaling"))
     ap.add_argument("--one", nargs=2, type=int, help=argparse.SUPPRESS)  # size agents: run one, print JSON
     ap.add_argument("--replot", action="store_true", help="Redraw scaling.png from --out's scaling.json")
@@ -96,14 +100,14 @@ def main() -> None:
         plot(d["rows"], d["strategies"], d["exponents"], d["steps"], d["terrain"], args.out / "scaling.png")
         return
     if args.one:
-        print(json.dumps(one(args.one[0], args.one[1], args.steps, args.strategies, args.terrain)))
+        print(json.dumps(one(args.one[0], args.one[1], args.steps, args.strategies, args.terrain, args.workers)))
         return
     rows = []
     load = os.getloadavg()[0]
     for size in args.sizes:
         for agents in args.agents:
             cmd = [sys.executable, __file__, "--one", str(size), str(agents), "--steps", str(args.steps),
-                   "--strategies", args.strategies, "--terrain", args.terrain]
+                   "--strategies", args.strategies, "--terrain", args.terrain, "--workers", str(args.workers)]
             done = subprocess.run(cmd, capture_output=True, text=True, check=True)
             row = json.loads(done.stdout.strip().splitlines()[-1])
             rows.append(row)
