@@ -104,6 +104,18 @@ def precision_reason(name: str, *, grid: bool = False) -> str:
     return f"fp32, as asked; {cpu}" + ("; auto would train in bf16" if native else "")
 
 
+def _tunable_glibc() -> ctypes.CDLL | None:
+    """glibc, where the allocator may be tuned: Linux with glibc, unless ``FEDMAP_MALLOC_TUNING=0``."""
+    if os.environ.get("FEDMAP_MALLOC_TUNING", "1") == "0":
+        return None
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        return ctypes.CDLL("libc.so.6")
+    except OSError:
+        return None
+
+
 @functools.cache
 def keep_freed_memory() -> bool:
     """Let glibc reuse freed memory for the next large tensor instead of returning it to the OS.
@@ -119,13 +131,8 @@ def keep_freed_memory() -> bool:
     Process-wide, applied once, only on Linux with glibc; ``FEDMAP_MALLOC_TUNING=0`` turns
     it off. Returns whether it is applied.
     """
-    if os.environ.get("FEDMAP_MALLOC_TUNING", "1") == "0":
-        return False
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
+    libc = _tunable_glibc()
+    if libc is None:
         return False
     m_trim_threshold, m_mmap_max = -1, -4  # from glibc's malloc.h
     return bool(libc.mallopt(m_mmap_max, 0)) and bool(libc.mallopt(m_trim_threshold, 1 << 30))
@@ -142,13 +149,8 @@ def release_freed_memory() -> bool:
     costs milliseconds. Returns whether memory was released (False off glibc, or with
     ``FEDMAP_MALLOC_TUNING=0``).
     """
-    if os.environ.get("FEDMAP_MALLOC_TUNING", "1") == "0":
-        return False
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
+    libc = _tunable_glibc()
+    if libc is None:
         return False
     return bool(libc.malloc_trim(0))
 
