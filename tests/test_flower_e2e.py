@@ -49,10 +49,15 @@ def _team(tmp_path):
     return maps
 
 
-def _start_rovers(procs: Processes, port: int, tmp_path, rovers=range(4)) -> None:
+#: The kill tests' rovers beat every 10 s (Flower's least): the base takes a killed rover for
+#: gone after 20 s, not 60 s.
+HEARTBEAT = ["--heartbeat", "10"]
+
+
+def _start_rovers(procs: Processes, port: int, tmp_path, rovers=range(4), extra=()) -> None:
     for k in rovers:  # each `fedmap rover` in its own process group, stopped by its PID
         argv = [sys.executable, "-m", "fedmap", "rover", "--superlink", f"127.0.0.1:{port}", "--partition-id", str(k),
-                "--map", str(tmp_path / f"local{k}.npy"), "--port", str(free_port())]
+                "--map", str(tmp_path / f"local{k}.npy"), "--port", str(free_port()), *extra]
         procs.start(f"rover{k}", argv, env=flower_env(tmp_path / f"rover{k}-home"), log=tmp_path / f"rover{k}.log")
 
 
@@ -67,13 +72,13 @@ def _reference_with(maps, run, **participation):
     return init, run_federation(init, net, maps, RunSettings.from_run_config(run).federation, **participation)
 
 
-def _run(tmp_path, run: dict, on_status=None):
+def _run(tmp_path, run: dict, on_status=None, extra=()):
     port, out = free_port(), tmp_path / "out"
     maps = _team(tmp_path)
     with Processes() as rovers:
         status = run_base_station({**run, "out": str(out), "truth": str(tmp_path / "truth.npy")}, host="127.0.0.1",
                                   port=port,
-                                  on_ready=lambda: _start_rovers(rovers, port, tmp_path),
+                                  on_ready=lambda: _start_rovers(rovers, port, tmp_path, extra=extra),
                                   on_status=(lambda st: on_status(st, rovers, port)) if on_status else None)
     assert status["state"] == "done"
     return maps, out, json.loads((out / "metrics.json").read_text())
@@ -107,11 +112,13 @@ def test_a_rover_killed_mid_round_leaves_three(flower_home):
             rovers.stop("rover3", sig=signal.SIGKILL)  # by its PID (process group), while the round runs
             killed.append(True)
 
-    maps, out, m = _run(flower_home, {**RUN, "deadline": 120.0}, on_status=kill_rover3)
+    maps, out, m = _run(flower_home, {**RUN, "deadline": 120.0}, on_status=kill_rover3, extra=HEARTBEAT)
     assert killed
     rnd = m["rounds"][0]
     assert sorted(rnd["aggregation_counts"]) == ["0", "1", "2"]
     assert rnd["missing"] == [3] and rnd["dropped"] == {}  # no reply: missing, never "dropped"
+    # its node's heartbeat lapsed before the deadline (a node that never replied is not yet known as rover 3)
+    assert [why for why in rnd["node_errors"].values() if "Node Unavailable" in why]
     _, ref = _reference(maps[:3])
     got = get_weights(load_model(out / "global_model.safetensors"))
     for k in ref.weights:
@@ -130,14 +137,15 @@ def test_a_killed_rover_restarted_rejoins_with_an_update_codec(flower_home):
     def kill_and_restart_rover3(st, rovers, port):
         if st["state"] == "running" and st.get("round") == 2 and not st.get("saved") and not events:
             rovers.stop("rover3", sig=signal.SIGKILL)
-            _start_rovers(rovers, port, flower_home, rovers=[3])
+            _start_rovers(rovers, port, flower_home, rovers=[3], extra=HEARTBEAT)
             events.append("restarted")
 
-    maps, out, m = _run(flower_home, run, on_status=kill_and_restart_rover3)
+    maps, out, m = _run(flower_home, run, on_status=kill_and_restart_rover3, extra=HEARTBEAT)
     assert events
     r1, r2, r3 = m["rounds"]
     assert sorted(r1["aggregation_counts"]) == sorted(r3["aggregation_counts"]) == ["0", "1", "2", "3"]
     assert sorted(r2["aggregation_counts"]) == ["0", "1", "2"] and r2["missing"] == [3]
+    assert "Node Unavailable" in r2["missing_why"]["3"]  # its heartbeat lapsed before the deadline
     # the broadcast of round r's model is booked in round r's record: rovers 0-2 got round 2's
     # model as an update, the restarted rover (no model) got it as a keyframe
     assert not r1.get("keyframes") and r2["keyframes"] == [3] and not r3.get("keyframes")

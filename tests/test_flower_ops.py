@@ -190,11 +190,15 @@ def test_base_station_starts_from_the_meta_init_like_the_demo():
 
 
 FAKE_SUPERNODE = """
-import pathlib, sys, time
+import os, pathlib, sys, time
 count, done, script = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2]), sys.argv[3].split(";")
 n = int(count.read_text()) if count.exists() else 0
 count.write_text(str(n + 1))
 step = script[min(n, len(script) - 1)]
+if step == "env":  # what the rover set for its SuperNode, then the final model
+    (count.parent / "heartbeat").write_text(os.environ.get("FEDMAP_SUPERNODE_HEARTBEAT", "unset"))
+    done.write_text("1")
+    sys.exit(0)
 if step == "done":  # the ClientApp received the final model
     done.write_text("1")
     sys.exit(0)
@@ -317,6 +321,37 @@ def test_a_refused_key_is_final_unless_it_may_be_a_second_activation(tmp_path, m
                                  ("refused;done", False, 2)):  # no --auth-key: a new SuperNode, a new key
         (tmp_path / "count").unlink()
         assert _fake_rover(tmp_path, monkeypatch, script, auth=auth, max_wait=30)[:2] == (0, starts), script
+
+
+def test_a_rovers_heartbeat_reaches_flowers_supernode(tmp_path, monkeypatch):
+    """``fedmap rover --heartbeat`` sets the interval the SuperNode activates with, sends with
+    each heartbeat and waits by; an interval the SuperLink would refuse is one line, before
+    anything starts."""
+    import flwr.common.constant as flower_constants
+    import flwr.supercore.heartbeat as beat
+    import flwr.supernode.fleet_http_connection as fleet
+
+    from fedmap.flower import HEARTBEAT_ENV, HEARTBEAT_RANGE, supernode
+
+    assert HEARTBEAT_RANGE == (flower_constants.HEARTBEAT_MIN_INTERVAL, flower_constants.HEARTBEAT_MAX_INTERVAL)
+    assert _fake_rover(tmp_path, monkeypatch, "env", heartbeat=12.5)[0] == 0
+    assert (tmp_path / "heartbeat").read_text() == "12.5"
+    (tmp_path / "x").mkdir()
+    assert _fake_rover(tmp_path / "x", monkeypatch, "env")[0] == 0
+    assert (tmp_path / "x" / "heartbeat").read_text() == "unset"  # Flower's own
+    for bad in (5.0, 3600.0):
+        with pytest.raises(FedmapError, match=r"^rover 1: --heartbeat must be in \[10, 1800\] s .*got "):
+            rover.run_rover({"partition-id": 1}, superlink="127.0.0.1:1", heartbeat=bad)
+    # the SuperNode process: Flower's constants, as its connection and heartbeat sender read them
+    for module in (fleet, beat):
+        monkeypatch.setattr(module, "HEARTBEAT_DEFAULT_INTERVAL", module.HEARTBEAT_DEFAULT_INTERVAL)
+    monkeypatch.setattr(fleet, "make_simple_http_retry_invoker", fleet.make_simple_http_retry_invoker)
+    seen = []
+    monkeypatch.setattr(supernode, "flower_supernode",
+                        lambda: seen.append((fleet.HEARTBEAT_DEFAULT_INTERVAL, beat.HEARTBEAT_DEFAULT_INTERVAL)))
+    monkeypatch.setenv(HEARTBEAT_ENV, "12.5")
+    monkeypatch.setattr(sys, "argv", sys.argv)
+    assert supernode.main([]) == 0 and seen == [(12.5, 12.5)]
 
 
 def test_the_supernode_retries_a_tls_handshake_cut_short_but_not_a_bad_certificate():

@@ -113,6 +113,7 @@ def rover(
                               help="Fork each message's ClientApp from one process that imported torch and "
                                    "fedmap once (--cold: a fresh process per message, Flower's default)."),
     poll: Optional[float] = typer.Option(None, "--poll", min=0.01, help="Seconds between the SuperNode's polls of the SuperLink when idle (default: Flower's 3 s; a mission's rounds come every sync: 0.1 on a fast link)."),
+    heartbeat: Optional[float] = typer.Option(None, "--heartbeat", help="Seconds between the SuperNode's heartbeats, 10-1800 (default: Flower's 30). The base station takes a rover for gone after two missed ones: a dead rover holds up a round, and a restarted one is refused as still connected, for twice this."),
     state: Optional[Path] = typer.Option(None, "--state", help="--mission: the folder the rover keeps its state in between messages (a restarted rover carries on from it; default: a temporary folder)."),
     rejoin: bool = typer.Option(False, "--rejoin", help="This rover was restarted: its key was accepted before, so a refusal may be the SuperLink still listing its old node; keep trying."),
     feed: Optional[Path] = typer.Option(None, "--feed", help="--mission: take this rover's observations from its own mapping software: a folder of map snapshots named with their step (map_0040.png, GeoTIFF, ...) or a ROS 2 bag of nav_msgs/OccupancyGrid."),
@@ -127,7 +128,7 @@ def rover(
         console.print("warning: no --root-cert, connecting without TLS (fine on a trusted local network only)")
     console.print(f"rover {partition_id}: connecting to {superlink}")
     code = run_rover(cfg, superlink=superlink, root_cert=root_cert, auth_key=auth_key, port=port, max_wait=max_wait,
-                     warm=warm, log=log, poll=poll, rejoin=rejoin)
+                     warm=warm, log=log, poll=poll, rejoin=rejoin, heartbeat=heartbeat)
     if mission:
         console.print(f"rover {partition_id}: mission over")
         raise typer.Exit(code)

@@ -30,6 +30,11 @@ INSTALL_HINT = "Flower is not installed; run: pip install 'fedmap[flower]'"
 #: Environment variable of fedmap's SuperNode (:mod:`fedmap.flower.supernode`): seconds between
 #: its polls of its SuperLink when it has no message (Flower's own: 3 s); ``fedmap rover --poll``.
 POLL_ENV = "FEDMAP_SUPERNODE_POLL"
+#: Environment variable of fedmap's SuperNode: seconds between its heartbeats (Flower's own: 30 s;
+#: ``fedmap rover --heartbeat``). The SuperLink takes a SuperNode for gone after two missed ones.
+HEARTBEAT_ENV = "FEDMAP_SUPERNODE_HEARTBEAT"
+#: The heartbeat intervals Flower 1.41's SuperLink accepts (``flwr.common.constant``), in seconds.
+HEARTBEAT_RANGE = (10.0, 1800.0)
 #: Flower's SuperExec: seconds between its polls for a task (a ClientApp to start; Flower's own: 1 s).
 SUPEREXEC_POLL_ENV = "FLWR_SUPEREXEC_TASK_POLL_INTERVAL"
 

@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 
 from fedmap.errors import FedmapError
-from fedmap.flower import POLL_ENV, SUPEREXEC_POLL_ENV
+from fedmap.flower import HEARTBEAT_ENV, HEARTBEAT_RANGE, POLL_ENV, SUPEREXEC_POLL_ENV
 from fedmap.flower import warm as warm_server
 from fedmap.flower.faults import parse_fault
 from fedmap.flower.launch import (
@@ -196,7 +196,7 @@ def _count_marks(text: str, marks: tuple[str, ...]) -> int:
 def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = None, auth_key: Path | None = None,
               port: int = 0, flwr_home: Path | None = None, log: Path | None = None,
               max_wait: float = ROVER_MAX_WAIT, warm: bool = True, poll: float | None = None,
-              rejoin: bool = False) -> int:
+              rejoin: bool = False, heartbeat: float | None = None) -> int:
     """Run this rover's SuperNode until its run ends; returns 0.
 
     The SuperNode runs in a process group of its own, stopped as a group (with the SuperExec
@@ -213,7 +213,10 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
     SuperNode's polls of its SuperLink, and its SuperExec's for a task, when idle (None:
     Flower's 3 s and 1 s; a mission sends a message a sync). ``rejoin``: this rover's key was
     accepted before (the rover was restarted), so a refusal may be the SuperLink still
-    listing its old node: it keeps trying, within the bounds above.
+    listing its old node: it keeps trying, within the bounds above. ``heartbeat``: seconds
+    between the SuperNode's heartbeats (None: Flower's 30 s); the SuperLink takes a rover
+    whose heartbeat lapsed twice for gone, so a dead rover costs a round 2 x ``heartbeat``
+    seconds, not its deadline, and a restarted one is let in again after as long.
     """
     pid = node_config.get("partition-id", "?")
     if root_cert is not None and not Path(root_cert).is_file():
@@ -222,6 +225,10 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
         raise FedmapError(f"rover {pid}: no such SuperNode private key: {auth_key}")
     if not max_wait > 0:
         raise FedmapError(f"rover {pid}: --max-wait must be positive, got {max_wait}")
+    low, high = HEARTBEAT_RANGE
+    if heartbeat is not None and not low <= heartbeat <= high:
+        raise FedmapError(f"rover {pid}: --heartbeat must be in [{low:g}, {high:g}] s (what the SuperLink "
+                          f"accepts), got {heartbeat:g}")
     require_executables(SUPERNODE_EXES)
     root_cert = Path(root_cert).resolve() if root_cert is not None else None
     auth_key = Path(auth_key).resolve() if auth_key is not None else None
@@ -236,6 +243,8 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
         env = flower_env(Path(flwr_home) if flwr_home else Path(tmp) / "flwr-home")
         if poll is not None:  # how often the SuperNode asks for a message, and its SuperExec for a task
             env[POLL_ENV] = env[SUPEREXEC_POLL_ENV] = str(poll)
+        if heartbeat is not None:
+            env[HEARTBEAT_ENV] = str(heartbeat)
         server = None
         if warm:  # one process imports torch and fedmap once and forks a ClientApp per message
             sock = str(Path(tmp) / "clientapp.sock")

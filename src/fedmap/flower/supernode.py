@@ -10,7 +10,13 @@ the old one's heartbeat has lapsed (2 x 30 s): the rover missed the round.
 
 Here the connection's retry policy treats an EOF in the handshake as the transport error it
 is (retried, within ``--max-wait-time``); a certificate that does not verify still ends the
-SuperNode at once. Everything else is Flower's own ``flower-supernode``.
+SuperNode at once.
+
+Its heartbeat interval can be set (``FEDMAP_SUPERNODE_HEARTBEAT``, ``fedmap rover
+--heartbeat``): Flower 1.41 fixes it at 30 s, and its SuperLink takes a SuperNode for gone
+only after two intervals without one. Until then a message to a rover that died waits, and
+the rover's key, restarted, is refused as still in use. Everything else is Flower's own
+``flower-supernode``.
 """
 
 from __future__ import annotations
@@ -19,11 +25,12 @@ import os
 import sys
 import time
 
+import flwr.supercore.heartbeat as heartbeat
 import flwr.supernode.fleet_http_connection as fleet
 from flwr.supercore.retry import RetryInvoker, make_simple_http_retry_invoker
 from flwr.supernode.cli import flower_supernode
 
-from fedmap.flower import POLL_ENV
+from fedmap.flower import HEARTBEAT_ENV, POLL_ENV
 from fedmap.flower.polling import quick_pulls
 
 #: Substrings of an SSL error raised by a link that went away mid-handshake (not a TLS problem).
@@ -63,8 +70,21 @@ class _Polling:
         return getattr(time, name)
 
 
+def set_heartbeat(seconds: float) -> None:
+    """Make this process's SuperNode announce, and keep, a heartbeat every ``seconds``: the
+    interval it activates with and sends with each heartbeat (the SuperLink's patience is twice
+    it), and the one its sender waits by (Flower's: the interval less the call's 5 s timeout,
+    times 0.7-0.9)."""
+    for module in (fleet, heartbeat):
+        assert hasattr(module, "HEARTBEAT_DEFAULT_INTERVAL"), f"Flower's {module.__name__} changed"
+        module.HEARTBEAT_DEFAULT_INTERVAL = seconds  # type: ignore[attr-defined]
+
+
 def main(argv: list[str]) -> int:
     fleet.make_simple_http_retry_invoker = retry_invoker  # the SuperNode's connection to its SuperLink
+    beat = os.environ.get(HEARTBEAT_ENV)
+    if beat:
+        set_heartbeat(float(beat))
     poll = os.environ.get(POLL_ENV)
     if poll:
         import flwr.supernode.start_client_internal as loop
