@@ -1,6 +1,7 @@
 """What a field operator gets wrong, and what a killed process leaves behind: one-line errors,
 bounded waits, no orphans. Fast checks first; the few real Flower processes are marked slow."""
 
+import json
 import os
 import shutil
 import signal
@@ -199,6 +200,12 @@ if step == "env":  # what the rover set for its SuperNode, then the final model
     (count.parent / "heartbeat").write_text(os.environ.get("FEDMAP_SUPERNODE_HEARTBEAT", "unset"))
     done.write_text("1")
     sys.exit(0)
+if step == "served":  # the final model, its reply sent a second later; then it serves on, as Flower's does
+    print("INFO :      Received successfully", flush=True)
+    done.write_text("1")
+    time.sleep(1)
+    print("INFO :      Sent successfully", flush=True)
+    time.sleep(600)
 if step == "done":  # the ClientApp received the final model
     done.write_text("1")
     sys.exit(0)
@@ -323,6 +330,14 @@ def test_a_refused_key_is_final_unless_it_may_be_a_second_activation(tmp_path, m
         assert _fake_rover(tmp_path, monkeypatch, script, auth=auth, max_wait=30)[:2] == (0, starts), script
 
 
+def test_a_finished_rover_stops_its_supernode_once_the_last_reply_is_sent(tmp_path, monkeypatch):
+    """Flower's SuperNode serves on after its run: the rover stops it as soon as it has
+    answered every message it received, not after the longest grace it allows."""
+    monkeypatch.setattr(rover, "DONE_GRACE", 60.0)
+    code, starts, took = _fake_rover(tmp_path, monkeypatch, "served")
+    assert (code, starts) == (0, 1) and took < 30, took
+
+
 def test_a_rovers_heartbeat_reaches_flowers_supernode(tmp_path, monkeypatch):
     """``fedmap rover --heartbeat`` sets the interval the SuperNode activates with, sends with
     each heartbeat and waits by; an interval the SuperLink would refuse is one line, before
@@ -438,3 +453,21 @@ def test_base_station_cli_without_protection_is_one_line_and_starts_nothing(tmp_
     errors = [ln for ln in r.stderr.splitlines() + r.stdout.splitlines() if ln.startswith("error:")]
     assert len(errors) == 1 and "refusing to listen on 0.0.0.0" in errors[0] and "--insecure" in errors[0]
     assert "Traceback" not in r.stderr and not (tmp_path / "out.run" / "superlink.log").exists()
+
+
+@pytest.mark.parametrize("mission", [True, False])
+def test_a_warm_servers_child_builds_its_optimiser_without_importing(tmp_path, mission):
+    """Whatever a rover's ClientApp child would import when it trains is imported once by the
+    warm server before it forks: building the first optimiser imports torch's compiler
+    (1.3 s, once per child and message before this was preloaded)."""
+    save_map(GridMap(np.zeros((8, 8), dtype=np.uint8)), tmp_path / "m.npy")
+    config = {"partition-id": 0, "mission": True} if mission else {"partition-id": 0, "map": str(tmp_path / "m.npy")}
+    code = ("import sys, json, torch\n"
+            "from fedmap.flower.warm import preload\n"
+            f"preload(json.loads({json.dumps(json.dumps(config))}))\n"
+            "before = set(sys.modules)\n"
+            "torch.optim.Adam([torch.zeros(2, requires_grad=True)])\n"
+            "print(sorted(set(sys.modules) - before))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == "[]", r.stdout[-2000:]

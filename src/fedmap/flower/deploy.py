@@ -24,16 +24,15 @@ from pathlib import Path
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
 from fedmap.flower.launch import (
-    CONNECTION,
     SUPERLINK_EXES,
     Processes,
     Tls,
     check_exposure,
     flower_env,
-    flwr_cli,
     free_port,
     make_certs,
     read_status,
+    register_keys,
     require_executables,
     sigterm_as_interrupt,
     submit_run,
@@ -128,8 +127,7 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
             local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
             wait_for_port(local, port, timeout=60, alive=lambda: procs.check_alive("superlink"))
             write_connection(Path(env["FLWR_HOME"]), address=f"{local}:{port}", root_cert=tls.ca if tls else None)
-            for pub in keys:
-                flwr_cli(["supernode", "register", str(pub), CONNECTION], env=env, timeout=60)
+            register_keys(keys, env=env)
             rovers: list[str] = []
             argvs: dict[str, list[str]] = {}
             restarted: list[dict] = []

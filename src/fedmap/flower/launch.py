@@ -20,6 +20,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -240,6 +241,15 @@ def flwr_cli(args: list[str], *, env: dict, timeout: float) -> str:
     return r.stdout
 
 
+def register_keys(keys: list[Path], *, env: dict, timeout: float = 60.0) -> None:
+    """``flwr supernode register`` every rover key, side by side (each is a Flower CLI process
+    of about a second, mostly its start-up); the first failure is raised."""
+    with ThreadPoolExecutor(max_workers=max(len(keys), 1)) as pool:
+        for done in [pool.submit(flwr_cli, ["supernode", "register", str(pub), CONNECTION], env=env, timeout=timeout)
+                     for pub in keys]:
+            done.result()
+
+
 def _one_line(text: str) -> str:
     """Flower's boxed rich error as one line (the box drawing stripped)."""
     words = [ln.strip(" \u2502\u256d\u256e\u2570\u256f\u2500") for ln in text.splitlines()]
@@ -419,8 +429,7 @@ def _serve(procs: Processes, settings: RunSettings, run_config: dict, *, host: s
     local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
     wait_for_port(local, port, timeout=60, alive=alive)
     write_connection(flwr_home, address=f"{local}:{port}", root_cert=tls.ca if tls else None)
-    for pub in keys:
-        flwr_cli(["supernode", "register", str(pub), CONNECTION], env=env, timeout=60)
+    register_keys(keys, env=env)
     since = time.time() - 1
     submit_run(flwr_home, run_config, env=env)
     if on_ready is not None:

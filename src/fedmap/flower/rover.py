@@ -67,7 +67,8 @@ PROBE_EVERY = 5.0
 #: a loaded machine can take more than 2 s: with 2 s, on a 2-core machine at load 9, a rover
 #: whose key the SuperLink refused was told that no SuperLink had answered for 30 s.
 PROBE_TIMEOUT = 5.0
-#: Seconds a finished rover leaves its SuperNode running so the final reply reaches the base.
+#: Seconds a finished rover leaves its SuperNode running, at most, so the final reply reaches
+#: the base: it is stopped as soon as it has sent a reply to every message it received.
 DONE_GRACE = 5.0
 #: Seconds a SuperNode that logged its own end gets to exit before it is stopped.
 END_GRACE = 3.0
@@ -340,10 +341,13 @@ class _Watch:
         text, contacts = "", 0
         while p.poll() is None:
             if done.exists():  # the ClientApp has the final model; its reply is still on its way
-                try:
-                    p.wait(timeout=DONE_GRACE)
-                except subprocess.TimeoutExpired:
-                    procs.stop("supernode", grace=2.0)  # Flower's SuperNode can hang on its way out
+                # Flower's SuperNode serves on after a run, and can hang on its way out. Once its last
+                # reply is at the SuperLink it is killed, not stopped: a SuperNode that stops deactivates
+                # its node, and the SuperLink answers the base with "node unavailable" instead of a reply
+                # it holds from a node gone offline; a killed one stays listed until its heartbeat lapses
+                sent = _wait_for_last_reply(p, log, start)
+                if p.poll() is None:
+                    procs.stop("supernode", grace=2.0, sig=signal.SIGKILL if sent else signal.SIGTERM)
                 return text
             text = _read_from(log, start)
             now = time.monotonic()
@@ -387,6 +391,18 @@ class _Watch:
         if _refused(low) and not (self.ever_reached or self.self_registered or "connection attempt failed" in low):
             return False
         return not self.silent()
+
+
+def _wait_for_last_reply(p: subprocess.Popen, log: Path, start: int) -> bool:
+    """Wait until the SuperNode has sent a reply for every message it received (True: its log
+    says so), it exits, or :data:`DONE_GRACE` seconds pass."""
+    end = time.monotonic() + DONE_GRACE
+    while p.poll() is None and time.monotonic() < end:
+        text = _read_from(log, start)
+        if text.count("Sent successfully") >= text.count("Received successfully") > 0:
+            return True
+        time.sleep(0.1)
+    return False
 
 
 def _read_from(log: Path, start: int) -> str:
