@@ -26,7 +26,7 @@ from fedmap.flower import client_app  # noqa: E402
 from fedmap.flower.launch import key_values, make_certs  # noqa: E402
 from fedmap.flower.records import check_flower_count, flower_overhead, from_record, to_record  # noqa: E402
 from fedmap.flower.rover import rover_node_config  # noqa: E402
-from fedmap.flower.server_app import FedmapStrategy  # noqa: E402
+from fedmap.flower.server_app import NO_REPLY, NOT_CONNECTED, FedmapStrategy  # noqa: E402
 from fedmap.flower.settings import RunSettings  # noqa: E402
 from fedmap.flower.task import load_local_map  # noqa: E402
 from fedmap.maps.io import save_map  # noqa: E402
@@ -146,6 +146,27 @@ def test_rover_lost_in_a_later_round_is_missing_by_name(tmp_path, blob_map):
     rec = strategy.history[1]
     assert rec.missing == [1] and "Node Unavailable" in rec.flower.missing_why[1]
     assert rec.dropped == {} and sorted(rec.aggregation_counts) == [0, 2, 3]
+
+
+def test_a_rover_not_connected_when_a_round_begins_is_missing_as_not_connected(tmp_path, blob_map):
+    """Rover 3's node is gone from the grid before round 2 (a restart still starting): it is
+    missing because nothing was sent to it, not for want of a reply; rover 2, sent the round
+    and silent, is missing for want of a reply."""
+    run = {**RUN, "rounds": 2}
+    _, nodes = _team(tmp_path, blob_map)
+    strategy = FedmapStrategy(RunSettings.from_run_config(run))
+    grid, contexts = FakeGrid(nodes), _contexts(nodes, run)
+    arrays, _ = _round(strategy, grid, contexts, to_record(b""), 1)
+    grid.node_ids.remove(103)
+    _round(strategy, grid, contexts, arrays, 2, skip={102})
+    rec = strategy.history[1]
+    assert rec.missing == [2, 3] and sorted(rec.aggregation_counts) == [0, 1]
+    assert rec.flower.missing_why == {2: NO_REPLY, 3: NOT_CONNECTED}
+    # a silent node the base never heard from may be any rover: then none is said to be unconnected
+    one = {**RUN, "rounds": 1}
+    fresh = FedmapStrategy(RunSettings.from_run_config(one))
+    _round(fresh, FakeGrid(nodes), _contexts(nodes, one), to_record(b""), 1, skip={102, 103})
+    assert fresh.history[0].flower.missing_why == {2: NO_REPLY, 3: NO_REPLY}
 
 
 def test_too_few_rovers_end_the_run(tmp_path, blob_map):

@@ -130,17 +130,22 @@ def test_a_killed_rover_restarted_rejoins_with_an_update_codec(flower_home):
     """Real processes: rover 3 is killed (SIGKILL) as round 2 goes out and started again at
     once, with an ``update-int4+zstd`` downlink. Its state is gone: it misses round 2 (its
     old node never replies), joins round 3 as a new node, is sent a keyframe, and the
-    final model equals the in-process runner with the same participation."""
+    final model equals the in-process runner with the same participation.
+
+    Flower's own heartbeat (30 s) here, not ``HEARTBEAT``: round 2 ends when the killed node's
+    heartbeat lapses (2 x its interval), and the restarted rover must be connected by then to
+    be sent round 3. A restart took 30 s on a loaded 2-core machine, past the 20 s of a 10 s
+    heartbeat (round 3 then went out without it: 'not connected when the round began')."""
     run = {**RUN, "rounds": 3, "downlink": "update-int4+zstd", "deadline": 120.0}
     events = []
 
     def kill_and_restart_rover3(st, rovers, port):
         if st["state"] == "running" and st.get("round") == 2 and not st.get("saved") and not events:
             rovers.stop("rover3", sig=signal.SIGKILL)
-            _start_rovers(rovers, port, flower_home, rovers=[3], extra=HEARTBEAT)
+            _start_rovers(rovers, port, flower_home, rovers=[3])
             events.append("restarted")
 
-    maps, out, m = _run(flower_home, run, on_status=kill_and_restart_rover3, extra=HEARTBEAT)
+    maps, out, m = _run(flower_home, run, on_status=kill_and_restart_rover3)
     assert events
     r1, r2, r3 = m["rounds"]
     assert sorted(r1["aggregation_counts"]) == sorted(r3["aggregation_counts"]) == ["0", "1", "2", "3"]

@@ -55,6 +55,10 @@ app = ServerApp()
 #: whose reply never came.
 _REPLY_LOST = "Reply message objects are unavailable"
 LOST_REPLY = "reply lost on the link"
+#: Why a rover is missing: it was sent the round and no reply came in time, or none of the
+#: nodes the round was sent to is that rover (it was not connected when the round began).
+NO_REPLY = "no reply before the round's deadline"
+NOT_CONNECTED = "not connected when the round began"
 
 
 class FedmapStrategy(Strategy):
@@ -208,8 +212,11 @@ class FedmapStrategy(Strategy):
             counts[pid] = float(met["known-cells"])
             losses[pid] = float(met["loss"]) if "loss" in met else None
             versions[pid] = self.node_version.get(node, "")
+        # a rover none of whose nodes was sent this round (every node sent is known, none is it)
+        # was not connected when the round began: a restarted rover still starting, say
+        sent = [self.node_partition.get(n) for n in self._sent.values()]
         for pid in set(range(s.base.rovers)) - set(payloads) - set(dropped) - set(missing_why):
-            missing_why[pid] = "no reply before the round's deadline"
+            missing_why[pid] = NOT_CONNECTED if None not in sent and pid not in sent else NO_REPLY
         missing = sorted(missing_why)
         if len(payloads) < s.base.min_rovers:
             raise FedmapError(
