@@ -141,12 +141,13 @@ def main() -> None:
     p.add_argument("--strategy", default="predictive")
     p.add_argument("--steps", type=int, default=150)
     p.add_argument("--poll", type=float, default=LOCAL_POLL, help="seconds between a rover's polls when idle")
+    p.add_argument("--out", type=Path, default=OUT, help=f"the JSON written (default {OUT.name} in results/)")
     a = p.parse_args()
     rows = [one(a.strategy, n, a.steps, a.poll) for n in a.rovers]
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps({"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-                               "rows": rows}, indent=1))
-    print(f"wrote {OUT}")
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.write_text(json.dumps({"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+                                 "rows": rows}, indent=1))
+    print(f"wrote {a.out}")
 
 
 if __name__ == "__main__":
