@@ -188,7 +188,7 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
     reason, every other rover is aggregated in both rounds (the cut costs nobody a round,
     whenever it lands), and the global model equals the in-process runner with the same
     survivors. A rover with an unregistered key is refused and one with the wrong CA fails,
-    each with one line, while the base serves the others; every rover exits by itself."""
+    each with one line, through the proxy before the others join; every rover exits by itself."""
     pytest.importorskip("flwr")
     from tests.test_flower_e2e import _team  # the four rovers' maps and the ground truth, saved as files
 
@@ -209,20 +209,26 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
     bad: dict[str, subprocess.Popen] = {}
     cut: list[bool] = []
 
+    errs: dict[str, str] = {}
+
     def start(rovers: Processes) -> None:
-        faults = {2: "bitflip@1", 3: "nan@2"}
-        for k in range(4):
-            # a rover keeps reconnecting for 30 s: Flower's backoff waits at most 20 s between tries, so
-            # every call is through within 3 + 20 s of the cut
-            rovers.start(f"rover{k}", _rover_argv(proxy.port, k, tmp_path, certs, fault=faults.get(k), max_wait=30),
-                         env=flower_env(tmp_path / f"home{k}"), log=tmp_path / f"rover{k}.log")
-        # each stops at its first answer from the link; the wait only bounds a loaded machine's start-up
+        # the refused rovers first, each until it ends (at its first answer from the link; the wait only
+        # bounds a loaded machine's start-up): started beside the others, a slow start could meet the cut
+        # or the end of the run (the SuperLink gone: "no SuperLink answered"), not the refusal
         for name, argv in (("unregistered", _rover_argv(proxy.port, 0, tmp_path, certs, key=certs / "rover4",
                                                         max_wait=30)),
                            ("wrong-ca", _rover_argv(proxy.port, 1, tmp_path, certs, root_cert=other / "ca.crt",
                                                     max_wait=30))):
             bad[name] = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                          env=flower_env(tmp_path / f"home-{name}"))
+        for name, p in bad.items():
+            errs[name] = p.communicate(timeout=120)[1]
+        faults = {2: "bitflip@1", 3: "nan@2"}
+        for k in range(4):
+            # a rover keeps reconnecting for 30 s: Flower's backoff waits at most 20 s between tries, so
+            # every call is through within 3 + 20 s of the cut
+            rovers.start(f"rover{k}", _rover_argv(proxy.port, k, tmp_path, certs, fault=faults.get(k), max_wait=30),
+                         env=flower_env(tmp_path / f"home{k}"), log=tmp_path / f"rover{k}.log")
 
     def on_status(st: dict, rovers: Processes) -> None:
         if st.get("round", 0) >= 2 and not cut:
@@ -235,7 +241,6 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
                                       host="127.0.0.1", port=port, certs=certs, auth_keys=keys,
                                       on_ready=lambda: start(rovers), on_status=lambda st: on_status(st, rovers))
             codes = {k: rovers.procs[f"rover{k}"].wait(timeout=120) for k in range(4)}
-            errs = {name: p.communicate(timeout=120)[1] for name, p in bad.items()}
     finally:
         proxy.close()
         for p in bad.values():

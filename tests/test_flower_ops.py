@@ -201,10 +201,22 @@ if step == "env":  # what the rover set for its SuperNode, then the final model
     done.write_text("1")
     sys.exit(0)
 if step == "served":  # the final model, its reply sent a second later; then it serves on, as Flower's does
-    print("INFO :      Received successfully", flush=True)
+    print("INFO :      Receiving: evaluate message (ID: 6e2a)\\nINFO :      Received successfully", flush=True)
     done.write_text("1")
     time.sleep(1)
+    print("INFO :      Sending: evaluate message (ID: a78f)\\nINFO :      Sent successfully", flush=True)
+    time.sleep(600)
+if step == "unconfirmed":  # as seen through a link that failed after round 2: a train message and its
+    # reply, then the final model, whose ClientApp ran while the SuperNode still retried confirming it
+    print(LOGS["round"], flush=True)
+    print("INFO :      Receiving: evaluate message (ID: 6e2a)\\nINFO :      Start `flwr-clientapp` process", flush=True)
+    done.write_text("1")
+    for _ in range(4):
+        time.sleep(0.5)
+        print("WARNING :   Connection attempt failed, retrying in 0.37 seconds", flush=True)
+    print("INFO :      Received successfully\\nINFO :      Sending: evaluate message (ID: a78f)", flush=True)
     print("INFO :      Sent successfully", flush=True)
+    (count.parent / "sent").write_text("1")
     time.sleep(600)
 if step == "done":  # the ClientApp received the final model
     done.write_text("1")
@@ -233,6 +245,10 @@ FAKE_LOGS = {
                  "violation of protocol (_ssl.c:1006)\nINFO :      SuperNode terminated gracefully."),
     # reached its SuperLink, then keeps exchanging messages (the fake logs one every 0.5 s)
     "busy": "INFO :      SuperNode ID: 42",
+    # one round: the message taken, confirmed, answered
+    "round": ("INFO :      [RUN 1515]\nINFO :      Receiving: train message (ID: 2a0b)\nINFO :      Received "
+              "successfully\nINFO :      Start `flwr-clientapp` process\nINFO :      [RUN 1515]\nINFO :      Sending: "
+              "train message (ID: c184)\nINFO :      Sent successfully"),
     # silent: e.g. polling a SuperLink whose port went away
     "hang-silent": "INFO :      Starting Flower SuperNode",
     # a self-registering SuperNode's RegisterNode answered but the answer lost (a link reset): re-sent, refused
@@ -336,6 +352,23 @@ def test_a_finished_rover_stops_its_supernode_once_the_last_reply_is_sent(tmp_pa
     monkeypatch.setattr(rover, "DONE_GRACE", 60.0)
     code, starts, took = _fake_rover(tmp_path, monkeypatch, "served")
     assert (code, starts) == (0, 1) and took < 30, took
+
+
+def test_a_finished_rover_waits_for_the_reply_to_a_message_not_yet_confirmed(tmp_path, monkeypatch):
+    """The SuperNode logs "Received successfully" only once the SuperLink confirmed a message,
+    and its ClientApp may have answered by then: counted by that line, the final model's
+    reply looked sent when the ClientApp finished, and the rover killed its SuperNode before
+    it went out (the base then lacked that rover's acknowledgement). Each message taken is
+    counted by its ID instead."""
+    code, starts, took = _fake_rover(tmp_path, monkeypatch, "unconfirmed")
+    assert (code, starts) == (0, 1) and (tmp_path / "sent").exists() and took < 30, took
+    log = FAKE_LOGS["round"] + "\nINFO :      Receiving: evaluate message (ID: 6e2a)"
+    assert rover.replies_owed(log) == (2, 1)
+    assert rover.replies_owed(log + "\nINFO :      Received successfully") == (2, 1)
+    assert rover.replies_owed(log + "\nINFO :      Sending: evaluate message (ID: a78f)\nINFO :      Sent "
+                              "successfully") == (2, 0)
+    # a message it failed to take wants no reply
+    assert rover.replies_owed(log + "\nERROR :     Failed to receive message 6e2a: gone") == (1, 0)
 
 
 def test_a_rovers_heartbeat_reaches_flowers_supernode(tmp_path, monkeypatch):

@@ -67,8 +67,9 @@ PROBE_EVERY = 5.0
 #: a loaded machine can take more than 2 s: with 2 s, on a 2-core machine at load 9, a rover
 #: whose key the SuperLink refused was told that no SuperLink had answered for 30 s.
 PROBE_TIMEOUT = 5.0
-#: Seconds a finished rover leaves its SuperNode running, at most, so the final reply reaches
-#: the base: it is stopped as soon as it has sent a reply to every message it received.
+#: Seconds a finished rover leaves its SuperNode running, at least, so the final reply reaches
+#: the base: it is stopped as soon as it has sent a reply to every message it received, and
+#: waits up to ``max_wait`` while a reply is owed (the SuperNode may be reconnecting to send it).
 DONE_GRACE = 5.0
 #: Seconds a SuperNode that logged its own end gets to exit before it is stopped.
 END_GRACE = 3.0
@@ -345,7 +346,7 @@ class _Watch:
                 # reply is at the SuperLink it is killed, not stopped: a SuperNode that stops deactivates
                 # its node, and the SuperLink answers the base with "node unavailable" instead of a reply
                 # it holds from a node gone offline; a killed one stays listed until its heartbeat lapses
-                sent = _wait_for_last_reply(p, log, start)
+                sent = _wait_for_last_reply(p, log, start, wait=max(DONE_GRACE, self.max_wait))
                 if p.poll() is None:
                     procs.stop("supernode", grace=2.0, sig=signal.SIGKILL if sent else signal.SIGTERM)
                 return text
@@ -393,13 +394,27 @@ class _Watch:
         return not self.silent()
 
 
-def _wait_for_last_reply(p: subprocess.Popen, log: Path, start: int) -> bool:
-    """Wait until the SuperNode has sent a reply for every message it received (True: its log
-    says so), it exits, or :data:`DONE_GRACE` seconds pass."""
-    end = time.monotonic() + DONE_GRACE
+#: Flower 1.41's SuperNode logs each message it takes as ``Receiving: <type> message (ID: <id>)``
+#: (before it pulls the body; ``Received successfully`` follows only once the SuperLink confirmed
+#: it, and the ClientApp may have run and finished by then), and one it then failed to take as
+#: ``Failed to receive message <id>``; each reply it sent as ``Sent successfully``.
+_RECEIVING = re.compile(r"Receiving: \w+ message \(ID: (\w+)\)")
+_NOT_RECEIVED = re.compile(r"Failed to receive message (\w+)")
+
+
+def replies_owed(text: str) -> tuple[int, int]:
+    """From a SuperNode's log: how many messages it took, and how many of them still want a reply."""
+    taken = set(_RECEIVING.findall(text)) - set(_NOT_RECEIVED.findall(text))
+    return len(taken), max(len(taken) - text.count("Sent successfully"), 0)
+
+
+def _wait_for_last_reply(p: subprocess.Popen, log: Path, start: int, *, wait: float) -> bool:
+    """Wait until the SuperNode has sent a reply for every message it took (True: its log
+    says so), it exits, or ``wait`` seconds pass."""
+    end = time.monotonic() + wait
     while p.poll() is None and time.monotonic() < end:
-        text = _read_from(log, start)
-        if text.count("Sent successfully") >= text.count("Received successfully") > 0:
+        taken, owed = replies_owed(_read_from(log, start))
+        if taken and not owed:
             return True
         time.sleep(0.1)
     return False
