@@ -47,10 +47,14 @@ from fedmap.mission.results import MissionResult
 
 #: Seconds between a local rover's polls of its SuperLink (loopback: polls cost nothing).
 LOCAL_POLL = 0.05
-#: Seconds between a local rover's heartbeats (loopback: they cost nothing). The base station
-#: takes a rover for gone after two missed ones: a rover process that died holds up its sync,
-#: and its key is refused to the rover started again, for 20 s instead of Flower's 60 s.
-LOCAL_HEARTBEAT = 10.0
+#: Seconds between a local rover's heartbeats: Flower's own 30 s. The base station takes a rover
+#: for gone after two missed ones. 10 s (gone after 20 s) was tried: a killed rover started
+#: again (its key, so its node id, unchanged) took about 20 s to come back, and activated just
+#: as its old node lapsed; the base never saw the node offline, so the order its old process
+#: had taken was neither answered nor reported lost, and the mission waited out the round's
+#: whole deadline (600 s). With 30 s the rover started again is refused until the old node
+#: lapses, and each retry leaves the base seconds to see it offline.
+LOCAL_HEARTBEAT = 30.0
 #: ``--deploy local``: rover processes started again after they died, in all, before the mission fails.
 ROVER_PROCESS_RESTARTS = 20
 #: Where ``fedmap mission --deploy`` runs.
