@@ -47,14 +47,15 @@ from fedmap.mission.results import MissionResult
 
 #: Seconds between a local rover's polls of its SuperLink (loopback: polls cost nothing).
 LOCAL_POLL = 0.05
-#: Seconds between a local rover's heartbeats: Flower's own 30 s. The base station takes a rover
-#: for gone after two missed ones. 10 s (gone after 20 s) was tried: a killed rover started
-#: again (its key, so its node id, unchanged) took about 20 s to come back, and activated just
-#: as its old node lapsed; the base never saw the node offline, so the order its old process
-#: had taken was neither answered nor reported lost, and the mission waited out the round's
-#: whole deadline (600 s). With 30 s the rover started again is refused until the old node
-#: lapses, and each retry leaves the base seconds to see it offline.
-LOCAL_HEARTBEAT = 30.0
+#: Seconds between a local rover's heartbeats; None: Flower's own (30 s in 1.41), no
+#: ``--heartbeat`` passed. The base station takes a rover for gone after two missed ones.
+#: 10 s (gone after 20 s) was tried: a killed rover started again (its key, so its node id,
+#: unchanged) took about 20 s to come back, and activated just as its old node lapsed; the
+#: base never saw the node offline, so the order its old process had taken was neither
+#: answered nor reported lost, and the mission waited out the round's whole deadline (600 s).
+#: With 30 s the rover started again is refused until the old node lapses, and each retry
+#: leaves the base seconds to see it offline.
+LOCAL_HEARTBEAT: float | None = None
 #: ``--deploy local``: rover processes started again after they died, in all, before the mission fails.
 ROVER_PROCESS_RESTARTS = 20
 #: Where ``fedmap mission --deploy`` runs.
@@ -67,11 +68,13 @@ def mission_app_dir() -> Path:
 
 
 def rover_argv(k: int, *, superlink: str, root_cert: Path | None, auth_key: Path | None, log: Path, state: Path,
-               poll: float = LOCAL_POLL, heartbeat: float = LOCAL_HEARTBEAT, fault: str | None = None) -> list[str]:
+               poll: float = LOCAL_POLL, heartbeat: float | None = LOCAL_HEARTBEAT,
+               fault: str | None = None) -> list[str]:
     """``fedmap rover --mission`` for member ``k`` (what each rover machine runs)."""
     argv = [sys.executable, "-m", "fedmap", "rover", "--mission", "--partition-id", str(k), "--superlink", superlink,
-            "--log", str(log), "--max-wait", "120", "--poll", str(poll), "--heartbeat", f"{heartbeat:g}",
-            "--state", str(state)]
+            "--log", str(log), "--max-wait", "120", "--poll", str(poll), "--state", str(state)]
+    if heartbeat is not None:
+        argv += ["--heartbeat", f"{heartbeat:g}"]
     if root_cert is not None:
         argv += ["--root-cert", str(root_cert)]
     if auth_key is not None:
