@@ -54,15 +54,16 @@ DEMO_TARGET_S, DEMO_FLOOR_RATIO, MISSION_TARGET_S, SUITE_TARGET_S = 45.0, 1.3, 2
 
 def cpu() -> dict:
     """The CPU's model name, cores and the instructions that decide bf16 and the matmul peak."""
-    model, flags = platform.processor() or platform.machine(), set()
+    model, flags = "", set()
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name") and model in ("", platform.machine(), platform.processor()):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():  # every core repeats both: take the first
+            if line.startswith("model name") and not model:
                 model = line.split(":", 1)[1].strip()
-            elif line.startswith("flags"):
+            elif line.startswith("flags") and not flags:
                 flags = set(line.split(":", 1)[1].split())
     except OSError:
         pass
+    model = model or platform.processor() or platform.machine()
     wanted = ("avx2", "fma", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile")
     return {"model": model, "cores": os.cpu_count(), "usable_cores": len(os.sched_getaffinity(0)),
             "flags": [f for f in wanted if f in flags], "native_bf16": native_bf16()}
