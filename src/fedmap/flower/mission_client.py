@@ -1,7 +1,9 @@
 """A rover of a mission on processes: a Flower ``ClientApp`` that keeps its rover's node
 (:class:`fedmap.mission.remote.RoverNode`: its world, its end, its clock) between messages.
 
-``query``: say which rover it is (node config ``partition-id``). ``train``: the base's
+``query``: say which rover it is (node config ``partition-id``) and which rover process
+(node config ``boot``: a rover killed and started again with its registered key is the same
+node, and only this tells the base that the order its old process took will not be answered). ``train``: the base's
 order of a sync round; the rover drives to its step, syncs and replies with its report. A
 damaged order is answered with ``error`` / ``corrupt`` (the base sends it again). The node
 lives in the rover's own folder between messages (node config ``state-dir``), one per
@@ -38,9 +40,15 @@ def _rover(context: Context) -> int:
     return k
 
 
+def _boot(context: Context) -> str:
+    """Which rover process runs this node (node config ``boot``, set by ``fedmap rover``; "" without)."""
+    return str(context.node_config.get("boot", ""))
+
+
 @app.query()
 def which(msg: Message, context: Context) -> Message:
-    return Message(RecordDict({"config": ConfigRecord({"rover": _rover(context)})}), reply_to=msg)
+    return Message(RecordDict({"config": ConfigRecord({"rover": _rover(context), "boot": _boot(context)})}),
+                   reply_to=msg)
 
 
 @app.train()
@@ -69,7 +77,8 @@ def order(msg: Message, context: Context) -> Message:
         if order.step == at and not mark.exists():
             atomic_write_bytes(mark, b"")
             report = damaged(report)
-    return Message(RecordDict({"report": to_record(report)}), reply_to=msg)
+    return Message(RecordDict({"report": to_record(report), "config": ConfigRecord({"boot": _boot(context)})}),
+                   reply_to=msg)
 
 
 def _error(msg: Message, reason: str, *, corrupt: bool, lost: bool = False) -> Message:

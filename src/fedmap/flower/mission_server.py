@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from logging import INFO, WARNING
 from pathlib import Path
 
@@ -49,18 +50,29 @@ def say(out: Path, level: int, line: str) -> None:
 RESENDS = 3
 #: Seconds between the base's polls for replies (Flower's ``send_and_receive`` waits 3 s).
 POLL = 0.02
+#: Seconds a rover may hold its order before the base asks its node which rover process
+#: runs there (and again every as many seconds while it holds it).
+OVERDUE = 30.0
+#: Seconds the base waits for a node to say which rover (and which process) it is.
+ASK_WAIT = 10.0
 
 
-def exchange(grid: Grid, msgs: list[Message], timeout: float) -> list[Message]:
+def exchange(grid: Grid, msgs: list[Message], timeout: float, *,
+             overdue: Callable[[set[str]], set[str]] | None = None) -> list[Message]:
     """Push ``msgs``, then pull their replies every :data:`POLL` s until all are in or
-    ``timeout`` s have passed."""
+    ``timeout`` s have passed. ``overdue``: called every :data:`OVERDUE` s with the IDs of
+    the messages still unanswered; the IDs it returns are no longer waited for."""
     ids = set(grid.push_messages(msgs))
     replies: list[Message] = []
     t_end = time.monotonic() + timeout
+    check = time.monotonic() + OVERDUE
     while ids and time.monotonic() < t_end:
         got = list(grid.pull_messages(ids))
         replies += got
         ids -= {m.metadata.reply_to_message_id for m in got}
+        if ids and overdue is not None and time.monotonic() >= check:
+            ids -= overdue(set(ids))
+            check = time.monotonic() + OVERDUE
         if ids:
             time.sleep(POLL)
     return replies
@@ -72,6 +84,7 @@ class _Team:
     def __init__(self, grid: Grid, run: MissionRun, members: int) -> None:
         self.grid, self.run, self.members = grid, run, members
         self.faults: list[dict] = []
+        self.boot_of: dict[int, str] = {}  # rover -> the rover process its node last said it runs
         self.node_of = self._connect()
 
     def _connect(self) -> dict[int, int]:
@@ -87,22 +100,34 @@ class _Team:
                               f"({len(node_of)} of {self.members} did)")
         return node_of
 
-    def _which(self, nodes: set[int]) -> dict[int, int]:
-        """Ask ``nodes`` which rover each is: ``{rover: node}`` (a node that does not answer is left out)."""
+    def _which(self, nodes: set[int], wait: float | None = None) -> dict[int, int]:
+        """Ask ``nodes`` which rover each is: ``{rover: node}`` (a node that does not answer is
+        left out). Each answer's process (node config ``boot``) is noted in :attr:`boot_of`."""
         if not nodes:
             return {}
         msgs = [Message(RecordDict({"config": ConfigRecord({})}), dst_node_id=n, message_type=MessageType.QUERY)
                 for n in sorted(nodes)]
         sent = {m.object_id: n for m, n in zip(msgs, sorted(nodes))}
         found: dict[int, int] = {}
-        for reply in exchange(self.grid, msgs, min(self.run.deadline, 30.0)):
+        wait = min(self.run.deadline, 30.0) if wait is None else wait
+        for reply in exchange(self.grid, msgs, wait):
             if reply.has_error() or "config" not in reply.content.config_records:
                 continue
             k = int(reply.content["config"]["rover"])  # type: ignore[arg-type]
             if not 0 <= k < self.members:
                 raise FedmapError(f"a node says it is rover {k}; the mission's team is 0..{self.members - 1}")
             found[k] = sent[reply.metadata.reply_to_message_id]
+            self.boot_of[k] = str(reply.content["config"].get("boot", ""))
         return found
+
+    def _restarted(self, owing: dict[int, int]) -> set[int]:
+        """The rovers of ``owing`` (``{rover: node}``, each holding an order) whose node now runs
+        another rover process than when it last said: a rover killed and started again with
+        its registered key is the same node, so the SuperLink never reports the order its
+        old process took, and the base would wait for it until the round's deadline."""
+        before = {k: self.boot_of.get(k, "") for k in owing}
+        now = self._which(set(owing.values()), wait=ASK_WAIT)
+        return {k for k, n in now.items() if owing.get(k) == n and before.get(k) and self.boot_of[k] != before[k]}
 
     def send(self, strategy: str, orders: dict[int, bytes], history: dict[int, list[bytes]]) -> dict[int, bytes]:
         """Every order to its rover, every report back. A damaged order or report: the order
@@ -125,8 +150,16 @@ class _Team:
             sent = {m.object_id: k for m, k in zip(msgs, todo)}
             again: dict[int, bytes] = {}
             wait = self.run.deadline if not gone else min(self.run.deadline, 10.0)
-            answered = set()
-            for reply in exchange(self.grid, msgs, wait):
+            answered: set[int] = set()
+            restarted: set[int] = set()
+
+            def overdue(ids: set[str]) -> set[str]:
+                owing = {sent[i]: self.node_of[sent[i]] for i in ids if i in sent}
+                back = self._restarted(owing)
+                restarted.update(back)
+                return {i for i in ids if sent.get(i) in back}
+
+            for reply in exchange(self.grid, msgs, wait, overdue=overdue):
                 k = sent.get(reply.metadata.reply_to_message_id)
                 if k is None or reply.has_error():
                     continue  # a Flower error: the node is gone, as if it had not answered
@@ -155,10 +188,17 @@ class _Team:
                     self._fault(strategy, k, f"report damaged on the way ({e}); order sent again")
                     continue
                 reports[k] = raw
+                if "config" in reply.content.config_records:
+                    self.boot_of[k] = str(reply.content["config"].get("boot", ""))
                 if lost.pop(k, None) is not None:
                     self._fault(strategy, k, "rebuilt from its orders; it answered its order")
                 if k in gone:
                     self._fault(strategy, k, f"back after {time.monotonic() - gone.pop(k):.0f} s; its order sent again")
+            for k in restarted - answered:
+                answered.add(k)
+                again[k] = todo[k]
+                self._fault(strategy, k, "restarted while it held its order (its node now runs a new rover process); "
+                                         "order sent again")
             if damaged > RESENDS * max(len(orders), 1):
                 raise FedmapError(f"rover(s) {sorted(again)}: every copy of the order or report was damaged")
             for k in set(todo) - answered:

@@ -239,6 +239,8 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
         done = Path(tmp) / "done"
         if node_config.get("mission") and not node_config.get("state-dir"):  # kept only while this rover runs
             node_config = {**node_config, "state-dir": str(Path(tmp) / "state")}
+        if node_config.get("mission"):  # this rover process, told apart from the one before a restart
+            node_config = {**node_config, "boot": f"{os.getpid()}-{time.time_ns()}"}
         argv = supernode_argv(superlink=superlink, port=port or free_port(), node_config={**node_config,
                               "done-file": str(done)}, root_cert=root_cert, auth_key=auth_key, max_wait=max_wait)
         log = Path(log) if log is not None else Path(tmp) / "supernode.log"

@@ -1,0 +1,89 @@
+"""The mission base station's sending of orders (:class:`fedmap.flower.mission_server._Team`)
+against a stand-in grid: which faults it sees, and when it sends an order again."""
+
+from __future__ import annotations
+
+import pytest
+
+pytest.importorskip("flwr")
+
+from flwr.app import ConfigRecord, Message, MessageType, RecordDict  # noqa: E402
+from tests.test_flower import task_identity  # noqa: E402, F401
+
+from fedmap.flower import mission_server  # noqa: E402
+from fedmap.flower.mission_task import MissionRun  # noqa: E402
+from fedmap.flower.records import to_record  # noqa: E402
+from fedmap.mission.remote import Report  # noqa: E402
+
+REPORT = Report("raw", 0, 5, (1, 1), None, True, None, [], None, {}, [], []).to_bytes()
+
+
+class OneRoverGrid:
+    """Rover 0 on node 7, as Flower's grid shows it to the base. ``dies_holding``: the rover
+    process that takes the first order is killed with it, and the rover is started again as
+    the same node (its key is registered), so the SuperLink reports nothing about that order.
+    ``slow``: the rover answers its first order only after that many pulls (same process)."""
+
+    def __init__(self, *, dies_holding: bool = False, slow: int = 0) -> None:
+        self.boot, self.dies_holding, self.slow = "pid1", dies_holding, slow
+        self.orders = 0
+        self.pending: dict[str, tuple[int, Message]] = {}  # message id -> (pulls before it is there, reply)
+
+    def get_node_ids(self):
+        return [7]
+
+    def push_messages(self, msgs):
+        ids = []
+        for m in msgs:
+            m.metadata.__dict__["_message_id"] = m.object_id  # what Flower's grid does when it pushes
+            ids.append(m.object_id)
+            if m.metadata.message_type == MessageType.QUERY:
+                self.pending[m.object_id] = (0, Message(RecordDict({"config": ConfigRecord(
+                    {"rover": 0, "boot": self.boot})}), reply_to=m))
+                continue
+            self.orders += 1
+            if self.orders == 1 and self.dies_holding:
+                self.boot = "pid2"  # the process is gone with the order; a new one runs as node 7
+                continue
+            reply = Message(RecordDict({"report": to_record(REPORT), "config": ConfigRecord({"boot": self.boot})}),
+                            reply_to=m)
+            self.pending[m.object_id] = (self.slow if self.orders == 1 else 0, reply)
+        return ids
+
+    def pull_messages(self, ids):
+        got = []
+        for i in list(ids):
+            if i in self.pending:
+                wait, reply = self.pending[i]
+                if wait:
+                    self.pending[i] = (wait - 1, reply)
+                else:
+                    got.append(self.pending.pop(i)[1])
+        return got
+
+
+def _team(tmp_path, grid):
+    run = MissionRun(mission="", strategies=("raw",), out=tmp_path / "m", frames=1, connect_timeout=5.0,
+                     deadline=5.0, rejoin=30.0, resume=False)
+    (tmp_path / "m.run").mkdir()
+    return mission_server._Team(grid, run, 1)
+
+
+def test_a_rover_restarted_as_the_same_node_holding_its_order_gets_it_again_at_rejoin(tmp_path, monkeypatch):
+    monkeypatch.setattr(mission_server, "OVERDUE", 0.05)
+    grid = OneRoverGrid(dies_holding=True)
+    team = _team(tmp_path, grid)
+    assert team.send("raw", {0: b"order"}, {}) == {0: REPORT}
+    assert grid.orders == 2  # sent again once, to the same node
+    assert [f["fault"] for f in team.faults] == [
+        "restarted while it held its order (its node now runs a new rover process); order sent again"]
+    assert team.boot_of == {0: "pid2"}
+
+
+def test_a_slow_rover_of_the_same_process_is_waited_for_not_sent_its_order_again_at_rejoin(tmp_path, monkeypatch):
+    monkeypatch.setattr(mission_server, "OVERDUE", 0.05)
+    grid = OneRoverGrid(slow=40)  # 40 polls of 20 ms: several overdue checks
+    team = _team(tmp_path, grid)
+    assert team.send("raw", {0: b"order"}, {}) == {0: REPORT}
+    assert grid.orders == 1
+    assert team.faults == []
