@@ -475,8 +475,13 @@ def _quantise(x: np.ndarray, seg: np.ndarray, qmax: int) -> tuple[np.ndarray, np
     rep = np.repeat(scales, seg)
     q = np.zeros(len(x), dtype=x.dtype)
     np.divide(x, rep, out=q, where=rep > 0)
-    q = np.clip(np.rint(q), -qmax, qmax).astype(np.int8)
-    return scales.astype("<f4"), q, q.astype(np.float32) * rep
+    np.rint(q, out=q)  # in place: the same values as np.clip(np.rint(q), ...) without two copies
+    np.clip(q, -qmax, qmax, out=q)
+    q8 = q.astype(np.int8)
+    del q
+    sent = q8.astype(np.float32)
+    sent *= rep
+    return scales.astype("<f4"), q8, sent
 
 
 def _pack_int4(q: np.ndarray) -> bytes:
@@ -547,7 +552,9 @@ class Encoder:
         """Forget the residual, the momentum and the tensor layout."""
         self._layout: _Layout | None = None
         self._residual: np.ndarray | None = None  # float64, flat
-        self._momentum: np.ndarray | None = None  # float64, flat
+        # float64, flat; only a top-k codec with momentum has one (others' would stay zero:
+        # 8 bytes a parameter, 0.7 GB for a 4096² GridNet, per rover and direction)
+        self._momentum: np.ndarray | None = None
 
     def residual(self) -> Weights | None:
         """What has not been delivered yet (float64 copies), or None before any update."""
@@ -559,9 +566,10 @@ class Encoder:
         """The sender state to checkpoint (float64 ``residual`` and ``momentum``, flat, plus
         the tensor layout as ``layout/<name>`` shape arrays in payload order), or None when
         the encoder has none yet. :meth:`restore` puts it back bit for bit."""
-        if self._layout is None or self._residual is None or self._momentum is None:
+        if self._layout is None or self._residual is None:
             return None
-        out: Weights = {"residual": self._residual.copy(), "momentum": self._momentum.copy()}
+        momentum = self._momentum.copy() if self._momentum is not None else np.zeros_like(self._residual)
+        out: Weights = {"residual": self._residual.copy(), "momentum": momentum}
         for i, (name, shape) in enumerate(zip(self._layout.names, self._layout.shapes)):
             out[f"layout/{i:05d}/{name}"] = np.asarray(shape, dtype=np.int64)
         return out
@@ -579,7 +587,8 @@ class Encoder:
         momentum = np.asarray(state["momentum"], dtype=np.float64).reshape(-1)
         if residual.size != layout.total or momentum.size != layout.total:
             raise FedmapError(f"encoder state holds {residual.size} values, its layout {layout.total}")
-        self._layout, self._residual, self._momentum = layout, residual.copy(), momentum.copy()
+        self._layout, self._residual = layout, residual.copy()
+        self._momentum = momentum.copy() if self._has_momentum() else None
 
     def encode(self, weights: Weights, reference: Weights | None = None) -> bytes:
         spec = self.spec
@@ -589,23 +598,30 @@ class Encoder:
         if reference is None:
             raise FedmapError(f"codec {spec.label()} sends updates; encode needs the reference weights")
         layout = self._state_layout(weights)
-        delta = layout.flat(weights, np.float64, "weight") - layout.flat(reference, np.float64, "reference weight")
+        delta = layout.flat(weights, np.float64, "weight")
+        delta -= layout.flat(reference, np.float64, "reference weight")  # in place: a model-sized float64 less
         if spec.kind == "topk":
             return self._encode_topk(layout, delta)
-        v = delta + self._residual if spec.error_feedback else delta
+        v = delta
+        if spec.error_feedback:
+            v += self._residual
         body, sent = self._dense_body(spec.kind, v, layout)
         if spec.error_feedback:
-            self._residual = v - sent
+            v -= sent  # v is this call's own array: the new residual
+            self._residual = v
         return self._frame(layout, body)
 
     # state ---------------------------------------------------------------------------------
+
+    def _has_momentum(self) -> bool:
+        return self.spec.kind == "topk" and self.spec.momentum > 0
 
     def _state_layout(self, weights: Weights) -> _Layout:
         given = _Layout.of(weights)
         if self._layout is None:
             self._layout = given
             self._residual = np.zeros(given.total, dtype=np.float64)
-            self._momentum = np.zeros(given.total, dtype=np.float64)
+            self._momentum = np.zeros(given.total, dtype=np.float64) if self._has_momentum() else None
             return given
         if set(given.key()) != set(self._layout.key()):
             raise FedmapError(
@@ -631,11 +647,12 @@ class Encoder:
         return scales.tobytes() + packed, sent
 
     def _encode_topk(self, layout: _Layout, delta: np.ndarray) -> bytes:
-        assert self._residual is not None and self._momentum is not None  # set by _state_layout
+        assert self._residual is not None  # set by _state_layout
         spec = self.spec
         n = layout.total
         k = min(n, max(1, round(spec.fraction * n)))
         if spec.momentum > 0:
+            assert self._momentum is not None  # set by _state_layout
             u = spec.momentum * self._momentum + delta
         else:
             u = delta

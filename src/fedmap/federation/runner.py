@@ -46,7 +46,7 @@ from fedmap.federation.aggregate import AGGREGATORS, Aggregator, make_aggregator
 from fedmap.federation.codecs import CodecSpec, Encoder, decode
 from fedmap.maps.grid import GridMap, check_same_frame
 from fedmap.nets.model import NetConfig, Weights, build_model, get_weights, set_weights
-from fedmap.nets.training import TrainConfig, fit, steps_per_epoch
+from fedmap.nets.training import TrainConfig, fit, release_freed_memory, steps_per_epoch
 
 
 @dataclass(frozen=True)
@@ -598,6 +598,10 @@ def run_federation(
                                                         round_idx=r, agent=k, on_step=on_step)
                 except RejectedUpdate as e:
                     dropped[k] = str(e)
+                # a rover's fit and encoding leave freed blocks inside the heap, which the next
+                # rover's allocations do not fit in exactly: without this the run's RSS grew by
+                # each rover's (2048²: 2.0 GB after the first rover, 3.0 GB after the fourth)
+                release_freed_memory()
             if cache_key is not None and one_shot_cache is not None:
                 one_shot_cache[cache_key] = (dict(payloads), dict(losses), dict(dropped))
         counts: dict[int, float] = {k: local_maps[k].n_known for k in payloads}
