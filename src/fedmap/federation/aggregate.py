@@ -95,14 +95,22 @@ class FedAvg:
 def _touched_mean(reference: np.ndarray, weighted: list[tuple[np.ndarray, float]], fallback: np.ndarray) -> np.ndarray:
     """Per entry, the weighted mean of the ``weighted`` ``(values, weight)`` whose entry
     differs from ``reference``; ``fallback`` where none does. float64 in, float32 out."""
+    # in place, with ``where=``: the same sums as adding np.where(touched, weight * v, 0.0),
+    # without two model-sized float64 temporaries per update (0.5 GB each at 4096²)
     num = np.zeros_like(reference)
     den = np.zeros_like(reference)
     for values, weight in weighted:
-        v = np.asarray(values, dtype=np.float64)
+        v = np.array(values, dtype=np.float64)  # a copy: scaled in place below
         touched = v != reference
-        num += np.where(touched, weight * v, 0.0)
-        den += np.where(touched, weight, 0.0)
-    return np.where(den > 0, num / np.maximum(den, 1e-300), fallback).astype(np.float32)
+        v *= weight
+        np.add(num, v, out=num, where=touched)
+        np.add(den, weight, out=den, where=touched)
+        del v
+    some = den > 0
+    np.maximum(den, 1e-300, out=den)
+    np.divide(num, den, out=num)
+    np.copyto(num, fallback, where=~some)
+    return num.astype(np.float32)
 
 
 def coverage_average(global_w: Weights, updates: list[Weights], counts: list[float]) -> Weights:
