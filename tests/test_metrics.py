@@ -215,3 +215,33 @@ def test_image_scores_by_hand():
     assert out["accuracy"] == pytest.approx(63 / 64)
     assert out["iou_free"] == pytest.approx(63 / 64)
     assert out["iou_impassable"] == 0.0
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_image_scores_from_classes_equal_the_renderings_scores(seed):
+    """image_scores computes PSNR and SSIM from the classes (confusion counts, integer
+    window sums, threads over row blocks), never rendering: the same figures as the
+    reference SSIM and PSNR of the two renderings, to rounding."""
+    rng = np.random.default_rng(seed)
+    shape = (int(rng.integers(7, 160)), int(rng.integers(7, 160)))
+    truth = rng.integers(0, 3, shape).astype(np.uint8)
+    pred = truth.copy()
+    flip = rng.random(shape) < rng.uniform(0.01, 0.6)
+    pred[flip] = rng.integers(0, 3, int(flip.sum()))
+    t, p = render_classes(truth), render_classes(pred)
+    out = image_scores(truth, pred.astype(np.int64))
+    assert out["ssim"] == pytest.approx(ref_ssim(t, p), rel=1e-12, abs=1e-14)
+    assert out["psnr"] == pytest.approx(ref_psnr(t, p), rel=1e-12)
+    assert out["accuracy"] == (truth == pred).mean()
+    same = image_scores(truth, truth.copy())
+    assert same["psnr"] == math.inf and same["ssim"] == pytest.approx(1.0, abs=1e-14)
+
+
+def test_image_scores_name_a_value_that_is_not_a_class():
+    truth = np.zeros((9, 9), np.uint8)
+    bad = truth.copy()
+    bad[2, 2] = 3
+    with pytest.raises(FedmapError, match="learned map holds values other than the classes"):
+        image_scores(truth, bad)
+    with pytest.raises(FedmapError, match="ground truth holds values other than the classes"):
+        image_scores(bad - 4, truth)

@@ -25,6 +25,7 @@ from fedmap.evaluation.paths import path_f1
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.maps.planning import (
     astar,
+    astar_many,
     passable_mask,
     path_is_valid,
     path_length,
@@ -636,3 +637,31 @@ def test_truth_paths_are_cached_without_changing_a_score():
     for k in range(paths._TRUTH_PATHS_KEPT + 2):  # other seeds: the oldest entries leave
         paths.truth_paths(truth == FREE, 5, 100 + k)
     assert len(paths._TRUTH_PATHS) == paths._TRUTH_PATHS_KEPT
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_astar_many_gives_each_pairs_reference_path_in_order(workers):
+    """The searches shared among threads, each with working arrays used again from pair to
+    pair: every path the reference's, in the pairs' order (blocked ends and unreachable
+    goals included)."""
+    passable = random_passable(7, shape=(37, 29), blocked=0.3)
+    rng = np.random.default_rng(workers)
+    cells = np.argwhere(np.ones_like(passable))
+    pairs = []
+    for _ in range(60):
+        a, b = rng.choice(len(cells), size=2, replace=False)
+        pairs.append((tuple(int(v) for v in cells[a]), tuple(int(v) for v in cells[b])))
+    want = [reference_astar(passable, s, g) for s, g in pairs]
+    assert any(p is None for p in want) and sum(p is not None for p in want) > 20
+    assert astar_many(passable, pairs, workers=workers) == want
+
+
+def test_astar_keeps_no_state_between_maps_of_one_size():
+    """A search resets the cells it touched: a plan on one map, then on another of the same
+    size, is the reference's on the second."""
+    first, second = random_passable(11, shape=(25, 25), blocked=0.1), random_passable(12, shape=(25, 25), blocked=0.35)
+    cells = np.argwhere(first & second)
+    s, g = tuple(int(v) for v in cells[0]), tuple(int(v) for v in cells[-1])
+    astar(first, s, g)
+    assert astar(second, s, g) == reference_astar(second, s, g)
+    assert astar_many(second, [(s, g)], workers=2) == [reference_astar(second, s, g)]

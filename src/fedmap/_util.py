@@ -25,6 +25,14 @@ import numpy as np
 from fedmap.errors import FedmapError
 
 
+def cpu_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the OS says, else all)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 def one_line(exc: BaseException) -> str:
     """An exception's message on one line (at most 200 characters)."""
     text = " ".join(str(exc).split()) or type(exc).__name__

@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from fedmap import _schema
-from fedmap._util import to_json
+from fedmap._util import cpu_cores, to_json
 from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import console, fit, progress_bar, terrain_line
 from fedmap.errors import FedmapError
@@ -26,7 +26,7 @@ from fedmap.mission.repeats import run_repeats, what_varies
 from fedmap.mission.report import global_meaning, has_peers, repeat_rows, table_rows, verdict, write_mission
 from fedmap.mission.results import movement_warnings
 from fedmap.mission.settings import MISSION_SECTIONS, mission_toml, parse_sets
-from fedmap.mission.sim import cpu_cores, start_pocket_warning
+from fedmap.mission.sim import start_pocket_warning
 from fedmap.pipeline import PipelineConfig
 
 #: ``mission``'s generated options: the top-level seed, the terrain and threshold settings

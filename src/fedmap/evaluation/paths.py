@@ -19,7 +19,7 @@ import numpy as np
 from scipy import ndimage
 
 from fedmap.errors import FedmapError
-from fedmap.maps.planning import astar, passable_mask, path_is_valid, path_length, sample_pairs
+from fedmap.maps.planning import astar_many, passable_mask, path_is_valid, path_length, sample_pairs
 
 
 @dataclass(frozen=True)
@@ -120,12 +120,22 @@ def truth_paths(passable: np.ndarray, n_pairs: int, seed: int) -> list[tuple[Pai
         _TRUTH_PATHS.move_to_end(key)
         return _TRUTH_PATHS[key]
     labels, _ = ndimage.label(passable)  # 4-connectivity == reachability (see module doc)
-    planned = [((s, g), astar(passable, s, g) if labels[s] == labels[g] else None)
-               for s, g in sample_pairs(passable, n_pairs, seed=seed)]
+    pairs = sample_pairs(passable, n_pairs, seed=seed)
+    planned = list(zip(pairs, _plan(passable, labels, pairs)))
     _TRUTH_PATHS[key] = planned
     while len(_TRUTH_PATHS) > _TRUTH_PATHS_KEPT:
         _TRUTH_PATHS.popitem(last=False)
     return planned
+
+
+def _plan(passable: np.ndarray, labels: np.ndarray, pairs: list[Pair]) -> list[Path | None]:
+    """The path of each pair on ``passable`` (None: unreachable), searched only where the
+    4-connected ``labels`` join its ends."""
+    joined = [k for k, (s, g) in enumerate(pairs) if labels[s] and labels[s] == labels[g]]
+    out: list[Path | None] = [None] * len(pairs)
+    for k, path in zip(joined, astar_many(passable, [pairs[k] for k in joined])):
+        out[k] = path
+    return out
 
 
 def path_f1(
@@ -179,8 +189,8 @@ def path_f1(
     pap_fp = pap_fn = differ = 0  # the literal reading: its TP and TN are the strict ones
     ratios = []
     executed = reachable = 0
-    for (s, g), true_path in truth_paths(pt, n_pairs, seed):
-        pred_path = astar(pp, s, g) if (lp[s] and lp[s] == lp[g]) else None
+    planned = truth_paths(pt, n_pairs, seed)
+    for (_, true_path), pred_path in zip(planned, _plan(pp, lp, [pair for pair, _ in planned])):
         if true_path is not None:
             reachable += 1
             executed += pred_path is not None and path_is_valid(pt, pred_path)

@@ -25,9 +25,12 @@ from __future__ import annotations
 import functools
 import heapq
 import math
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from fedmap._util import cpu_cores
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN
 
@@ -50,50 +53,112 @@ def astar(passable: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -
     the goal cannot be reached. The search runs compiled (:func:`_search`).
     """
     passable = np.asarray(passable, dtype=bool)
-    h, w = passable.shape
+    _check_ends(passable.shape, start, goal)
+    if not (passable[start] and passable[goal]):
+        return None
+    free, W = _padded(passable)
+    bufs = _buffers(free.size) if free.size <= _KEEP_BUFFERS else _new_buffers(free.size)
+    return _unflatten(_compiled()(free, W, _flat(start, W), _flat(goal, W), *bufs), W)
+
+
+def astar_many(passable: np.ndarray, pairs: list[tuple[tuple[int, int], tuple[int, int]]], *,
+               workers: int | None = None) -> list[list[tuple[int, int]] | None]:
+    """:func:`astar` for each (start, goal) of ``pairs`` on one map: the same paths, the
+    searches shared among ``workers`` threads (default: this process's cores; the compiled
+    search releases the GIL), the map padded once."""
+    passable = np.asarray(passable, dtype=bool)
+    for s, g in pairs:
+        _check_ends(passable.shape, s, g)
+    todo = [k for k, (s, g) in enumerate(pairs) if passable[s] and passable[g]]
+    out: list[list[tuple[int, int]] | None] = [None] * len(pairs)
+    if not todo:
+        return out
+    free, W = _padded(passable)
+    search = _compiled()
+    workers = max(1, min(workers or cpu_cores(), len(todo)))
+
+    def run(part: list[int]) -> None:
+        bufs = _new_buffers(free.size)  # each thread its own; the search leaves them as found
+        for k in part:
+            s, g = pairs[k]
+            out[k] = _unflatten(search(free, W, _flat(s, W), _flat(g, W), *bufs), W)
+
+    if workers == 1:
+        run(todo)
+    else:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(run, [todo[w::workers] for w in range(workers)]))
+    return out
+
+
+def _check_ends(shape: tuple[int, ...], start: tuple[int, int], goal: tuple[int, int]) -> None:
+    h, w = shape
     for name, (r, c) in (("start", start), ("goal", goal)):
         if not (0 <= r < h and 0 <= c < w):
             raise FedmapError(f"{name} {(r, c)} is outside the {h}x{w} map")
-    if not (passable[start] and passable[goal]):
+
+
+def _padded(passable: np.ndarray) -> tuple[np.ndarray, int]:
+    """The map with a blocked border (neighbour lookups need no bounds checks), flattened,
+    and its row length."""
+    return np.pad(passable, 1, constant_values=False).ravel(), passable.shape[1] + 2
+
+
+def _flat(cell: tuple[int, int], W: int) -> int:
+    return (cell[0] + 1) * W + cell[1] + 1
+
+
+def _unflatten(path: np.ndarray, W: int) -> list[tuple[int, int]] | None:
+    if not len(path):
         return None
-    # Pad with a blocked border so neighbour lookups need no bounds checks.
-    W = w + 2
-    free = np.pad(passable, 1, constant_values=False).ravel()
-    s = (start[0] + 1) * W + start[1] + 1
-    t = (goal[0] + 1) * W + goal[1] + 1
-    parent, found = _compiled()(free, W, s, t)
-    if not found:
-        return None
-    path = []
-    i = t
-    while i != -1:
-        r, c = divmod(int(i), W)
-        path.append((r - 1, c - 1))
-        i = parent[i]
-    return path[::-1]
+    rows, cols = np.divmod(path, W)
+    return list(zip((rows - 1).tolist(), (cols - 1).tolist()))
+
+
+#: Maps up to this many (padded) cells keep one set of search buffers per thread between
+#: plans (exploration and missions plan thousands of paths on small maps); a bigger map's
+#: buffers (17 bytes a cell) are made for each plan and freed after it.
+_KEEP_BUFFERS = 1 << 21
+_LOCAL = threading.local()
+
+
+def _new_buffers(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The search's g (inf), parent (-1) and closed (False) arrays for ``n`` cells."""
+    return np.full(n, np.inf), np.full(n, -1, np.int64), np.zeros(n, np.bool_)
+
+
+def _buffers(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """This thread's kept buffers for ``n`` cells (made anew when the size changes)."""
+    kept = getattr(_LOCAL, "bufs", None)
+    if kept is None or kept[0].size != n:
+        kept = _LOCAL.bufs = _new_buffers(n)
+    return kept
 
 
 @functools.cache
 def _compiled():
-    """:func:`_search` compiled with numba (cached on disk). Compiled at the first plan, not
-    at import: importing numba costs every fedmap command about 0.2 s, most of which plan nothing."""
+    """:func:`_search` compiled with numba (cached on disk), releasing the GIL. Compiled at
+    the first plan, not at import: importing numba costs every fedmap command about 0.2 s,
+    most of which plan nothing."""
     from numba import njit
 
-    return njit(cache=True)(_search)
+    return njit(cache=True, nogil=True)(_search)
 
 
-def _search(free: np.ndarray, W: int, s: int, t: int) -> tuple[np.ndarray, bool]:
+def _search(free: np.ndarray, W: int, s: int, t: int, g: np.ndarray, parent: np.ndarray,
+            closed: np.ndarray) -> np.ndarray:
     """A* on the padded, flattened grid ``free`` (row length ``W``) from ``s`` to ``t``:
-    ``(parent, found)``, ``parent[i]`` the cell ``i`` was reached from (-1: none).
+    the path's flat indices, start first (empty: no path).
 
-    Compiled with numba; the heap key ``(f, h, flat index)``, the neighbour order (up,
-    down, left, right, then NW, NE, SW, SE) and the 1e-9 rule for a shorter route are the
-    module's tie-break, so the path is the same on every machine.
+    ``g`` (all inf), ``parent`` (all -1) and ``closed`` (all False) are working arrays of
+    ``free``'s size; the search resets every cell it touched before it returns, so they can
+    be used again. Compiled with numba; the heap key ``(f, h, flat index)``, the neighbour
+    order (up, down, left, right, then NW, NE, SW, SE) and the 1e-9 rule for a shorter
+    route are the module's tie-break, so the path is the same on every machine.
     """
-    n = free.size
-    g = np.full(n, np.inf)
-    parent = np.full(n, -1, np.int64)
-    closed = np.zeros(n, np.bool_)
+    touched = np.empty(1024, np.int64)  # every cell given a g, to reset at the end
+    nt = 1
+    touched[0] = s
     gr, gc = t // W, t % W
     orth = (-W, W, -1, 1)
     diag = (-W - 1, -W + 1, W - 1, W + 1)
@@ -103,12 +168,14 @@ def _search(free: np.ndarray, W: int, s: int, t: int) -> tuple[np.ndarray, bool]
     h0 = (dr + dc) + (SQRT2 - 2.0) * min(dr, dc)
     g[s] = 0.0
     heap = [(h0, h0, s)]
+    found = False
     while len(heap):
         _, _, i = heapq.heappop(heap)
         if closed[i]:
             continue
         if i == t:
-            return parent, True
+            found = True
+            break
         closed[i] = True
         gi = g[i]
         for k in range(8):
@@ -123,13 +190,34 @@ def _search(free: np.ndarray, W: int, s: int, t: int) -> tuple[np.ndarray, bool]
             if ok and not closed[j]:
                 nj = gi + step
                 if nj < g[j] - 1e-9:
+                    if g[j] == np.inf:
+                        if nt == touched.size:
+                            touched = np.concatenate((touched, np.empty(nt, np.int64)))
+                        touched[nt] = j
+                        nt += 1
                     g[j] = nj
                     parent[j] = i
                     r, c = j // W, j % W
                     dr, dc = abs(r - gr), abs(c - gc)
                     hj = (dr + dc) + (SQRT2 - 2.0) * min(dr, dc)
                     heapq.heappush(heap, (nj + hj, hj, j))
-    return parent, False
+    n_path = 0
+    if found:
+        i = t
+        while i != -1:
+            n_path += 1
+            i = parent[i]
+    path = np.empty(n_path, np.int64)
+    i = t
+    for k in range(n_path - 1, -1, -1):
+        path[k] = i
+        i = parent[i]
+    for k in range(nt):
+        j = touched[k]
+        g[j] = np.inf
+        parent[j] = -1
+        closed[j] = False
+    return path
 
 
 def path_length(path: list[tuple[int, int]]) -> float:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 import multiprocessing
-import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, wait
@@ -283,14 +282,6 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
                 on_strategy(name)
             runs[name] = m.new_run(name, ends=ends, on_snapshot=on_snapshot).run(on_step)
     return MissionResult(config, truth, m.starts, m.base, runs, time.perf_counter() - t0)
-
-
-def cpu_cores() -> int:
-    """The CPU cores this process may run on (its affinity where the OS says, else all)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 def can_fork() -> bool:
