@@ -29,6 +29,7 @@ from fedmap.maps.planning import (
     passable_mask,
     path_is_valid,
     path_length,
+    region_blocks,
     sample_pairs,
 )
 
@@ -665,3 +666,58 @@ def test_astar_keeps_no_state_between_maps_of_one_size():
     astar(first, s, g)
     assert astar(second, s, g) == reference_astar(second, s, g)
     assert astar_many(second, [(s, g)], workers=2) == [reference_astar(second, s, g)]
+
+
+def _brute_path_f1_counts(truth: np.ndarray, pred: np.ndarray, n_pairs: int, seed: int, unknown_passable: bool):
+    """Strict, literal and executed counts with every pair planned by the reference on both maps."""
+    pt, pp = passable_mask(truth, unknown_passable=unknown_passable), passable_mask(pred, unknown_passable=unknown_passable)
+    out = {"tp": 0, "fp": 0, "fn": 0, "tn": 0, "differ": 0, "executed": 0}
+    for s, g in sample_pairs(pt, n_pairs, seed=seed):
+        a, b = reference_astar(pt, s, g), reference_astar(pp, s, g)
+        out["executed"] += a is not None and b is not None and ref_valid(pt, b)
+        if a is None and b is None:
+            out["tn"] += 1
+        elif a == b:
+            out["tp"] += 1
+        else:
+            out["fp"] += b is not None
+            out["fn"] += a is not None
+            out["differ"] += a is not None and b is not None
+    return out
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_path_f1_skips_searches_the_changes_cannot_reach_without_changing_a_score(seed, monkeypatch):
+    """A learned map that differs from the truth in a few cells: the pairs whose truth
+    search never came near a change take the truth's path unsearched. Every count must
+    equal planning every pair on both maps with the reference, and some searches must
+    have been skipped (else the test would not test the shortcut)."""
+    from fedmap.evaluation import paths
+
+    rng = np.random.default_rng(seed)
+    truth = np.where(random_passable(200 + seed, shape=(64, 72), blocked=0.25), FREE, IMPASSABLE).astype(np.uint8)
+    truth[rng.random(truth.shape) < 0.02] = UNKNOWN
+    pred = truth.copy()
+    r0, c0 = int(rng.integers(0, 56)), int(rng.integers(0, 64))  # a few changes in one 8x8 patch
+    patch = pred[r0:r0 + 8, c0:c0 + 8]
+    flip = rng.random(patch.shape) < 0.4
+    patch[flip] = rng.integers(0, 3, int(flip.sum()))
+    searched = []
+    real = paths.astar_many
+    monkeypatch.setattr(paths, "astar_many", lambda pas, pairs, **kw: searched.extend(pairs) or real(pas, pairs, **kw))
+    for unknown_passable in (False, True):
+        paths._TRUTH_PATHS.clear()
+        searched.clear()
+        got = path_f1(truth, pred, n_pairs=60, seed=seed, unknown_passable=unknown_passable)
+        want = _brute_path_f1_counts(truth, pred, 60, seed, unknown_passable)
+        assert {"tp": got.tp, "fp": got.fp, "fn": got.fn, "tn": got.tn, "differ": got.paper.differ,
+                "executed": got.executed} == want
+        assert len(searched) < 60 - got.tn
+
+
+def test_region_blocks_cover_each_change_and_its_neighbours():
+    changed = np.zeros((20, 17), bool)
+    changed[8, 7] = True  # its neighbours reach rows 7-9, cols 6-8: blocks (0, 0), (1, 0), (0, 1), (1, 1)
+    changed[19, 16] = True  # neighbours rows 18-19, cols 15-16: blocks (2, 1) and the partial (2, 2)
+    near = region_blocks(changed).reshape(3, 3)
+    assert near.tolist() == [[True, True, False], [True, True, False], [False, True, True]]

@@ -19,7 +19,15 @@ import numpy as np
 from scipy import ndimage
 
 from fedmap.errors import FedmapError
-from fedmap.maps.planning import astar_many, passable_mask, path_is_valid, path_length, sample_pairs
+from fedmap.maps.planning import (
+    astar_many,
+    astar_regions,
+    passable_mask,
+    path_is_valid,
+    path_length,
+    region_blocks,
+    sample_pairs,
+)
 
 
 @dataclass(frozen=True)
@@ -104,8 +112,9 @@ def _prf(tp: int, fp: int, fn: int) -> tuple[float, float, float]:
 Pair = tuple[tuple[int, int], tuple[int, int]]
 Path = list[tuple[int, int]]
 
-#: Recent truths' planned pairs (:func:`truth_paths`), least recently used first.
-_TRUTH_PATHS: OrderedDict[tuple, list] = OrderedDict()
+#: Recent truths' planned pairs (:func:`truth_paths`) with each search's region, least
+#: recently used first.
+_TRUTH_PATHS: OrderedDict[tuple, tuple[list, list]] = OrderedDict()
 _TRUTH_PATHS_KEPT = 8
 
 
@@ -114,6 +123,13 @@ def truth_paths(passable: np.ndarray, n_pairs: int, seed: int) -> list[tuple[Pai
     (None: unreachable). A truth does not change during a mission or a ``reproduce``
     terrain, so the last few are kept, keyed by the mask's bytes (a pure function of its
     arguments: the cache changes no result, only the time)."""
+    return _truth_plans(passable, n_pairs, seed)[0]
+
+
+def _truth_plans(passable: np.ndarray, n_pairs: int, seed: int) -> tuple[list[tuple[Pair, Path | None]],
+                                                                          list[np.ndarray | None]]:
+    """:func:`truth_paths` and the region of each pair's search (None: not searched), as
+    :func:`~fedmap.maps.planning.astar_regions` gives them."""
     passable = np.ascontiguousarray(passable, dtype=bool)
     key = (passable.shape, hashlib.blake2b(passable.tobytes(), digest_size=16).digest(), n_pairs, seed)
     if key in _TRUTH_PATHS:
@@ -121,20 +137,42 @@ def truth_paths(passable: np.ndarray, n_pairs: int, seed: int) -> list[tuple[Pai
         return _TRUTH_PATHS[key]
     labels, _ = ndimage.label(passable)  # 4-connectivity == reachability (see module doc)
     pairs = sample_pairs(passable, n_pairs, seed=seed)
-    planned = list(zip(pairs, _plan(passable, labels, pairs)))
-    _TRUTH_PATHS[key] = planned
+    joined = _joined(labels, pairs)
+    paths: list[Path | None] = [None] * len(pairs)
+    regions: list[np.ndarray | None] = [None] * len(pairs)
+    for k, (path, region) in zip(joined, astar_regions(passable, [pairs[k] for k in joined])):
+        paths[k], regions[k] = path, region
+    _TRUTH_PATHS[key] = entry = (list(zip(pairs, paths)), regions)
     while len(_TRUTH_PATHS) > _TRUTH_PATHS_KEPT:
         _TRUTH_PATHS.popitem(last=False)
-    return planned
+    return entry
 
 
-def _plan(passable: np.ndarray, labels: np.ndarray, pairs: list[Pair]) -> list[Path | None]:
-    """The path of each pair on ``passable`` (None: unreachable), searched only where the
-    4-connected ``labels`` join its ends."""
-    joined = [k for k, (s, g) in enumerate(pairs) if labels[s] and labels[s] == labels[g]]
-    out: list[Path | None] = [None] * len(pairs)
-    for k, path in zip(joined, astar_many(passable, [pairs[k] for k in joined])):
-        out[k] = path
+def _joined(labels: np.ndarray, pairs: list[Pair]) -> list[int]:
+    """The pairs whose ends the 4-connected ``labels`` join (the only ones with a path)."""
+    return [k for k, (s, g) in enumerate(pairs) if labels[s] and labels[s] == labels[g]]
+
+
+def _pred_paths(pp: np.ndarray, pt: np.ndarray, planned: list[tuple[Pair, Path | None]],
+                regions: list[np.ndarray | None]) -> list[Path | None]:
+    """The learned map's path of each planned pair. A pair whose truth search read no cell
+    where the learned map's passability differs (no changed cell or neighbour in its
+    region: :func:`~fedmap.maps.planning.region_blocks`) would take the same steps on the
+    learned map, so its truth path is taken without a search; the rest are searched where
+    the learned map's 4-connected components join their ends."""
+    near = region_blocks(pp != pt)
+    out: list[Path | None] = [None] * len(planned)
+    search = []
+    for k, ((_, path), region) in enumerate(zip(planned, regions)):
+        if region is not None and not near[region].any():
+            out[k] = path
+        else:
+            search.append(k)
+    if search:
+        labels, _ = ndimage.label(pp)
+        todo = [search[k] for k in _joined(labels, [planned[k][0] for k in search])]
+        for k, path in zip(todo, astar_many(pp, [planned[k][0] for k in todo])):
+            out[k] = path
     return out
 
 
@@ -183,14 +221,13 @@ def path_f1(
         raise FedmapError(f"n_pairs must be positive, got {n_pairs}")
     pt = passable_mask(truth, unknown_passable=unknown_passable)
     pp = passable_mask(pred, unknown_passable=unknown_passable)
-    lp, _ = ndimage.label(pp)  # 4-connectivity == reachability (see module doc)
     tp = fp = fn = tn = 0
     tol_tp = tol_fp = tol_fn = 0
     pap_fp = pap_fn = differ = 0  # the literal reading: its TP and TN are the strict ones
     ratios = []
     executed = reachable = 0
-    planned = truth_paths(pt, n_pairs, seed)
-    for (_, true_path), pred_path in zip(planned, _plan(pp, lp, [pair for pair, _ in planned])):
+    planned, regions = _truth_plans(pt, n_pairs, seed)
+    for (_, true_path), pred_path in zip(planned, _pred_paths(pp, pt, planned, regions)):
         if true_path is not None:
             reachable += 1
             executed += pred_path is not None and path_is_valid(pt, pred_path)

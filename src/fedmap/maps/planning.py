@@ -29,6 +29,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+from scipy import ndimage
 
 from fedmap._util import cpu_cores
 from fedmap.errors import FedmapError
@@ -58,7 +59,7 @@ def astar(passable: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -
         return None
     free, W = _padded(passable)
     bufs = _buffers(free.size) if free.size <= _KEEP_BUFFERS else _new_buffers(free.size)
-    return _unflatten(_compiled()(free, W, _flat(start, W), _flat(goal, W), *bufs), W)
+    return _unflatten(_compiled()(free, W, _flat(start, W), _flat(goal, W), *bufs, _NO_MARKS, 0), W)
 
 
 def astar_many(passable: np.ndarray, pairs: list[tuple[tuple[int, int], tuple[int, int]]], *,
@@ -66,22 +67,65 @@ def astar_many(passable: np.ndarray, pairs: list[tuple[tuple[int, int], tuple[in
     """:func:`astar` for each (start, goal) of ``pairs`` on one map: the same paths, the
     searches shared among ``workers`` threads (default: this process's cores; the compiled
     search releases the GIL), the map padded once."""
+    return [path for path, _ in _many(passable, pairs, workers, regions=False)]
+
+
+#: The side of the square blocks of :func:`astar_regions`.
+REGION_BLOCK = 8
+
+
+def astar_regions(passable: np.ndarray, pairs: list[tuple[tuple[int, int], tuple[int, int]]], *,
+                  workers: int | None = None) -> list[tuple[list[tuple[int, int]] | None, np.ndarray | None]]:
+    """:func:`astar_many`, and for each search the region it depended on: the flat indices
+    (row-major over a grid of :data:`REGION_BLOCK`-cell square blocks, ``ceil(H / 8)`` by
+    ``ceil(W / 8)``) of the blocks holding a cell the search gave a cost to (None where
+    nothing was searched: an end not passable).
+
+    The search reads only those cells and their 8 neighbours. So on another map that agrees
+    with ``passable`` on every block of the region and one cell around it, the search
+    takes the same steps and returns the same path (:func:`fedmap.evaluation.paths.path_f1`
+    uses this to skip searches on maps close to the truth)."""
+    return _many(passable, pairs, workers, regions=True)
+
+
+def region_blocks(changed: np.ndarray) -> np.ndarray:
+    """Which :data:`REGION_BLOCK` blocks hold a cell of ``changed`` (bool, the map's shape)
+    or one of its 8 neighbours: a bool array over the block grid of :func:`astar_regions`.
+    A search whose region has none of them reads no changed cell."""
+    near = ndimage.binary_dilation(np.asarray(changed, dtype=bool), structure=np.ones((3, 3), bool))
+    h, w = near.shape
+    b = REGION_BLOCK
+    padded = np.zeros((-(-h // b) * b, -(-w // b) * b), bool)
+    padded[:h, :w] = near
+    return padded.reshape(padded.shape[0] // b, b, padded.shape[1] // b, b).any(axis=(1, 3)).ravel()
+
+
+def _many(passable: np.ndarray, pairs: list[tuple[tuple[int, int], tuple[int, int]]], workers: int | None,
+          *, regions: bool) -> list[tuple[list[tuple[int, int]] | None, np.ndarray | None]]:
     passable = np.asarray(passable, dtype=bool)
     for s, g in pairs:
         _check_ends(passable.shape, s, g)
     todo = [k for k, (s, g) in enumerate(pairs) if passable[s] and passable[g]]
-    out: list[list[tuple[int, int]] | None] = [None] * len(pairs)
+    out: list[tuple[list[tuple[int, int]] | None, np.ndarray | None]] = [(None, None)] * len(pairs)
     if not todo:
         return out
     free, W = _padded(passable)
+    h, w = passable.shape
+    bw = -(-w // REGION_BLOCK)
     search = _compiled()
     workers = max(1, min(workers or cpu_cores(), len(todo)))
 
     def run(part: list[int]) -> None:
         bufs = _new_buffers(free.size)  # each thread its own; the search leaves them as found
+        marks = np.zeros(-(-h // REGION_BLOCK) * bw, np.bool_) if regions else _NO_MARKS
         for k in part:
             s, g = pairs[k]
-            out[k] = _unflatten(search(free, W, _flat(s, W), _flat(g, W), *bufs), W)
+            path = _unflatten(search(free, W, _flat(s, W), _flat(g, W), *bufs, marks, bw), W)
+            region = None
+            if regions:
+                region = np.flatnonzero(marks).astype(np.int32)
+                marks[region] = False
+            out[k] = (path, region)
 
     if workers == 1:
         run(todo)
@@ -89,6 +133,9 @@ def astar_many(passable: np.ndarray, pairs: list[tuple[tuple[int, int], tuple[in
         with ThreadPoolExecutor(workers) as pool:
             list(pool.map(run, [todo[w::workers] for w in range(workers)]))
     return out
+
+
+_NO_MARKS = np.zeros(0, np.bool_)
 
 
 def _check_ends(shape: tuple[int, ...], start: tuple[int, int], goal: tuple[int, int]) -> None:
@@ -146,13 +193,15 @@ def _compiled():
 
 
 def _search(free: np.ndarray, W: int, s: int, t: int, g: np.ndarray, parent: np.ndarray,
-            closed: np.ndarray) -> np.ndarray:
+            closed: np.ndarray, marks: np.ndarray, bw: int) -> np.ndarray:
     """A* on the padded, flattened grid ``free`` (row length ``W``) from ``s`` to ``t``:
     the path's flat indices, start first (empty: no path).
 
     ``g`` (all inf), ``parent`` (all -1) and ``closed`` (all False) are working arrays of
     ``free``'s size; the search resets every cell it touched before it returns, so they can
-    be used again. Compiled with numba; the heap key ``(f, h, flat index)``, the neighbour
+    be used again. Unless ``marks`` is empty, the search sets ``marks[b]`` for the block
+    ``b`` (:data:`REGION_BLOCK` cells square, ``bw`` blocks a row, unpadded) of every cell
+    it gave a cost to. Compiled with numba; the heap key ``(f, h, flat index)``, the neighbour
     order (up, down, left, right, then NW, NE, SW, SE) and the 1e-9 rule for a shorter
     route are the module's tie-break, so the path is the same on every machine.
     """
@@ -214,6 +263,8 @@ def _search(free: np.ndarray, W: int, s: int, t: int, g: np.ndarray, parent: np.
         i = parent[i]
     for k in range(nt):
         j = touched[k]
+        if marks.size:
+            marks[((j // W - 1) // REGION_BLOCK) * bw + (j % W - 1) // REGION_BLOCK] = True
         g[j] = np.inf
         parent[j] = -1
         closed[j] = False
