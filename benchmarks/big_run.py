@@ -63,7 +63,9 @@ def main() -> None:
 
         threading.Thread(target=sample, daemon=True).start()
         assert p.stdout is not None
+        tail: list[str] = []
         for line in p.stdout:
+            tail = (tail + [line.rstrip()])[-15:]
             m = STAGE.search(line)
             if m:
                 name, what = m.groups()
@@ -76,6 +78,7 @@ def main() -> None:
         code = p.wait()
         wall = time.monotonic() - t0
     if code:
+        print("\n".join(tail), file=sys.stderr)
         raise SystemExit(f"fedmap run failed with exit code {code}")
     peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024 / 1e9  # kB on Linux
     where = max(peak_in, key=lambda k: peak_in[k]) if peak_in else "-"

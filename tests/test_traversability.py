@@ -421,3 +421,27 @@ def test_rover_in_the_config_and_explicit_limits_win(tmp_path):
     cfg.write_text('[thresholds]\nrover = "rover-x"\n')
     with pytest.raises(FedmapError, match="unknown rover 'rover-x'"):
         resolve(cfg)
+
+
+def test_a_dem_classified_again_gives_its_own_map_and_the_same_classes():
+    """The last classification is kept (the built-in terrain classifies its DEM twice):
+    the second map equals the first, its arrays and meta are its own, and another DEM,
+    pixel size or threshold is classified anew (checked against a cleared memory)."""
+    from fedmap.maps import traversability
+
+    rng = np.random.default_rng(3)
+    z = np.cumsum(rng.normal(0, 0.3, (40, 44)), axis=0)
+    first = dem_to_traversability(Dem(z, 1.0, source="a"))
+    first.classes[:] = UNKNOWN  # a caller changing its map changes no later one
+    first.meta["note"] = "changed"
+    second = dem_to_traversability(Dem(z.copy(), 1.0, source="b"))
+    traversability._LAST.clear()
+    fresh = dem_to_traversability(Dem(z, 1.0, source="b"))
+    assert np.array_equal(second.classes, fresh.classes) and second.meta == fresh.meta
+    assert 0 < (second.classes == IMPASSABLE).mean() < 1
+    strict = TraversabilityThresholds(max_slope_deg=5.0)
+    for other, t in ((Dem(z * 3, 1.0), None), (Dem(z, 0.5), None), (Dem(z, 1.0), strict)):
+        got = dem_to_traversability(other, t)
+        traversability._LAST.clear()
+        assert np.array_equal(got.classes, dem_to_traversability(other, t).classes)
+        assert not np.array_equal(got.classes, second.classes)

@@ -131,7 +131,10 @@ def _ssim_kernel():
     """:func:`_ssim_rows` compiled with numba (cached on disk), releasing the GIL."""
     from numba import njit
 
-    return njit(cache=True, nogil=True)(_ssim_rows)
+    kernel = njit(cache=True, nogil=True)(_ssim_rows)
+    tiny = np.zeros((7, 7), np.uint8)  # compiled (or loaded) here, once, not by threads racing to do it
+    kernel(tiny, tiny, np.zeros((3, 3), np.int64), 0, 1, np.zeros((3, 1)))
+    return kernel
 
 
 def _ssim_rows(t: np.ndarray, p: np.ndarray, twice: np.ndarray, r0: int, r1: int, sums: np.ndarray) -> None:

@@ -189,7 +189,10 @@ def _compiled():
     most of which plan nothing."""
     from numba import njit
 
-    return njit(cache=True, nogil=True)(_search)
+    search = njit(cache=True, nogil=True)(_search)
+    free, W = _padded(np.ones((1, 2), bool))  # compiled (or loaded) here, once, not by threads racing to do it
+    search(free, W, _flat((0, 0), W), _flat((0, 1), W), *_new_buffers(free.size), _NO_MARKS, 0)
+    return search
 
 
 def _search(free: np.ndarray, W: int, s: int, t: int, g: np.ndarray, parent: np.ndarray,

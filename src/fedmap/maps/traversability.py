@@ -33,6 +33,7 @@ a one-line warning in ``meta["warning"]`` naming the pixel size and thresholds
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import asdict, dataclass, replace
 
@@ -314,6 +315,28 @@ def dem_to_traversability(dem: Dem, thresholds: TraversabilityThresholds | None 
     map is more than 99% one class, a one-line ``warning``.
     """
     t = thresholds or TraversabilityThresholds()
+    key = (hashlib.blake2b(np.ascontiguousarray(dem.elevation).tobytes(), digest_size=16).digest(),
+           dem.elevation.shape, str(dem.elevation.dtype), float(dem.pixel_size), t)
+    if _LAST.get("key") != key:
+        _LAST.clear()  # one entry: the built-in terrain classifies its DEM to calibrate it, then the truth
+        _LAST.update(key=key, value=_classify(dem, t))
+    classes, limit = _LAST["value"]
+    meta = {"thresholds": t.to_dict(), "dem_source": dem.source, "slope_limit_deg": limit}
+    grid = GridMap(classes.copy(), dem.pixel_size, f"traversability({dem.source})", meta, transform=dem.transform,
+                   crs=dem.crs)
+    warning = class_balance_warning(grid, t, limit)
+    if warning is not None:
+        grid.meta["warning"] = warning
+    return grid
+
+
+#: The last classification (its DEM's digest, shape, dtype, pixel size and thresholds): the
+#: classes are a function of those alone, so a DEM classified twice is classified once.
+_LAST: dict = {}
+
+
+def _classify(dem: Dem, t: TraversabilityThresholds) -> tuple[np.ndarray, float]:
+    """The classes of :func:`dem_to_traversability` and the slope limit used."""
     valid = dem.valid
     # Fill nodata with the nearest valid elevation so filters stay finite; the cells
     # touched by nodata are set UNKNOWN below anyway.
@@ -345,10 +368,4 @@ def dem_to_traversability(dem: Dem, thresholds: TraversabilityThresholds | None 
         bad |= roughness(z, footprint) > t.max_roughness_m
     classes = np.where(bad, IMPASSABLE, FREE).astype(np.uint8)
     classes[near_nodata] = UNKNOWN
-    meta = {"thresholds": t.to_dict(), "dem_source": dem.source, "slope_limit_deg": float(limit)}
-    grid = GridMap(classes, dem.pixel_size, f"traversability({dem.source})", meta, transform=dem.transform,
-                   crs=dem.crs)
-    warning = class_balance_warning(grid, t, limit)
-    if warning is not None:
-        grid.meta["warning"] = warning
-    return grid
+    return classes, float(limit)
