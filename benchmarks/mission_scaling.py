@@ -3,7 +3,7 @@ and team sizes, a fixed number of steps, the chosen strategies; wall time per st
 time per step, peak RSS and the team's bytes, and the growth exponent of the time against
 cells x agents (a least-squares fit in log-log).
 
-    python benchmarks/mission_scaling.py [--sizes 128 256 512] [--agents 4 8] [--steps 100]
+    python benchmarks/mission_scaling.py [--sizes 128 256 512] [--agents 4 8] [--steps 100] [--steps-grow P]
         [--strategies none,raw,fedmap,central] [--out benchmarks/results/mission_scaling]
 
 Each configuration runs in its own process, so its peak RSS is its own. Writes
@@ -52,7 +52,7 @@ def fit_exponent(x: list[float], y: list[float]) -> float | None:
     return float(np.polyfit(np.log(x), np.log(y), 1)[0])
 
 
-def plot(rows: list[dict], names: list[str], exponents: dict, steps: int, terrain: str, path: Path) -> None:
+def plot(rows: list[dict], names: list[str], exponents: dict, steps: int | str, terrain: str, path: Path) -> None:
     """Log-log: every configuration's time per strategy (marker: team size) and the fitted line."""
     import matplotlib
 
@@ -80,11 +80,21 @@ def plot(rows: list[dict], names: list[str], exponents: dict, steps: int, terrai
     fig.savefig(path, dpi=120)
 
 
+def _steps_label(steps: int, grow: float, rows: list[dict]) -> int | str:
+    """The plot's step count: a number, or how it grew with the map."""
+    if not grow:
+        return steps
+    return f"{steps} x (side / {min(r['size'] for r in rows)})^{grow:g}"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256, 512])
     ap.add_argument("--agents", type=int, nargs="+", default=[4, 8])
     ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--steps-grow", type=float, default=0.0, metavar="P",
+                    help="steps grow with the map: --steps x (size / smallest size)^P (1: with the side, the "
+                         "issue's comparison; 0: the same steps everywhere)")
     ap.add_argument("--strategies", default="none,raw,fedmap,central")
     # moon: at every size its map centre (the lander) opens onto most of the free ground;
     # built-in mars at 512² puts the lander in a free pocket of 101 cells, and the rovers stay in it
@@ -97,7 +107,8 @@ def main() -> None:
     args = ap.parse_args()
     if args.replot:
         d = json.loads((args.out / "scaling.json").read_text())
-        plot(d["rows"], d["strategies"], d["exponents"], d["steps"], d["terrain"], args.out / "scaling.png")
+        plot(d["rows"], d["strategies"], d["exponents"], _steps_label(d["steps"], d.get("steps_grow", 0.0), d["rows"]),
+             d["terrain"], args.out / "scaling.png")
         return
     if args.one:
         print(json.dumps(one(args.one[0], args.one[1], args.steps, args.strategies, args.terrain, args.workers)))
@@ -105,13 +116,15 @@ def main() -> None:
     rows = []
     load = os.getloadavg()[0]
     for size in args.sizes:
+        steps = round(args.steps * (size / min(args.sizes)) ** args.steps_grow)
         for agents in args.agents:
-            cmd = [sys.executable, __file__, "--one", str(size), str(agents), "--steps", str(args.steps),
+            cmd = [sys.executable, __file__, "--one", str(size), str(agents), "--steps", str(steps),
                    "--strategies", args.strategies, "--terrain", args.terrain, "--workers", str(args.workers)]
             done = subprocess.run(cmd, capture_output=True, text=True, check=True)
             row = json.loads(done.stdout.strip().splitlines()[-1])
             rows.append(row)
-            print(f"{size:5d}² {agents:3d} agents: {row['seconds']:7.1f} s, peak {row['peak_rss_mb']:6.0f} MB, "
+            print(f"{size:5d}² {agents:3d} agents {steps:4d} steps: {row['seconds']:7.1f} s, "
+                  f"peak {row['peak_rss_mb']:6.0f} MB, "
                   f"coverage {max(row['coverage'].values()):.3f}; "
                   + ", ".join(f"{n} {s:.1f} s" for n, s in row["per_strategy_s"].items()), flush=True)
     names = list(rows[0]["per_strategy_s"])
@@ -121,11 +134,12 @@ def main() -> None:
     print("growth exponent of the time against cells x agents: "
           + ", ".join(f"{n} {e:.2f}" for n, e in exponents.items() if e is not None))
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "scaling.json").write_text(json.dumps({"steps": args.steps, "terrain": args.terrain,
+    (args.out / "scaling.json").write_text(json.dumps({"steps": args.steps, "steps_grow": args.steps_grow,
+                                                       "terrain": args.terrain,
                                                        "strategies": names, "rows": rows,
                                                        "exponents": exponents, "load_average_before": load,
                                                        "cpus": os.cpu_count()}, indent=1))
-    plot(rows, names, exponents, args.steps, args.terrain, args.out / "scaling.png")
+    plot(rows, names, exponents, _steps_label(args.steps, args.steps_grow, rows), args.terrain, args.out / "scaling.png")
     print(f"wrote {args.out}/scaling.json and scaling.png")
 
 
