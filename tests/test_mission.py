@@ -13,7 +13,7 @@ from fedmap.coding.mapcodec import decode_map
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
-from fedmap.mission.frontiers import choose_target, frontier_mask, gain_at, travel_costs
+from fedmap.mission.frontiers import DETOUR, choose_target, frontier_mask, gain_at, plan_path, travel_costs
 from fedmap.mission.link import Link
 from fedmap.mission.protocol import unpack_up
 from fedmap.mission.sensing import disk_offsets, footprint
@@ -102,27 +102,61 @@ def gain_map(belief: np.ndarray, radius: float) -> np.ndarray:
                                     mode="constant", cval=0.0)).astype(np.int64)
 
 
-def _mcp_costs(b: np.ndarray, start: tuple[int, int], unknown_cost: float) -> np.ndarray:
-    """The reference travel costs: scikit-image's MCP_Geometric over the whole map."""
-    from skimage.graph import MCP_Geometric
+def _graph_costs(b: np.ndarray, start: tuple[int, int], unknown_cost, p_impassable=None) -> np.ndarray:
+    """The reference travel costs: SciPy's Dijkstra on the explicit graph. Every pair of
+    8-neighbours that are both crossable is an edge of weight ``(a + b) / 2`` times its
+    length (scikit-image's ``MCP_Geometric`` cost model), a diagonal one only if both cells
+    it passes are crossable (the path planner's rule). With ``p_impassable``, an unknown
+    cell costs its expected cost, by hand: a free one ``unknown_cost``, a blocked one DETOUR."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
 
+    if p_impassable is not None:
+        unknown_cost = (1 - p_impassable) * unknown_cost + p_impassable * max(DETOUR, unknown_cost)
     costs = np.where(b == FREE, 1.0, unknown_cost)
     costs[b == IMPASSABLE] = -1.0
-    cum, _ = MCP_Geometric(costs, fully_connected=True).find_costs([start])
+    h, w = b.shape
+    rows, cols, weights = [], [], []
+    for r in range(h):
+        for c in range(w):
+            if costs[r, c] < 0:
+                continue
+            for dr in (-1, 0, 1):
+                for dc in (-1, 0, 1):
+                    rr, cc = r + dr, c + dc
+                    if not (dr or dc) or not (0 <= rr < h and 0 <= cc < w) or costs[rr, cc] < 0:
+                        continue
+                    if dr and dc and (costs[rr, c] < 0 or costs[r, cc] < 0):
+                        continue
+                    rows.append(r * w + c)
+                    cols.append(rr * w + cc)
+                    weights.append((np.sqrt(2.0) if dr and dc else 1.0) * 0.5 * (costs[r, c] + costs[rr, cc]))
+    graph = coo_matrix((weights, (rows, cols)), shape=(h * w, h * w)).tocsr()
+    cum = dijkstra(graph, indices=start[0] * w + start[1]).reshape(h, w)
     return np.where(np.isfinite(cum) & (costs >= 0), cum, np.inf)
 
 
-def _whole_map_target(b, pos, *, radius, unknown_cost, others, allowed=None, excluded=(), heading=None):
+def _whole_map_target(b, pos, *, radius, unknown_cost, others, allowed=None, excluded=(), heading=None,
+                      p_impassable=None):
     """The reference target choice: every cell rated over the whole map (gain by convolution,
-    costs by MCP), the lowest score, ties to the lowest flat index."""
+    costs by SciPy), the lowest score, ties to the lowest flat index. With ``p_impassable``
+    the gain counts each unknown cell by the binary entropy of its prediction, by hand."""
     front = frontier_mask(b)
     if allowed is not None:
         front &= allowed
     for cell in excluded:
         front[cell] = False
     gain = gain_map(b, radius)
-    cost = _mcp_costs(b, pos, unknown_cost)
+    cost = _graph_costs(b, pos, unknown_cost, p_impassable)
     front &= (gain > 0) & np.isfinite(cost)
+    if p_impassable is not None:
+        q = p_impassable
+        bits = -(q * np.log2(q) + (1 - q) * np.log2(1 - q))  # q is in (0, 1) here
+        off = disk_offsets(radius)
+        r = int(np.abs(off).max())
+        kernel = np.zeros((2 * r + 1, 2 * r + 1))
+        kernel[off[:, 0] + r, off[:, 1] + r] = 1.0
+        gain = ndimage.convolve(np.where(b == UNKNOWN, bits, 0.0), kernel, mode="constant", cval=0.0)
     if not front.any():
         return None
     score = cost - 2 * radius * gain / len(disk_offsets(radius))
@@ -137,14 +171,14 @@ def _whole_map_target(b, pos, *, radius, unknown_cost, others, allowed=None, exc
     return divmod(int(np.argmin(score)), b.shape[1])
 
 
-def test_travel_costs_equal_scikit_image_mcp():
+def test_travel_costs_equal_scipy_dijkstra_without_corner_cutting():
     rng = np.random.default_rng(11)
     for trial in range(20):
         b = _random_belief(rng, (int(rng.integers(5, 60)), int(rng.integers(5, 60))))
         free = np.argwhere(b != IMPASSABLE)
         pos = tuple(int(v) for v in free[rng.integers(len(free))])
         uc = float(rng.choice([1.0, 1.5, 3.0]))
-        want = _mcp_costs(b, pos, uc)
+        want = _graph_costs(b, pos, uc)
         got = travel_costs(b, pos, uc)
         assert np.array_equal(np.isfinite(got), np.isfinite(want)), trial
         assert np.allclose(got[np.isfinite(got)], want[np.isfinite(want)], rtol=0, atol=1e-9), trial
@@ -176,6 +210,55 @@ def test_the_bounded_target_choice_is_the_whole_map_choice():
         if rng.random() < 0.3 and len(free) > 1:
             kw["excluded"] = {tuple(int(v) for v in free[i]) for i in rng.integers(0, len(free), 3)}
         assert choose_target(b, pos, **kw) == _whole_map_target(b, pos, **kw), (trial, kw)
+
+
+def test_a_chosen_target_is_one_the_path_planner_reaches():
+    """The pick's search and the path planner agree on what is reachable: every target
+    chosen has an A* path on the same belief (unknown passable), and a rover shut in by
+    diagonal gaps (crossable only by cutting a corner) gets no target at all."""
+    rng = np.random.default_rng(21)
+    for trial in range(80):
+        b = _random_belief(rng, (int(rng.integers(8, 50)), int(rng.integers(8, 50))))
+        b[(rng.random(b.shape) < 0.2)] = IMPASSABLE  # many diagonal gaps
+        free = np.argwhere(b == FREE)
+        if not len(free):
+            continue
+        pos = tuple(int(v) for v in free[rng.integers(len(free))])
+        target = choose_target(b, pos, radius=3.0, unknown_cost=1.5, others=[])
+        if target is not None:
+            assert plan_path(b, pos, target) is not None, trial
+    shut = np.full((12, 12), UNKNOWN, dtype=np.uint8)
+    shut[:2] = FREE  # known ground, frontier cells along its edge
+    shut[5, 5] = FREE  # the rover, its four orthogonal neighbours impassable: only corners lead out
+    for cell in ((4, 5), (6, 5), (5, 4), (5, 6)):
+        shut[cell] = IMPASSABLE
+    assert choose_target(shut, (5, 5), radius=2.0, unknown_cost=1.5, others=[]) is None
+    shut[4, 5] = UNKNOWN  # a way out
+    target = choose_target(shut, (5, 5), radius=2.0, unknown_cost=1.5, others=[])
+    assert target is not None and plan_path(shut, (5, 5), target) is not None
+
+
+def test_the_target_choice_with_a_prediction_is_the_whole_map_choice():
+    """The same with a predictor's P(impassable): unknown cells cost their expected cost and
+    count their entropy in the gain. Every map has one shape, so each pick starts from the
+    buffers the last one left (they must be as made)."""
+    rng = np.random.default_rng(9)
+    shape = (37, 53)
+    for trial in range(60):
+        b = _random_belief(rng, shape)
+        free = np.argwhere(b == FREE)
+        if not len(free):
+            continue
+        pos = tuple(int(v) for v in free[rng.integers(len(free))])
+        p = rng.uniform(0.01, 0.99, shape)
+        kw = dict(radius=float(rng.choice([1.5, 3.0, 4.0])), unknown_cost=float(rng.choice([1.0, 1.5])),
+                  others=[tuple(int(v) for v in rng.integers(0, shape)) for _ in range(rng.integers(0, 3))],
+                  p_impassable=p)
+        if rng.random() < 0.5:
+            kw["heading"] = (shape[0] / 2, shape[1] / 2, float(rng.uniform(0, 2 * np.pi)))
+        if trial % 2:  # a pick that finds nothing (no cell allowed) searches everything it reaches first
+            assert choose_target(b, pos, allowed=np.zeros(shape, bool), **kw) is None
+        assert choose_target(b, pos, **kw) == _whole_map_target(b, pos, **kw), trial
 
 
 # ---------------------------------------------------------------- missions
@@ -573,3 +656,31 @@ def test_training_on_what_changed_selects_the_new_cells_and_a_seeded_replay_samp
         assert rec["cells"] == new + min(old, max(int(np.ceil(0.5 * new)), MIN_REPLAY))
     with pytest.raises(FedmapError, match="did you mean 'changed'"):
         MissionConfig(train_on="chanegd")
+
+
+@pytest.mark.parametrize("kind", ["rovers", "helicopter"])
+def test_the_central_map_kept_between_writes_is_the_overlay_of_every_rover(kind, monkeypatch):
+    """``central``'s base keeps the team's map until a rover's map is written: at every call
+    it equals the overlay built anew from every rover's map (team order, a later known cell
+    over an earlier one), with rovers and with a helicopter (coarse cells); and it cannot
+    be written through."""
+    from fedmap.mission.raw import CentralBase
+    from fedmap.mission.settings import HelicopterConfig
+
+    kept = CentralBase.global_map
+    calls = []
+
+    def checked(self):
+        got = kept(self)
+        want = np.full(self.shape, UNKNOWN, dtype=np.uint8)
+        for r in self.team:
+            want = np.where(r.local != UNKNOWN, r.local, want)
+        assert np.array_equal(got, want) and not got.flags.writeable
+        calls.append(int((got != UNKNOWN).sum()))
+        return got
+
+    monkeypatch.setattr(CentralBase, "global_map", checked)
+    heli = {"helicopters": 1, "helicopter": HelicopterConfig(sensor_radius=5.0, resolution=2)} \
+        if kind == "helicopter" else {}
+    run_mission(_small(steps=25, strategies=("central",), **heli), _maze())
+    assert len(calls) > 25 and calls[-1] > calls[0]  # asked for at every step, and it grew

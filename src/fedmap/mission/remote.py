@@ -48,7 +48,7 @@ from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN
 from fedmap.maps.planning import astar
 from fedmap.mission.feed import FeedWorld, MapFeed
-from fedmap.mission.frontiers import choose_target
+from fedmap.mission.frontiers import choose_target, travel_costs
 from fedmap.mission.protocol import DroppedUpdate, Outgoing
 from fedmap.mission.registry import Setup, Sharing, build
 from fedmap.mission.settings import MissionConfig
@@ -512,6 +512,7 @@ def warm_up() -> None:
     belief = np.full((8, 8), FREE, dtype=np.uint8)
     belief[0] = UNKNOWN
     choose_target(belief, (4, 4), radius=1.5, unknown_cost=1.5, others=[])
+    travel_costs(belief, (4, 4), 1.5)  # the cheapest path's search (a rover with a predictor)
     astar(np.ones((4, 4), dtype=bool), (0, 0), (3, 3))
 
 
