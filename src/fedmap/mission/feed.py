@@ -106,6 +106,7 @@ class FeedWorld(World):
             return
         r.local[new] = snap[new]
         r.obs_step[new] = t
+        r.wrote()
         cells = np.argwhere(new)
         centre = cells.mean(axis=0)
         free = np.argwhere(r.local == FREE)

@@ -201,10 +201,12 @@ class FramedWorld(World):
         e, g = e[ok], g[ok]
         r.local[e[:, 0], e[:, 1]] = self.truth.classes[g[:, 0], g[:, 1]]
         r.obs_step[e[:, 0], e[:, 1]] = t
+        r.wrote()
         here = p.cell(shape)  # it stands on free ground, wherever its map put a rock
         if r.local[here] != FREE:
             r.local[here] = FREE
             r.obs_step[here] = t
+            r.wrote(here)
         r.pos = here
 
     def drive(self, k: int, t: int) -> None:
@@ -226,6 +228,7 @@ class FramedWorld(World):
                 # its hazard sensing sees the rock ahead: on its map, where it was heading
                 r.local[nxt] = IMPASSABLE
                 r.obs_step[nxt] = t
+                r.wrote(nxt)
                 r.replan = True
                 return
             r.path.pop(0)

@@ -259,11 +259,35 @@ class CentralBase(BaseEnd):
     def __init__(self, shape: tuple[int, int], starts: list[Cell], *, team: list) -> None:
         super().__init__(shape, starts)
         self.team = team
+        self._map: tuple[tuple[tuple[int, int], ...], np.ndarray] | None = None
 
     def global_map(self) -> np.ndarray:
-        out = np.full(self.shape, UNKNOWN, dtype=np.uint8)
-        for r in self.team:
-            out = np.where(r.local != UNKNOWN, r.local, out)
+        """Every rover's observations laid over each other in team order (read-only).
+
+        Every rover asks for it at every step, and building it reads every rover's whole
+        map, so it is kept: after writes (``Rover.writes``) only the boxes they wrote are
+        laid again, into a copy (a map handed out never changes)."""
+        key = tuple((id(r.local), len(r.writes)) for r in self.team)  # a rover rebuilt has a new map
+        if self._map is not None and self._map[0] == key:
+            return self._map[1]
+        if self._map is not None and all(a[0] == b[0] and a[1] <= b[1] for a, b in zip(self._map[0], key)):
+            boxes = [box for (_, seen), r in zip(self._map[0], self.team) for box in r.writes[seen:]]
+        else:
+            boxes = [None]
+        if None in boxes:
+            boxes = [(0, self.shape[0], 0, self.shape[1])]
+            out = np.empty(self.shape, dtype=np.uint8)
+        else:
+            assert self._map is not None
+            out = self._map[1].copy()
+        for r0, r1, c0, c1 in boxes:
+            part = np.full((r1 - r0, c1 - c0), UNKNOWN, dtype=np.uint8)
+            for r in self.team:
+                local = r.local[r0:r1, c0:c1]
+                part = np.where(local != UNKNOWN, local, part)
+            out[r0:r1, c0:c1] = part
+        out.flags.writeable = False
+        self._map = (key, out)
         return out
 
     def global_heights(self) -> np.ndarray | None:

@@ -58,6 +58,19 @@ class Rover:
     #: with an elevation layer: the heights it observed (metres, its noise included; NaN elsewhere)
     heights: np.ndarray | None = None
     n_sensed: int = 0  #: how many times it has sensed (seeds its height noise)
+    #: every write to ``local``: a box ``(row0, row1, col0, col1)`` holding the cells written
+    #: (half-open; None: anywhere), in order (what the team's map is built from is kept on it)
+    writes: list = field(default_factory=list)
+
+    def wrote(self, center: Cell | None = None, reach: int = 0) -> None:
+        """Record a write to ``local``: its cells are within ``reach`` rows and columns of
+        ``center`` (None: anywhere)."""
+        if center is None:
+            self.writes.append(None)
+            return
+        h, w = self.local.shape
+        r, c = center
+        self.writes.append((max(r - reach, 0), min(r + reach + 1, h), max(c - reach, 0), min(c + reach + 1, w)))
     #: helicopter: every landing, ``(step, cell, steps flown that sortie, "lander" or "observed free")``
     landings: list = field(default_factory=list)
     airborne: list = field(default_factory=list)  #: helicopter: per step from step 1, whether it flew
@@ -205,12 +218,14 @@ class World:
             new = seen & (r.local == UNKNOWN)
             r.local[new] = self.coarse[new]
             r.obs_step[new] = t
+            r.wrote(r.pos, int(hc.sensor_radius) + hc.resolution)  # a block whose centre is in range
             return
         mask = footprint(r.pos, self.truth.shape, c.sensor_radius,
                          elevation=self.elevation if c.line_of_sight else None, height_m=c.sensor_height_m)
         new = mask & (r.local == UNKNOWN)
         r.local[new] = self.truth.classes[new]
         r.obs_step[new] = t
+        r.wrote(r.pos, int(c.sensor_radius))
         own = self.own_truth[k]
         if r.own is not None and own is not None:
             r.own[new] = own[new]
