@@ -267,7 +267,7 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
 CLEAN_ROVER = 0
 
 
-@pytest.mark.xdist_group("loopback-c")  # a long loopback run: see addopts in pyproject.toml
+@pytest.mark.xdist_group("loopback-a")  # a long loopback run: see addopts in pyproject.toml
 @pytest.mark.slow
 def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     """4 rovers without TLS; rovers 1-3 go through a proxy that resets every open connection

@@ -84,7 +84,7 @@ def _run(tmp_path, run: dict, on_status=None, extra=()):
     return maps, out, json.loads((out / "metrics.json").read_text())
 
 
-@pytest.mark.xdist_group("loopback-c")  # a long loopback run: see addopts in pyproject.toml
+@pytest.mark.xdist_group("loopback-b")  # a long loopback run: see addopts in pyproject.toml
 def test_four_rovers_one_round_equal_the_in_process_runner(flower_home):
     maps, out, m = _run(flower_home, {**RUN, "deadline": 300.0})
     init, ref = _reference(maps)
@@ -103,7 +103,7 @@ def test_four_rovers_one_round_equal_the_in_process_runner(flower_home):
     assert {"psnr", "ssim", "path"} <= set(m["global"]) and (out / "figure.png").is_file()
 
 
-@pytest.mark.xdist_group("loopback-b")  # a long loopback run: see addopts in pyproject.toml
+@pytest.mark.xdist_group("loopback-c")  # a long loopback run: see addopts in pyproject.toml
 def test_a_rover_killed_mid_round_leaves_three(flower_home):
     killed = []
 

@@ -49,7 +49,7 @@ def _same(here, apart, names):
             np.testing.assert_array_equal(va, vb)
 
 
-@pytest.mark.xdist_group("loopback-a")  # a long loopback run: see addopts in pyproject.toml
+@pytest.mark.xdist_group("loopback-b")  # a long loopback run: see addopts in pyproject.toml
 def test_the_default_mission_on_processes_equals_the_mission_in_process(tmp_path):
     out = tmp_path / "out"
     names = ("raw", "predictive", "fedmap")
@@ -129,7 +129,7 @@ def _kill_everything_of(tmp_path) -> int:
     return killed
 
 
-@pytest.mark.xdist_group("loopback-b")
+@pytest.mark.xdist_group("loopback-a")
 def test_a_base_station_killed_mid_mission_resumes_bit_for_bit(tmp_path):
     """Everything is killed at once at step >= 20 of the second strategy (SIGKILL: no clean-up); the same command
     with --resume replays the base's journal, the rovers carry on from their state folders,
@@ -196,7 +196,7 @@ def test_a_base_station_beyond_loopback_needs_tls_and_authentication(tmp_path):
         deploy_mission("[mission]\n", members=1, out=tmp_path / "out", mode="cloud")
 
 
-@pytest.mark.xdist_group("loopback-a")
+@pytest.mark.xdist_group("loopback-c")
 def test_a_mission_base_refuses_an_unregistered_key_and_a_wrong_ca(tmp_path):
     """The mission's base station (``--deploy base``) with TLS and two registered rover keys:
     a rover with an unregistered key is refused, one that does not trust the base's CA

@@ -166,7 +166,7 @@ def test_predictor_app_config_matches_the_run_defaults():
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("loopback-a")  # a long loopback run: see addopts in pyproject.toml
+@pytest.mark.xdist_group("loopback-c")  # a long loopback run: see addopts in pyproject.toml
 def test_flower_sites_on_real_processes_give_the_in_process_weights(tmp_path):
     """A SuperLink and two SuperNodes (one per site, each with only its own samples file) on
     loopback, two rounds: the global weights of every round equal federate()'s, bit for bit."""
