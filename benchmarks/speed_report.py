@@ -4,6 +4,7 @@ exists, on this CPU (its model and the instructions that decide the precision ar
     python benchmarks/speed_report.py              # peaks, the demo against its FLOP floor, default mission (~2 min)
     python benchmarks/speed_report.py --deployed   # + a mission on processes against in process (predictive, 4 rovers)
     python benchmarks/speed_report.py --big        # + 1024², 16 rovers, 300 steps, raw + central (several minutes)
+    python benchmarks/speed_report.py --scaling    # + the growth exponent with steps growing with the side (~1.5 min)
     python benchmarks/speed_report.py --suite      # + the README's test command, timed (install excluded)
 
 The figures:
@@ -20,6 +21,9 @@ The figures:
 - ``--deployed``: the default mission's ``predictive`` run on processes (SuperLink, a
   SuperNode per rover, the ServerApp; :mod:`mission_processes`) over the same in process.
 - ``--big``: ``raw`` + ``central`` at 1024² with 16 rovers for 300 steps (:mod:`mission_scaling`).
+- ``--scaling``: the growth exponent of a mission's time against cells x agents, 128², 256²
+  and 512² with 4 and 8 rovers and 100, 200 and 400 steps (steps growing with the side;
+  ``none``, ``raw``, ``central``; :mod:`mission_scaling`).
 - ``--suite``: ``python -m pytest`` in this checkout.
 
 Writes ``benchmarks/results/speed_report.json`` (``--out``) and prints a Markdown table.
@@ -132,6 +136,13 @@ def big() -> dict:
     return {"wall_s": round(time.perf_counter() - t, 1), "output": done.stdout[-1500:]}
 
 
+def scaling() -> dict:
+    with tempfile.TemporaryDirectory(prefix="fedmap-speed-") as tmp:
+        timed([sys.executable, str(HERE / "mission_scaling.py"), "--sizes", "128", "256", "512", "--agents", "4", "8",
+               "--steps", "100", "--steps-grow", "1", "--strategies", "none,raw,central", "--out", tmp])
+        return {"exponents": json.loads((Path(tmp) / "scaling.json").read_text())["exponents"]}
+
+
 def suite() -> dict:
     wall, done = timed([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"], cwd=HERE.parent)
     return {"wall_s": round(wall, 1), "summary": done.stdout.strip().splitlines()[-1]}
@@ -160,6 +171,11 @@ def table(r: dict) -> list[str]:
                      "<= 1.5x"))
     if "big" in r:
         rows.append(("1024², 16 rovers, 300 steps, raw + central", f"{r['big']['wall_s']} s", "< 300 s"))
+    if "scaling" in r:
+        e = {n: v for n, v in r["scaling"]["exponents"].items() if v is not None}
+        rows.append(("growth exponent against cells x agents (steps grow with the side)",
+                     ", ".join(f"{n} {v:.2f}" for n, v in e.items()),
+                     f"<= 1.1: {'met' if max(e.values()) <= 1.1 else 'not met'}"))
     if "suite" in r:
         s = r["suite"]
         rows.append(("the README's test command", f"{s['wall_s']} s ({s['summary']})", f"< {SUITE_TARGET_S:.0f} s"))
@@ -172,6 +188,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--deployed", action="store_true", help="also a mission on processes (about 2 min)")
     ap.add_argument("--big", action="store_true", help="also 1024², 16 rovers, 300 steps (several minutes)")
+    ap.add_argument("--scaling", action="store_true", help="also the growth exponent (about 1.5 min)")
     ap.add_argument("--suite", action="store_true", help="also the README's test command (10-15 min)")
     ap.add_argument("--out", type=Path, default=OUT)
     a = ap.parse_args()
@@ -187,6 +204,8 @@ def main() -> None:
         r["deployed"] = deployed()
     if a.big:
         r["big"] = big()
+    if a.scaling:
+        r["scaling"] = scaling()
     if a.suite:
         r["suite"] = suite()
     r["load_average_after"] = os.getloadavg()[0]
