@@ -238,6 +238,20 @@ def test_a_chosen_target_is_one_the_path_planner_reaches():
     assert target is not None and plan_path(shut, (5, 5), target) is not None
 
 
+def test_a_pick_with_a_layer_of_another_shape_or_a_rover_off_the_map_is_one_line():
+    """The compiled search reads its layers unchecked, so a wrong shape never reaches it."""
+    b = np.full((6, 7), FREE, dtype=np.uint8)
+    b[0] = UNKNOWN
+    kw = dict(radius=2.0, unknown_cost=1.5, others=[])
+    with pytest.raises(FedmapError, match="allowed is 6x6, the map is 6x7"):
+        choose_target(b, (3, 3), allowed=np.ones((6, 6), bool), **kw)
+    with pytest.raises(FedmapError, match="p_impassable is 42, the map is 6x7"):
+        choose_target(b, (3, 3), p_impassable=np.zeros(42), **kw)
+    with pytest.raises(FedmapError, match=r"rover position \(6, 0\) is outside the 6x7 map"):
+        choose_target(b, (6, 0), **kw)
+    assert choose_target(b, (3, 3), allowed=np.ones((6, 7), bool), **kw) == choose_target(b, (3, 3), **kw)
+
+
 def test_the_target_choice_with_a_prediction_is_the_whole_map_choice():
     """The same with a predictor's P(impassable): unknown cells cost their expected cost and
     count their entropy in the gain. Every map has one shape, so each pick starts from the

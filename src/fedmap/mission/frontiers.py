@@ -43,6 +43,7 @@ import threading
 
 import numpy as np
 
+from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.maps.planning import astar
 from fedmap.mission.sensing import disk_offsets
@@ -215,6 +216,12 @@ def choose_target(belief: np.ndarray, pos: tuple[int, int], *, radius: float, un
     """
     b = np.ascontiguousarray(belief, dtype=np.uint8)
     h, w = b.shape
+    # the compiled search reads these arrays unchecked: a wrong shape is a one-line error here
+    if not (0 <= pos[0] < h and 0 <= pos[1] < w):
+        raise FedmapError(f"rover position {tuple(pos)} is outside the {h}x{w} map")
+    for name, layer in (("allowed", allowed), ("p_impassable", p_impassable)):
+        if layer is not None and np.shape(layer) != b.shape:
+            raise FedmapError(f"{name} is {'x'.join(map(str, np.shape(layer)))}, the map is {h}x{w}")
     off = disk_offsets(radius)
     per = 2 * radius / len(off)  # the score of one unit of gain
     empty_f, empty_b = np.zeros(0), np.zeros(0, dtype=np.bool_)
