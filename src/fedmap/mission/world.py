@@ -61,6 +61,9 @@ class Rover:
     #: every write to ``local``: a box ``(row0, row1, col0, col1)`` holding the cells written
     #: (half-open; None: anywhere), in order (what the team's map is built from is kept on it)
     writes: list = field(default_factory=list)
+    #: helicopter: every landing, ``(step, cell, steps flown that sortie, "lander" or "observed free")``
+    landings: list = field(default_factory=list)
+    airborne: list = field(default_factory=list)  #: helicopter: per step from step 1, whether it flew
 
     def wrote(self, center: Cell | None = None, reach: int = 0) -> None:
         """Record a write to ``local``: its cells are within ``reach`` rows and columns of
@@ -71,9 +74,6 @@ class Rover:
         h, w = self.local.shape
         r, c = center
         self.writes.append((max(r - reach, 0), min(r + reach + 1, h), max(c - reach, 0), min(c + reach + 1, w)))
-    #: helicopter: every landing, ``(step, cell, steps flown that sortie, "lander" or "observed free")``
-    landings: list = field(default_factory=list)
-    airborne: list = field(default_factory=list)  #: helicopter: per step from step 1, whether it flew
 
 
 
