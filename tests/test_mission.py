@@ -91,15 +91,20 @@ def _random_belief(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarr
     return b
 
 
-def gain_map(belief: np.ndarray, radius: float) -> np.ndarray:
-    """The reference gain: UNKNOWN cells within ``radius`` of every cell, by convolution
-    with the sensor's disk (outside the map counts 0)."""
+def _disk_sum(values: np.ndarray, radius: float) -> np.ndarray:
+    """The sum of ``values`` within ``radius`` of every cell, by convolution with the
+    sensor's disk (outside the map counts 0)."""
     off = disk_offsets(radius)
     r = int(np.abs(off).max())
     kernel = np.zeros((2 * r + 1, 2 * r + 1))
     kernel[off[:, 0] + r, off[:, 1] + r] = 1.0
-    return np.rint(ndimage.convolve((np.asarray(belief) == UNKNOWN).astype(np.float64), kernel,
-                                    mode="constant", cval=0.0)).astype(np.int64)
+    return ndimage.convolve(values, kernel, mode="constant", cval=0.0)
+
+
+def gain_map(belief: np.ndarray, radius: float) -> np.ndarray:
+    """The reference gain: UNKNOWN cells within ``radius`` of every cell (outside the map
+    counts 0)."""
+    return np.rint(_disk_sum((np.asarray(belief) == UNKNOWN).astype(np.float64), radius)).astype(np.int64)
 
 
 def _graph_costs(b: np.ndarray, start: tuple[int, int], unknown_cost, p_impassable=None) -> np.ndarray:
@@ -152,11 +157,7 @@ def _whole_map_target(b, pos, *, radius, unknown_cost, others, allowed=None, exc
     if p_impassable is not None:
         q = p_impassable
         bits = -(q * np.log2(q) + (1 - q) * np.log2(1 - q))  # q is in (0, 1) here
-        off = disk_offsets(radius)
-        r = int(np.abs(off).max())
-        kernel = np.zeros((2 * r + 1, 2 * r + 1))
-        kernel[off[:, 0] + r, off[:, 1] + r] = 1.0
-        gain = ndimage.convolve(np.where(b == UNKNOWN, bits, 0.0), kernel, mode="constant", cval=0.0)
+        gain = _disk_sum(np.where(b == UNKNOWN, bits, 0.0), radius)
     if not front.any():
         return None
     score = cost - 2 * radius * gain / len(disk_offsets(radius))
