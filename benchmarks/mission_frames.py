@@ -6,12 +6,13 @@ accuracy of the same mission with known poses, false-free at most the known-pose
     python benchmarks/mission_frames.py             # 3 seeds, the default mission (Mars 128², 4 rovers, 150 steps)
     python benchmarks/mission_frames.py --seeds 1   # quicker
 
-Per seed and condition it runs ``none`` and ``raw`` on the star and prints, per strategy and
-condition, the means over the seeds of: the final belief accuracy and false-free rate (each
-rover's belief put back in the true frame by the transforms the team estimated), the base's
-global accuracy, the team's bytes, the base's registrations (placed / tracked / carried /
-waiting / refused), and at the end each rover's odometry error and the error of where the
-team placed it (its estimate through its transform and the team's frame), in cells. Writes
+Per seed and condition it runs ``none``, ``raw`` and ``predictive`` on the star
+(``--strategies``) and prints, per strategy and condition, the means over the seeds of: the
+final belief accuracy and false-free rate (each rover's belief put back in the true frame by
+the transforms the team estimated), the base's global accuracy, the team's bytes, the base's
+registrations (placed / tracked / carried / waiting / refused), and at the end each rover's
+odometry error and the error of where the team placed it (its estimate through its transform
+and the team's frame), in cells. Writes
 ``benchmarks/results/mission_frames/mission_frames.json``.
 
 The drift spread (``REALISTIC``) is that of a small rover's wheel odometry on loose ground:
@@ -45,9 +46,9 @@ CONDITIONS: dict[str, dict | None] = {
 }
 
 
-def one(frames: dict | None, seed: int, steps: int) -> dict:
+def one(frames: dict | None, seed: int, steps: int, strategies: list[str]) -> dict:
     over = [{"frames": frames}] if frames else []
-    config, source, _ = load_mission(None, seed=seed, mission={"strategies": ["none", "raw"], "steps": steps},
+    config, source, _ = load_mission(None, seed=seed, mission={"strategies": strategies, "steps": steps},
                                      overrides=over)
     truth, *_ = mission_terrain(config, source)
     t0 = time.perf_counter()
@@ -75,12 +76,18 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--steps", type=int, default=150)
+    p.add_argument("--strategies", default="none,raw,predictive", help="comma-separated, of those [frames] runs")
+    p.add_argument("--conditions", default=";".join(CONDITIONS), help="separated by ;, of: " + "; ".join(CONDITIONS))
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/mission_frames")
     args = p.parse_args(argv)
-    runs = {c: [one(f, seed, args.steps) for seed in range(args.seeds)] for c, f in CONDITIONS.items()}
+    names = args.strategies.split(",")
+    conditions = {c: CONDITIONS[c] for c in args.conditions.split(";")}
+    if "known poses" not in conditions:
+        conditions = {"known poses": None, **conditions}  # what every other condition is judged against
+    runs = {c: [one(f, seed, args.steps, names) for seed in range(args.seeds)] for c, f in conditions.items()}
     table = []
     for c, rs in runs.items():
-        for name in ("none", "raw"):
+        for name in names:
             rows = [r[name] for r in rs]
             mean = {k: float(np.mean([r[k] for r in rows])) for k in ("belief_accuracy", "false_free",
                                                                       "global_accuracy", "bytes")}
@@ -104,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{', '.join(f'{a} {n}' for a, n in sorted(t['registrations'].items()))}")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "mission_frames.json").write_text(json.dumps(
-        {"conditions": CONDITIONS, "seeds": args.seeds, "steps": args.steps, "table": table}, indent=1))
+        {"conditions": conditions, "seeds": args.seeds, "steps": args.steps, "table": table}, indent=1))
     return 0
 
 

@@ -9,20 +9,24 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from fedmap.coding.mapcodec import encode_map
+from fedmap.coding.mapcodec import decode_map, encode_map
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import IMPASSABLE, UNKNOWN
 from fedmap.maps.registration import RigidTransform
 from fedmap.mission import mission_terrain, run_mission
 from fedmap.mission.frames import (
     TRANSFORM_BYTES,
+    FramedPredictiveBase,
+    FramedPredictiveRover,
     FramedRawBase,
     FramedWorld,
+    chain,
     pack_transform,
     track,
     unpack_transform,
 )
-from fedmap.mission.protocol import pack_up
+from fedmap.mission.protocol import pack_up, unpack_down
+from fedmap.mission.remote import check_deployable
 from fedmap.mission.settings import FramesConfig, load_mission
 
 MISSION = {"rovers": 2, "steps": 40, "sync_every": 8, "sensor_radius": 6.0, "eval_pairs": 8, "strategies": ["raw"]}
@@ -36,9 +40,12 @@ def _mission(frames: dict | None = None, seed: int = 0):
     return config, truth
 
 
-def _run(frames: dict | None = None, seed: int = 0):
+def _run(frames: dict | None = None, seed: int = 0, strategy: str = "raw"):
     config, truth = _mission(frames, seed)
-    return run_mission(config, truth).runs["raw"]
+    if strategy != "raw":
+        config = load_mission(None, size=64, seed=seed, mission={**MISSION, "strategies": [strategy]},
+                              overrides=[{"frames": frames}] if frames else [])[0]
+    return run_mission(config, truth).runs[strategy]
 
 
 @pytest.fixture(scope="module")
@@ -66,15 +73,39 @@ def test_frames_off_is_the_mission_as_before(known):
 
 def test_negligible_drift_drives_the_known_pose_mission_and_pays_the_transform(known):
     """With the frames machinery on but an error far below a cell (and the lander's image to
-    place the rovers on), the rovers drive the same trails, score the same, and each
-    downlink costs exactly the transform's bytes more."""
+    place the rovers on), the rovers drive the same trails and score the same; each
+    downlink pays the transform's bytes and leaves out the rover's own cells, so it costs
+    at most the transform's bytes more, and the team's downlinks cost less."""
     run = _run({"drift": 1e-12, "lander_view": 12.0})
     assert run.trails == known.trails
     assert run.summary.final_belief_accuracy_mean == known.summary.final_belief_accuracy_mean
     downs = [m for m in known.ledger if m.kind == "map"]
     framed = [m for m in run.ledger if m.kind == "map"]
     assert len(framed) == len(downs) > 0
-    assert [m.bytes for m in framed] == [m.bytes + TRANSFORM_BYTES for m in downs]
+    assert all(f.bytes <= d.bytes + TRANSFORM_BYTES for f, d in zip(framed, downs))
+    assert sum(f.bytes for f in framed) < sum(d.bytes for d in downs)
+
+
+def test_a_downlink_leaves_out_the_cells_the_rover_gave():
+    """The base merges rover 0's cells; its downlink to rover 0 carries none of them (rover 0
+    holds them in its own frame), its downlink to rover 1 carries every one."""
+    site = _site()
+    ring = np.hypot(*np.ogrid[-32:32, -32:32]) <= 20
+    frames = FramesConfig(start_offset=1.0, lander_view=20.0)
+    base = FramedRawBase(site.shape, [(32, 32), (32, 32)], budget=None, frames=frames,
+                         reference=np.where(ring, site, UNKNOWN).astype(np.uint8))
+    disk = np.hypot(*np.ogrid[-32:32, -32:32]) <= 10
+    base.receive(0, _uplink(np.where(disk, site, UNKNOWN).astype(np.uint8)), 1)
+    assert base.log[-1].action == "placed" and (base.base[disk] == site[disk]).all()
+    out = base.downlinks(1)
+    got = {}
+    for k, o in out.items():
+        _, _, _, body = unpack_down(o.payload)
+        assert unpack_transform(body[:TRANSFORM_BYTES]) == base.transforms[k]
+        got[k] = decode_map(body[TRANSFORM_BYTES:], reference=np.full(site.shape, UNKNOWN, dtype=np.uint8),
+                            expected_shape=site.shape)
+    assert (got[0] == UNKNOWN).all()
+    assert np.array_equal(got[1][disk], site[disk]) and (got[1][~disk] == UNKNOWN).all()
 
 
 def test_framed_rovers_never_enter_impassable_cells():
@@ -180,9 +211,61 @@ def test_drift_is_seeded():
 
 def test_frames_refuse_what_they_do_not_run():
     config, truth = _mission(DRIFT)
-    config = load_mission(None, size=64, mission={**MISSION, "strategies": ["predictive"]},
+    config = load_mission(None, size=64, mission={**MISSION, "strategies": ["fedmap"]},
                           overrides=[{"frames": DRIFT}])[0]
     with pytest.raises(FedmapError, match="frames"):
         run_mission(config, truth)
+    framed = _mission(DRIFT)[0]
+    with pytest.raises(FedmapError, match="in process only"):  # a rover process would map in the true frame
+        check_deployable(framed, ["raw"])
+    check_deployable(_mission()[0], ["raw"])
     with pytest.raises(FedmapError, match="frames"):
         FramesConfig(drift=-0.1)
+
+
+# ---------------------------------------------------------------- predictive in own frames
+
+
+def test_predictive_with_negligible_drift_drives_and_scores_as_with_known_poses():
+    """``predictive`` through the frames machinery, with errors far below a cell: the rovers
+    drive the known-pose mission's trails and their beliefs score the same (a rover's own
+    cells come from its own map, the others' from the global map the base placed)."""
+    known = _run(strategy="predictive")
+    framed = _run({"drift": 1e-12, "lander_view": 12.0}, strategy="predictive")
+    assert framed.trails == known.trails
+    assert framed.summary.final_belief_accuracy_mean == known.summary.final_belief_accuracy_mean
+    assert framed.summary.final_coverage == known.summary.final_coverage
+
+
+def test_framed_predictive_keeps_both_ends_of_every_link_alike():
+    """With drift, each rover's trail as it believes it drove crosses the link in steps
+    between neighbouring cells, the base decodes exactly the cells the rover holds it has,
+    every cell merged reached the base from a rover, and the same seed sends the same bytes."""
+    run = _run(DRIFT, strategy="predictive")
+    base, rovers = run.sharing.base, run.sharing.rovers
+    assert isinstance(base, FramedPredictiveBase)
+    for k, end in enumerate(rovers):
+        assert isinstance(end, FramedPredictiveRover)
+        assert np.array_equal(end._mine, base.sub[k])  # what the rover knows the base holds of its cells
+        assert (end._mine != UNKNOWN).sum() > 100
+        own = base.own[k]
+        assert own == end.own[:len(own)]
+        assert all(max(abs(a[0] - b[0]), abs(a[1] - b[1])) == 1 for a, b in zip(own, own[1:]))
+        # the rover's own cells it delivered are what it mapped (its frame, not the truth's)
+        mine = end._mine != UNKNOWN
+        assert (end._mine[mine] == end.rover.local[mine]).mean() > 0.99
+    assert base.log and all(p.action in ("placed", "tracked", "carried", "waiting", "refused") for p in base.log)
+    merged = base.base != UNKNOWN
+    assert merged.any() and (base.owner[merged] >= 0).all()
+    again = _run(DRIFT, strategy="predictive")
+    assert [m.to_dict() for m in again.ledger] == [m.to_dict() for m in run.ledger]
+    raw = _run(DRIFT)
+    assert run.summary.bytes_up + run.summary.bytes_down < raw.summary.bytes_up + raw.summary.bytes_down
+
+
+def test_chain_steps_between_neighbouring_cells():
+    for a, b in [((0, 0), (3, 1)), ((5, 5), (5, 5)), ((4, 2), (0, 7)), ((1, 1), (2, 2))]:
+        path = [a, *chain(a, b)]
+        assert path[-1] == b
+        assert all(max(abs(p[0] - q[0]), abs(p[1] - q[1])) == 1 for p, q in zip(path, path[1:]))
+        assert len(path) - 1 == max(abs(a[0] - b[0]), abs(a[1] - b[1]))  # as few steps as a king's walk

@@ -15,9 +15,10 @@ a rock misplaced on its map never makes it enter an impassable cell: it marks th
 was heading for as impassable and plans again. Its trail (and every safety check) is the
 true one.
 
-**The base** (``raw`` on the star, :class:`FramedRawBase`) keeps each rover's cells in the
-rover's frame and merges them into the global map only through a transform it estimated,
-checked by the registration gate's test (:func:`~fedmap.maps.registration.agreement`:
+**The base** (``raw`` and ``predictive`` on the star: :class:`FramedRawBase`,
+:class:`FramedPredictiveBase`) keeps each rover's cells in the rover's frame and merges
+them into the global map only through a transform it estimated, checked by the
+registration gate's test (:func:`~fedmap.maps.registration.agreement`:
 the share of shared known cells that agree against chance, Cohen's kappa; :func:`verdict`):
 
 * the global frame is the lander's when the lander imaged the ground around itself at
@@ -39,8 +40,15 @@ Merging lays a rover's cells through the transform with
 :func:`~fedmap.maps.registration.combine` (impassable wins: a misplaced free cell never
 covers a hazard). Each downlink carries the rover's transform back
 (:data:`TRANSFORM_BYTES` bytes, counted): the rover lays the global map into its own frame
-with it (:class:`FramedRawRover`) and reports positions through it. Until it is placed, a
-rover plans on its own cells only.
+with it (:class:`FramedRawRover`, :class:`FramedPredictiveRover`) and reports positions
+through it. A downlink leaves out the global cells the rover itself gave: it holds them in
+its own frame, where its odometry put them, and they were worse for it laid back through
+its transform (docs/frames.md). Until it is placed, a rover plans on its own cells only.
+
+``predictive`` codes an uplink in the rover's frame (its trail as it believes it drove it,
+from the cell it was told it starts at, and its cells, against its own cells the base
+holds) and a downlink in the global frame (the others' trails as the base placed them by
+their transforms, and the global cells the rover lacks, against what it holds).
 
 **Scores** are honest: a rover's belief is put back in the true frame with the transform
 the team estimated for it (identity before it is placed, and for ``none``), then the
@@ -48,7 +56,8 @@ team's estimate of the global frame (:meth:`FramedRawBase.team_frame`: the lande
 makes it the identity; without it, the mean of the rovers' placements at their starts),
 and compared with the truth; the global map likewise. Coverage counts the cells truly seen.
 
-Runs with ``none`` and ``raw`` on the star, rovers only, the team's profile, classes only.
+Runs with ``none``, ``raw`` and ``predictive`` on the star, in process, rovers only, the
+team's profile, classes only.
 """
 
 from __future__ import annotations
@@ -70,7 +79,8 @@ from fedmap.maps.registration import (
     agreement,
     combine,
 )
-from fedmap.mission.protocol import Outgoing, RoverEnd, pack_down, unpack_down, unpack_up
+from fedmap.mission.predictive import PredictiveBase, PredictiveOptions, PredictiveRover
+from fedmap.mission.protocol import BaseEnd, Outgoing, RoverEnd, pack_down, unpack_down, unpack_up
 from fedmap.mission.raw import RawBase, RawRover
 from fedmap.mission.registry import Setup, Sharing
 from fedmap.mission.registry import build as build_known
@@ -79,7 +89,10 @@ from fedmap.mission.world import World
 
 Cell = tuple[int, int]
 #: The strategies a mission with unknown poses runs.
-FRAMED_STRATEGIES: tuple[str, ...] = ("none", "raw")
+FRAMED_STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive")
+#: How far past its sensor's range a rover in its own frame writes what it senses (cells): it
+#: looks up, for every cell of its frame near its estimate, the true cell it shows.
+SENSED_BEYOND = 1.5
 _TRANSFORM = struct.Struct("<Bhhh")  # placed, dy and dx in 1/16 cell, heading in 1/100 degree (-180..180)
 #: Bytes of the transform each downlink carries.
 TRANSFORM_BYTES = _TRANSFORM.size
@@ -122,6 +135,7 @@ class Pose:
     scale: float
     rate: float
     errors: list = field(default_factory=list)  #: per move: distance (cells) of the estimate from the truth
+    cells: list = field(default_factory=list)  #: its estimated cells, in its own frame, as it went (no repeats)
 
     @classmethod
     def draw(cls, k: int, start: Cell, frames: Any, seed: int) -> Pose:
@@ -164,6 +178,7 @@ class FramedWorld(World):
         self.seen = [np.zeros(truth.shape, dtype=bool) for _ in starts]  # the true cells each has observed
         for r, p in zip(self.team, self.poses):
             r.pos = p.cell(truth.shape)
+            p.cells.append(r.pos)
             r.__dict__["frame"] = p  # for the record (benchmarks/mission_frames.py)
 
     def positions(self) -> list[Cell]:
@@ -192,7 +207,7 @@ class FramedWorld(World):
         self.seen[k] |= mask
         # every cell of its own frame within range of its estimate looks up the true cell it shows
         centre = np.rint(p.est).astype(int)
-        e = disk_offsets(c.sensor_radius + 1.5) + centre
+        e = disk_offsets(c.sensor_radius + SENSED_BEYOND) + centre
         e = e[(e[:, 0] >= 0) & (e[:, 0] < shape[0]) & (e[:, 1] >= 0) & (e[:, 1] < shape[1])]
         g = np.rint((e - p.est) @ _rot(-p.theta).T + np.array(p.true)).astype(int)
         ok = (g[:, 0] >= 0) & (g[:, 0] < shape[0]) & (g[:, 1] >= 0) & (g[:, 1] < shape[1])
@@ -208,6 +223,8 @@ class FramedWorld(World):
             r.obs_step[here] = t
             r.wrote(here)
         r.pos = here
+        if p.cells[-1] != here:
+            p.cells.append(here)
 
     def drive(self, k: int, t: int) -> None:
         r, p = self.team[k], self.poses[k]
@@ -362,18 +379,21 @@ def track(base: np.ndarray, window: np.ndarray, prior: RigidTransform, *, gate: 
 # --------------------------------------------------------------------------- raw's ends
 
 
-class FramedRawRover(RawRover):
-    """A rover's end of ``raw`` when it maps in its own frame: it holds the global map in the
-    global frame and the transform of its frame into it (sent by the base); its belief is its
-    own cells over the global map laid into its frame (its own cells only until it is placed).
+class _FramedView:
+    """What a rover end in its own frame adds to its strategy's end: the transform of its
+    frame into the global frame (sent by the base with every downlink), and a belief that
+    lays the global map it holds (``_held``, global frame) into its frame.
 
     Its frame drifts, so its older cells sit where its odometry put them then, not where they
     are relative to it now; the base placed them in the global map with the transform of
     their time. So the cells it observed in the last ``recent`` steps win, then the global
     map laid into its frame with its transform now, then its older cells."""
 
-    def __init__(self, *args, recent: int, **kw) -> None:
-        super().__init__(*args, **kw)
+    rover: Any
+    shape: tuple[int, int]
+    _held: np.ndarray
+
+    def _frame_init(self, recent: int) -> None:
         self.recent = recent
         self.transform = RigidTransform()  #: its frame -> the global frame, as the team estimated it
         self.placed = False
@@ -394,19 +414,87 @@ class FramedRawRover(RawRover):
         return np.where(fresh & (local != UNKNOWN), local, out).astype(np.uint8)
 
     def others(self) -> list[Cell]:
+        theirs = super().others()  # type: ignore[misc]
         if not self.placed:
-            return super().others()
+            return theirs
         inv = self.transform.inverse()
-        return [(int(round(a)), int(round(b))) for a, b in (inv.map_points(np.array(p))[0] for p in super().others())]
+        return [(int(round(a)), int(round(b))) for a, b in (inv.map_points(np.array(p))[0] for p in theirs)]
+
+    def _received(self, t: RigidTransform | None) -> None:
+        """A downlink was taken, carrying the transform ``t`` (None: not placed yet)."""
+        self._version += 1
+        if t is not None:
+            self.transform, self.placed = t, True
+
+
+class FramedRawRover(_FramedView, RawRover):
+    """A rover's end of ``raw`` when it maps in its own frame (see :class:`_FramedView`)."""
+
+    def __init__(self, *args, recent: int, **kw) -> None:
+        super().__init__(*args, **kw)
+        self._frame_init(recent)
 
     def receive(self, payload: bytes) -> bool:
         kind, ref, reports, body = unpack_down(payload)
         t = unpack_transform(body[:TRANSFORM_BYTES])
         ok = super().receive(pack_down(kind, ref, reports, body[TRANSFORM_BYTES:]))
         if ok:
-            self._version += 1
-            if t is not None:
-                self.transform, self.placed = t, True
+            self._received(t)
+        return ok
+
+
+def chain(a: Cell, b: Cell) -> list[Cell]:
+    """The cells from ``a`` (excluded) to ``b`` (included) by steps between neighbouring cells:
+    diagonal first, then straight (an estimated cell can jump, a coded trail cannot)."""
+    out, (r, c) = [], a
+    while (r, c) != b:
+        r += (b[0] > r) - (b[0] < r)
+        c += (b[1] > c) - (b[1] < c)
+        out.append((r, c))
+    return out
+
+
+class FramedPredictiveRover(_FramedView, PredictiveRover):
+    """A rover's end of ``predictive`` when it maps in its own frame.
+
+    Its uplink is its own frame's: the trail it believes it drove (its estimated cells, from
+    its deployment cell, chained into steps between neighbouring cells) and its cells, coded
+    against the cells of its own it knows the base holds (the global map is in another frame).
+    Its downlinks are the global frame's, after the 7-byte transform: the others' trails as
+    the base placed them and the global map's cells it lacks, coded against what it holds."""
+
+    def __init__(self, *args, recent: int, **kw) -> None:
+        super().__init__(*args, **kw)
+        self._frame_init(recent)
+        self.own = [self.trails[self.k][0]]  # its trail in its own frame, from the cell it was told it starts at
+        self._seen = 0  # its pose's estimated cells taken into ``own``
+        self._mine = np.full(self.shape, UNKNOWN, dtype=np.uint8)  # its own cells the base holds
+
+    def trail(self) -> list[Cell]:
+        cells = self.rover.frame.cells
+        for c in cells[self._seen:]:
+            self.own.extend(chain(self.own[-1], c))
+        self._seen = len(cells)
+        return self.own
+
+    def known_up(self) -> np.ndarray:
+        return self._mine
+
+    def known_down(self) -> np.ndarray:
+        return self._held
+
+    def delivered(self, round_no: int, ok: bool) -> None:
+        sent = self._pending.get(round_no)
+        if ok and sent is not None:
+            cells = sent[2]
+            self._mine = np.where(cells != UNKNOWN, cells, self._mine).astype(np.uint8)
+        super().delivered(round_no, ok)
+
+    def receive(self, payload: bytes) -> bool:
+        t = unpack_transform(payload[:TRANSFORM_BYTES])
+        ok = super().receive(payload[TRANSFORM_BYTES:])
+        if ok:
+            self._received(t)
         return ok
 
 
@@ -427,35 +515,40 @@ class Placing:
                 "overlap": self.overlap, "transform": self.transform, "reason": self.reason}
 
 
-class FramedRawBase(RawBase):
-    """The base's end of ``raw`` when every rover maps in its own frame (see the module)."""
+class _Placer:
+    """What a base end adds when every rover maps in its own frame (see the module): each
+    rover's cells kept in its frame, and merged into the global map (``base``, stamped by
+    round in ``base_stamp``) only through a transform the base estimated and checked."""
 
-    def __init__(self, shape, starts, *, budget, frames, journal=None, reference: np.ndarray | None = None) -> None:
-        super().__init__(shape, starts, budget=None if budget is None else budget - TRANSFORM_BYTES,
-                         journal=journal)
+    base: np.ndarray
+    base_stamp: np.ndarray
+    shape: tuple[int, int]
+
+    def _placer_init(self, n: int, *, frames, reference: np.ndarray | None) -> None:
+        shape = self.shape
         self.frames = frames
         #: what the lander imaged around itself, in the true frame (registered on, never merged; None: none)
         self.reference = reference
-        self.sub = [np.full(shape, UNKNOWN, dtype=np.uint8) for _ in starts]  # each rover's cells, its frame
-        self.sub_round = [np.full(shape, -1, dtype=np.int64) for _ in starts]
-        self.pending = [np.zeros(shape, dtype=bool) for _ in starts]
-        self.transforms: list[RigidTransform | None] = [None] * len(starts)
-        self.first: list[RigidTransform | None] = [None] * len(starts)  # each rover's placement at its start
+        self.sub = [np.full(shape, UNKNOWN, dtype=np.uint8) for _ in range(n)]  # each rover's cells, its frame
+        self.sub_round = [np.full(shape, -1, dtype=np.int64) for _ in range(n)]
+        self.pending = [np.zeros(shape, dtype=bool) for _ in range(n)]
+        self.transforms: list[RigidTransform | None] = [None] * n
+        self.first: list[RigidTransform | None] = [None] * n  # each rover's placement at its start
         self.owner = np.full(shape, -1, dtype=np.int64)  # the rover whose cell each global cell first was
         self.owner_round = np.full(shape, -1, dtype=np.int64)  # and the round it was merged
         self.log: list[Placing] = []
 
-    def receive(self, k: int, payload: bytes, round_no: int) -> bool:
-        _, pos, target, body = unpack_up(payload)
-        cells = decode_map(body, expected_shape=self.shape)
-        self.journal.received.append((round_no, k, payload))
+    def withheld(self, k: int) -> np.ndarray | bool:
+        """A downlink leaves out the global cells rover ``k`` gave: it holds them in its own frame."""
+        return self.owner == k
+
+    def _take(self, k: int, cells: np.ndarray, round_no: int) -> None:
+        """Rover ``k``'s cells (its frame) arrived: keep them, and place them if it can."""
         carried = cells != UNKNOWN
         self.sub[k][carried] = cells[carried]
         self.sub_round[k][carried] = round_no
         self.pending[k] |= carried
-        self.reports[k] = (pos, target)
         self._place(k, round_no)
-        return True
 
     def _place(self, k: int, round_no: int) -> None:
         f, sub, pend = self.frames, self.sub[k], self.pending[k]
@@ -525,6 +618,34 @@ class FramedRawBase(RawBase):
         self.base_stamp[changed] = round_no
         self.pending[k][:] = False
 
+    def _in_global(self, j: int, pos: Cell, target: Cell | None) -> tuple[Cell, Cell | None]:
+        t = self.transforms[j]
+        if t is None:
+            return pos, target
+
+        def at(c: Cell) -> Cell:
+            r, cc = t.map_points(np.array(c))[0]
+            return (int(round(r)), int(round(cc)))
+
+        return at(pos), None if target is None else at(target)
+
+
+class FramedRawBase(_Placer, RawBase):
+    """The base's end of ``raw`` when every rover maps in its own frame (see the module)."""
+
+    def __init__(self, shape, starts, *, budget, frames, journal=None, reference: np.ndarray | None = None) -> None:
+        super().__init__(shape, starts, budget=None if budget is None else budget - TRANSFORM_BYTES,
+                         journal=journal)
+        self._placer_init(len(starts), frames=frames, reference=reference)
+
+    def receive(self, k: int, payload: bytes, round_no: int) -> bool:
+        _, pos, target, body = unpack_up(payload)
+        cells = decode_map(body, expected_shape=self.shape)
+        self.journal.received.append((round_no, k, payload))
+        self.reports[k] = (pos, target)
+        self._take(k, cells, round_no)
+        return True
+
     def downlinks(self, round_no: int) -> dict[int, Outgoing]:
         own = self.reports
         self.reports = {j: self._in_global(j, p, tg) for j, (p, tg) in own.items()}
@@ -538,22 +659,73 @@ class FramedRawBase(RawBase):
                 out[k] = Outgoing(pack_down(kind, ref, reports, pack_transform(self.transforms[k]) + body), o.kind)
         return out
 
-    def _in_global(self, j: int, pos: Cell, target: Cell | None) -> tuple[Cell, Cell | None]:
-        t = self.transforms[j]
+
+
+class FramedPredictiveBase(_Placer, PredictiveBase):
+    """The base's end of ``predictive`` when every rover maps in its own frame: per rover, its
+    trail and cells in its own frame (what its uplinks are coded against), and its trail as
+    placed in the global frame by its transform (what the other rovers' downlinks carry)."""
+
+    def __init__(self, shape, starts, *, budget, radius: float, frames, options=None,
+                 reference: np.ndarray | None = None) -> None:
+        super().__init__(shape, starts, budget=None if budget is None else budget - TRANSFORM_BYTES,
+                         radius=radius, options=options)
+        self._placer_init(len(starts), frames=frames, reference=reference)
+        self.base_stamp = np.full(shape, -1, dtype=np.int64)
+        self.own = [[s] for s in starts]  # each rover's trail in its own frame
+        self.own_targets: list[Cell | None] = [None] * len(starts)
+        self.laid = [1] * len(starts)  # entries of each own trail laid into the global trail
+        self.told: list[RigidTransform | None] = [None] * len(starts)  # the transform each rover holds
+        self._told: dict[tuple[int, int], RigidTransform | None] = {}
+
+    def receive(self, k: int, payload: bytes, round_no: int) -> bool:
+        got = self.decode_up(k, payload, self.own[k], self.own_targets[k], self.sub[k])
+        if got is None:
+            return False
+        self.own_targets[k] = got.marks[0]
+        self._take(k, got.cells, round_no)
+        self._lay(k)
+        return True
+
+    def _lay(self, k: int) -> None:
+        """Rover ``k``'s trail and target since the last placing, into the global frame by its transform."""
+        t = self.transforms[k]
         if t is None:
-            return pos, target
+            return
+        h, w = self.shape
 
         def at(c: Cell) -> Cell:
-            r, cc = t.map_points(np.array(c))[0]
-            return (int(round(r)), int(round(cc)))
+            r, cc = np.rint(t.map_points(np.array(c, dtype=np.float64))[0]).astype(int)
+            return (int(np.clip(r, 0, h - 1)), int(np.clip(cc, 0, w - 1)))
 
-        return at(pos), None if target is None else at(target)
+        for c in self.own[k][self.laid[k]:]:
+            self.trails[k].extend(chain(self.trails[k][-1], at(c)))
+        self.laid[k] = len(self.own[k])
+        mark = self.own_targets[k]
+        self.targets[k] = None if mark is None else at(mark)
+
+    def must_send(self, k: int) -> bool:
+        return self.told[k] != self.transforms[k]
+
+    def downlinks(self, round_no: int) -> dict[int, Outgoing]:
+        out = super().downlinks(round_no)
+        for k, o in out.items():
+            if o.payload is not None:
+                out[k] = Outgoing(pack_transform(self.transforms[k]) + o.payload, o.kind)
+                self._told[k, round_no] = self.transforms[k]
+        return out
+
+    def delivered(self, k: int, round_no: int, ok: bool) -> None:
+        told = self._told.pop((k, round_no), self.told[k])
+        if ok:
+            self.told[k] = told
+        super().delivered(k, round_no, ok)
 
 
 def build(name: str, setup: Setup) -> Sharing:
-    """The ends of ``name`` for a mission with ``[frames]``: ``raw`` on the star merges through
-    registration; ``none`` is as ever (its rovers keep their own frames)."""
-    if name != "raw" or not setup.config.frames.enabled:
+    """The ends of ``name`` for a mission with ``[frames]``: ``raw`` and ``predictive`` on the
+    star merge through registration; ``none`` is as ever (its rovers keep their own frames)."""
+    if name not in ("raw", "predictive") or not setup.config.frames.enabled:
         return build_known(name, setup)
     lc, f = setup.config.link, setup.config.frames
     reference = None
@@ -563,12 +735,23 @@ def build(name: str, setup: Setup) -> Sharing:
         lander = setup.topology.base
         near = np.hypot(rows - lander[0], cols - lander[1]) <= f.lander_view
         reference = np.where(near, setup.truth.classes, UNKNOWN).astype(np.uint8)
-    rovers: list[RoverEnd] = [FramedRawRover(k, r, setup.starts, budget=lc.uplink_bytes,
-                                             recent=2 * setup.config.sync_every) for k, r in enumerate(setup.team)]
+    recent = 2 * setup.config.sync_every
+    if name == "predictive":
+        # a rover writes what it senses around its estimated cell, up to SENSED_BEYOND past its sensor's range
+        radius, opts = setup.config.sensor_radius + SENSED_BEYOND, PredictiveOptions(**setup.options)
+        rovers: list[RoverEnd] = [FramedPredictiveRover(k, r, setup.starts, budget=lc.uplink_bytes, radius=radius,
+                                                        options=opts, recent=recent)
+                                  for k, r in enumerate(setup.team)]
+        base: BaseEnd = FramedPredictiveBase(setup.truth.shape, setup.starts, budget=lc.downlink_bytes,
+                                             radius=radius, frames=f, options=opts, reference=reference)
+        return Sharing(name, setup.team, rovers, base, journal=setup.journal)
+    rovers = [FramedRawRover(k, r, setup.starts, budget=lc.uplink_bytes, recent=recent)
+              for k, r in enumerate(setup.team)]
     base = FramedRawBase(setup.truth.shape, setup.starts, budget=lc.downlink_bytes, frames=f, journal=setup.journal,
                          reference=reference)
     return Sharing(name, setup.team, rovers, base, journal=setup.journal)
 
 
-__all__ = ["FRAMED_STRATEGIES", "TRANSFORM_BYTES", "FramedRawBase", "FramedRawRover", "FramedWorld", "Placing", "Pose",
-           "build", "check_frames", "pack_transform", "track", "unpack_transform"]
+__all__ = ["FRAMED_STRATEGIES", "SENSED_BEYOND", "TRANSFORM_BYTES", "FramedPredictiveBase", "FramedPredictiveRover",
+           "FramedRawBase", "FramedRawRover", "FramedWorld", "Placing", "Pose", "build", "chain", "check_frames",
+           "pack_transform", "track", "unpack_transform"]

@@ -129,11 +129,24 @@ class PredictiveRover(RoverEnd):
         return np.where(self._held != UNKNOWN, self._held,
                         np.where(self.delivered_cells, self.rover.local, UNKNOWN)).astype(np.uint8)
 
+    def known_up(self) -> np.ndarray:
+        """What its uplink is coded against: the cells it knows the base holds."""
+        return self.known()
+
+    def known_down(self) -> np.ndarray:
+        """What a downlink to it is coded against: the cells it knows the base holds."""
+        return self.known()
+
+    def trail(self) -> list[Cell]:
+        """Its trail as its uplinks carry it (its start first)."""
+        return self.rover.trail
+
     def uplink(self, round_no: int) -> Outgoing | None:
         r = self.rover
-        known = self.known()
-        anchor = r.trail[self.sent - 1]
-        pending = r.trail[self.sent:]
+        known = self.known_up()
+        trail = self.trail()
+        anchor = trail[self.sent - 1]
+        pending = trail[self.sent:]
         derive = self.coding.candidates([anchor])
         guess = self.coding.guess(known)
 
@@ -166,7 +179,7 @@ class PredictiveRover(RoverEnd):
     def receive(self, payload: bytes) -> bool:
         others = [j for j in range(len(self.trails)) if j != self.k]
         anchors = [self.trails[j][-1] for j in others]
-        known = self.known()
+        known = self.known_down()
         try:
             got = streamcodec.decode(payload, state=self.down, anchors=anchors,
                                      mark_refs=[self.targets[j] for j in others], known=known,
@@ -213,17 +226,34 @@ class PredictiveBase(BaseEnd):
         return np.where(self.held_by[k] != UNKNOWN, self.held_by[k],
                         np.where(self.from_rover[k], self.base, UNKNOWN)).astype(np.uint8)
 
-    def receive(self, k: int, payload: bytes, round_no: int) -> bool:
-        a = self.trails[k][-1]
-        known = self.known(k)
+    def withheld(self, k: int) -> np.ndarray | bool:
+        """Cells of the global map a downlink to rover ``k`` leaves out (none: it sends every
+        cell the rover lacks)."""
+        return False
+
+    def must_send(self, k: int) -> bool:
+        """Whether rover ``k`` needs a downlink even when it holds everything the base has."""
+        return False
+
+    def decode_up(self, k: int, payload: bytes, trail: list[Cell], mark: Cell | None,
+                  known: np.ndarray) -> streamcodec.Content | None:
+        """Rover ``k``'s uplink, coded after ``trail``'s last cell and against ``mark`` and
+        ``known``; its trail and state taken in. None when it does not decode against them."""
+        a = trail[-1]
         try:
-            got = streamcodec.decode(payload, state=self.up[k], anchors=[a], mark_refs=[self.targets[k]],
-                                     known=known, candidates=self.coding.candidates([a]),
-                                     guess=self.coding.guess(known))
+            got = streamcodec.decode(payload, state=self.up[k], anchors=[a], mark_refs=[mark], known=known,
+                                     candidates=self.coding.candidates([a]), guess=self.coding.guess(known))
         except RejectedUpdate:
-            return False
+            return None
         self.coding.fold(self.up[k], got.fold)
-        self.trails[k].extend(got.tracks[0])
+        trail.extend(got.tracks[0])
+        return got
+
+    def receive(self, k: int, payload: bytes, round_no: int) -> bool:
+        known = self.known(k)
+        got = self.decode_up(k, payload, self.trails[k], self.targets[k], known)
+        if got is None:
+            return False
         self.targets[k] = got.marks[0]
         carried = got.cells != UNKNOWN
         self.from_rover[k] |= carried
@@ -239,8 +269,8 @@ class PredictiveBase(BaseEnd):
             news = [self.trails[j][self.fwd[k][j]:] for j in others]
             marks = [self.targets[j] for j in others]
             refs = [self.fwd_targets[k][j] for j in others]
-            lacking = (self.base != UNKNOWN) & (known == UNKNOWN)
-            if not lacking.any() and not any(news) and marks == refs:
+            lacking = (self.base != UNKNOWN) & (known == UNKNOWN) & ~self.withheld(k)
+            if not lacking.any() and not any(news) and marks == refs and not self.must_send(k):
                 continue  # it holds everything the base has
             derive = self.coding.candidates(anchors)
             longest = max((len(t) for t in news), default=0)

@@ -169,7 +169,7 @@ class RawBase(BaseEnd):
                 body = self.layer.body(encode_map(m, reference=ref), self.base_z, mask & np.isfinite(self.base_z))
                 return pack_down("map", "", self.reports, body)
 
-            candidates = (self.base != UNKNOWN) & (ref == UNKNOWN)
+            candidates = (self.base != UNKNOWN) & (ref == UNKNOWN) & ~self.withheld(k)
             payload, sent = cut_to_budget(make, self.base_stamp, candidates, self.budget)
             self._sending[k, round_no] = np.where(sent | (ref != UNKNOWN), self.base, UNKNOWN).astype(np.uint8)
             out[k] = Outgoing(payload, "map")
@@ -179,6 +179,11 @@ class RawBase(BaseEnd):
         sent = self._sending.pop((k, round_no), None)
         if ok and sent is not None:
             self.acked[k] = sent
+
+    def withheld(self, k: int) -> np.ndarray | bool:
+        """Cells of the global map a downlink to rover ``k`` leaves out (none: it sends every
+        cell the rover lacks)."""
+        return False
 
 
 class RawPeer(PeerEnd):

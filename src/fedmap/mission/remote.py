@@ -249,6 +249,9 @@ def check_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) 
     """One line when the mission ``c`` or a strategy cannot run on processes (see the module's limits)."""
     if c.link.topology != "star":
         raise FedmapError(f"a mission on processes runs the star topology, not {c.link.topology!r}")
+    if c.frames.enabled:
+        raise FedmapError("a mission on processes runs with known poses: [frames] (unknown poses, drift) runs "
+                          "in process only")
     if c.link.latency != 0:
         raise FedmapError(f"a mission on processes needs [link] latency = 0 (got {c.link.latency}): the real "
                           "link's delay is its latency")
