@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fedmap.maps.grid import UNKNOWN
 from fedmap.maps.registration import RigidTransform
 from fedmap.mission import load_mission, mission_terrain, run_mission
 
@@ -68,6 +69,18 @@ def one(frames: dict | None, seed: int, steps: int, strategies: list[str]) -> di
             placed = [frame.compose(getattr(e, "transform", RigidTransform())) for e in run.sharing.rovers]
             row["pose_error_end"] = float(np.mean([np.hypot(*(t.map_points(p.est)[0] - np.array(p.true)))
                                                    for t, p in zip(placed, poses)]))
+            # how right the known cells are: each rover's belief through the transform the team
+            # estimated, and its own map through its true pose now (what drift did to its own map)
+            right = truth.classes
+
+            def share(m: np.ndarray) -> float:
+                known = m != UNKNOWN
+                return float((m[known] == right[known]).mean()) if known.any() else float("nan")
+
+            row["belief_known_right"] = float(np.mean([share(t.apply(e.belief(), right.shape))
+                                                       for t, e in zip(placed, run.sharing.rovers)]))
+            row["own_map_right_true_pose"] = float(np.mean([share(p.to_own().inverse().apply(r.local, right.shape))
+                                                            for p, r in zip(poses, run.sharing.team)]))
         out[name] = row
     return out
 
@@ -91,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
             rows = [r[name] for r in rs]
             mean = {k: float(np.mean([r[k] for r in rows])) for k in ("belief_accuracy", "false_free",
                                                                       "global_accuracy", "bytes")}
-            for k in ("odometry_error_end", "pose_error_end"):
+            for k in ("odometry_error_end", "pose_error_end", "belief_known_right", "own_map_right_true_pose"):
                 if k in rows[0]:
                     mean[k] = float(np.mean([r[k] for r in rows]))
             regs: Counter = Counter()
@@ -101,13 +114,15 @@ def main(argv: list[str] | None = None) -> int:
                           "per_seed": rows})
     known = {t["strategy"]: t for t in table if t["condition"] == "known poses"}
     print(f"{'condition':34s} {'strategy':8s} {'belief acc':>10s} {'vs known':>9s} {'false-free':>10s} "
-          f"{'vs known':>9s} {'global acc':>10s} {'bytes':>8s} {'odo err':>8s} {'pose err':>8s}  registrations")
+          f"{'vs known':>9s} {'global acc':>10s} {'bytes':>8s} {'odo err':>8s} {'pose err':>8s} {'known ok':>8s} "
+          f"{'own ok':>8s}  registrations")
     for t in table:
         k = known[t["strategy"]]
         print(f"{t['condition']:34s} {t['strategy']:8s} {t['belief_accuracy']:10.4f} "
               f"{t['belief_accuracy'] - k['belief_accuracy']:+9.4f} {t['false_free']:10.4f} "
               f"{t['false_free'] - k['false_free']:+9.4f} {t['global_accuracy']:10.4f} {t['bytes']:8.0f} "
-              f"{t.get('odometry_error_end', 0.0):8.2f} {t.get('pose_error_end', 0.0):8.2f}  "
+              f"{t.get('odometry_error_end', 0.0):8.2f} {t.get('pose_error_end', 0.0):8.2f} "
+              f"{t.get('belief_known_right', 1.0):8.3f} {t.get('own_map_right_true_pose', 1.0):8.3f}  "
               f"{', '.join(f'{a} {n}' for a, n in sorted(t['registrations'].items()))}")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "mission_frames.json").write_text(json.dumps(

@@ -269,3 +269,24 @@ def test_chain_steps_between_neighbouring_cells():
         assert path[-1] == b
         assert all(max(abs(p[0] - q[0]), abs(p[1] - q[1])) == 1 for p, q in zip(path, path[1:]))
         assert len(path) - 1 == max(abs(a[0] - b[0]), abs(a[1] - b[1]))  # as few steps as a king's walk
+
+
+def test_the_registrations_are_written_and_reported(known):
+    """Every registration the base made is in ``metrics.json`` (known poses: no such entry),
+    and the report counts them per strategy."""
+    from collections import Counter
+
+    from fedmap.mission.report import report_md
+
+    config, truth = _mission(DRIFT)
+    result = run_mission(config, truth)
+    run = result.runs["raw"]
+    written = run.to_dict()["registrations"]
+    assert written == [p.to_dict() for p in run.sharing.base.log] and len(written) > 0
+    assert "registrations" not in known.to_dict() and "registrations" not in result.runs["raw"].to_dict()["summary"]
+    counts = Counter(p["action"] for p in written)
+    md = report_md(result, title="t")
+    header = next(ln for ln in md.splitlines() if ln.startswith("| strategy | ") and "placed" in ln)
+    acts = [c.strip() for c in header.strip("|").split("|")[1:]]
+    row = next(ln for ln in md.splitlines() if ln.startswith("| raw | ") and len(ln.split("|")) == len(acts) + 3)
+    assert [int(c) for c in row.strip("|").split("|")[1:]] == [counts[a] for a in acts]

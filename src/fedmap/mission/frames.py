@@ -722,6 +722,12 @@ class FramedPredictiveBase(_Placer, PredictiveBase):
         super().delivered(k, round_no, ok)
 
 
+def registrations(base: Any) -> tuple[dict, ...] | None:
+    """Every registration a framed base made (:class:`Placing` as dicts, in order); None for
+    any other base (known poses, or ``none``)."""
+    return tuple(p.to_dict() for p in base.log) if isinstance(base, _Placer) else None
+
+
 def build(name: str, setup: Setup) -> Sharing:
     """The ends of ``name`` for a mission with ``[frames]``: ``raw`` and ``predictive`` on the
     star merge through registration; ``none`` is as ever (its rovers keep their own frames)."""
@@ -754,4 +760,4 @@ def build(name: str, setup: Setup) -> Sharing:
 
 __all__ = ["FRAMED_STRATEGIES", "SENSED_BEYOND", "TRANSFORM_BYTES", "FramedPredictiveBase", "FramedPredictiveRover",
            "FramedRawBase", "FramedRawRover", "FramedWorld", "Placing", "Pose", "build", "chain", "check_frames",
-           "pack_transform", "track", "unpack_transform"]
+           "pack_transform", "registrations", "track", "unpack_transform"]

@@ -19,6 +19,7 @@ from __future__ import annotations
 import io
 import shutil
 import subprocess
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -379,6 +380,7 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
            "(`repeats`). The animations show the first repeat.", ""] if repeats is not None and len(repeats) > 1
           else []),
         *_prediction_lines(result),
+        *_frames_lines(result),
         side_by_side(result, repeats),
         verdict(result, repeats), "",
         f"Wall time: {result.seconds:.1f} s ("
@@ -387,6 +389,31 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         + (", ".join(f"`{name}`" for name in animations) if animations else "none (not asked for)") + ".", "",
     ]
     return "\n".join(lines)
+
+
+def _frames_lines(result: MissionResult) -> list[str]:
+    """With ``[frames]``: what the rovers did not know, and how often the base placed their cells."""
+    f = result.config.frames
+    if not f.enabled:
+        return []
+    out = [f"**Unknown poses** (`[frames]`): each rover's start off by std {f.start_offset:g} cells and "
+           f"{f.start_heading:g} degrees, its odometry's scale off by std {f.drift:.1%} and its heading drifting "
+           f"by std {f.heading_drift:g} degrees per metre; "
+           + (f"the lander imaged {f.lander_view:g} cells around itself. " if f.lander_view else "no lander image. ")
+           + "Each rover maps in its own frame; the base merges its cells only through a transform it estimated "
+           f"and checked (kappa gate {f.gate:g}); scores are taken through the team's estimates, never the true "
+           "poses. Registrations, one per rover and sync: *placed* (first placement), *tracked* (its transform "
+           "re-estimated), *carried* (too little overlap: the last transform kept), *waiting* / *refused* (not "
+           "merged yet).", ""]
+    rows = [(n, Counter(p["action"] for p in r.registrations)) for n, r in result.runs.items()
+            if r.registrations is not None]
+    if rows:
+        acts = [a for a in ("anchor", "placed", "tracked", "carried", "waiting", "refused")
+                if any(c[a] for _, c in rows)]
+        out += ["| strategy | " + " | ".join(acts) + " |", "|---|" + "---|" * len(acts)]
+        out += [f"| {n} | " + " | ".join(str(c[a]) for a in acts) + " |" for n, c in rows]
+        out.append("")
+    return out
 
 
 def _prediction_lines(result: MissionResult) -> list[str]:

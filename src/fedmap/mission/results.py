@@ -213,6 +213,8 @@ class StrategyRun:
     #: model strategies: at every sync, before training, how many models behind the base each rover is
     #: (``{"round": r, "lag": [...]}``; None in ``lag``: it holds none the base still keeps)
     model_lag: tuple[dict, ...] | None = None
+    #: with ``[frames]``: the base's registrations, one per rover and sync (``Placing.to_dict``; None: known poses)
+    registrations: tuple[dict, ...] | None = None
     sharing: Any = None  #: the ends' final state (:class:`~fedmap.mission.registry.Sharing`; not written)
     #: every member's final view: its belief in its own classes, what it plans on and is scored on
     views: tuple[np.ndarray, ...] = ()
@@ -225,6 +227,8 @@ class StrategyRun:
             out["dropped_updates"] = [d.to_dict() for d in self.dropped_updates]
         if self.model_lag is not None:
             out["model_lag"] = list(self.model_lag)
+        if self.registrations is not None:
+            out["registrations"] = list(self.registrations)
         return out
 
 

@@ -34,7 +34,7 @@ from fedmap.maps.traversability import (
     resolved_slope,
     rover_profile,
 )
-from fedmap.mission.frames import FramedWorld, check_frames
+from fedmap.mission.frames import FramedWorld, check_frames, registrations
 from fedmap.mission.frames import build as frames_build
 from fedmap.mission.link import BASE, DOWN, UP, Link
 from fedmap.mission.registry import Setup, Sharing, build
@@ -218,6 +218,7 @@ class _Run:
         return StrategyRun(self.name, series, summary, self.link.ledger, self.frames, trails, seconds,
                            dropped_updates=None if journal.dropped is None else tuple(journal.dropped),
                            model_lag=None if journal.lags is None else tuple(journal.lags),
+                           registrations=registrations(self.sharing.base),
                            sharing=self.sharing,
                            views=tuple(self.views))  # the last step's, recorded after its deliveries
 
