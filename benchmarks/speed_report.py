@@ -6,6 +6,7 @@ exists, on this CPU (its model and the instructions that decide the precision ar
     python benchmarks/speed_report.py --big        # + 1024², 16 rovers, 300 steps, raw + central (several minutes)
     python benchmarks/speed_report.py --scaling    # + the growth exponent with steps growing with the side (~1.5 min)
     python benchmarks/speed_report.py --suite      # + the README's test command, timed (install excluded)
+    python benchmarks/speed_report.py --fp32       # + the demo in fp32 against the fp32 peak (where bf16 is native)
 
 The figures:
 
@@ -25,6 +26,8 @@ The figures:
   and 512² with 4 and 8 rovers and 100, 200 and 400 steps (steps growing with the side;
   ``none``, ``raw``, ``central``; :mod:`mission_scaling`).
 - ``--suite``: ``python -m pytest`` in this checkout.
+- ``--fp32``: where bf16 is native, the demo again with ``--precision fp32``, against the
+  fp32 peak: what an AVX2-only CPU runs (it has no bf16), as ratios comparable across CPUs.
 
 Writes ``benchmarks/results/speed_report.json`` (``--out``) and prints a Markdown table.
 """
@@ -82,10 +85,12 @@ def timed(argv: list[str], cwd: Path | None = None) -> tuple[float, subprocess.C
     return seconds, done
 
 
-def demo(peaks: dict[str, float]) -> dict:
-    """``fedmap demo`` as the README runs it, and its paper half against its FLOP floor."""
+def demo(peaks: dict[str, float], precision: str | None = None) -> dict:
+    """``fedmap demo`` as the README runs it (``precision``: with ``--precision``), and its
+    paper half against its FLOP floor."""
     with tempfile.TemporaryDirectory(prefix="fedmap-speed-") as tmp:
-        wall, _ = timed([sys.executable, "-m", "fedmap", "demo", "-o", str(Path(tmp) / "demo")])
+        wall, _ = timed([sys.executable, "-m", "fedmap", "demo", "-o", str(Path(tmp) / "demo"),
+                         *(["--precision", precision] if precision else [])])
         timings = {m: json.loads((Path(tmp) / "demo" / m / "metrics.json").read_text())["timings"]
                    for m in ("paper", "fedmap")}
     _, _, truth, pc = load_run(None, [{"method": "paper"}])
@@ -95,7 +100,7 @@ def demo(peaks: dict[str, float]) -> dict:
     flop = step_flops(build_model(pc.model.network(truth.shape[0])), 1)  # per pixel-pass
     fed_passes = pc.explore.agents * pc.federation.rounds * pc.federation.local.epochs * n
     central_passes = pc.federation.rounds * pc.train.epochs * n
-    precision = resolve_precision(pc.train.precision)
+    precision = precision or resolve_precision(pc.train.precision)
     peak = peaks[precision]
     t = timings["paper"]
     fed_s, central_s = t["federation_s"], t["central_s"]
@@ -164,6 +169,14 @@ def table(r: dict) -> list[str]:
              f" of the {d['precision']} peak", ">= 70 %"),
             ("`fedmap mission --no-animation` wall", f"{m['wall_s']} s",
              f"< {MISSION_TARGET_S:.0f} s: {'met' if m['wall_s'] < MISSION_TARGET_S else 'not met'}")]
+    if "demo_fp32" in r:
+        f = r["demo_fp32"]
+        rows += [("in fp32 (what an AVX2-only CPU runs): `fedmap demo --precision fp32` wall / its fp32 floor",
+                  f"{f['wall_over_floor']}x ({f['wall_s']} s, floor {f['flop_floor_s']} s; paper training "
+                  f"{f['paper_training_over_floor']}x)", f"<= {DEMO_FLOOR_RATIO}x"),
+                 ("in fp32: federated / central per pixel-pass", f"{f['federated_over_central']}x", "<= 1.05x"),
+                 ("in fp32: paper steps against the fp32 peak", f"federated {f['federated_of_peak']:.0%}, "
+                  f"central {f['central_of_peak']:.0%}", ">= 70 %")]
     if "deployed" in r:
         e = r["deployed"]
         rows.append(("predictive, 4 rovers: on processes / in process", f"{e['ratio_run']}x ({e['on_processes_run_s']}"
@@ -190,6 +203,8 @@ def main() -> None:
     ap.add_argument("--big", action="store_true", help="also 1024², 16 rovers, 300 steps (several minutes)")
     ap.add_argument("--scaling", action="store_true", help="also the growth exponent (about 1.5 min)")
     ap.add_argument("--suite", action="store_true", help="also the README's test command (10-15 min)")
+    ap.add_argument("--fp32", action="store_true", help="also the demo in fp32 against the fp32 peak, what an "
+                    "AVX2-only CPU runs (about 1.5 min where bf16 is native)")
     ap.add_argument("--out", type=Path, default=OUT)
     a = ap.parse_args()
     r: dict = {"cpu": cpu(), "threads": torch.get_num_threads(), "load_average_before": os.getloadavg()[0]}
@@ -199,6 +214,8 @@ def main() -> None:
     if r["cpu"]["native_bf16"]:
         r["peaks_gflops"]["bf16"] = round(matmul_peak(torch.bfloat16), 1)
     r["demo"] = demo(r["peaks_gflops"])
+    if a.fp32 and r["demo"]["precision"] != "fp32":
+        r["demo_fp32"] = demo(r["peaks_gflops"], "fp32")
     r["mission"] = mission()
     if a.deployed:
         r["deployed"] = deployed()
