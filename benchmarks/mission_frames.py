@@ -47,8 +47,8 @@ CONDITIONS: dict[str, dict | None] = {
 }
 
 
-def one(frames: dict | None, seed: int, steps: int, strategies: list[str]) -> dict:
-    over = [{"frames": frames}] if frames else []
+def one(frames: dict | None, seed: int, steps: int, strategies: list[str], topology: str = "star") -> dict:
+    over = ([{"frames": frames}] if frames else []) + [{"link": {"topology": topology}}]
     config, source, _ = load_mission(None, seed=seed, mission={"strategies": strategies, "steps": steps},
                                      overrides=over)
     truth, *_ = mission_terrain(config, source)
@@ -60,8 +60,8 @@ def one(frames: dict | None, seed: int, steps: int, strategies: list[str]) -> di
         row = {"belief_accuracy": s.final_belief_accuracy_mean, "false_free": s.final_false_free_mean,
                "global_accuracy": s.final_global_accuracy, "bytes": s.bytes_up + s.bytes_down}
         base = run.sharing.base
-        if hasattr(base, "log"):
-            row["registrations"] = dict(Counter(p.action for p in base.log))
+        if run.registrations is not None:
+            row["registrations"] = dict(Counter(p["action"] for p in run.registrations))
         poses = [r.__dict__.get("frame") for r in run.sharing.team]
         if all(p is not None for p in poses):  # odometry's error, and the team's error on where each rover is
             row["odometry_error_end"] = float(np.mean([np.hypot(*(p.est - np.array(p.true))) for p in poses]))
@@ -91,13 +91,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=150)
     p.add_argument("--strategies", default="none,raw,predictive", help="comma-separated, of those [frames] runs")
     p.add_argument("--conditions", default=";".join(CONDITIONS), help="separated by ;, of: " + "; ".join(CONDITIONS))
+    p.add_argument("--topology", default="star", choices=("star", "mesh"),
+                   help="mesh: raw gossip, every agent placing what it receives (the lander an agent)")
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/mission_frames")
     args = p.parse_args(argv)
     names = args.strategies.split(",")
     conditions = {c: CONDITIONS[c] for c in args.conditions.split(";")}
     if "known poses" not in conditions:
         conditions = {"known poses": None, **conditions}  # what every other condition is judged against
-    runs = {c: [one(f, seed, args.steps, names) for seed in range(args.seeds)] for c, f in conditions.items()}
+    runs = {c: [one(f, seed, args.steps, names, args.topology) for seed in range(args.seeds)]
+            for c, f in conditions.items()}
     table = []
     for c, rs in runs.items():
         for name in names:
@@ -126,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{', '.join(f'{a} {n}' for a, n in sorted(t['registrations'].items()))}")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "mission_frames.json").write_text(json.dumps(
-        {"conditions": conditions, "seeds": args.seeds, "steps": args.steps, "table": table}, indent=1))
+        {"conditions": conditions, "topology": args.topology, "seeds": args.seeds, "steps": args.steps,
+         "table": table}, indent=1))
     return 0
 
 

@@ -19,13 +19,15 @@ from fedmap.mission.frames import (
     FramedPredictiveBase,
     FramedPredictiveRover,
     FramedRawBase,
+    FramedRawPeer,
     FramedWorld,
     chain,
     pack_transform,
     track,
     unpack_transform,
 )
-from fedmap.mission.protocol import pack_up, unpack_down
+from fedmap.mission.link import BASE
+from fedmap.mission.protocol import pack_down, pack_up, unpack_down
 from fedmap.mission.remote import check_deployable
 from fedmap.mission.settings import FramesConfig, load_mission
 
@@ -290,3 +292,76 @@ def test_the_registrations_are_written_and_reported(known):
     acts = [c.strip() for c in header.strip("|").split("|")[1:]]
     row = next(ln for ln in md.splitlines() if ln.startswith("| raw | ") and len(ln.split("|")) == len(acts) + 3)
     assert [int(c) for c in row.strip("|").split("|")[1:]] == [counts[a] for a in acts]
+
+
+# ---------------------------------------------------------------- raw gossip on the mesh
+
+
+def _mesh(frames: dict, lander_agent: bool = True):
+    config, source, _ = load_mission(None, size=64, seed=0, mission=dict(MISSION),
+                                     overrides=[{"frames": frames},
+                                                {"link": {"topology": "mesh", "lander_agent": lander_agent}}])
+    truth, *_ = mission_terrain(config, source)
+    return config, truth
+
+
+def test_on_the_mesh_negligible_drift_places_every_message_where_it_belongs():
+    """Raw gossip with errors far below a cell: every message an agent accepted was placed
+    within a cell and a degree of the identity, and every agent's held cells are the truth's."""
+    config, truth = _mesh({"drift": 1e-12, "lander_view": 12.0})
+    run = run_mission(config, truth).runs["raw"]
+    peers = [e for e in run.sharing.peers.values() if isinstance(e, FramedRawPeer)]
+    assert len(peers) == config.rovers + 1  # the lander is an agent
+    used = [p for e in peers for p in e.log if p.action in ("placed", "tracked", "carried")]
+    assert len(used) >= 5 and any(p.action == "placed" for p in used)
+    for p in used:
+        dy, dx, h = p.transform
+        assert abs(dy) <= 1.0 and abs(dx) <= 1.0 and abs((h + 180) % 360 - 180) <= 1.0, p
+    lander = run.sharing.peers[BASE]
+    assert all(lander.given[k].any() for k in range(config.rovers))  # it placed every rover's cells
+    holding = [e for e in peers if (e.hold != UNKNOWN).any()]
+    for e in holding:
+        held = e.hold != UNKNOWN
+        assert (e.hold[held] == truth.classes[held]).mean() > 0.99
+    written = run.to_dict()["registrations"]
+    assert len(written) == sum(len(e.log) for e in peers) and all("by" in d for d in written)
+
+
+def test_on_the_mesh_the_gate_keeps_another_sites_cells_out():
+    site = _site()
+    other = np.ascontiguousarray(site[::-1, ::-1])
+    ring = np.hypot(*np.ogrid[-32:32, -32:32]) <= 20
+    frames = FramesConfig(start_offset=1.0, lander_view=20.0)
+    rover = SimpleNamespace(local=np.full(site.shape, UNKNOWN, dtype=np.uint8), pos=(32, 32), target=None)
+    me = FramedRawPeer(0, rover, site.shape, [(32, 32), (32, 32)], agents=(0, 1), frames=frames)
+    rover.local[ring] = site[ring]
+    msg = pack_down("map", "", {}, encode_map(np.where(ring, other, UNKNOWN).astype(np.uint8)))
+    assert not me.receive(1, msg, 1, 10)  # not used: its sender keeps the cells as not delivered
+    assert me.log[-1].action == "refused" and (me.hold == UNKNOWN).all() and 1 not in me.est
+    msg = pack_down("map", "", {}, encode_map(np.where(ring, site, UNKNOWN).astype(np.uint8)))
+    assert me.receive(1, msg, 1, 10)
+    assert me.log[-1].action == "placed" and np.array_equal(me.hold[ring], site[ring])
+
+
+def test_frames_on_the_mesh_need_the_lander_as_an_agent():
+    config, truth = _mesh(DRIFT, lander_agent=False)
+    with pytest.raises(FedmapError, match="lander"):
+        run_mission(config, truth)
+
+
+def test_on_the_mesh_without_the_landers_image_the_first_rover_fixes_the_frame():
+    """The lander has nothing to register the first message on: it takes the sender's frame
+    as the global one; a later sender whose cells are that map shifted by a known amount is
+    placed back by that amount."""
+    site = _site()
+    ring = np.hypot(*np.ogrid[-32:32, -32:32]) <= 22
+    lander = FramedRawPeer(BASE, None, site.shape, [(32, 32), (32, 32)], agents=(0, 1, BASE),
+                           frames=FramesConfig(start_offset=1.0))
+    first = np.where(ring, site, UNKNOWN).astype(np.uint8)
+    assert lander.receive(0, pack_down("map", "", {}, encode_map(first)), 1, 10)
+    assert lander.log[-1].action == "anchor" and np.array_equal(lander.hold, first)
+    shift = RigidTransform(dy=2.0, dx=-1.0, heading_deg=0.0)  # rover 1's frame -> the lander's
+    theirs = shift.inverse().apply(first, site.shape)
+    assert lander.receive(1, pack_down("map", "", {}, encode_map(theirs)), 1, 10)
+    assert lander.log[-1].action == "placed"
+    assert lander.est[1].dy == pytest.approx(2.0) and lander.est[1].dx == pytest.approx(-1.0)

@@ -56,8 +56,11 @@ team's estimate of the global frame (:meth:`FramedRawBase.team_frame`: the lande
 makes it the identity; without it, the mean of the rovers' placements at their starts),
 and compared with the truth; the global map likewise. Coverage counts the cells truly seen.
 
-Runs with ``none``, ``raw`` and ``predictive`` on the star, in process, rovers only, the
-team's profile, classes only.
+**On the mesh** (``raw`` gossip, :class:`FramedRawPeer`) there is no base: every agent
+places what it receives, and the lander, an agent, holds the global frame.
+
+Runs with ``none``, ``raw`` and ``predictive`` on the star and ``none`` and ``raw`` on the
+mesh (with the lander as an agent), in process, rovers only, the team's profile, classes only.
 """
 
 from __future__ import annotations
@@ -79,9 +82,10 @@ from fedmap.maps.registration import (
     agreement,
     combine,
 )
+from fedmap.mission.link import BASE
 from fedmap.mission.predictive import PredictiveBase, PredictiveOptions, PredictiveRover
-from fedmap.mission.protocol import BaseEnd, Outgoing, RoverEnd, pack_down, unpack_down, unpack_up
-from fedmap.mission.raw import RawBase, RawRover
+from fedmap.mission.protocol import BaseEnd, Outgoing, PeerEnd, RoverEnd, pack_down, unpack_down, unpack_up
+from fedmap.mission.raw import RawBase, RawPeer, RawRover
 from fedmap.mission.registry import Setup, Sharing
 from fedmap.mission.registry import build as build_known
 from fedmap.mission.sensing import disk_offsets, footprint
@@ -112,7 +116,12 @@ def check_frames(config: Any) -> None:
     if bad:
         raise FedmapError(f"[frames] (unknown poses, drift) runs {', '.join(FRAMED_STRATEGIES)} only, not "
                           f"{', '.join(bad)}")
-    for asked, what in ((config.link.topology != "star", "a peer topology"), (config.helicopters > 0, "helicopters"),
+    if config.link.topology not in ("star", "mesh"):
+        raise FedmapError(f"[frames] (unknown poses, drift) runs on the star or the mesh, not {config.link.topology!r}")
+    if config.link.topology == "mesh" and not config.link.lander_agent:
+        raise FedmapError("[frames] on the mesh needs the lander as an agent ([link] lander_agent = true): its frame "
+                          "is the global one")
+    for asked, what in ((config.helicopters > 0, "helicopters"),
                         (any(p != "team" for p in config.rover_profiles), "rover profiles"),
                         ("elevation" in config.layers, "an elevation layer"),
                         (config.predictor != "none", "a predictor"), (config.mode != "frontier", "waypoints")):
@@ -722,15 +731,124 @@ class FramedPredictiveBase(_Placer, PredictiveBase):
         super().delivered(k, round_no, ok)
 
 
-def registrations(base: Any) -> tuple[dict, ...] | None:
-    """Every registration a framed base made (:class:`Placing` as dicts, in order); None for
-    any other base (known poses, or ``none``)."""
-    return tuple(p.to_dict() for p in base.log) if isinstance(base, _Placer) else None
+class FramedRawPeer(RawPeer):
+    """An agent's end of ``raw`` gossip on the mesh when every rover maps in its own frame.
+
+    There is no base to place the maps: every agent places what it receives. A message is
+    the sender's cells in the sender's frame, coded as ever (it carries every cell the
+    sender does not know the receiver holds): a rover's own observations only
+    (:meth:`shared`), the lander's everything it holds. The receiver registers them on what
+    it holds (its own cells, and the cells others gave it, without those the sender gave it
+    before: they would only confirm its last estimate), with :func:`track` near its last
+    estimate of the sender's frame (the first time, near the identity: every frame is the
+    lander's within the spreads), and merges them through the estimate when the gate accepts
+    it (impassable wins). Too little shared to tell: a sender placed before keeps its last
+    estimate (``carried``); one never placed, or one the gate refuses, is not used
+    (``waiting`` / ``refused``): the sender keeps them as not delivered and sends them
+    again.
+
+    The lander (an agent that never moves) holds the global frame: what it imaged at landing
+    (``reference``) is registered on, never merged or sent, and its held map is the global
+    map; without that image, the first rover whose cells reach it fixes the global frame. A
+    rover that placed a message of the lander's knows its own frame in the global one
+    (:attr:`transform`, :attr:`placed`): its belief is scored through it (identity until
+    then). No transform crosses the mesh's links: sent with the lander's messages, the
+    lander's estimate of a rover's frame changed its belief accuracy by -0.0003 (3 seeds)
+    for 1 % more bytes; sent as a receiver's starting point for registering, a sender's
+    estimate was worse on one seed of three (0.602 against 0.659)."""
+
+    def __init__(self, agent: int, rover: Any, shape: tuple[int, int], starts: list[Cell], *,
+                 agents: tuple[int, ...], journal=None, frames, reference: np.ndarray | None = None) -> None:
+        super().__init__(agent, rover, shape, starts, agents=agents, journal=journal)
+        self.frames = frames
+        self.reference = reference if rover is None else None
+        self.est: dict[int, RigidTransform] = {}  #: each sender's frame -> its own, as last accepted
+        self.given = {j: np.zeros(shape, dtype=bool) for j in agents}  # its cells each agent gave it
+        self.transform = RigidTransform()  #: its frame -> the global (lander's) frame, as it estimated it
+        self.placed = rover is None
+        self.log: list[Placing] = []
+
+    def shared(self) -> np.ndarray:
+        """A rover shares only what it observed itself: a cell it relayed would cross one more
+        estimated transform at each hop (on three seeds of the default mission, relaying gave
+        0.030 less belief accuracy and 0.039 more false-free, for twice the bytes). The lander
+        shares what it holds, in the global frame."""
+        return self.hold if self.rover is None else self.rover.local
+
+    def receive(self, frm: int, payload: bytes, round_no: int, step: int) -> bool:
+        _, _, reports, body = unpack_down(payload)
+        cells = decode_map(body, expected_shape=self.shape)
+        if not (cells != UNKNOWN).any():
+            self.heard({})
+            return True
+        f = self.frames
+        mine = np.where(self.given[frm], UNKNOWN, self.belief())
+        target = mine if self.reference is None else np.where(self.reference != UNKNOWN, self.reference, mine)
+        prior = self.est.get(frm)
+        if self.rover is None and self.reference is None and not self.est:  # the first rover's frame is the global one
+            self.log.append(Placing(round_no, frm, "anchor", 1.0, int((cells != UNKNOWN).sum()), (0.0, 0.0, 0.0)))
+            return self._merge_from(frm, RigidTransform(), cells, reports, round_no, step)
+        if prior is None:  # two frames, each the lander's within the spreads (and drift since)
+            t, check, v, why = track(target, cells, RigidTransform(), gate=f.gate,
+                                     span_deg=6 * f.start_heading + 2.0,
+                                     span_cells=int(math.ceil(6 * f.start_offset)) + 2, move_by=0.0)
+            action = "placed"
+        else:
+            t, check, v, why = track(target, cells, prior, gate=f.gate)
+            action = "tracked"
+            if v == "unsure":
+                t, action = prior, "carried"
+        ok = v == "accepted" or action == "carried"
+        self.log.append(Placing(round_no, frm, action if ok else ("waiting" if v == "unsure" else "refused"),
+                                check.kappa, check.overlap, (t.dy, t.dx, t.heading_deg), why))
+        if not ok:
+            return False
+        return self._merge_from(frm, t, cells, reports, round_no, step)
+
+    def _merge_from(self, frm: int, t: RigidTransform, cells: np.ndarray, reports: dict, round_no: int,
+                    step: int) -> bool:
+        """Merge ``frm``'s ``cells`` through ``t`` (its frame -> this agent's), impassable winning."""
+        self.est[frm] = t
+        if frm == BASE and self.rover is not None:  # the lander's frame is the global one
+            self.transform, self.placed = t.inverse(), True
+        placed = t.apply(cells, self.shape)
+        carried = placed != UNKNOWN
+        merged = combine(self.hold, placed)
+        self.got[(merged != self.hold)] = step
+        self.hold = merged
+        self.given[frm] |= carried
+        self.has[frm] |= carried
+        self.heard({j: self._turned(t, p, tg) for j, (p, tg) in reports.items()})
+        self.journal.deliveries.append((round_no, frm, self.agent, np.flatnonzero(carried)))
+        return True
+
+    def _turned(self, t: RigidTransform, pos: Cell, target: Cell | None) -> tuple[Cell, Cell | None]:
+        h, w = self.shape
+
+        def at(c: Cell) -> Cell:
+            r, cc = np.rint(t.map_points(np.array(c, dtype=np.float64))[0]).astype(int)
+            return (int(np.clip(r, 0, h - 1)), int(np.clip(cc, 0, w - 1)))
+
+        return at(pos), None if target is None else at(target)
+
+
+def registrations(sharing: Sharing) -> tuple[dict, ...] | None:
+    """Every registration a framed base made (:class:`Placing` as dicts, in order), or on the
+    mesh every agent's (each with ``by``, the agent that placed the cells); None otherwise
+    (known poses, or ``none``)."""
+    if isinstance(sharing.base, _Placer):
+        return tuple(p.to_dict() for p in sharing.base.log)
+    peers = [e for e in (sharing.peers or {}).values() if isinstance(e, FramedRawPeer)]
+    if not peers:
+        return None
+    return tuple(sorted(({**p.to_dict(), "by": e.agent} for e in peers for p in e.log),
+                        key=lambda d: (d["round"], d["by"], d["rover"])))
 
 
 def build(name: str, setup: Setup) -> Sharing:
     """The ends of ``name`` for a mission with ``[frames]``: ``raw`` and ``predictive`` on the
-    star merge through registration; ``none`` is as ever (its rovers keep their own frames)."""
+    star merge through registration at the base, ``raw`` on the mesh at every agent; ``none``
+    is as ever (its rovers keep their own frames)."""
     if name not in ("raw", "predictive") or not setup.config.frames.enabled:
         return build_known(name, setup)
     lc, f = setup.config.link, setup.config.frames
@@ -742,6 +860,13 @@ def build(name: str, setup: Setup) -> Sharing:
         near = np.hypot(rows - lander[0], cols - lander[1]) <= f.lander_view
         reference = np.where(near, setup.truth.classes, UNKNOWN).astype(np.uint8)
     recent = 2 * setup.config.sync_every
+    if lc.topology == "mesh":  # raw gossip: every agent places what it receives
+        agents = setup.topology.peer_agents(len(setup.team))
+        peers: dict[int, PeerEnd] = {
+            a: FramedRawPeer(a, None if a == BASE else setup.team[a], setup.truth.shape, setup.starts, agents=agents,
+                             journal=setup.journal, frames=f, reference=reference) for a in agents}
+        return Sharing(name, setup.team, [peers[k] for k in range(len(setup.team))], peers=peers,
+                       journal=setup.journal)
     if name == "predictive":
         # a rover writes what it senses around its estimated cell, up to SENSED_BEYOND past its sensor's range
         radius, opts = setup.config.sensor_radius + SENSED_BEYOND, PredictiveOptions(**setup.options)
@@ -759,5 +884,5 @@ def build(name: str, setup: Setup) -> Sharing:
 
 
 __all__ = ["FRAMED_STRATEGIES", "SENSED_BEYOND", "TRANSFORM_BYTES", "FramedPredictiveBase", "FramedPredictiveRover",
-           "FramedRawBase", "FramedRawRover", "FramedWorld", "Placing", "Pose", "build", "chain", "check_frames",
-           "pack_transform", "registrations", "track", "unpack_transform"]
+           "FramedRawBase", "FramedRawPeer", "FramedRawRover", "FramedWorld", "Placing", "Pose", "build", "chain",
+           "check_frames", "pack_transform", "registrations", "track", "unpack_transform"]

@@ -201,8 +201,12 @@ class RawPeer(PeerEnd):
     def held(self) -> np.ndarray:
         return self.hold
 
+    def shared(self) -> np.ndarray:
+        """The cells its messages share (its belief: what it observed and what it received)."""
+        return self.belief()
+
     def message(self, to: int, round_no: int, step: int, budget: int | None) -> Outgoing:
-        belief = self.belief()
+        belief = self.shared()
         r = self.rover
         stamps = self.got if r is None else np.where(r.local != UNKNOWN, r.obs_step, self.got)
         candidates = (belief != UNKNOWN) & ~self.has[to]

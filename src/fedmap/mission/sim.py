@@ -218,7 +218,7 @@ class _Run:
         return StrategyRun(self.name, series, summary, self.link.ledger, self.frames, trails, seconds,
                            dropped_updates=None if journal.dropped is None else tuple(journal.dropped),
                            model_lag=None if journal.lags is None else tuple(journal.lags),
-                           registrations=registrations(self.sharing.base),
+                           registrations=registrations(self.sharing),
                            sharing=self.sharing,
                            views=tuple(self.views))  # the last step's, recorded after its deliveries
 
