@@ -245,10 +245,11 @@ class FramesConfig:
     per axis, a heading of ``start_heading`` degrees std), and its odometry drifts as it
     drives: a scale error of ``drift`` std (0.02: 2 % of the distance) and a heading drift
     of ``heading_drift`` degrees std per metre, each drawn once per rover. A rover maps in
-    the frame its estimated pose implies; ``raw`` on the star then merges through
-    registration (:mod:`fedmap.maps.registration`). ``lander_view``: the lander imaged the
-    ground within this many cells of itself at landing, in its own (the true) frame; the
-    base registers rovers on that image too, but never merges or shares it. All zero (the
+    the frame its estimated pose implies; ``raw`` and ``predictive`` on the star, and ``raw``
+    gossip on the mesh, then merge through registration (:mod:`fedmap.maps.registration`).
+    ``lander_view``: the lander imaged the ground within this many cells of itself at
+    landing, in its own (the true) frame; the base (on the mesh, the lander) registers rovers
+    on that image too, but never merges or shares it. All zero (the
     default): known poses, the mission as without this table.
     """
 
