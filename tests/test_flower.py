@@ -398,3 +398,40 @@ def test_the_team_map_size_is_the_majority_not_the_first_reply(tmp_path, blob_ma
                                                            "min-rovers": 1}))
     _round(strategy, FakeGrid(nodes), _contexts(nodes, run), to_record(b""), 1)
     assert sorted(strategy.history[0].dropped) == [1, 2, 3] and list(strategy.history[0].aggregation_counts) == [0]
+
+
+def test_the_first_round_waits_its_own_deadline_and_the_later_ones_the_deadline(tmp_path, monkeypatch):
+    """Flower's strategy takes one timeout for every round; the base station's grid gives the
+    first exchange ``first-deadline`` (it also covers each rover's start-up) and every later
+    one the timeout it is given. 0 (the default) is the deadline for every round."""
+    from fedmap.flower import server_app
+
+    class Recording(FakeGrid):
+        def __init__(self):
+            super().__init__([])
+            self.waits = []
+
+        def send_and_receive(self, messages, *, timeout=None):
+            self.waits.append(timeout)
+            return []
+
+    seen = {}
+
+    def start(self, *, grid, timeout, **kw):  # what run_base_station hands Flower
+        seen["grid"], seen["timeout"] = grid, timeout
+        raise FedmapError("stop here")
+
+    monkeypatch.setattr(server_app.FedmapStrategy, "start", start)
+    for run, first, later in (({"deadline": 90.0, "first-deadline": 240.0}, 240.0, 90.0),
+                              ({"deadline": 90.0}, 90.0, 90.0)):
+        inner = Recording()
+        with pytest.raises(FedmapError, match="stop here"):
+            server_app.run_base_station(inner, RunSettings.from_run_config({**RUN, "out": str(tmp_path), **run}))
+        grid = seen["grid"]
+        assert isinstance(grid, server_app.FirstRoundGrid) and seen["timeout"] == later
+        for _ in range(3):
+            grid.send_and_receive([], timeout=seen["timeout"])
+        assert inner.waits == [first, later, later]
+        assert list(grid.get_node_ids()) == []  # everything else is the grid's own
+    with pytest.raises(FedmapError, match="first-deadline"):
+        RunSettings.from_run_config({**RUN, "first-deadline": -1.0})

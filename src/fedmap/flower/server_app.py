@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
+from collections.abc import Iterable
 from dataclasses import replace
 from logging import INFO
 from pathlib import Path
@@ -313,6 +314,43 @@ def _metrics(msg: Message) -> Any:
     return msg.content["metrics"]
 
 
+class FirstRoundGrid(Grid):
+    """``grid`` whose first exchange waits ``first`` seconds for replies, every later one the
+    timeout it is given (the deadline): Flower's strategy takes one timeout for every round,
+    and the first round's also covers each rover's start-up. Everything else is ``grid``'s."""
+
+    def __init__(self, grid: Grid, first: float) -> None:
+        self._grid: Grid = grid
+        self._first: float | None = first
+
+    @property
+    def run(self) -> Any:
+        return self._grid.run
+
+    def set_run(self, run: Any) -> None:
+        self._grid.set_run(run)
+
+    def create_message(self, content: Any, message_type: str, dst_node_id: int, group_id: str,
+                       ttl: float | None = None) -> Message:
+        return self._grid.create_message(content, message_type, dst_node_id, group_id, ttl)
+
+    def get_node_ids(self) -> Iterable[int]:
+        return self._grid.get_node_ids()
+
+    def get_nodes(self) -> Iterable[Any]:
+        return self._grid.get_nodes()
+
+    def push_messages(self, messages: Iterable[Message]) -> Iterable[str]:
+        return self._grid.push_messages(messages)
+
+    def pull_messages(self, message_ids: Iterable[str]) -> Iterable[Message]:
+        return self._grid.pull_messages(message_ids)
+
+    def send_and_receive(self, messages: Iterable[Message], *, timeout: float | None = None) -> Iterable[Message]:
+        wait, self._first = (timeout if self._first is None else self._first), None
+        return self._grid.send_and_receive(messages, timeout=wait)
+
+
 def run_base_station(grid: Grid, settings: RunSettings, run_config: dict | None = None) -> Path:
     """R rounds on ``grid`` (those left after the ``resume`` checkpoint), then render,
     refine, evaluate and write the outputs."""
@@ -322,7 +360,8 @@ def run_base_station(grid: Grid, settings: RunSettings, run_config: dict | None 
     if left < 1:
         raise FedmapError(f"nothing to resume: the checkpoint is after round {strategy.offset} of "
                           f"{settings.federation.rounds}")
-    strategy.start(grid=grid, initial_arrays=to_record(b""), num_rounds=left,
+    first = settings.base.first_deadline or settings.base.deadline
+    strategy.start(grid=FirstRoundGrid(grid, first), initial_arrays=to_record(b""), num_rounds=left,
                    timeout=settings.base.deadline, evaluate_fn=strategy.checkpoint)
     fed = strategy.result()
     flower = {

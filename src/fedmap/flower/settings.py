@@ -39,6 +39,10 @@ class BaseStation:
     min_rovers: int = _schema.setting(1, help="Fewest rovers a round may aggregate; fewer ends the run")
     deadline: float = _schema.setting(600.0, help="Seconds a round waits for replies; late rovers are recorded as "
                                       "missing")
+    first_deadline: float = _schema.setting(0.0, help="Seconds the first round this base station runs waits for "
+                                            "replies: it also covers each rover's start-up (its SuperExec, the "
+                                            "app's install, a ClientApp process), so it may be longer than a later "
+                                            "round's (0: the deadline)")
     connect_timeout: float = _schema.setting(120.0, help="Seconds to wait for rovers to connect")
     out: str = _schema.setting("fedmap-out/flower", help="Output folder (replaced atomically)")
     truth: str = _schema.setting("", help="Ground-truth map file (.png or .npy) to evaluate against ('': none)",
@@ -55,6 +59,8 @@ class BaseStation:
             raise FedmapError(f"rovers must be >= 1 (the team is partition ids 0..rovers-1), got {self.rovers}")
         if not 1 <= self.min_rovers <= self.rovers:
             raise FedmapError(f"need 1 <= min-rovers <= rovers, got min-rovers={self.min_rovers}, rovers={self.rovers}")
+        if not self.first_deadline >= 0:
+            raise FedmapError(f"first-deadline must be >= 0 (0: the deadline), got {self.first_deadline}")
         if not (self.deadline > 0 and self.connect_timeout > 0):
             raise FedmapError(f"deadline and connect-timeout must be positive, got {self.deadline}, "
                               f"{self.connect_timeout}")
