@@ -452,6 +452,20 @@ class FramedRawRover(_FramedView, RawRover):
         return ok
 
 
+def _through(t: RigidTransform, c: Cell, shape: tuple[int, int] | None = None) -> Cell:
+    """Cell ``c`` through ``t``, to the nearest cell (clipped to a ``shape`` grid if given)."""
+    r, cc = np.rint(t.map_points(np.array(c, dtype=np.float64))[0]).astype(int)
+    if shape is not None:
+        r, cc = np.clip(r, 0, shape[0] - 1), np.clip(cc, 0, shape[1] - 1)
+    return (int(r), int(cc))
+
+
+def _report_through(t: RigidTransform, pos: Cell, target: Cell | None,
+                    shape: tuple[int, int] | None = None) -> tuple[Cell, Cell | None]:
+    """A rover's reported position and target through ``t`` (:func:`_through`)."""
+    return _through(t, pos, shape), None if target is None else _through(t, target, shape)
+
+
 def chain(a: Cell, b: Cell) -> list[Cell]:
     """The cells from ``a`` (excluded) to ``b`` (included) by steps between neighbouring cells:
     diagonal first, then straight (an estimated cell can jump, a coded trail cannot)."""
@@ -629,14 +643,7 @@ class _Placer:
 
     def _in_global(self, j: int, pos: Cell, target: Cell | None) -> tuple[Cell, Cell | None]:
         t = self.transforms[j]
-        if t is None:
-            return pos, target
-
-        def at(c: Cell) -> Cell:
-            r, cc = t.map_points(np.array(c))[0]
-            return (int(round(r)), int(round(cc)))
-
-        return at(pos), None if target is None else at(target)
+        return (pos, target) if t is None else _report_through(t, pos, target)
 
 
 class FramedRawBase(_Placer, RawBase):
@@ -701,17 +708,11 @@ class FramedPredictiveBase(_Placer, PredictiveBase):
         t = self.transforms[k]
         if t is None:
             return
-        h, w = self.shape
-
-        def at(c: Cell) -> Cell:
-            r, cc = np.rint(t.map_points(np.array(c, dtype=np.float64))[0]).astype(int)
-            return (int(np.clip(r, 0, h - 1)), int(np.clip(cc, 0, w - 1)))
-
         for c in self.own[k][self.laid[k]:]:
-            self.trails[k].extend(chain(self.trails[k][-1], at(c)))
+            self.trails[k].extend(chain(self.trails[k][-1], _through(t, c, self.shape)))
         self.laid[k] = len(self.own[k])
         mark = self.own_targets[k]
-        self.targets[k] = None if mark is None else at(mark)
+        self.targets[k] = None if mark is None else _through(t, mark, self.shape)
 
     def must_send(self, k: int) -> bool:
         return self.told[k] != self.transforms[k]
@@ -779,7 +780,6 @@ class FramedRawPeer(RawPeer):
         _, _, reports, body = unpack_down(payload)
         cells = decode_map(body, expected_shape=self.shape)
         if not (cells != UNKNOWN).any():
-            self.heard({})
             return True
         f = self.frames
         mine = np.where(self.given[frm], UNKNOWN, self.belief())
@@ -814,22 +814,13 @@ class FramedRawPeer(RawPeer):
         placed = t.apply(cells, self.shape)
         carried = placed != UNKNOWN
         merged = combine(self.hold, placed)
-        self.got[(merged != self.hold)] = step
+        self.got[merged != self.hold] = step
         self.hold = merged
         self.given[frm] |= carried
         self.has[frm] |= carried
-        self.heard({j: self._turned(t, p, tg) for j, (p, tg) in reports.items()})
+        self.heard({j: _report_through(t, p, tg, self.shape) for j, (p, tg) in reports.items()})
         self.journal.deliveries.append((round_no, frm, self.agent, np.flatnonzero(carried)))
         return True
-
-    def _turned(self, t: RigidTransform, pos: Cell, target: Cell | None) -> tuple[Cell, Cell | None]:
-        h, w = self.shape
-
-        def at(c: Cell) -> Cell:
-            r, cc = np.rint(t.map_points(np.array(c, dtype=np.float64))[0]).astype(int)
-            return (int(np.clip(r, 0, h - 1)), int(np.clip(cc, 0, w - 1)))
-
-        return at(pos), None if target is None else at(target)
 
 
 def registrations(sharing: Sharing) -> tuple[dict, ...] | None:
