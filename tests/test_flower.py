@@ -406,15 +406,8 @@ def test_the_first_round_waits_its_own_deadline_and_the_later_ones_the_deadline(
     one the timeout it is given. 0 (the default) is the deadline for every round."""
     from fedmap.flower import server_app
 
-    class Recording(FakeGrid):
-        def __init__(self):
-            super().__init__([])
-            self.waits = []
-
-        def send_and_receive(self, messages, *, timeout=None):
-            self.waits.append(timeout)
-            return []
-
+    waits = []
+    monkeypatch.setattr(server_app, "exchange", lambda grid, msgs, timeout, **kw: waits.append(timeout) or [])
     seen = {}
 
     def start(self, *, grid, timeout, **kw):  # what run_base_station hands Flower
@@ -424,14 +417,63 @@ def test_the_first_round_waits_its_own_deadline_and_the_later_ones_the_deadline(
     monkeypatch.setattr(server_app.FedmapStrategy, "start", start)
     for run, first, later in (({"deadline": 90.0, "first-deadline": 240.0}, 240.0, 90.0),
                               ({"deadline": 90.0}, 90.0, 90.0)):
-        inner = Recording()
+        waits.clear()
         with pytest.raises(FedmapError, match="stop here"):
-            server_app.run_base_station(inner, RunSettings.from_run_config({**RUN, "out": str(tmp_path), **run}))
+            server_app.run_base_station(FakeGrid([]), RunSettings.from_run_config({**RUN, "out": str(tmp_path), **run}))
         grid = seen["grid"]
         assert isinstance(grid, server_app.FirstRoundGrid) and seen["timeout"] == later
         for _ in range(3):
             grid.send_and_receive([], timeout=seen["timeout"])
-        assert inner.waits == [first, later, later]
+        assert waits == [first, later, later]
         assert list(grid.get_node_ids()) == []  # everything else is the grid's own
     with pytest.raises(FedmapError, match="first-deadline"):
         RunSettings.from_run_config({**RUN, "first-deadline": -1.0})
+
+
+def test_a_reply_cut_on_the_link_costs_no_more_than_the_round_deadline(monkeypatch):
+    """A reply whose message reached the SuperLink but whose body never did: Flower's own grid
+    (``HttpGrid``, the base station's) pulls the body with retries for up to 2 hours, so
+    Flower's ``send_and_receive`` overran a 90 s deadline until the SuperLink dropped the
+    upload (seen: a round of the keep-dropping loopback run took about 200 s). The base's
+    exchange gives up at its deadline, and the reply is the lost reply the round records."""
+    from types import SimpleNamespace
+
+    from flwr.app import Message, MessageType
+    from flwr.common.serde import message_to_proto
+    from flwr.proto.message_pb2 import ObjectTree
+    from flwr.proto.runtime_pb2 import PullAppMessagesResponse
+    from flwr.supercore.run import Run
+    from flwr.superlink.grid import HttpGrid
+
+    from fedmap.flower import polling
+    from fedmap.flower.server_app import _REPLY_LOST
+
+    ins = Message(RecordDict({"config": ConfigRecord({})}), dst_node_id=7, message_type=MessageType.TRAIN)
+    ins.metadata.__dict__["_message_id"] = ins.object_id
+    reply = Message(RecordDict({"config": ConfigRecord({"x": 1})}), reply_to=ins)
+    reply.metadata.__dict__["_message_id"] = reply.object_id
+    tries = []
+
+    class Client:  # the SuperLink: the reply's message is stored, its body never arrives
+        def PullMessages(self, request):  # noqa: N802 (Flower's RPC names)
+            return PullAppMessagesResponse(messages_list=[message_to_proto(reply)],
+                                           message_object_trees=[ObjectTree(object_id=reply.object_id)])
+
+        def PullObject(self, request):  # noqa: N802
+            tries.append(request.object_id)
+            if len(tries) > 50:  # Flower alone: retries far past the deadline (500 tries, 2 h)
+                raise RuntimeError("still pulling a reply the deadline gave up on")
+            return SimpleNamespace(object_found=True, object_available=False, object_content=b"")
+
+    grid = HttpGrid(insecure=True, token="t")  # never connected: the SuperLink is the fake client above
+    grid.set_run(Run.create_empty(1))
+    monkeypatch.setattr(HttpGrid, "_runtime_client", property(lambda self: Client()))
+    monkeypatch.setattr(grid, "push_messages", lambda msgs: [ins.object_id], raising=False)
+    kw = polling.inflatable_utils.pull_objects.__kwdefaults__
+    monkeypatch.setitem(kw, "initial_backoff", 0.05)
+    monkeypatch.setitem(kw, "backoff_cap", 0.2)
+    got = polling.exchange(grid, [ins], 0.5)
+    assert len(got) == 1 and got[0].has_error() and _REPLY_LOST in got[0].error.reason
+    assert got[0].metadata.reply_to_message_id == ins.object_id
+    assert 2 <= len(tries) <= 12  # 0.5 s of retries 0.05-0.2 s apart
+    assert kw["max_time"] == 7200  # Flower's own, outside an exchange

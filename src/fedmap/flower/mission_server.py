@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
 from logging import INFO, WARNING
 from pathlib import Path
 
@@ -30,7 +29,7 @@ from flwr.supercore import log
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
 from fedmap.flower.mission_task import BaseJournal, MissionRun, mission_from_text, strategies_of, write_result
-from fedmap.flower.polling import quick_pulls
+from fedmap.flower.polling import exchange, quick_pulls
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.task import write_status
 from fedmap.mission.remote import BaseNode, CorruptMessage, Report, check_deployable, pack_history, rounds
@@ -48,34 +47,8 @@ def say(out: Path, level: int, line: str) -> None:
 
 #: Times an order is sent again after a damaged order or report before the run fails.
 RESENDS = 3
-#: Seconds between the base's polls for replies (Flower's ``send_and_receive`` waits 3 s).
-POLL = 0.02
-#: Seconds a rover may hold its order before the base asks its node which rover process
-#: runs there (and again every as many seconds while it holds it).
-OVERDUE = 30.0
 #: Seconds the base waits for a node to say which rover (and which process) it is.
 ASK_WAIT = 10.0
-
-
-def exchange(grid: Grid, msgs: list[Message], timeout: float, *,
-             overdue: Callable[[set[str]], set[str]] | None = None) -> list[Message]:
-    """Push ``msgs``, then pull their replies every :data:`POLL` s until all are in or
-    ``timeout`` s have passed. ``overdue``: called every :data:`OVERDUE` s with the IDs of
-    the messages still unanswered; the IDs it returns are no longer waited for."""
-    ids = set(grid.push_messages(msgs))
-    replies: list[Message] = []
-    t_end = time.monotonic() + timeout
-    check = time.monotonic() + OVERDUE
-    while ids and time.monotonic() < t_end:
-        got = list(grid.pull_messages(ids))
-        replies += got
-        ids -= {m.metadata.reply_to_message_id for m in got}
-        if ids and overdue is not None and time.monotonic() >= check:
-            ids -= overdue(set(ids))
-            check = time.monotonic() + OVERDUE
-        if ids:
-            time.sleep(POLL)
-    return replies
 
 
 class _Team:

@@ -6,10 +6,24 @@ Flower pulls a message's objects with a backoff that starts at 1 s
 try (the usual case right after a message is announced) costs a second per message, on the
 rover (its ClientApp pulling its task) and on the base (pulling a reply).
 :func:`quick_pulls` starts that backoff at ``first`` seconds instead, in this process.
+
+:func:`exchange` is every base station's round trip (the paper run's, a mission's, the
+predictor's sites'): push the messages, pull the replies until all are in or the deadline
+has passed. Flower's own ``send_and_receive`` keeps the deadline only between its pulls: a
+reply whose message reached the SuperLink but whose body was cut on the link is pulled
+with retries for up to 2 hours (``PULL_MAX_TIME``), in practice until the SuperLink drops
+the sender's upload session (180 s), so one reply lost on a cut link held a round with a
+90 s deadline for 190-200 s. Here every pull gives up at the deadline.
 """
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+from flwr.app import Message
+from flwr.serverapp import Grid
 from flwr.supercore.inflatable import inflatable_utils
 
 #: Seconds before the first retry of an object pull (Flower's own: 1 s), and the cap (10 s).
@@ -22,3 +36,47 @@ def quick_pulls(first: float = FIRST_RETRY, cap: float = RETRY_CAP) -> None:
         kw = fn.__kwdefaults__
         assert kw is not None and "initial_backoff" in kw, f"Flower's {fn.__name__} changed"
         kw["initial_backoff"], kw["backoff_cap"] = first, cap
+
+
+#: Seconds between a base station's polls for replies (Flower's ``send_and_receive``: 3 s).
+POLL = 0.02
+#: Seconds between calls of :func:`exchange`'s ``overdue`` (a mission's base asks, that often,
+#: which rover process runs on the node of a rover still holding its order).
+OVERDUE = 30.0
+
+
+@contextmanager
+def pulls_within(seconds: float) -> Iterator[None]:
+    """Flower's object pulls started inside give up after ``seconds`` (its own: 2 h), in this
+    process: the message then comes back as Flower's error "Reply message objects are
+    unavailable" (a reply lost on the link), as when the upload session expires."""
+    kw = inflatable_utils.pull_objects.__kwdefaults__
+    assert kw is not None and "max_time" in kw, "Flower's pull_objects changed"
+    before, kw["max_time"] = kw["max_time"], max(seconds, 0.0)
+    try:
+        yield
+    finally:
+        kw["max_time"] = before
+
+
+def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = POLL,
+             overdue: Callable[[set[str]], set[str]] | None = None) -> list[Message]:
+    """Push ``msgs``, then pull their replies every ``poll`` s until all are in or
+    ``timeout`` s have passed; no pull outlasts the deadline (:func:`pulls_within`).
+    ``overdue``: called every :data:`OVERDUE` s with the IDs of the messages still
+    unanswered; the IDs it returns are no longer waited for."""
+    ids = {i for i in grid.push_messages(msgs) if i}
+    replies: list[Message] = []
+    t_end = time.monotonic() + timeout
+    check = time.monotonic() + OVERDUE
+    while ids and (left := t_end - time.monotonic()) > 0:
+        with pulls_within(left):
+            got = list(grid.pull_messages(ids))
+        replies += got
+        ids -= {m.metadata.reply_to_message_id for m in got}
+        if ids and overdue is not None and time.monotonic() >= check:
+            ids -= overdue(set(ids))
+            check = time.monotonic() + OVERDUE
+        if ids:
+            time.sleep(poll)
+    return replies

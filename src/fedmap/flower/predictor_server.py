@@ -22,8 +22,7 @@ from flwr.supercore import log
 
 from fedmap.errors import FedmapError
 from fedmap.federation.codecs import Encoder, decode
-from fedmap.flower.mission_server import exchange
-from fedmap.flower.polling import quick_pulls
+from fedmap.flower.polling import exchange, quick_pulls
 from fedmap.flower.predictor_task import PredictorRun, save_round, write_rounds_log
 from fedmap.flower.records import check_flower_count, from_record, to_record
 from fedmap.flower.task import write_status
