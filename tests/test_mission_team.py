@@ -10,7 +10,7 @@ pytest.importorskip("flwr")
 from flwr.app import ConfigRecord, Message, MessageType, RecordDict  # noqa: E402
 from tests.test_flower import task_identity  # noqa: E402, F401
 
-from fedmap.flower import mission_server  # noqa: E402
+from fedmap.flower import mission_server, polling  # noqa: E402
 from fedmap.flower.mission_task import MissionRun  # noqa: E402
 from fedmap.flower.records import to_record  # noqa: E402
 from fedmap.mission.remote import Report  # noqa: E402
@@ -70,7 +70,7 @@ def _team(tmp_path, grid):
 
 
 def test_a_rover_restarted_as_the_same_node_holding_its_order_gets_it_again_at_rejoin(tmp_path, monkeypatch):
-    monkeypatch.setattr(mission_server, "OVERDUE", 0.05)
+    monkeypatch.setattr(polling, "OVERDUE", 0.05)
     grid = OneRoverGrid(dies_holding=True)
     team = _team(tmp_path, grid)
     assert team.send("raw", {0: b"order"}, {}) == {0: REPORT}
@@ -81,7 +81,7 @@ def test_a_rover_restarted_as_the_same_node_holding_its_order_gets_it_again_at_r
 
 
 def test_a_slow_rover_of_the_same_process_is_waited_for_not_sent_its_order_again_at_rejoin(tmp_path, monkeypatch):
-    monkeypatch.setattr(mission_server, "OVERDUE", 0.05)
+    monkeypatch.setattr(polling, "OVERDUE", 0.05)
     grid = OneRoverGrid(slow=40)  # 40 polls of 20 ms: several overdue checks
     team = _team(tmp_path, grid)
     assert team.send("raw", {0: b"order"}, {}) == {0: REPORT}
