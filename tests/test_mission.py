@@ -699,3 +699,34 @@ def test_the_central_map_kept_between_writes_is_the_overlay_of_every_rover(kind,
         if kind == "helicopter" else {}
     run_mission(_small(steps=25, strategies=("central",), **heli), _maze())
     assert len(calls) > 25 and calls[-1] > calls[0]  # asked for at every step, and it grew
+
+
+def test_rovers_training_side_by_side_send_what_they_send_one_after_another(monkeypatch):
+    """A sync's rovers train on threads side by side (``protocol.side_by_side``), each on one
+    torch thread: the same losses, bytes on the link and models as training them in turn
+    (one core), including a rejected update's place in the journal."""
+    from fedmap.mission import protocol, topology
+
+    truth = _maze(32)
+    cfg = _small(rovers=3, steps=12, sync_every=4, strategies=("fedmap",), link=LinkConfig(loss=0.2, seed=2),
+                 methods={"fedmap": {"epochs": 4}})
+    pools = []
+
+    class Counted(protocol.ThreadPoolExecutor):
+        def __init__(self, n):
+            pools.append(n)
+            super().__init__(n)
+
+    monkeypatch.setattr(protocol, "ThreadPoolExecutor", Counted)
+    monkeypatch.setattr(protocol.os, "sched_getaffinity", lambda _pid: {0, 1}, raising=False)
+    two = run_mission(cfg, truth).runs["fedmap"]
+    assert pools and set(pools) == {2}  # 3 rovers per sync on 2 cores
+    monkeypatch.setattr(topology, "side_by_side", lambda calls: None)  # each rover trains in its uplink, in turn
+    one = run_mission(cfg, truth).runs["fedmap"]
+    assert len(pools) == 3  # one pool per sync, none since
+    assert one.ledger == two.ledger and sum(m.bytes for m in one.ledger) > 0
+    losses = [r.sharing.rovers[0].journal.losses for r in (one, two)]
+    assert losses[0] == losses[1] and len(losses[0]) >= 6
+    for a, b in zip(one.sharing.rovers, two.sharing.rovers):
+        for name, w in a.held_w.items():
+            np.testing.assert_array_equal(b.held_w[name], w)

@@ -123,26 +123,48 @@ class ModelRover(RoverEnd):
         self.version = model_version(init)
         self.last_trained = -1  # the step it last trained at (-1: never)
         self.receiving: dict | None = None  # the chunks of a downlink it has so far
+        #: what :meth:`prepare`'s call trained: (round, encoder state before, (body, loss) or the
+        #: rejection, its known cells)
+        self.trained: tuple[int, Weights | None, tuple | RejectedUpdate, int] | None = None
 
     def held(self) -> np.ndarray:
         return self.render(self.version, self.held_w)
 
-    def uplink(self, round_no: int) -> Outgoing | None:
+    def prepare(self, round_no: int) -> Callable[[], None]:
+        """Its training for this round's uplink, as a call that touches this rover alone (its
+        network, encoder and map), so the rovers of a sync can train side by side
+        (:meth:`~fedmap.mission.protocol.RoverEnd.prepare`); :meth:`uplink` then sends it."""
         r, k = self.rover, self.k
         local = self.truth.with_classes(r.local, f"rover {k}")
         before = self.enc.state()
         select = self._selection(round_no)
-        try:
-            with torch_threads():
-                body, loss = rover_step(self.model, local, self.held_w, self.enc, self.fed,
-                                        round_idx=round_no - 1, agent=k, select=select)
-        except RejectedUpdate as e:
+
+        def train() -> None:
+            try:
+                with torch_threads():
+                    out: tuple | RejectedUpdate = rover_step(self.model, local, self.held_w, self.enc, self.fed,
+                                                             round_idx=round_no - 1, agent=k, select=select)
+            except RejectedUpdate as e:
+                out = e
+            self.trained = (round_no, before, out, local.n_known)
+
+        return train
+
+    def uplink(self, round_no: int) -> Outgoing | None:
+        r, k = self.rover, self.k
+        if self.trained is None or self.trained[0] != round_no:
+            self.prepare(round_no)()
+        assert self.trained is not None
+        _, before, out, known = self.trained
+        self.trained = None
+        if isinstance(out, RejectedUpdate):
             assert self.journal.dropped is not None
-            self.journal.dropped.append(DroppedUpdate(round_no, k, str(e)))
+            self.journal.dropped.append(DroppedUpdate(round_no, k, str(out)))
             return None
+        body, loss = out
         self.journal.losses.append({"round": round_no, "rover": k, "loss": loss})
         kind = "update" if self.up_update else "model"
-        count = _COUNT.pack(local.n_known)
+        count = _COUNT.pack(known)
         payload: bytes | None = pack_up(self.version, r.pos, r.target, count + body)
         b = self.budget
         if b is not None and payload is not None and len(payload) > b:  # rate control: the best update that fits

@@ -19,8 +19,10 @@ targets with it.
 
 from __future__ import annotations
 
+import os
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
@@ -57,6 +59,21 @@ def torch_threads(n: int = TORCH_THREADS) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+def side_by_side(calls: list[Callable[[], None]]) -> None:
+    """Run ``calls`` (each touching its own rover's state only) on up to one thread per core,
+    every one on one torch thread: each computes what it would alone, bit for bit, whatever
+    the number of cores (torch releases the GIL in its kernels). A call's error is raised."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    with torch_threads():  # the calls' own torch_threads() then keep 1: nobody switches it back meanwhile
+        if len(calls) < 2 or cores < 2:
+            for call in calls:
+                call()
+            return
+        with ThreadPoolExecutor(min(cores, len(calls))) as pool:
+            for future in [pool.submit(call) for call in calls]:
+                future.result()
 
 
 def v8(version: str) -> bytes:
@@ -183,6 +200,12 @@ class RoverEnd:
     # -- the link
     def at_sync(self, round_no: int) -> None:
         """Called at every sync, before the uplinks of round ``round_no``."""
+
+    def prepare(self, round_no: int) -> Callable[[], None] | None:
+        """The heavy part of this round's :meth:`uplink` (a model's training) as a call that
+        touches this end alone, so a sync can run the rovers' calls side by side before it
+        asks them for their uplinks in order; None (the default): nothing worth it."""
+        return None
 
     def uplink(self, round_no: int) -> Outgoing | None:
         """Its uplink of this round; None when it has none (e.g. its update was rejected)."""

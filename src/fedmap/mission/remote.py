@@ -392,6 +392,10 @@ class RemoteRover:
     def at_sync(self, round_no: int) -> None:
         """Run on the rover, before its uplink."""
 
+    def prepare(self, round_no: int) -> None:
+        """Its training ran on the rover, before its report."""
+        return None
+
     def uplink(self, round_no: int) -> Outgoing | None:
         assert self.report is not None
         for key, entries in self.report.journal.items():  # what its end journaled making the uplink

@@ -34,6 +34,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from fedmap.mission.link import BASE, DOWN, UP, Link, Message
+from fedmap.mission.protocol import side_by_side
 
 Cell = tuple[int, int]
 #: Slack on ``max_range`` (cells), so a rover exactly at the range is in range despite rounding.
@@ -84,6 +85,7 @@ class Exchange:
         s, link = self.sharing, self.link
         positions = self.positions()
         reachable = self.topology.reachable(positions)
+        side_by_side([c for k, rover in enumerate(s.rovers) if reachable[k] and (c := rover.prepare(round_no))])
         for k, rover in enumerate(s.rovers):
             if not reachable[k]:  # recorded as out of range
                 link.send(None, round_no=round_no, step=t, rover=k, direction=UP, kind="-", positions=positions)
