@@ -406,8 +406,15 @@ def test_the_first_round_waits_its_own_deadline_and_the_later_ones_the_deadline(
     one the timeout it is given. 0 (the default) is the deadline for every round."""
     from fedmap.flower import server_app
 
-    waits = []
-    monkeypatch.setattr(server_app, "exchange", lambda grid, msgs, timeout, **kw: waits.append(timeout) or [])
+    class Recording(FakeGrid):
+        def __init__(self):
+            super().__init__([])
+            self.waits = []
+
+        def send_and_receive(self, messages, *, timeout=None):
+            self.waits.append(timeout)
+            return []
+
     seen = {}
 
     def start(self, *, grid, timeout, **kw):  # what run_base_station hands Flower
@@ -417,14 +424,14 @@ def test_the_first_round_waits_its_own_deadline_and_the_later_ones_the_deadline(
     monkeypatch.setattr(server_app.FedmapStrategy, "start", start)
     for run, first, later in (({"deadline": 90.0, "first-deadline": 240.0}, 240.0, 90.0),
                               ({"deadline": 90.0}, 90.0, 90.0)):
-        waits.clear()
+        inner = Recording()
         with pytest.raises(FedmapError, match="stop here"):
-            server_app.run_base_station(FakeGrid([]), RunSettings.from_run_config({**RUN, "out": str(tmp_path), **run}))
+            server_app.run_base_station(inner, RunSettings.from_run_config({**RUN, "out": str(tmp_path), **run}))
         grid = seen["grid"]
         assert isinstance(grid, server_app.FirstRoundGrid) and seen["timeout"] == later
         for _ in range(3):
             grid.send_and_receive([], timeout=seen["timeout"])
-        assert waits == [first, later, later]
+        assert inner.waits == [first, later, later]
         assert list(grid.get_node_ids()) == []  # everything else is the grid's own
     with pytest.raises(FedmapError, match="first-deadline"):
         RunSettings.from_run_config({**RUN, "first-deadline": -1.0})
@@ -432,10 +439,10 @@ def test_the_first_round_waits_its_own_deadline_and_the_later_ones_the_deadline(
 
 def test_a_reply_cut_on_the_link_costs_no_more_than_the_round_deadline(monkeypatch):
     """A reply whose message reached the SuperLink but whose body never did: Flower's own grid
-    (``HttpGrid``, the base station's) pulls the body with retries for up to 2 hours, so
-    Flower's ``send_and_receive`` overran a 90 s deadline until the SuperLink dropped the
-    upload (seen: a round of the keep-dropping loopback run took about 200 s). The base's
-    exchange gives up at its deadline, and the reply is the lost reply the round records."""
+    (``HttpGrid``) pulls the body with retries for up to 2 hours, until the SuperLink drops
+    the upload (180 s). The exchange of the mission's and the predictor sites' base stations
+    (``polling.exchange``) gives up at its deadline, with Flower's "objects unavailable"
+    error for that reply."""
     from types import SimpleNamespace
 
     from flwr.app import Message, MessageType

@@ -7,13 +7,14 @@ try (the usual case right after a message is announced) costs a second per messa
 rover (its ClientApp pulling its task) and on the base (pulling a reply).
 :func:`quick_pulls` starts that backoff at ``first`` seconds instead, in this process.
 
-:func:`exchange` is every base station's round trip (the paper run's, a mission's, the
-predictor's sites'): push the messages, pull the replies until all are in or the deadline
-has passed. Flower's own ``send_and_receive`` keeps the deadline only between its pulls: a
-reply whose message reached the SuperLink but whose body was cut on the link is pulled
-with retries for up to 2 hours (``PULL_MAX_TIME``), in practice until the SuperLink drops
-the sender's upload session (180 s), so one reply lost on a cut link held a round with a
-90 s deadline for 190-200 s. Here every pull gives up at the deadline.
+:func:`exchange` is the round trip of a mission's and the predictor sites' base stations:
+push the messages, pull the replies until all are in or the deadline has passed. Flower's
+own grid pulls the body of a reply whose message reached the SuperLink with retries for up
+to 2 hours (``PULL_MAX_TIME``), in practice until the SuperLink drops the sender's upload
+session (180 s): a reply cut mid-upload would hold a round past its deadline. Here every
+pull gives up at the deadline. (The paper run's base station keeps Flower's
+``send_and_receive``: the same bound there, with polls every 0.25 s, once lost every reply
+of a round in the keep-dropping loopback test under a loaded suite, and was taken back.)
 """
 
 from __future__ import annotations
