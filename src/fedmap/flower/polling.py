@@ -60,9 +60,9 @@ def pulls_within(seconds: float) -> Iterator[None]:
         kw["max_time"] = before
 
 
-def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = POLL,
+def exchange(grid: Grid, msgs: list[Message], timeout: float, *,
              overdue: Callable[[set[str]], set[str]] | None = None) -> list[Message]:
-    """Push ``msgs``, then pull their replies every ``poll`` s until all are in or
+    """Push ``msgs``, then pull their replies every :data:`POLL` s until all are in or
     ``timeout`` s have passed; no pull outlasts the deadline (:func:`pulls_within`).
     ``overdue``: called every :data:`OVERDUE` s with the IDs of the messages still
     unanswered; the IDs it returns are no longer waited for."""
@@ -79,5 +79,5 @@ def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = P
             ids -= overdue(set(ids))
             check = time.monotonic() + OVERDUE
         if ids:
-            time.sleep(poll)
+            time.sleep(POLL)
     return replies

@@ -226,11 +226,6 @@ class PredictiveBase(BaseEnd):
         return np.where(self.held_by[k] != UNKNOWN, self.held_by[k],
                         np.where(self.from_rover[k], self.base, UNKNOWN)).astype(np.uint8)
 
-    def withheld(self, k: int) -> np.ndarray | bool:
-        """Cells of the global map a downlink to rover ``k`` leaves out (none: it sends every
-        cell the rover lacks)."""
-        return False
-
     def must_send(self, k: int) -> bool:
         """Whether rover ``k`` needs a downlink even when it holds everything the base has."""
         return False

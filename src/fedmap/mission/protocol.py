@@ -19,7 +19,6 @@ targets with it.
 
 from __future__ import annotations
 
-import os
 import struct
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -30,6 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from fedmap._util import cpu_cores
 from fedmap.maps.grid import UNKNOWN
 from fedmap.mission.sensing import disk_offsets
 
@@ -65,7 +65,7 @@ def side_by_side(calls: list[Callable[[], None]]) -> None:
     """Run ``calls`` (each touching its own rover's state only) on up to one thread per core,
     every one on one torch thread: each computes what it would alone, bit for bit, whatever
     the number of cores (torch releases the GIL in its kernels). A call's error is raised."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    cores = cpu_cores()
     with torch_threads():  # the calls' own torch_threads() then keep 1: nobody switches it back meanwhile
         if len(calls) < 2 or cores < 2:
             for call in calls:
@@ -243,6 +243,11 @@ class BaseEnd:
     def downlinks(self, round_no: int) -> dict[int, Outgoing]:
         """Its round, once the uplinks that arrived are in: a downlink per rover it answers."""
         return {}
+
+    def withheld(self, k: int) -> np.ndarray | bool:
+        """Cells of the global map a downlink to rover ``k`` leaves out (none: it sends every
+        cell the rover lacks; a base of maps without a shared frame leaves out the rover's own)."""
+        return False
 
     def delivered(self, k: int, round_no: int, ok: bool) -> None:
         """The acknowledgement of its downlink of round ``round_no`` to rover ``k``."""

@@ -180,11 +180,6 @@ class RawBase(BaseEnd):
         if ok and sent is not None:
             self.acked[k] = sent
 
-    def withheld(self, k: int) -> np.ndarray | bool:
-        """Cells of the global map a downlink to rover ``k`` leaves out (none: it sends every
-        cell the rover lacks)."""
-        return False
-
 
 class RawPeer(PeerEnd):
     """An agent's end of ``raw`` gossip on a peer topology."""
