@@ -427,7 +427,7 @@ class _FramedView:
         if not self.placed:
             return theirs
         inv = self.transform.inverse()
-        return [(int(round(a)), int(round(b))) for a, b in (inv.map_points(np.array(p))[0] for p in theirs)]
+        return [_through(inv, p) for p in theirs]
 
     def _received(self, t: RigidTransform | None) -> None:
         """A downlink was taken, carrying the transform ``t`` (None: not placed yet)."""
