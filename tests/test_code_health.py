@@ -54,3 +54,27 @@ def test_importing_the_cli_or_the_rover_does_not_import_flwr():
             "print(sorted(m for m in sys.modules if m == 'flwr' or m.startswith('flwr.')))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout[-2000:] + r.stderr[-2000:]
+
+
+def test_the_suite_s_loopback_lanes_each_run_on_one_worker(tmp_path):
+    """The suite runs its long loopback tests in lanes (``xdist_group``, see addopts in
+    ``pyproject.toml``): each lane on one worker, the short tests around them. pytest 9.2
+    with pytest-xdist 3.8 drops the groups without a word (pytest-dev/pytest-xdist#1386:
+    xdist marks a group in the node ID, which pytest 9.2 no longer lets it change), so every
+    loopback run started at once on every worker and the suite took minutes longer; the test
+    extras keep pytest below 9.2. Three tests of one group, run by two workers, must share one."""
+    tests = tmp_path / "t"
+    tests.mkdir()
+    (tmp_path / "pytest.ini").write_text("[pytest]\n")
+    (tests / "test_lane.py").write_text(
+        "import os, pathlib, time, pytest\n"
+        + "".join(f"@pytest.mark.xdist_group('lane')\ndef test_{k}():\n    time.sleep(0.3)\n"
+                  f"    pathlib.Path({str(tmp_path)!r}, '{k}').write_text(os.environ['PYTEST_XDIST_WORKER'])\n"
+                  for k in range(3))
+        + "def test_other():\n    pass\n")
+    r = subprocess.run([sys.executable, "-m", "pytest", "-n", "2", "--dist", "loadgroup", "-q", "-p", "no:cacheprovider",
+                        "-c", str(tmp_path / "pytest.ini"), "--rootdir", str(tmp_path), str(tests)],
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    workers = {(tmp_path / str(k)).read_text() for k in range(3)}
+    assert len(workers) == 1, f"one group ran on workers {sorted(workers)}"
