@@ -406,15 +406,8 @@ def test_the_first_round_waits_its_own_deadline_and_the_later_ones_the_deadline(
     one the timeout it is given. 0 (the default) is the deadline for every round."""
     from fedmap.flower import server_app
 
-    class Recording(FakeGrid):
-        def __init__(self):
-            super().__init__([])
-            self.waits = []
-
-        def send_and_receive(self, messages, *, timeout=None):
-            self.waits.append(timeout)
-            return []
-
+    waits = []
+    monkeypatch.setattr(server_app, "exchange", lambda grid, msgs, timeout, **kw: waits.append(timeout) or [])
     seen = {}
 
     def start(self, *, grid, timeout, **kw):  # what run_base_station hands Flower
@@ -424,14 +417,14 @@ def test_the_first_round_waits_its_own_deadline_and_the_later_ones_the_deadline(
     monkeypatch.setattr(server_app.FedmapStrategy, "start", start)
     for run, first, later in (({"deadline": 90.0, "first-deadline": 240.0}, 240.0, 90.0),
                               ({"deadline": 90.0}, 90.0, 90.0)):
-        inner = Recording()
+        waits.clear()
         with pytest.raises(FedmapError, match="stop here"):
-            server_app.run_base_station(inner, RunSettings.from_run_config({**RUN, "out": str(tmp_path), **run}))
+            server_app.run_base_station(FakeGrid([]), RunSettings.from_run_config({**RUN, "out": str(tmp_path), **run}))
         grid = seen["grid"]
         assert isinstance(grid, server_app.FirstRoundGrid) and seen["timeout"] == later
         for _ in range(3):
             grid.send_and_receive([], timeout=seen["timeout"])
-        assert inner.waits == [first, later, later]
+        assert waits == [first, later, later]
         assert list(grid.get_node_ids()) == []  # everything else is the grid's own
     with pytest.raises(FedmapError, match="first-deadline"):
         RunSettings.from_run_config({**RUN, "first-deadline": -1.0})
@@ -440,9 +433,8 @@ def test_the_first_round_waits_its_own_deadline_and_the_later_ones_the_deadline(
 def test_a_reply_cut_on_the_link_costs_no_more_than_the_round_deadline(monkeypatch):
     """A reply whose message reached the SuperLink but whose body never did: Flower's own grid
     (``HttpGrid``) pulls the body with retries for up to 2 hours, until the SuperLink drops
-    the upload (180 s). The exchange of the mission's and the predictor sites' base stations
-    (``polling.exchange``) gives up at its deadline, with Flower's "objects unavailable"
-    error for that reply."""
+    the upload (180 s). Every base station's exchange (``polling.exchange``) gives up at its
+    deadline, with Flower's "objects unavailable" error for that reply."""
     from types import SimpleNamespace
 
     from flwr.app import Message, MessageType
@@ -484,3 +476,61 @@ def test_a_reply_cut_on_the_link_costs_no_more_than_the_round_deadline(monkeypat
     assert got[0].metadata.reply_to_message_id == ins.object_id
     assert 2 <= len(tries) <= 12  # 0.5 s of retries 0.05-0.2 s apart
     assert kw["max_time"] == 7200  # Flower's own, outside an exchange
+
+
+def test_a_reply_that_arrives_whole_while_a_pull_waits_for_a_cut_one_is_not_lost(monkeypatch):
+    """Two rovers: one reply is cut mid-upload (its message stored, its body never), the other
+    arrives whole just after the first poll, which then waits for the cut body until the
+    deadline. The exchange's last look takes the whole one: without it, a loopback run lost
+    every reply of a round, the clean link's too ("0 rover(s) delivered"), behind a cut one."""
+    from types import SimpleNamespace
+
+    from flwr.app import Message, MessageType
+    from flwr.common.serde import message_to_proto
+    from flwr.proto.runtime_pb2 import PullAppMessagesResponse
+    from flwr.supercore.inflatable.inflatable_object import get_all_nested_objects, get_object_tree
+    from flwr.supercore.run import Run
+    from flwr.superlink.grid import HttpGrid
+
+    from fedmap.flower import polling
+    from fedmap.flower.server_app import _REPLY_LOST
+
+    ins = [Message(RecordDict({"config": ConfigRecord({"k": k})}), dst_node_id=7 + k, message_type=MessageType.TRAIN)
+           for k in range(2)]
+    for m in ins:
+        m.metadata.__dict__["_message_id"] = m.object_id
+    cut, whole = (Message(RecordDict({"config": ConfigRecord({"x": k})}), reply_to=ins[k]) for k in range(2))
+    for m in (cut, whole):
+        m.metadata.__dict__["_message_id"] = m.object_id
+    bodies = {oid: obj.deflate() for oid, obj in get_all_nested_objects(whole).items()}
+    polls = []
+
+    class Client:  # the SuperLink: the cut reply is stored at once, the whole one from the second poll on
+        def PullMessages(self, request):  # noqa: N802 (Flower's RPC names)
+            polls.append(sorted(request.message_ids))
+            ready = [m for m in (cut, whole)[:1 + (len(polls) > 1)]
+                     if m.metadata.reply_to_message_id in request.message_ids]
+            return PullAppMessagesResponse(messages_list=[message_to_proto(m) for m in ready],
+                                           message_object_trees=[get_object_tree(m) for m in ready])
+
+        def PullObject(self, request):  # noqa: N802
+            body = bodies.get(request.object_id)
+            return SimpleNamespace(object_found=True, object_available=body is not None, object_content=body or b"")
+
+        def ConfirmMessageReceived(self, request):  # noqa: N802
+            return None
+
+    grid = HttpGrid(insecure=True, token="t")  # never connected: the SuperLink is the fake client above
+    grid.set_run(Run.create_empty(1))
+    monkeypatch.setattr(HttpGrid, "_runtime_client", property(lambda self: Client()))
+    monkeypatch.setattr(grid, "push_messages", lambda msgs: [m.object_id for m in ins], raising=False)
+    kw = polling.inflatable_utils.pull_objects.__kwdefaults__
+    monkeypatch.setitem(kw, "initial_backoff", 0.05)
+    monkeypatch.setitem(kw, "backoff_cap", 0.2)
+    monkeypatch.setattr(polling, "LAST_LOOK", 0.3)
+    got = {m.metadata.reply_to_message_id: m for m in polling.exchange(grid, ins, 0.5)}
+    assert got.keys() == {m.object_id for m in ins}, polls
+    assert got[ins[0].object_id].has_error() and _REPLY_LOST in got[ins[0].object_id].error.reason
+    assert not got[ins[1].object_id].has_error()
+    assert got[ins[1].object_id].content["config"]["x"] == 1
+    assert len(polls) == 2 and polls[1] == [ins[1].object_id]  # the first poll ran to the deadline

@@ -12,9 +12,14 @@ push the messages, pull the replies until all are in or the deadline has passed.
 own grid pulls the body of a reply whose message reached the SuperLink with retries for up
 to 2 hours (``PULL_MAX_TIME``), in practice until the SuperLink drops the sender's upload
 session (180 s): a reply cut mid-upload would hold a round past its deadline. Here every
-pull gives up at the deadline. (The paper run's base station keeps Flower's
-``send_and_receive``: the same bound there, with polls every 0.25 s, once lost every reply
-of a round in the keep-dropping loopback test under a loaded suite, and was taken back.)
+pull gives up at the deadline.
+
+A pull that waits for a cut reply's body also holds back the replies that arrive whole
+meanwhile: they are only pulled by a later poll, and a poll that ran to the deadline was the
+last. So when the deadline passes with replies missing, :func:`exchange` takes one last look
+(:data:`LAST_LOOK` s for each body still missing): a reply stored whole before the deadline
+is never lost behind one cut on its link. Without it, a loopback run lost every reply of a
+round, the clean link's too, behind the first cut one.
 """
 
 from __future__ import annotations
@@ -41,6 +46,8 @@ def quick_pulls(first: float = FIRST_RETRY, cap: float = RETRY_CAP) -> None:
 
 #: Seconds between a base station's polls for replies (Flower's ``send_and_receive``: 3 s).
 POLL = 0.02
+#: Seconds the last look after a deadline gives each reply body still missing.
+LAST_LOOK = 2.0
 #: Seconds between calls of :func:`exchange`'s ``overdue`` (a mission's base asks, that often,
 #: which rover process runs on the node of a rover still holding its order).
 OVERDUE = 30.0
@@ -60,10 +67,11 @@ def pulls_within(seconds: float) -> Iterator[None]:
         kw["max_time"] = before
 
 
-def exchange(grid: Grid, msgs: list[Message], timeout: float, *,
+def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = POLL,
              overdue: Callable[[set[str]], set[str]] | None = None) -> list[Message]:
-    """Push ``msgs``, then pull their replies every :data:`POLL` s until all are in or
-    ``timeout`` s have passed; no pull outlasts the deadline (:func:`pulls_within`).
+    """Push ``msgs``, then pull their replies every ``poll`` s until all are in or
+    ``timeout`` s have passed; no pull outlasts the deadline (:func:`pulls_within`), and one
+    last look after it takes the replies that arrived whole while a pull waited for a cut one.
     ``overdue``: called every :data:`OVERDUE` s with the IDs of the messages still
     unanswered; the IDs it returns are no longer waited for."""
     ids = {i for i in grid.push_messages(msgs) if i}
@@ -79,5 +87,8 @@ def exchange(grid: Grid, msgs: list[Message], timeout: float, *,
             ids -= overdue(set(ids))
             check = time.monotonic() + OVERDUE
         if ids:
-            time.sleep(POLL)
+            time.sleep(poll)
+    if ids:  # the deadline passed: what arrived whole while the last pull waited for a cut body
+        with pulls_within(LAST_LOOK):
+            replies += grid.pull_messages(ids)
     return replies

@@ -43,12 +43,16 @@ from fedmap.federation.runner import (
     round_record,
 )
 from fedmap.flower.checkpoint import BaseState, read_checkpoint
+from fedmap.flower.polling import exchange, quick_pulls
 from fedmap.flower.records import check_flower_count, from_record, to_record
 from fedmap.flower.settings import RunSettings
 from fedmap.flower.task import initial_weights, save_checkpoint, truth_shape, write_base_outputs, write_status
 from fedmap.nets.model import Weights
 
 app = ServerApp()
+quick_pulls()  # a reply's objects: Flower's first retry after 1 s
+#: Seconds between the base station's polls for replies (Flower's ``send_and_receive``: 3 s).
+POLL = 0.25
 
 
 #: What Flower says when a reply's message arrived but its body (the objects) did not: the
@@ -347,8 +351,12 @@ class FirstRoundGrid(Grid):
         return self._grid.pull_messages(message_ids)
 
     def send_and_receive(self, messages: Iterable[Message], *, timeout: float | None = None) -> Iterable[Message]:
+        """The round's exchange, which keeps its deadline even for a reply cut on the link
+        (:func:`~fedmap.flower.polling.exchange`; Flower's own waited for such a reply's body
+        until the SuperLink dropped its upload session, 180 s, and took no reply that arrived
+        whole meanwhile)."""
         wait, self._first = (timeout if self._first is None else self._first), None
-        return self._grid.send_and_receive(messages, timeout=wait)
+        return exchange(self._grid, list(messages), float("inf") if wait is None else wait, poll=POLL)
 
 
 def run_base_station(grid: Grid, settings: RunSettings, run_config: dict | None = None) -> Path:
