@@ -20,6 +20,10 @@ another terrain, or a window of the same terrain that does not meet A's. Every c
 drawn from ``numpy.random.default_rng((seed, level, pair))``.
 
 Correct: heading within 2 deg and the centre of the true overlap placed within 1 cell.
+Confirmable: the gate's own check (kappa, shared cells, cells of each class; margin aside)
+passes on the true placement. A pair that is not has a true overlap with too little
+structure for any placement to be confirmed (refusing it is right); the report gives the
+share correct of all pairs (the issue's measure) and of the confirmable ones.
 Per overlap level and method: correct merges, wrong merges accepted (the hazard; of them,
 those off by more than 5 deg or 3 cells, or with no overlap at all), refused merges (of
 them, those whose estimate was right), and milliseconds per merge (estimate + gate, wall
@@ -52,7 +56,15 @@ import numpy as np
 from fedmap._util import to_json
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.maps.io import load_dem, mosaic_heightmap_tiles
-from fedmap.maps.registration import DEFAULT_GATE, DEFAULT_MARGIN, DEFAULT_MIN_OVERLAP, RigidTransform, register
+from fedmap.maps.registration import (
+    DEFAULT_GATE,
+    DEFAULT_MARGIN,
+    DEFAULT_MIN_OVERLAP,
+    RigidTransform,
+    agreement,
+    gate_verdict,
+    register,
+)
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability
 
 LEVELS = (0, 10, 20, 30, 40, 50, 60, 70, 80)
@@ -194,6 +206,27 @@ def error(est: RigidTransform, truth: RigidTransform, n: int) -> tuple[float, fl
     return float(dh), d
 
 
+def truth_confirmable(a: np.ndarray, b: np.ndarray, truth: RigidTransform | None) -> bool:
+    """Whether the gate's own check passes on the true placement (margin aside): the maps share
+    at least ``min_overlap`` known cells there, with :data:`MIN_CLASS_CELLS` of each class in
+    each map, at a kappa of at least the gate. A pair that fails it has a true overlap with too
+    little structure to confirm any placement (an all-free stretch, say); refusing it is
+    right, so the report also gives the share correct among the pairs that pass."""
+    return truth is not None and gate_verdict(agreement(a, truth.apply(b, a.shape)))[0]
+
+
+def with_truth_check(rows: list[dict], maps, n: int, seed: int) -> list[dict]:
+    """``rows`` with ``truth_confirmable`` filled in where a record made before it lacks it
+    (the pair is made again from its seed: no registration is run)."""
+    out = []
+    for r in rows:
+        if "truth_confirmable" not in r:
+            a, b, truth, _ = make_pair(maps, n, r["level"], seed, r["pair"])
+            r = {**r, "truth_confirmable": truth_confirmable(a, b, truth)}
+        out.append(r)
+    return out
+
+
 def occupancy_image(classes: np.ndarray) -> np.ndarray:
     """The bytes map_merge hands OpenCV: OccupancyGrid data (free 0, occupied 100, unknown -1) as uint8."""
     return np.select([classes == FREE, classes == IMPASSABLE], [0, 100], 255).astype(np.uint8)
@@ -244,7 +277,7 @@ def run(maps, n: int, pairs: int, seed: int, levels, out: Path) -> None:
         rows = []
         for i in range(pairs):
             a, b, truth, rec = make_pair(maps, n, level, seed, i)
-            rec.update(level=level, pair=i)
+            rec.update(level=level, pair=i, truth_confirmable=truth_confirmable(a, b, truth))
             cpu = time.process_time()
             reg = register(a, b)
             rec["fedmap"] = dict(zip(("outcome", "heading_err", "cell_err"), judge(reg.accepted, reg.transform, truth, n)),
@@ -292,7 +325,11 @@ def table(rows: list[dict], methods: tuple[str, ...], levels) -> list[dict]:
             count = lambda o: sum(s["outcome"] == o for s in sel)
             # a wrong merge far off (not a near miss): heading off by more than 5 deg or 3 cells, or no overlap at all
             far = sum(s["outcome"] == "wrong" and (level == 0 or s["heading_err"] > 5 or s["cell_err"] > 3) for s in sel)
+            sure = [r[m] for r in rows if r["level"] == level and r.get("truth_confirmable")]
             out.append({"overlap": level, "method": m, "pairs": k, "correct": count("correct") / k,
+                        "confirmable": len(sure),
+                        "correct_of_confirmable": sum(s["outcome"] == "correct" for s in sure) / max(len(sure), 1),
+                        "wrong_of_confirmable": sum(s["outcome"] == "wrong" for s in sure) / max(len(sure), 1),
                         "wrong_accepted": count("wrong") / k, "wrong_far_off": far / k,
                         "refused": (count("refused") + count("missed")) / k, "refused_but_right": count("missed") / k,
                         "ms_per_merge": float(np.mean([s["ms"] for s in sel])),
@@ -350,15 +387,29 @@ def main() -> None:
         run(maps, args.size, args.pairs, args.seed, levels, args.out)
     # the report: every level whose records are in --out (runs over parts of LEVELS add up)
     parts = [json.loads(p.read_text()) for p in sorted(args.out.glob("level_*.json"))]
+    found = {(p["pairs"], p["size"], p["seed"]) for p in parts}
     parts = [p for p in parts if (p["pairs"], p["size"], p["seed"], p["noise"]) == (args.pairs, args.size, args.seed, NOISE)]
-    rows = [regate(r) for p in parts for r in p["rows"]]
+    if not parts:  # nothing to report: keep the report that is there
+        raise SystemExit(f"no records in {args.out} for --pairs {args.pairs} --size {args.size} --seed {args.seed} and "
+                         f"this noise (there: {sorted(found) or 'none'} as (pairs, size, seed))")
+    rows = with_truth_check([regate(r) for p in parts for r in p["rows"]], maps, args.size, args.seed)
     have = sorted({r["level"] for r in rows})
     methods = ("fedmap", *(f"akaze_{g:g}" for g in AKAZE_GATES))
     summary = table(rows, methods, have)
-    print(f"\n{'overlap':>7s}  {'method':10s} {'correct':>8s} {'wrong acc.':>10s} {'refused':>8s} {'ms/merge':>9s}")
+    print(f"\n{'overlap':>7s}  {'method':10s} {'correct':>8s} {'wrong acc.':>10s} {'refused':>8s} {'ms/merge':>9s}"
+          f"  {'confirmable':>11s} {'correct of them':>15s}")
     for r in summary:
         print(f"{r['overlap']:6d}%  {r['method']:10s} {r['correct']:8.1%} {r['wrong_accepted']:10.1%} {r['refused']:8.1%} "
-              f"{r['ms_per_merge']:9.0f}")
+              f"{r['ms_per_merge']:9.0f}  {r['confirmable']:11d} {r['correct_of_confirmable']:15.1%}")
+    for m in methods:  # the issue's measure: every pair at >= 30 % overlap
+        sel = [r for r in rows if r["level"] >= 30]
+        if sel:
+            sure = [r for r in sel if r.get("truth_confirmable")]
+            right = lambda rs: sum(r[m]["outcome"] == "correct" for r in rs)
+            wrong = lambda rs: sum(r[m]["outcome"] == "wrong" for r in rs)
+            print(f"{m:10s} at >= 30 %: correct {right(sel)}/{len(sel)} ({right(sel) / len(sel):.1%}), wrong accepted "
+                  f"{wrong(sel)} ({wrong(sel) / len(sel):.1%}); of the {len(sure)} pairs the gate can confirm at the truth: "
+                  f"correct {right(sure) / max(len(sure), 1):.1%}, wrong {wrong(sure) / max(len(sure), 1):.1%}")
     record = {"pairs_per_level": args.pairs, "size": args.size, "seed": args.seed, "noise": NOISE, "gate": DEFAULT_GATE,
               "min_margin": DEFAULT_MARGIN, "min_overlap": DEFAULT_MIN_OVERLAP,
               "akaze_gates": AKAZE_GATES, "tolerance": {"heading_deg": HEADING_TOL, "cells": CELL_TOL},
