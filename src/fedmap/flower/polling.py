@@ -18,8 +18,8 @@ A pull that waits for a cut reply's body also holds back the replies that arrive
 meanwhile: they are only pulled by a later poll, and a poll that ran to the deadline was the
 last. So when the deadline passes with replies missing, :func:`exchange` takes one last look
 (:data:`LAST_LOOK` s for each body still missing): a reply stored whole before the deadline
-is never lost behind one cut on its link. Without it, a loopback run lost every reply of a
-round, the clean link's too, behind the first cut one.
+is never lost behind one cut on its link. (A loopback run that lost every reply of a round,
+the clean link's too, though all were pushed within seconds, fits this mechanism.)
 """
 
 from __future__ import annotations
