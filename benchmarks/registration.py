@@ -401,15 +401,14 @@ def main() -> None:
     for r in summary:
         print(f"{r['overlap']:6d}%  {r['method']:10s} {r['correct']:8.1%} {r['wrong_accepted']:10.1%} {r['refused']:8.1%} "
               f"{r['ms_per_merge']:9.0f}  {r['confirmable']:11d} {r['correct_of_confirmable']:15.1%}")
-    for m in methods:  # the measure: every pair at >= 30 % overlap
-        sel = [r for r in rows if r["level"] >= 30]
-        if sel:
-            sure = [r for r in sel if r.get("truth_confirmable")]
-            right = lambda rs: sum(r[m]["outcome"] == "correct" for r in rs)
-            wrong = lambda rs: sum(r[m]["outcome"] == "wrong" for r in rs)
-            print(f"{m:10s} at >= 30 %: correct {right(sel)}/{len(sel)} ({right(sel) / len(sel):.1%}), wrong accepted "
-                  f"{wrong(sel)} ({wrong(sel) / len(sel):.1%}); of the {len(sure)} pairs the gate can confirm at the truth: "
-                  f"correct {right(sure) / max(len(sure), 1):.1%}, wrong {wrong(sure) / max(len(sure), 1):.1%}")
+    sel = [r for r in rows if r["level"] >= 30]  # the measure: every pair at >= 30 % overlap
+    sure = [r for r in sel if r.get("truth_confirmable")]
+    for m in methods if sel else ():
+        right = lambda rs: sum(r[m]["outcome"] == "correct" for r in rs)
+        wrong = lambda rs: sum(r[m]["outcome"] == "wrong" for r in rs)
+        print(f"{m:10s} at >= 30 %: correct {right(sel)}/{len(sel)} ({right(sel) / len(sel):.1%}), wrong accepted "
+              f"{wrong(sel)} ({wrong(sel) / len(sel):.1%}); of the {len(sure)} pairs the gate can confirm at the truth: "
+              f"correct {right(sure) / max(len(sure), 1):.1%}, wrong {wrong(sure) / max(len(sure), 1):.1%}")
     record = {"pairs_per_level": args.pairs, "size": args.size, "seed": args.seed, "noise": NOISE, "gate": DEFAULT_GATE,
               "min_margin": DEFAULT_MARGIN, "min_overlap": DEFAULT_MIN_OVERLAP,
               "akaze_gates": AKAZE_GATES, "tolerance": {"heading_deg": HEADING_TOL, "cells": CELL_TOL},

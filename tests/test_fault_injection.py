@@ -291,10 +291,10 @@ def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     monkeypatch.setenv("FLWR_HOME", str(tmp_path / "flwr-home"))
     maps = _team(tmp_path)
     # round 1 waits 120 s: it also covers each rover's first message (its SuperExec, the app's install, a
-    # ClientApp process). Round 2 only trains: 90 s. A reply lost on a cut link
-    # waits out its round's deadline and no more (the base's exchange bounds Flower's pulls; once a clean-clone
-    # run lost round 1 for all four rovers, the clean link's too, when Flower's own wait, still pulling a cut
-    # reply's body, let the deadline pass without taking the replies that had arrived whole)
+    # ClientApp process). Round 2 only trains: 90 s. A reply lost on a cut link waits out its round's deadline
+    # and no more (the base's exchange bounds Flower's pulls, and its last look takes the replies that arrived
+    # whole meanwhile: a clean-clone run with 90 s for round 1 once lost round 1 for all four rovers, the clean
+    # link's too, which fits Flower's own wait still pulling a cut reply's body past the deadline)
     run = {**RUN, "rovers": 4, "first-deadline": 120.0, "deadline": 90.0}
     port, out = free_port(), tmp_path / "out"
     proxy = Proxy(port)

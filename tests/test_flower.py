@@ -430,6 +430,30 @@ def test_the_first_round_waits_its_own_deadline_and_the_later_ones_the_deadline(
         RunSettings.from_run_config({**RUN, "first-deadline": -1.0})
 
 
+def _with_id(msg):
+    """``msg`` with its message ID set, as Flower sets it when a message is pushed."""
+    msg.metadata.__dict__["_message_id"] = msg.object_id
+    return msg
+
+
+def _http_grid(monkeypatch, client, pushed):
+    """Flower's real ``HttpGrid``, never connected: ``client`` stands in for the SuperLink and
+    pushing returns the IDs of ``pushed``. Object pulls retry every 0.05-0.2 s."""
+    from flwr.supercore.run import Run
+    from flwr.superlink.grid import HttpGrid
+
+    from fedmap.flower import polling
+
+    grid = HttpGrid(insecure=True, token="t")
+    grid.set_run(Run.create_empty(1))
+    monkeypatch.setattr(HttpGrid, "_runtime_client", property(lambda self: client))
+    monkeypatch.setattr(grid, "push_messages", lambda msgs: [m.object_id for m in pushed], raising=False)
+    kw = polling.inflatable_utils.pull_objects.__kwdefaults__
+    monkeypatch.setitem(kw, "initial_backoff", 0.05)
+    monkeypatch.setitem(kw, "backoff_cap", 0.2)
+    return grid
+
+
 def test_a_reply_cut_on_the_link_costs_no_more_than_the_round_deadline(monkeypatch):
     """A reply whose message reached the SuperLink but whose body never did: Flower's own grid
     (``HttpGrid``) pulls the body with retries for up to 2 hours, until the SuperLink drops
@@ -441,16 +465,12 @@ def test_a_reply_cut_on_the_link_costs_no_more_than_the_round_deadline(monkeypat
     from flwr.common.serde import message_to_proto
     from flwr.proto.message_pb2 import ObjectTree
     from flwr.proto.runtime_pb2 import PullAppMessagesResponse
-    from flwr.supercore.run import Run
-    from flwr.superlink.grid import HttpGrid
 
     from fedmap.flower import polling
     from fedmap.flower.server_app import _REPLY_LOST
 
-    ins = Message(RecordDict({"config": ConfigRecord({})}), dst_node_id=7, message_type=MessageType.TRAIN)
-    ins.metadata.__dict__["_message_id"] = ins.object_id
-    reply = Message(RecordDict({"config": ConfigRecord({"x": 1})}), reply_to=ins)
-    reply.metadata.__dict__["_message_id"] = reply.object_id
+    ins = _with_id(Message(RecordDict({"config": ConfigRecord({})}), dst_node_id=7, message_type=MessageType.TRAIN))
+    reply = _with_id(Message(RecordDict({"config": ConfigRecord({"x": 1})}), reply_to=ins))
     tries = []
 
     class Client:  # the SuperLink: the reply's message is stored, its body never arrives
@@ -464,44 +484,31 @@ def test_a_reply_cut_on_the_link_costs_no_more_than_the_round_deadline(monkeypat
                 raise RuntimeError("still pulling a reply the deadline gave up on")
             return SimpleNamespace(object_found=True, object_available=False, object_content=b"")
 
-    grid = HttpGrid(insecure=True, token="t")  # never connected: the SuperLink is the fake client above
-    grid.set_run(Run.create_empty(1))
-    monkeypatch.setattr(HttpGrid, "_runtime_client", property(lambda self: Client()))
-    monkeypatch.setattr(grid, "push_messages", lambda msgs: [ins.object_id], raising=False)
-    kw = polling.inflatable_utils.pull_objects.__kwdefaults__
-    monkeypatch.setitem(kw, "initial_backoff", 0.05)
-    monkeypatch.setitem(kw, "backoff_cap", 0.2)
-    got = polling.exchange(grid, [ins], 0.5)
+    got = polling.exchange(_http_grid(monkeypatch, Client(), [ins]), [ins], 0.5)
     assert len(got) == 1 and got[0].has_error() and _REPLY_LOST in got[0].error.reason
     assert got[0].metadata.reply_to_message_id == ins.object_id
     assert 2 <= len(tries) <= 12  # 0.5 s of retries 0.05-0.2 s apart
-    assert kw["max_time"] == 7200  # Flower's own, outside an exchange
+    assert polling.inflatable_utils.pull_objects.__kwdefaults__["max_time"] == 7200  # Flower's own, outside an exchange
 
 
 def test_a_reply_that_arrives_whole_while_a_pull_waits_for_a_cut_one_is_not_lost(monkeypatch):
     """Two rovers: one reply is cut mid-upload (its message stored, its body never), the other
     arrives whole just after the first poll, which then waits for the cut body until the
-    deadline. The exchange's last look takes the whole one: without it, a loopback run lost
-    every reply of a round, the clean link's too ("0 rover(s) delivered"), behind a cut one."""
+    deadline. The exchange's last look takes the whole one (a loopback run that lost every
+    reply of a round, the clean link's too, "0 rover(s) delivered", fits this mechanism)."""
     from types import SimpleNamespace
 
     from flwr.app import Message, MessageType
     from flwr.common.serde import message_to_proto
     from flwr.proto.runtime_pb2 import PullAppMessagesResponse
     from flwr.supercore.inflatable.inflatable_object import get_all_nested_objects, get_object_tree
-    from flwr.supercore.run import Run
-    from flwr.superlink.grid import HttpGrid
 
     from fedmap.flower import polling
     from fedmap.flower.server_app import _REPLY_LOST
 
-    ins = [Message(RecordDict({"config": ConfigRecord({"k": k})}), dst_node_id=7 + k, message_type=MessageType.TRAIN)
-           for k in range(2)]
-    for m in ins:
-        m.metadata.__dict__["_message_id"] = m.object_id
-    cut, whole = (Message(RecordDict({"config": ConfigRecord({"x": k})}), reply_to=ins[k]) for k in range(2))
-    for m in (cut, whole):
-        m.metadata.__dict__["_message_id"] = m.object_id
+    ins = [_with_id(Message(RecordDict({"config": ConfigRecord({"k": k})}), dst_node_id=7 + k,
+                            message_type=MessageType.TRAIN)) for k in range(2)]
+    cut, whole = (_with_id(Message(RecordDict({"config": ConfigRecord({"x": k})}), reply_to=ins[k])) for k in range(2))
     bodies = {oid: obj.deflate() for oid, obj in get_all_nested_objects(whole).items()}
     polls = []
 
@@ -520,15 +527,8 @@ def test_a_reply_that_arrives_whole_while_a_pull_waits_for_a_cut_one_is_not_lost
         def ConfirmMessageReceived(self, request):  # noqa: N802
             return None
 
-    grid = HttpGrid(insecure=True, token="t")  # never connected: the SuperLink is the fake client above
-    grid.set_run(Run.create_empty(1))
-    monkeypatch.setattr(HttpGrid, "_runtime_client", property(lambda self: Client()))
-    monkeypatch.setattr(grid, "push_messages", lambda msgs: [m.object_id for m in ins], raising=False)
-    kw = polling.inflatable_utils.pull_objects.__kwdefaults__
-    monkeypatch.setitem(kw, "initial_backoff", 0.05)
-    monkeypatch.setitem(kw, "backoff_cap", 0.2)
     monkeypatch.setattr(polling, "LAST_LOOK", 0.3)
-    got = {m.metadata.reply_to_message_id: m for m in polling.exchange(grid, ins, 0.5)}
+    got = {m.metadata.reply_to_message_id: m for m in polling.exchange(_http_grid(monkeypatch, Client(), ins), ins, 0.5)}
     assert got.keys() == {m.object_id for m in ins}, polls
     assert got[ins[0].object_id].has_error() and _REPLY_LOST in got[ins[0].object_id].error.reason
     assert not got[ins[1].object_id].has_error()
