@@ -218,6 +218,19 @@ if step == "unconfirmed":  # as seen through a link that failed after round 2: a
     print("INFO :      Sent successfully", flush=True)
     (count.parent / "sent").write_text("1")
     time.sleep(600)
+if step == "bind":  # Flower's SuperNode starts its local API on its port first
+    import socket
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn does
+        try:
+            s.bind(("127.0.0.1", int(sys.argv[4])))
+        except OSError:
+            print("ERROR:    [Errno 98] error while attempting to bind on address ('127.0.0.1', " + sys.argv[4]
+                  + "): address already in use\\nRuntimeError: SuperNode Runtime HTTP API failed to start.",
+                  flush=True)
+            sys.exit(1)
+    done.write_text("1")
+    sys.exit(0)
 if step == "done":  # the ClientApp received the final model
     done.write_text("1")
     sys.exit(0)
@@ -272,7 +285,8 @@ def _fake_rover(tmp_path, monkeypatch, script: str, *, auth: bool = True, **kw):
     count = tmp_path / "count"
 
     def fake_argv(**a):
-        return [sys.executable, str(tmp_path / "fake.py"), str(count), a["node_config"]["done-file"], script]
+        return [sys.executable, str(tmp_path / "fake.py"), str(count), a["node_config"]["done-file"], script,
+                str(a["port"])]
 
     monkeypatch.setattr(rover, "supernode_argv", fake_argv)
     monkeypatch.setattr(rover, "PROBE_EVERY", 0.5)
@@ -319,6 +333,43 @@ def test_a_supernode_that_keeps_exchanging_is_not_taken_for_a_silent_superlink(t
     twice max_wait. Each exchange is an answer: the rover keeps its SuperNode (one start) and
     ends with the final model. Counting only the first exchange stopped it after max_wait."""
     assert _fake_rover(tmp_path, monkeypatch, "busy", max_wait=3)[:2] == (0, 1)
+
+
+def test_a_supernode_whose_port_was_taken_gets_a_new_one(tmp_path, monkeypatch):
+    """Another process holds the port the rover picked for its SuperNode's local API (an
+    outgoing connection can take a port between its pick and the SuperNode's bind): the
+    SuperNode cannot start, and the rover starts the next one on a new port, not the same
+    one again (which failed for two minutes in a CI run)."""
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        taken = held.getsockname()[1]
+        picks = iter([taken])
+        monkeypatch.setattr(rover, "free_port", lambda: next(picks, None) or free_port())
+        assert _fake_rover(tmp_path, monkeypatch, "bind", max_wait=30)[:2] == (0, 2)
+
+
+def test_a_rover_given_a_port_in_use_says_so_in_one_line(tmp_path, monkeypatch):
+    """``--port`` names a port in use: not retried, one line naming it."""
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        taken = held.getsockname()[1]
+        line, starts, _ = _fake_rover(tmp_path, monkeypatch, "bind", max_wait=30, port=taken)
+    assert (line, starts) == (f"rover 1: port {taken} (--port, the SuperNode's local API) is in use on this "
+                              "machine: give another, or 0 for any free port", 1)
+
+
+def test_free_ports_are_outside_the_range_of_outgoing_connections():
+    """What free_port gives can be bound, and no outgoing connection can have it as its source port."""
+    from fedmap.flower.launch import ephemeral_ports
+
+    low, high = ephemeral_ports()
+    for _ in range(20):
+        port = free_port()
+        assert not low <= port <= high and port >= 1024
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", port))
 
 
 def test_a_self_registered_key_already_in_use_is_retried(tmp_path, monkeypatch):

@@ -13,6 +13,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import os
+import random
 import shutil
 import signal
 import socket
@@ -82,8 +83,51 @@ def set_death_signal() -> None:  # pragma: no cover - runs in the child between 
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
+#: Where Linux says which ports it draws outgoing connections' source ports from.
+EPHEMERAL_RANGE_FILE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+#: Linux's default for that range, where the file cannot be read.
+EPHEMERAL_DEFAULT = (32768, 60999)
+#: The lowest port :func:`free_port` picks (below it: the usual ports of installed services).
+LOWEST_PORT = 20000
+
+
+def ephemeral_ports() -> tuple[int, int]:
+    """The range (inclusive) the OS draws outgoing connections' source ports from."""
+    try:
+        low, high = (int(v) for v in EPHEMERAL_RANGE_FILE.read_text().split())
+    except (OSError, ValueError):
+        return EPHEMERAL_DEFAULT
+    return low, high
+
+
+def _bindable(host: str, port: int) -> bool:
+    with socket.socket() as s:
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
 def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that is free right now (the OS picks it)."""
+    """A TCP port that is free right now, outside :func:`ephemeral_ports`.
+
+    A port the OS picks (bind to port 0) comes from that range, and a server is started on
+    it seconds later: meanwhile any outgoing connection on the machine may take it as its
+    source port, and hold it for as long as it lasts. A rover's SuperNode was refused its
+    local port that way for two minutes, on a machine running several Flower runs at once.
+    Ports are tried in a random order (not a result: which free port serves changes no
+    output), so processes that pick at the same time rarely pick the same one; the OS picks
+    if none outside the range is free."""
+    low, high = ephemeral_ports()
+    spans = [(a, b) for a, b in ((LOWEST_PORT, low - 1), (high + 1, 65535)) if b >= a]
+    weights = [b - a + 1 for a, b in spans]
+    pick = random.SystemRandom()
+    for _ in range(200 if spans else 0):
+        a, b = pick.choices(spans, weights=weights)[0]
+        port = pick.randint(a, b)
+        if _bindable(host, port):
+            return port
     with socket.socket() as s:
         s.bind((host, 0))
         return s.getsockname()[1]

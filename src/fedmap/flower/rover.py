@@ -35,6 +35,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from fedmap.errors import FedmapError
@@ -241,8 +242,11 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
             node_config = {**node_config, "state-dir": str(Path(tmp) / "state")}
         if node_config.get("mission"):  # this rover process, told apart from the one before a restart
             node_config = {**node_config, "boot": f"{os.getpid()}-{time.time_ns()}"}
-        argv = supernode_argv(superlink=superlink, port=port or free_port(), node_config={**node_config,
-                              "done-file": str(done)}, root_cert=root_cert, auth_key=auth_key, max_wait=max_wait)
+        cfg = {**node_config, "done-file": str(done)}
+
+        def argv_for(local: int) -> list[str]:
+            return supernode_argv(superlink=superlink, port=local, node_config=cfg, root_cert=root_cert,
+                                  auth_key=auth_key, max_wait=max_wait)
         log = Path(log) if log is not None else Path(tmp) / "supernode.log"
         env = flower_env(Path(flwr_home) if flwr_home else Path(tmp) / "flwr-home")
         if poll is not None:  # how often the SuperNode asks for a message, and its SuperExec for a task
@@ -256,8 +260,9 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
             env["PATH"] = os.pathsep.join([str(Path(tmp) / "bin"), env["PATH"]])
             server = fork_warm_server(sock, node_config, env=env, log=log)
         try:
-            return _supervise(procs, pid, superlink, argv, env=env, log=log, done=done, tls=root_cert is not None,
-                              max_wait=max_wait, self_registered=auth_key is None, rejoin=rejoin)
+            return _supervise(procs, pid, superlink, argv_for, port=port, env=env, log=log, done=done,
+                              tls=root_cert is not None, max_wait=max_wait, self_registered=auth_key is None,
+                              rejoin=rejoin)
         finally:
             if server is not None:
                 _reap(server)
@@ -302,16 +307,25 @@ def _reap(pid: int) -> None:
         pass
 
 
-def _supervise(procs: Processes, pid, superlink: str, argv: list[str], *, env: dict, log: Path, done: Path,
-               tls: bool, max_wait: float, self_registered: bool, rejoin: bool = False) -> int:
-    """Run SuperNodes until the run ends for this rover (0) or a one-line failure."""
+def _supervise(procs: Processes, pid, superlink: str, argv_for: Callable[[int], list[str]], *, port: int, env: dict,
+               log: Path, done: Path, tls: bool, max_wait: float, self_registered: bool, rejoin: bool = False) -> int:
+    """Run SuperNodes until the run ends for this rover (0) or a one-line failure.
+
+    ``argv_for(p)``: a SuperNode's command with its local API on port ``p``: ``port``, or
+    (``port`` 0) a free one, picked again for the next SuperNode when this one's was taken."""
     watch = _Watch(superlink, tls=tls, max_wait=max_wait, self_registered=self_registered)
     watch.ever_reached = rejoin
     restarts = 0  # in a row, without the SuperNode reaching its SuperLink in between
+    local = port or free_port()
     for total in range(1, ROVER_RESTARTS_TOTAL + 2):
-        text = watch.run(procs, argv, env=env, log=log, done=done)
+        text = watch.run(procs, argv_for(local), env=env, log=log, done=done)
         if done.exists():
             return 0
+        if port_taken(text):
+            if port:
+                raise FedmapError(f"rover {pid}: port {port} (--port, the SuperNode's local API) is in use on this "
+                                  "machine: give another, or 0 for any free port")
+            local = free_port()
         why = rover_failure(pid, superlink, text, max_wait=max_wait, code=procs.procs["supernode"].returncode)
         if not watch.retry(text):
             raise FedmapError(_gave_up(pid, superlink, max_wait) if watch.silent() else why)
@@ -439,9 +453,17 @@ def _refused(low: str) -> bool:
     return "failed to activate supernode" in low or "unauthenticated" in low
 
 
+def port_taken(log: str) -> bool:
+    """Whether a SuperNode's log says its local API's port was in use (Flower 1.41:
+    ``[Errno 98] error while attempting to bind on address (...): address already in use``)."""
+    return "error while attempting to bind" in log.lower() and "address already in use" in log.lower()
+
+
 def rover_failure(pid, superlink: str, log: str, *, max_wait: float, code: int | None) -> str:
     """One line saying why a rover's SuperNode stopped, from Flower's log."""
     low = log.lower()
+    if port_taken(log):
+        return f"rover {pid}: another process took the port of its SuperNode's local API"
     lines = [_clean(ln) for ln in log.splitlines() if ln.strip()]
     if "certificate verify failed" in low or "wrong version number" in low:
         why = next((ln for ln in lines if "certificate verify failed" in ln.lower()
