@@ -294,7 +294,8 @@ def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     # ClientApp process). Round 2 only trains: 90 s. A reply lost on a cut link waits out its round's deadline
     # and no more (the base's exchange bounds Flower's pulls, and its last look takes the replies that arrived
     # whole meanwhile: a clean-clone run with 90 s for round 1 once lost round 1 for all four rovers, the clean
-    # link's too, which fits Flower's own wait still pulling a cut reply's body past the deadline)
+    # link's too, which fits Flower's own wait still pulling a cut reply's body past the deadline). An
+    # instruction lost on a cut link is sent again once overdue (a run that lost one waited 120 s for it)
     run = {**RUN, "rovers": 4, "first-deadline": 120.0, "deadline": 90.0}
     port, out = free_port(), tmp_path / "out"
     proxy = Proxy(port)

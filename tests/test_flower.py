@@ -6,6 +6,7 @@ replies); the global model must equal :func:`run_federation` for the same settin
 
 import subprocess
 import sys
+import time
 import tomllib
 
 import numpy as np
@@ -13,7 +14,7 @@ import pytest
 
 pytest.importorskip("flwr")
 
-from flwr.app import ConfigRecord, Context, RecordDict  # noqa: E402
+from flwr.app import ConfigRecord, Context, Message, RecordDict  # noqa: E402
 from flwr.server.superlink.linkstate.utils import create_message_error_unavailable_res_message  # noqa: E402
 from flwr.supercore.task_identity import TaskIdentity  # noqa: E402
 
@@ -65,8 +66,12 @@ def _team(tmp_path, blob_map, n=4):
 RUN = {"net": "small", "init": "random", "epochs": 3, "lr": 1e-2, "seed": 4, "rovers": 4, "min-rovers": 2}
 
 
-def _round(strategy, grid, contexts, arrays, server_round, *, skip=(), fail=()):
-    """One round through the real ClientApp ``train`` and the strategy."""
+def _round(strategy, grid, contexts, arrays, server_round, *, skip=(), fail=(), twice=False):
+    """One round through the real ClientApp ``train`` and the strategy. ``twice``: each
+    message also arrives as a copy (``polling.copy_of``, as the base sends one when a reply
+    is long overdue), whose reply must be the first's."""
+    from fedmap.flower.polling import copy_of
+
     msgs = strategy.configure_train(server_round, arrays, ConfigRecord(), grid)
     replies = []
     for m in msgs:
@@ -78,6 +83,13 @@ def _round(strategy, grid, contexts, arrays, server_round, *, skip=(), fail=()):
             replies.append(create_message_error_unavailable_res_message(m.metadata, "node unavailable"))
             continue
         replies.append(client_app.train(m, contexts[node]))
+        if twice:
+            again = copy_of(m)
+            again.metadata.__dict__["_message_id"] = again.object_id
+            second = client_app.train(again, contexts[node])
+            assert second.metadata.reply_to_message_id == again.object_id != m.object_id
+            assert from_record(second.content["uplink"]) == from_record(replies[-1].content["uplink"])
+            assert dict(second.content["metrics"]) == dict(replies[-1].content["metrics"])
     return strategy.aggregate_train(server_round, replies)
 
 
@@ -86,16 +98,20 @@ def _contexts(nodes, run):
             for n, cfg in nodes.items()}
 
 
-def test_two_rounds_equal_run_federation(tmp_path, blob_map):
-    """Rover state (held model, error-feedback residual) survives between rounds in context.state."""
-    run = {**RUN, "rounds": 2, "uplink": "update-int8", "downlink": "fp16"}
+@pytest.mark.parametrize("downlink,twice", [("fp16", False), ("update-int8", True)])
+def test_two_rounds_equal_run_federation(tmp_path, blob_map, downlink, twice):
+    """Rover state (held model, error-feedback residual) survives between rounds in context.state.
+    ``twice``: every message also arrives as a copy; the rover answers it with the reply it
+    gave, neither training again (its residual would move) nor decoding the broadcast again
+    (an update relative to a model it no longer holds), so nothing changes."""
+    run = {**RUN, "rounds": 2, "uplink": "update-int8", "downlink": downlink}
     maps, nodes = _team(tmp_path, blob_map)
     settings = RunSettings.from_run_config(run)
     strategy = FedmapStrategy(settings)
     grid, contexts = FakeGrid(nodes), _contexts(nodes, run)
     arrays = to_record(b"")
     for r in (1, 2):
-        arrays, _ = _round(strategy, grid, contexts, arrays, r)
+        arrays, _ = _round(strategy, grid, contexts, arrays, r, twice=twice)
     net = preset("small", blob_map.shape[0])
     ref = run_federation(get_weights(build_model(net, seed=4)), net, maps, settings.federation)
     for k in ref.weights:
@@ -534,3 +550,110 @@ def test_a_reply_that_arrives_whole_while_a_pull_waits_for_a_cut_one_is_not_lost
     assert not got[ins[1].object_id].has_error()
     assert got[ins[1].object_id].content["config"]["x"] == 1
     assert len(polls) == 2 and polls[1] == [ins[1].object_id]  # the first poll ran to the deadline
+
+
+def test_copies_sent_again_are_booked_to_their_rover(tmp_path, blob_map):
+    """A copy sent again is counted in the round's record under its rover, and the
+    SuperLink's error reply to a copy (its node gone) is put down to that rover."""
+    from fedmap.flower.polling import copy_of
+
+    run = {**RUN, "rounds": 1}
+    maps, nodes = _team(tmp_path, blob_map)
+    strategy = FedmapStrategy(RunSettings.from_run_config(run))
+    msgs = strategy.configure_train(1, to_record(b""), ConfigRecord(), FakeGrid(nodes))
+    by_node = {m.metadata.dst_node_id: m for m in msgs}
+    copies = [copy_of(by_node[n]) for n in (101, 103, 103)]
+    strategy.resent(copies)
+    contexts = _contexts(nodes, run)
+    replies = []
+    for n in (100, 101, 102):
+        m = by_node[n] if n != 101 else copies[0]
+        m.metadata.__dict__["_message_id"] = m.object_id
+        replies.append(client_app.train(m, contexts[n]))
+    gone = copies[2]
+    gone.metadata.__dict__["_message_id"] = gone.object_id
+    replies.append(create_message_error_unavailable_res_message(gone.metadata, "node unavailable"))
+    strategy.node_partition[103] = 3  # as after an earlier round
+    strategy.aggregate_train(1, replies)
+    rec = strategy.history[0]
+    assert sorted(rec.aggregation_counts) == [0, 1, 2]
+    assert rec.flower.resent == {1: 1, 3: 2}
+    assert rec.flower.missing_why[3].startswith("Flower error") and not rec.flower.node_errors
+    assert rec.to_dict()["resent"] == {1: 1, 3: 2}
+
+
+class _LossyGrid:
+    """A SuperLink behind a link that loses ``lost`` instructions to ``node`` (the rover's pull
+    was cut: the SuperLink has it for delivered, the rover never saw it); every other message
+    is answered ``delay`` s after it was pushed, once, and none to a node in ``busy`` before
+    ``busy[node]`` s after the grid was made."""
+
+    def __init__(self, node: int, lost: int, delay: float, busy: dict[int, float] | None = None) -> None:
+        self.node, self.lost, self.delay, self.busy = node, lost, delay, busy or {}
+        self.t0 = time.monotonic()
+        self.pushed: list[tuple[Message, float]] = []
+        self.taken: set[str] = set()
+
+    def push_messages(self, msgs):
+        ids = []
+        for m in msgs:
+            m = _with_id(m)
+            if m.metadata.dst_node_id == self.node and self.lost > 0:
+                self.lost -= 1
+                self.taken.add(m.object_id)  # never answered
+            self.pushed.append((m, time.monotonic()))
+            ids.append(m.object_id)
+        return ids
+
+    def pull_messages(self, ids):
+        out, now = [], time.monotonic()
+        for m, t in self.pushed:
+            if m.object_id in ids and m.object_id not in self.taken and now - t >= self.delay \
+                    and now - self.t0 >= self.busy.get(m.metadata.dst_node_id, 0.0):
+                self.taken.add(m.object_id)
+                out.append(_with_id(Message(RecordDict({"config": ConfigRecord({"node": m.metadata.dst_node_id})}),
+                                            reply_to=m)))
+        return out
+
+
+def _three():
+    from flwr.app import MessageType
+
+    return [Message(RecordDict({"config": ConfigRecord({"k": k})}), dst_node_id=7 + k, message_type=MessageType.TRAIN)
+            for k in range(3)]
+
+
+def test_an_instruction_lost_on_the_link_is_sent_again_not_waited_for(monkeypatch):
+    """One of three rovers never receives its message (twice); the others answer after 0.2 s.
+    With ``resend`` the exchange sends that message again once it has waited RESEND_FACTOR
+    times as long as the slowest reply (at least RESEND_MIN), and the round ends with three
+    replies, one per message, long before its deadline; without, it waits out the deadline
+    with two."""
+    from fedmap.flower import polling
+
+    monkeypatch.setattr(polling, "RESEND_MIN", 0.5)
+    copies: list[Message] = []
+    t0 = time.monotonic()
+    got = polling.exchange(_LossyGrid(9, lost=2, delay=0.2), _three(), 20.0, resend=True, on_resend=copies.extend)
+    took = time.monotonic() - t0
+    assert sorted(int(m.content["config"]["node"]) for m in got) == [7, 8, 9]
+    assert [c.metadata.dst_node_id for c in copies] == [9, 9]  # lost twice: sent again twice
+    assert dict(copies[0].content["config"]) == {"k": 2}
+    assert took < 5.0  # 0.2 s, then 3 x 0.2 = 0.6 s, twice, then 0.2 s: not the 20 s deadline
+    t0 = time.monotonic()
+    got = polling.exchange(_LossyGrid(9, lost=1, delay=0.2), _three(), 1.5)
+    assert sorted(int(m.content["config"]["node"]) for m in got) == [7, 8] and time.monotonic() - t0 >= 1.5
+
+
+def test_replies_to_a_message_and_its_copies_are_taken_once(monkeypatch):
+    """A rover that was only slow: its message is sent again (more than once), then the
+    replies to the message and to every copy come back in one poll. The exchange returns
+    one reply per message."""
+    from fedmap.flower import polling
+
+    monkeypatch.setattr(polling, "RESEND_MIN", 0.3)
+    copies: list[Message] = []
+    got = polling.exchange(_LossyGrid(0, lost=0, delay=0.1, busy={9: 1.2}), _three(), 10.0, resend=True,
+                           on_resend=copies.extend)
+    assert len(copies) >= 2 and {c.metadata.dst_node_id for c in copies} == {9}
+    assert sorted(int(m.content["config"]["node"]) for m in got) == [7, 8, 9]

@@ -35,7 +35,7 @@ import hashlib
 import struct
 import time
 from collections.abc import Callable, Collection, Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -98,7 +98,7 @@ def _by_agent(d: Mapping[Any, Any]) -> dict[int, Any]:
 
 #: The JSON keys a Flower round adds to :meth:`RoundRecord.to_dict` (:meth:`FlowerRound.to_dict`).
 _FLOWER_KEYS = ("missing_why", "node_errors", "flower_uplink_bytes", "flower_downlink_bytes",
-                "final_broadcast_received_by")
+                "final_broadcast_received_by", "resent")
 
 
 @dataclass(frozen=True)
@@ -110,7 +110,9 @@ class FlowerRound:
     ``downlink_bytes``: rover -> the bytes Flower counted for its payload (fedmap's payload plus
     the record's ``.npy`` header and key; ``downlink_bytes`` is filled in as the round's model
     reaches the rovers); ``final_broadcast_received_by``: the rovers that acknowledged the
-    final model (set on the last round once the run ends, else None).
+    final model (set on the last round once the run ends, else None); ``resent``: rover -> the
+    copies of its train message sent because it went unanswered far longer than the others'
+    (:func:`fedmap.flower.polling.exchange`; each crosses the link again).
     """
 
     missing_why: dict[int, str]
@@ -118,6 +120,7 @@ class FlowerRound:
     uplink_bytes: dict[int, int]
     downlink_bytes: dict[int, int]
     final_broadcast_received_by: list[int] | None = None
+    resent: dict[int, int] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON keys it adds to its round's :meth:`RoundRecord.to_dict` (``flower_uplink_bytes``, ...)."""
@@ -126,6 +129,8 @@ class FlowerRound:
                              "flower_downlink_bytes": dict(self.downlink_bytes)}
         if self.final_broadcast_received_by is not None:
             d["final_broadcast_received_by"] = list(self.final_broadcast_received_by)
+        if self.resent:
+            d["resent"] = dict(self.resent)
         return d
 
     @classmethod
@@ -136,7 +141,8 @@ class FlowerRound:
                    node_errors={str(k): v for k, v in d.get("node_errors", {}).items()},
                    uplink_bytes=_by_agent(d.get("flower_uplink_bytes", {})),
                    downlink_bytes=_by_agent(d.get("flower_downlink_bytes", {})),
-                   final_broadcast_received_by=None if acked is None else [int(k) for k in acked])
+                   final_broadcast_received_by=None if acked is None else [int(k) for k in acked],
+                   resent=_by_agent(d.get("resent", {})))
 
 
 @dataclass(frozen=True)

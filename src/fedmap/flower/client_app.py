@@ -14,6 +14,11 @@ stops the run.
 The final ``evaluate`` message delivers the last global model; with ``out=<dir>`` in the
 node config the rover saves it there with its rendering, and with ``done-file=<path>`` it
 writes that file (``fedmap rover`` then stops its SuperNode: the run is over).
+
+The base sends a message again when its reply is long overdue (the message, or the reply,
+may have been lost on the link). A copy of the message the rover last answered (same type
+and round) is answered with the same reply, from ``context.state``: the rover neither
+trains twice nor decodes a broadcast twice.
 """
 
 from __future__ import annotations
@@ -50,6 +55,35 @@ from fedmap.nets.model import Weights
 app = ClientApp()
 
 _HELD, _ENCODER = "fedmap.held", "fedmap.encoder"
+#: What the rover last answered (message type and round), and the records of its reply.
+_ANSWERED, _ANSWER = "fedmap.answered", "fedmap.answer."
+
+
+def _key(msg: Message) -> str:
+    config = msg.content.config_records.get("config")
+    return f"{msg.metadata.message_type}@{config.get('server-round', '')!s}" if config is not None else ""
+
+
+def once(handler):
+    """``handler`` (a ClientApp's message handler), answering a copy of the message it
+    answered last (same type and round) with the reply it gave, without running again."""
+
+    def answer(msg: Message, context: Context) -> Message:
+        key, mark = _key(msg), context.state.config_records.get(_ANSWERED)
+        if key and mark is not None and mark.get("key") == key:
+            return Message(RecordDict({k[len(_ANSWER):]: v for k, v in context.state.items()
+                                       if k.startswith(_ANSWER)}), reply_to=msg)
+        reply = handler(msg, context)
+        if not reply.has_error():
+            for k in [k for k in context.state if k.startswith(_ANSWER)]:
+                del context.state[k]
+            for k, v in reply.content.items():
+                context.state[_ANSWER + k] = v
+            context.state[_ANSWERED] = ConfigRecord({"key": key})
+        return reply
+
+    answer.__name__, answer.__doc__ = handler.__name__, handler.__doc__
+    return answer
 
 
 def _restore(context: Context) -> tuple[Weights | None, Encoder | None]:
@@ -95,6 +129,7 @@ def _error_reply(msg: Message, metrics: dict, e: FedmapError, held: Weights | No
 
 
 @app.train()
+@once
 def train(msg: Message, context: Context) -> Message:
     try:  # a bad run or node config is a mistake: reported as fatal, the base stops the run
         settings = RunSettings.from_run_config(dict(context.run_config))
@@ -127,6 +162,7 @@ def train(msg: Message, context: Context) -> Message:
 
 
 @app.evaluate()
+@once
 def evaluate(msg: Message, context: Context) -> Message:
     """The final broadcast: decode it, keep it, optionally save it (node config ``out``)."""
     settings = RunSettings.from_run_config(dict(context.run_config))

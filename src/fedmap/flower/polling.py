@@ -20,6 +20,15 @@ last. So when the deadline passes with replies missing, :func:`exchange` takes o
 (:data:`LAST_LOOK` s for each body still missing): a reply stored whole before the deadline
 is never lost behind one cut on its link. (A loopback run that lost every reply of a round,
 the clean link's too, though all were pushed within seconds, fits this mechanism.)
+
+An instruction can be lost too: a rover's SuperNode whose pull of its message was cut on
+the link never sees it, while the SuperLink has it for delivered (seen on a link reset every
+2 s: one rover of four never received round 1's message, and the round waited out its
+120 s deadline). With ``resend``, :func:`exchange` sends a message again, as a new message
+to the same node, once it has waited :data:`RESEND_FACTOR` times as long as the slowest
+reply so far took (at least :data:`RESEND_MIN` s) without a reply; the first reply to any
+copy answers it. The receiver must take a copy it already answered as the same message
+(the paper's ClientApp returns the reply it gave).
 """
 
 from __future__ import annotations
@@ -48,6 +57,10 @@ def quick_pulls(first: float = FIRST_RETRY, cap: float = RETRY_CAP) -> None:
 POLL = 0.02
 #: Seconds the last look after a deadline gives each reply body still missing.
 LAST_LOOK = 2.0
+#: With ``resend``: a message unanswered for this many times the slowest reply so far is sent again ...
+RESEND_FACTOR = 3.0
+#: ... but never sooner than this many seconds after it was last sent.
+RESEND_MIN = 10.0
 #: Seconds between calls of :func:`exchange`'s ``overdue`` (a mission's base asks, that often,
 #: which rover process runs on the node of a rover still holding its order).
 OVERDUE = 30.0
@@ -67,28 +80,72 @@ def pulls_within(seconds: float) -> Iterator[None]:
         kw["max_time"] = before
 
 
+def copy_of(msg: Message) -> Message:
+    """A new instruction with ``msg``'s content, type, group and destination (a new ID)."""
+    md = msg.metadata
+    return Message(msg.content, dst_node_id=md.dst_node_id, message_type=md.message_type, group_id=md.group_id,
+                   ttl=md.ttl)
+
+
 def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = POLL,
-             overdue: Callable[[set[str]], set[str]] | None = None) -> list[Message]:
+             overdue: Callable[[set[str]], set[str]] | None = None, resend: bool = False,
+             on_resend: Callable[[list[Message]], None] | None = None) -> list[Message]:
     """Push ``msgs``, then pull their replies every ``poll`` s until all are in or
     ``timeout`` s have passed; no pull outlasts the deadline (:func:`pulls_within`), and one
     last look after it takes the replies that arrived whole while a pull waited for a cut one.
     ``overdue``: called every :data:`OVERDUE` s with the IDs of the messages still
-    unanswered; the IDs it returns are no longer waited for."""
-    ids = {i for i in grid.push_messages(msgs) if i}
+    unanswered; the IDs it returns are no longer waited for. ``resend``: a message that
+    goes unanswered much longer than the others took is sent again (the module's
+    docstring), and ``on_resend`` is called with the copies; one reply per message is
+    returned (the first, to whichever copy)."""
+    pushed = list(grid.push_messages(msgs))
+    first_of = {i: i for i in pushed if i}  # any copy's ID -> the ID of the message it copies
+    original = {i: m for i, m in zip(pushed, msgs) if i}
+    start = time.monotonic()
+    sent_at = dict.fromkeys(first_of, start)  # message -> when its last copy went out
+    ids = set(first_of)  # the IDs still waited for (copies included)
+    answered: set[str] = set()
     replies: list[Message] = []
-    t_end = time.monotonic() + timeout
+    slowest: float | None = None
+    t_end = start + timeout
     check = time.monotonic() + OVERDUE
+
+    def take(got: list[Message]) -> None:
+        nonlocal ids
+        for m in got:
+            first = first_of.get(m.metadata.reply_to_message_id)
+            if first is None or first in answered:
+                continue  # a reply to a copy of a message already answered
+            answered.add(first)
+            replies.append(m)
+        ids = {i for i in ids if first_of[i] not in answered}
+
     while ids and (left := t_end - time.monotonic()) > 0:
         with pulls_within(left):
             got = list(grid.pull_messages(ids))
-        replies += got
-        ids -= {m.metadata.reply_to_message_id for m in got}
+        if got:
+            slowest = time.monotonic() - start
+        take(got)
         if ids and overdue is not None and time.monotonic() >= check:
-            ids -= overdue(set(ids))
+            gone = overdue(set(ids))
+            ids -= gone
+            answered.update(first_of[i] for i in gone)
             check = time.monotonic() + OVERDUE
+        if ids and resend and slowest is not None:
+            now, patience = time.monotonic(), max(RESEND_MIN, RESEND_FACTOR * slowest)
+            due = sorted({first_of[i] for i in ids if now - sent_at[first_of[i]] >= patience})
+            if due:
+                copies = [copy_of(original[f]) for f in due]
+                for f, new in zip(due, grid.push_messages(copies)):
+                    sent_at[f] = now
+                    if new:
+                        first_of[new] = f
+                        ids.add(new)
+                if on_resend is not None:
+                    on_resend(copies)
         if ids:
             time.sleep(poll)
     if ids:  # the deadline passed: what arrived whole while the last pull waited for a cut body
         with pulls_within(LAST_LOOK):
-            replies += grid.pull_messages(ids)
+            take(list(grid.pull_messages(ids)))
     return replies

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import replace
 from logging import INFO
 from pathlib import Path
@@ -105,6 +105,7 @@ class FedmapStrategy(Strategy):
         self._sleep = sleep
         self._t0 = 0.0
         self._sent: dict[str, int] = {}  # message id -> node id of the last messages sent
+        self._resent: Counter[int] = Counter()  # node id -> copies of its message sent again this round
         self._down: dict[int, tuple[Downlink, int]] = {}  # node id -> what it was sent, Flower's byte count
         if settings.base.resume:
             self.resume(read_checkpoint(Path(settings.base.resume)))
@@ -135,7 +136,15 @@ class FedmapStrategy(Strategy):
         # SuperLink (e.g. "node unavailable") come from the SuperLink's own node id, so the
         # rover they concern is found through the message they reply to
         self._sent = {m.object_id: n for m, n in zip(msgs, nodes)}
+        self._resent = Counter()
         return msgs
+
+    def resent(self, copies: list[Message]) -> None:
+        """The round's exchange sent ``copies`` of unanswered messages again: their replies
+        (or the SuperLink's errors for them) concern the same nodes."""
+        for c in copies:
+            self._sent[c.object_id] = c.metadata.dst_node_id
+            self._resent[c.metadata.dst_node_id] += 1
 
     def _delivered(self, node: int, pid: int) -> None:
         """``node`` (rover ``pid``) replied: it got what it was sent; book it in the record of
@@ -235,8 +244,10 @@ class FedmapStrategy(Strategy):
                          round_label=server_round, versions=versions, window=self.broadcaster.window)
         self.held = step.held
         self.broadcaster.advance(step.held, step.downlink)
+        resent = {self.node_partition[n]: k for n, k in self._resent.items() if n in self.node_partition}
         flower = FlowerRound(missing_why=dict(sorted(missing_why.items())), node_errors=node_errors,
-                             uplink_bytes=dict(sorted(flower_up.items())), downlink_bytes={})
+                             uplink_bytes=dict(sorted(flower_up.items())), downlink_bytes={},
+                             resent=dict(sorted(resent.items())))
         rec = round_record(server_round, step, losses, {k: len(p) for k, p in sorted(payloads.items())},
                            self.up_spec, self.down_spec, time.perf_counter() - self._t0, missing=missing, flower=flower)
         self.history.append(rec)
@@ -323,9 +334,10 @@ class FirstRoundGrid(Grid):
     timeout it is given (the deadline): Flower's strategy takes one timeout for every round,
     and the first round's also covers each rover's start-up. Everything else is ``grid``'s."""
 
-    def __init__(self, grid: Grid, first: float) -> None:
+    def __init__(self, grid: Grid, first: float, on_resend: Callable[[list[Message]], None] | None = None) -> None:
         self._grid: Grid = grid
         self._first: float | None = first
+        self._on_resend = on_resend
 
     @property
     def run(self) -> Any:
@@ -354,9 +366,12 @@ class FirstRoundGrid(Grid):
         """The round's exchange, which keeps its deadline even for a reply cut on the link
         (:func:`~fedmap.flower.polling.exchange`; Flower's own waited for such a reply's body
         until the SuperLink dropped its upload session, 180 s, and took no reply that arrived
-        whole meanwhile)."""
+        whole meanwhile). A message that goes unanswered far longer than the others took is
+        sent again (an instruction lost on the link would otherwise cost the whole deadline);
+        the rover answers a copy of a message it answered with the same reply."""
         wait, self._first = (timeout if self._first is None else self._first), None
-        return exchange(self._grid, list(messages), float("inf") if wait is None else wait, poll=POLL)
+        return exchange(self._grid, list(messages), float("inf") if wait is None else wait, poll=POLL, resend=True,
+                        on_resend=self._on_resend)
 
 
 def run_base_station(grid: Grid, settings: RunSettings, run_config: dict | None = None) -> Path:
@@ -369,8 +384,8 @@ def run_base_station(grid: Grid, settings: RunSettings, run_config: dict | None 
         raise FedmapError(f"nothing to resume: the checkpoint is after round {strategy.offset} of "
                           f"{settings.federation.rounds}")
     first = settings.base.first_deadline or settings.base.deadline
-    strategy.start(grid=FirstRoundGrid(grid, first), initial_arrays=to_record(b""), num_rounds=left,
-                   timeout=settings.base.deadline, evaluate_fn=strategy.checkpoint)
+    strategy.start(grid=FirstRoundGrid(grid, first, on_resend=strategy.resent), initial_arrays=to_record(b""),
+                   num_rounds=left, timeout=settings.base.deadline, evaluate_fn=strategy.checkpoint)
     fed = strategy.result()
     flower = {
         "settings": settings.record(),
