@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("flwr")
 
-from flwr.app import ConfigRecord, Context, Message, RecordDict  # noqa: E402
+from flwr.app import ConfigRecord, Context, Error, Message, RecordDict  # noqa: E402
 from flwr.server.superlink.linkstate.utils import create_message_error_unavailable_res_message  # noqa: E402
 from flwr.supercore.task_identity import TaskIdentity  # noqa: E402
 
@@ -25,6 +25,7 @@ from fedmap.federation.codecs import Encoder  # noqa: E402
 from fedmap.federation.runner import agent_seed, run_federation  # noqa: E402
 from fedmap.flower import client_app  # noqa: E402
 from fedmap.flower.launch import key_values, make_certs  # noqa: E402
+from fedmap.flower.polling import REPLY_LOST  # noqa: E402
 from fedmap.flower.records import check_flower_count, flower_overhead, from_record, to_record  # noqa: E402
 from fedmap.flower.rover import rover_node_config  # noqa: E402
 from fedmap.flower.server_app import NO_REPLY, NOT_CONNECTED, FedmapStrategy  # noqa: E402
@@ -483,7 +484,7 @@ def test_a_reply_cut_on_the_link_costs_no_more_than_the_round_deadline(monkeypat
     from flwr.proto.runtime_pb2 import PullAppMessagesResponse
 
     from fedmap.flower import polling
-    from fedmap.flower.server_app import _REPLY_LOST
+    from fedmap.flower.polling import REPLY_LOST as _REPLY_LOST
 
     ins = _with_id(Message(RecordDict({"config": ConfigRecord({})}), dst_node_id=7, message_type=MessageType.TRAIN))
     reply = _with_id(Message(RecordDict({"config": ConfigRecord({"x": 1})}), reply_to=ins))
@@ -520,7 +521,7 @@ def test_a_reply_that_arrives_whole_while_a_pull_waits_for_a_cut_one_is_not_lost
     from flwr.supercore.inflatable.inflatable_object import get_all_nested_objects, get_object_tree
 
     from fedmap.flower import polling
-    from fedmap.flower.server_app import _REPLY_LOST
+    from fedmap.flower.polling import REPLY_LOST as _REPLY_LOST
 
     ins = [_with_id(Message(RecordDict({"config": ConfigRecord({"k": k})}), dst_node_id=7 + k,
                             message_type=MessageType.TRAIN)) for k in range(2)]
@@ -588,8 +589,9 @@ class _LossyGrid:
     is answered ``delay`` s after it was pushed, once, and none to a node in ``busy`` before
     ``busy[node]`` s after the grid was made."""
 
-    def __init__(self, node: int, lost: int, delay: float, busy: dict[int, float] | None = None) -> None:
-        self.node, self.lost, self.delay, self.busy = node, lost, delay, busy or {}
+    def __init__(self, node: int, lost: int, delay: float, busy: dict[int, float] | None = None,
+                 cut: int = 0) -> None:
+        self.node, self.lost, self.delay, self.busy, self.cut = node, lost, delay, busy or {}, cut
         self.t0 = time.monotonic()
         self.pushed: list[tuple[Message, float]] = []
         self.taken: set[str] = set()
@@ -611,6 +613,11 @@ class _LossyGrid:
             if m.object_id in ids and m.object_id not in self.taken and now - t >= self.delay \
                     and now - self.t0 >= self.busy.get(m.metadata.dst_node_id, 0.0):
                 self.taken.add(m.object_id)
+                if m.metadata.dst_node_id == self.node and self.cut > 0:  # its body never came: Flower's error
+                    self.cut -= 1
+                    out.append(_with_id(Message(Error(3, f"{REPLY_LOST}. The sender may not have completed "
+                                                         "the upload."), reply_to=m)))
+                    continue
                 out.append(_with_id(Message(RecordDict({"config": ConfigRecord({"node": m.metadata.dst_node_id})}),
                                             reply_to=m)))
         return out
@@ -657,3 +664,22 @@ def test_replies_to_a_message_and_its_copies_are_taken_once(monkeypatch):
                            on_resend=copies.extend)
     assert len(copies) >= 2 and {c.metadata.dst_node_id for c in copies} == {9}
     assert sorted(int(m.content["config"]["node"]) for m in got) == [7, 8, 9]
+
+
+def test_a_reply_cut_on_its_way_up_has_its_message_sent_again(monkeypatch):
+    """Rover 9's reply is cut mid-upload (Flower: "objects unavailable"): its message is sent
+    again at once and the copy's reply taken, long before the deadline. When every reply it
+    sends is cut, the round ends at its deadline with Flower's error as that rover's answer
+    (recorded as a reply lost on the link), not with nothing."""
+    from fedmap.flower import polling
+
+    monkeypatch.setattr(polling, "RESEND_MIN", 0.5)
+    copies: list[Message] = []
+    t0 = time.monotonic()
+    got = polling.exchange(_LossyGrid(9, lost=0, delay=0.2, cut=1), _three(), 20.0, resend=True,
+                           on_resend=copies.extend)
+    assert time.monotonic() - t0 < 3.0 and [c.metadata.dst_node_id for c in copies] == [9]
+    assert not any(m.has_error() for m in got) and sorted(int(m.content["config"]["node"]) for m in got) == [7, 8, 9]
+    got = polling.exchange(_LossyGrid(9, lost=0, delay=0.2, cut=1000), _three(), 2.0, resend=True)
+    errors = [m for m in got if m.has_error()]
+    assert len(got) == 3 and len(errors) == 1 and polling.REPLY_LOST in errors[0].error.reason

@@ -27,12 +27,17 @@ the link never sees it, while the SuperLink has it for delivered (seen on a link
 120 s deadline). With ``resend``, :func:`exchange` sends a message again, as a new message
 to the same node, once it has waited :data:`RESEND_FACTOR` times as long as the slowest
 reply so far took (at least :data:`RESEND_MIN` s) without a reply; the first reply to any
-copy answers it. The receiver must take a copy it already answered as the same message
-(the paper's ClientApp returns the reply it gave).
+copy answers it. A reply cut on its way up is sent again the same way: each poll's pulls
+give up after that same patience (not the deadline), and a reply whose body did not come
+(Flower's :data:`REPLY_LOST` error) has its message sent again at once; the error is kept
+as that message's answer only if nothing better comes before the deadline. The receiver
+must take a copy it already answered as the same message (the paper's ClientApp returns
+the reply it gave, so its reply is uploaded again, nothing more).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -61,6 +66,8 @@ LAST_LOOK = 2.0
 RESEND_FACTOR = 3.0
 #: ... but never sooner than this many seconds after it was last sent.
 RESEND_MIN = 10.0
+#: Flower's error for a reply whose message reached the SuperLink but whose body did not.
+REPLY_LOST = "Reply message objects are unavailable"
 #: Seconds between calls of :func:`exchange`'s ``overdue`` (a mission's base asks, that often,
 #: which rover process runs on the node of a rover still holding its order).
 OVERDUE = 30.0
@@ -106,24 +113,33 @@ def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = P
     ids = set(first_of)  # the IDs still waited for (copies included)
     answered: set[str] = set()
     replies: list[Message] = []
+    cut: dict[str, Message] = {}  # message -> Flower's error for a reply to it whose body did not come
     slowest: float | None = None
     t_end = start + timeout
     check = time.monotonic() + OVERDUE
 
-    def take(got: list[Message]) -> None:
+    def patience() -> float:
+        return max(RESEND_MIN, RESEND_FACTOR * (slowest if slowest is not None else time.monotonic() - start))
+
+    def take(got: list[Message], *, final: bool = False) -> None:
         nonlocal ids
         for m in got:
             first = first_of.get(m.metadata.reply_to_message_id)
             if first is None or first in answered:
                 continue  # a reply to a copy of a message already answered
+            if resend and not final and m.has_error() and REPLY_LOST in (m.error.reason or ""):
+                cut[first] = m  # its answer only if no copy's reply comes in time
+                sent_at[first] = -math.inf  # sent again at once
+                ids.discard(m.metadata.reply_to_message_id)
+                continue
             answered.add(first)
             replies.append(m)
         ids = {i for i in ids if first_of[i] not in answered}
 
     while ids and (left := t_end - time.monotonic()) > 0:
-        with pulls_within(left):
+        with pulls_within(min(left, patience()) if resend else left):
             got = list(grid.pull_messages(ids))
-        if got:
+        if any(not m.has_error() for m in got):
             slowest = time.monotonic() - start
         take(got)
         if ids and overdue is not None and time.monotonic() >= check:
@@ -131,9 +147,10 @@ def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = P
             ids -= gone
             answered.update(first_of[i] for i in gone)
             check = time.monotonic() + OVERDUE
-        if ids and resend and slowest is not None:
-            now, patience = time.monotonic(), max(RESEND_MIN, RESEND_FACTOR * slowest)
-            due = sorted({first_of[i] for i in ids if now - sent_at[first_of[i]] >= patience})
+        waiting = {first_of[i] for i in ids} | (cut.keys() - answered)
+        if waiting and resend and (slowest is not None or cut):
+            now, wait = time.monotonic(), patience()
+            due = sorted(f for f in waiting if now - sent_at[f] >= wait)
             if due:
                 copies = [copy_of(original[f]) for f in due]
                 for f, new in zip(due, grid.push_messages(copies)):
@@ -147,5 +164,6 @@ def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = P
             time.sleep(poll)
     if ids:  # the deadline passed: what arrived whole while the last pull waited for a cut body
         with pulls_within(LAST_LOOK):
-            take(list(grid.pull_messages(ids)))
+            take(list(grid.pull_messages(ids)), final=True)
+    replies += [m for f, m in cut.items() if f not in answered]  # a reply cut, and no copy answered in time
     return replies

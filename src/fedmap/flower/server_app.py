@@ -43,6 +43,7 @@ from fedmap.federation.runner import (
     round_record,
 )
 from fedmap.flower.checkpoint import BaseState, read_checkpoint
+from fedmap.flower.polling import REPLY_LOST as _REPLY_LOST
 from fedmap.flower.polling import exchange, quick_pulls
 from fedmap.flower.records import check_flower_count, from_record, to_record
 from fedmap.flower.settings import RunSettings
@@ -58,7 +59,6 @@ POLL = 0.25
 #: What Flower says when a reply's message arrived but its body (the objects) did not: the
 #: link dropped mid-transfer. Recorded as :data:`LOST_REPLY`, a missing rover like one
 #: whose reply never came.
-_REPLY_LOST = "Reply message objects are unavailable"
 LOST_REPLY = "reply lost on the link"
 #: Why a rover is missing: it was sent the round and no reply came in time, or none of the
 #: nodes the round was sent to is that rover (it was not connected when the round began).
