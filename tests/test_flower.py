@@ -508,6 +508,39 @@ def test_a_reply_cut_on_the_link_costs_no_more_than_the_round_deadline(monkeypat
     assert polling.inflatable_utils.pull_objects.__kwdefaults__["max_time"] == 7200  # Flower's own, outside an exchange
 
 
+def test_a_mission_bases_pull_of_a_cut_reply_gives_up_by_its_next_ask(monkeypatch):
+    """A mission's base asks every OVERDUE s which process runs on a silent rover's node (a
+    rover killed and started again is answered at once). A rover killed while uploading its
+    report leaves a cut reply: a pull bounded only by the deadline held the exchange until
+    the SuperLink dropped the upload (a loopback mission's order took 184.5 s). The pull now
+    gives up after OVERDUE s, and the reply comes back as Flower's "objects unavailable"."""
+    from types import SimpleNamespace
+
+    from flwr.app import MessageType
+    from flwr.common.serde import message_to_proto
+    from flwr.proto.message_pb2 import ObjectTree
+    from flwr.proto.runtime_pb2 import PullAppMessagesResponse
+
+    from fedmap.flower import polling
+
+    ins = _with_id(Message(RecordDict({"config": ConfigRecord({})}), dst_node_id=7, message_type=MessageType.TRAIN))
+    reply = _with_id(Message(RecordDict({"config": ConfigRecord({"x": 1})}), reply_to=ins))
+
+    class Client:  # the SuperLink: the reply's message is stored, its body never arrives
+        def PullMessages(self, request):  # noqa: N802 (Flower's RPC names)
+            return PullAppMessagesResponse(messages_list=[message_to_proto(reply)],
+                                           message_object_trees=[ObjectTree(object_id=reply.object_id)])
+
+        def PullObject(self, request):  # noqa: N802
+            return SimpleNamespace(object_found=True, object_available=False, object_content=b"")
+
+    monkeypatch.setattr(polling, "OVERDUE", 0.5)
+    t0 = time.monotonic()
+    got = polling.exchange(_http_grid(monkeypatch, Client(), [ins]), [ins], 30.0, overdue=lambda ids: set())
+    assert time.monotonic() - t0 < 5.0
+    assert len(got) == 1 and got[0].has_error() and REPLY_LOST in got[0].error.reason
+
+
 def test_a_reply_that_arrives_whole_while_a_pull_waits_for_a_cut_one_is_not_lost(monkeypatch):
     """Two rovers: one reply is cut mid-upload (its message stored, its body never), the other
     arrives whole just after the first poll, which then waits for the cut body until the

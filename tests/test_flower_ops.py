@@ -215,8 +215,8 @@ if step == "unconfirmed":  # as seen through a link that failed after round 2: a
         time.sleep(0.5)
         print("WARNING :   Connection attempt failed, retrying in 0.37 seconds", flush=True)
     print("INFO :      Received successfully\\nINFO :      Sending: evaluate message (ID: a78f)", flush=True)
+    (count.parent / "sent").write_text("1")  # sent, then logged (the other order raced the rover's kill)
     print("INFO :      Sent successfully", flush=True)
-    (count.parent / "sent").write_text("1")
     time.sleep(600)
 if step == "bind":  # Flower's SuperNode starts its local API on its port first
     import socket

@@ -101,7 +101,9 @@ def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = P
     ``timeout`` s have passed; no pull outlasts the deadline (:func:`pulls_within`), and one
     last look after it takes the replies that arrived whole while a pull waited for a cut one.
     ``overdue``: called every :data:`OVERDUE` s with the IDs of the messages still
-    unanswered; the IDs it returns are no longer waited for. ``resend``: a message that
+    unanswered; the IDs it returns are no longer waited for (and no pull outlasts
+    :data:`OVERDUE`: a reply cut on the link comes back as Flower's :data:`REPLY_LOST` error
+    then, not at the deadline). ``resend``: a message that
     goes unanswered much longer than the others took is sent again (the module's
     docstring), and ``on_resend`` is called with the copies; one reply per message is
     returned (the first, to whichever copy)."""
@@ -137,7 +139,10 @@ def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = P
         ids = {i for i in ids if first_of[i] not in answered}
 
     while ids and (left := t_end - time.monotonic()) > 0:
-        with pulls_within(min(left, patience()) if resend else left):
+        bound = min(left, patience()) if resend else left
+        if overdue is not None:  # a pull that waits for a cut body must not hold back the next ask
+            bound = min(bound, OVERDUE)
+        with pulls_within(bound):
             got = list(grid.pull_messages(ids))
         if any(not m.has_error() for m in got):
             slowest = time.monotonic() - start
