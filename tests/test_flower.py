@@ -484,7 +484,6 @@ def test_a_reply_cut_on_the_link_costs_no_more_than_the_round_deadline(monkeypat
     from flwr.proto.runtime_pb2 import PullAppMessagesResponse
 
     from fedmap.flower import polling
-    from fedmap.flower.polling import REPLY_LOST as _REPLY_LOST
 
     ins = _with_id(Message(RecordDict({"config": ConfigRecord({})}), dst_node_id=7, message_type=MessageType.TRAIN))
     reply = _with_id(Message(RecordDict({"config": ConfigRecord({"x": 1})}), reply_to=ins))
@@ -502,7 +501,7 @@ def test_a_reply_cut_on_the_link_costs_no_more_than_the_round_deadline(monkeypat
             return SimpleNamespace(object_found=True, object_available=False, object_content=b"")
 
     got = polling.exchange(_http_grid(monkeypatch, Client(), [ins]), [ins], 0.5)
-    assert len(got) == 1 and got[0].has_error() and _REPLY_LOST in got[0].error.reason
+    assert len(got) == 1 and got[0].has_error() and REPLY_LOST in got[0].error.reason
     assert got[0].metadata.reply_to_message_id == ins.object_id
     assert 2 <= len(tries) <= 12  # 0.5 s of retries 0.05-0.2 s apart
     assert polling.inflatable_utils.pull_objects.__kwdefaults__["max_time"] == 7200  # Flower's own, outside an exchange
@@ -554,7 +553,6 @@ def test_a_reply_that_arrives_whole_while_a_pull_waits_for_a_cut_one_is_not_lost
     from flwr.supercore.inflatable.inflatable_object import get_all_nested_objects, get_object_tree
 
     from fedmap.flower import polling
-    from fedmap.flower.polling import REPLY_LOST as _REPLY_LOST
 
     ins = [_with_id(Message(RecordDict({"config": ConfigRecord({"k": k})}), dst_node_id=7 + k,
                             message_type=MessageType.TRAIN)) for k in range(2)]
@@ -580,7 +578,7 @@ def test_a_reply_that_arrives_whole_while_a_pull_waits_for_a_cut_one_is_not_lost
     monkeypatch.setattr(polling, "LAST_LOOK", 0.3)
     got = {m.metadata.reply_to_message_id: m for m in polling.exchange(_http_grid(monkeypatch, Client(), ins), ins, 0.5)}
     assert got.keys() == {m.object_id for m in ins}, polls
-    assert got[ins[0].object_id].has_error() and _REPLY_LOST in got[ins[0].object_id].error.reason
+    assert got[ins[0].object_id].has_error() and REPLY_LOST in got[ins[0].object_id].error.reason
     assert not got[ins[1].object_id].has_error()
     assert got[ins[1].object_id].content["config"]["x"] == 1
     assert len(polls) == 2 and polls[1] == [ins[1].object_id]  # the first poll ran to the deadline

@@ -23,6 +23,7 @@ trains twice nor decodes a broadcast twice.
 
 from __future__ import annotations
 
+import functools
 import pickle
 from pathlib import Path
 from typing import cast
@@ -68,6 +69,7 @@ def once(handler):
     """``handler`` (a ClientApp's message handler), answering a copy of the message it
     answered last (same type and round) with the reply it gave, without running again."""
 
+    @functools.wraps(handler)
     def answer(msg: Message, context: Context) -> Message:
         key, mark = _key(msg), context.state.config_records.get(_ANSWERED)
         if key and mark is not None and mark.get("key") == key:
@@ -82,7 +84,6 @@ def once(handler):
             context.state[_ANSWERED] = ConfigRecord({"key": key})
         return reply
 
-    answer.__name__, answer.__doc__ = handler.__name__, handler.__doc__
     return answer
 
 

@@ -456,7 +456,8 @@ def _refused(low: str) -> bool:
 def port_taken(log: str) -> bool:
     """Whether a SuperNode's log says its local API's port was in use (Flower 1.41:
     ``[Errno 98] error while attempting to bind on address (...): address already in use``)."""
-    return "error while attempting to bind" in log.lower() and "address already in use" in log.lower()
+    low = log.lower()
+    return "error while attempting to bind" in low and "address already in use" in low
 
 
 def rover_failure(pid, superlink: str, log: str, *, max_wait: float, code: int | None) -> str:

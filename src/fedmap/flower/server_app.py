@@ -43,8 +43,7 @@ from fedmap.federation.runner import (
     round_record,
 )
 from fedmap.flower.checkpoint import BaseState, read_checkpoint
-from fedmap.flower.polling import REPLY_LOST as _REPLY_LOST
-from fedmap.flower.polling import exchange, quick_pulls
+from fedmap.flower.polling import REPLY_LOST, exchange, quick_pulls
 from fedmap.flower.records import check_flower_count, from_record, to_record
 from fedmap.flower.settings import RunSettings
 from fedmap.flower.task import initial_weights, save_checkpoint, truth_shape, write_base_outputs, write_status
@@ -56,9 +55,9 @@ quick_pulls()  # a reply's objects: Flower's first retry after 1 s
 POLL = 0.25
 
 
-#: What Flower says when a reply's message arrived but its body (the objects) did not: the
-#: link dropped mid-transfer. Recorded as :data:`LOST_REPLY`, a missing rover like one
-#: whose reply never came.
+#: A reply whose message arrived but whose body (the objects) did not (Flower's
+#: :data:`~fedmap.flower.polling.REPLY_LOST`: the link dropped mid-transfer), recorded as a
+#: missing rover like one whose reply never came.
 LOST_REPLY = "reply lost on the link"
 #: Why a rover is missing: it was sent the round and no reply came in time, or none of the
 #: nodes the round was sent to is that rover (it was not connected when the round began).
@@ -188,7 +187,7 @@ class FedmapStrategy(Strategy):
             if msg.has_error():  # the ClientApp crashed or the node went away: nothing delivered
                 pid = self.node_partition.get(node)
                 reason = f"Flower error {msg.error.code}: {msg.error.reason}".splitlines()[0]
-                if _REPLY_LOST in msg.error.reason:  # the link dropped while the reply's body was on its way
+                if REPLY_LOST in msg.error.reason:  # the link dropped while the reply's body was on its way
                     reason = f"{LOST_REPLY} ({reason})"
                 if pid is None:
                     node_errors[str(node)] = reason
