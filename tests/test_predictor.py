@@ -210,6 +210,53 @@ def test_the_summary_scores_the_guesses_on_cells_nobody_observed():
     assert "final_prediction" not in prepare_mission(plain, truth, frames=1).new_run("none").run().summary.to_dict()
 
 
+def test_the_beliefs_with_the_guesses_filled_in_are_scored_strictly_at_every_evaluation():
+    """With a predictor every evaluation also scores each rover's belief with the guesses
+    filled in: recomputed here from the snapshots' views (predict, a guess impassable above
+    1/2, path F1 and false-free by hand), observed cells untouched, and the summary's first
+    step the rovers' mean reached 0.9. Without a predictor none of it is written."""
+    from fedmap.evaluation.paths import path_f1
+    from fedmap.mission.results import F1_GOAL
+
+    truth, mission = _small_mission("raw")
+    c = mission.config
+    want: dict[int, tuple[list[float], list[float], list[float]]] = {}
+
+    def look(snap) -> None:
+        if snap.eval is None:
+            return
+        f1s, successes, false_free = [], [], []
+        for view in snap.views:
+            p = predict(shipped_predictor(), view)[1]
+            filled = np.where(view == UNKNOWN, np.where(p > 0.5, IMPASSABLE, FREE), view)
+            known = view != UNKNOWN
+            assert np.array_equal(filled[known], view[known])  # a guess never overrides an observed cell
+            scores = path_f1(truth.classes, filled, n_pairs=c.eval_pairs, seed=c.seed)
+            f1s.append(scores.f1)
+            successes.append(scores.success)
+            free = filled == FREE
+            false_free.append(float((free & (truth.classes == IMPASSABLE)).sum()) / max(int(free.sum()), 1))
+        want[snap.step] = (f1s, successes, false_free)
+
+    run = mission.new_run("raw", on_snapshot=look).run()
+    ev = run.series.eval
+    assert list(ev.step) == sorted(want) and ev.predicted_f1 is not None
+    assert ev.predicted_success is not None and ev.predicted_false_free is not None
+    for i, t in enumerate(ev.step):
+        assert ev.predicted_f1[i] == pytest.approx(want[t][0])
+        assert ev.predicted_success[i] == pytest.approx(want[t][1])
+        assert ev.predicted_false_free[i] == pytest.approx(want[t][2])
+    means = [float(np.mean(want[t][0][:c.rovers])) for t in ev.step]
+    first = next((t for t, m in zip(ev.step, means) if m >= F1_GOAL), None)
+    summary = run.summary.to_dict()["predicted_belief"]
+    assert summary["f1_step"] == first and summary["final_f1"] == pytest.approx(means[-1])
+    assert summary["final_false_free"] == pytest.approx(float(np.mean(want[ev.step[-1]][2][:c.rovers])))
+    assert any(g != o for g, o in zip(ev.predicted_f1, ev.belief_f1))  # the guesses changed some plans
+    plain = prepare_mission(replace(c, predictor="none"), truth, frames=1).new_run("raw").run()
+    assert "predicted_belief" not in plain.summary.to_dict()
+    assert "predicted_f1" not in plain.series.eval.to_dict()
+
+
 def test_retraining_with_the_same_seed_gives_the_same_bytes(tmp_path):
     coll = earth_like(size=32, per_category=1, seed=0, categories=("urban", "natural"))
     beliefs, truths = exploration_samples(coll, steps=12, every=6, rovers=2)

@@ -427,6 +427,18 @@ def _prediction_lines(result: MissionResult) -> list[str]:
            "", "| strategy | cells | accuracy | all free | impassable IoU | Brier | ECE |", "|---|---|---|---|---|---|---|"]
     out += [f"| {n} | {int(p['cells']):,} | {p['accuracy']:.3f} | {p['accuracy_all_free']:.3f} | "
             f"{p['iou_impassable']:.3f} | {p['brier']:.3f} | {p['ece']:.3f} |" for n, p in rows]
+    filled = [(n, r.summary) for n, r in result.runs.items() if r.summary.predicted_belief]
+    if filled:
+        out += ["", "**The beliefs with the guesses filled in** (every unknown cell its likelier class: the map a "
+                "rover plans paths on), scored as strictly as the beliefs (the guessed cells count as what they "
+                "guess), mean over the rovers; *F1≥0.9 at*: the first evaluation step their mean reached it, "
+                "against the observed beliefs' (*observed*). *false-free*: the share of the FREE cells, observed or "
+                "guessed, that are impassable in the truth (the observed beliefs': the side-by-side table).", "",
+                f"| strategy | F1≥{F1_GOAL} at | observed | path F1 | path success | false-free |",
+                "|---|---|---|---|---|---|"]
+        out += [f"| {n} | {_fmt(p['f1_step'], 0)} | {_fmt(s.team_f1_step, 0)} | {_fmt(p['final_f1'], 2)} | "
+                f"{_fmt(p['final_success'], 2)} | {_fmt(p['final_false_free'], 3)} |"
+                for n, s in filled if (p := s.predicted_belief) is not None]
     return [*out, ""]
 
 
@@ -476,11 +488,16 @@ def plot_f1(results: Sequence[MissionResult]) -> bytes:
         _line(axes[0], step, [r.runs[name].series.eval.f1 for r in results], marker=".", label=name, color=f"C{i}")
         _line(axes[1], step, [[max(f) for f in r.runs[name].series.eval.belief_f1] for r in results], marker=".",
               label=name, color=f"C{i}")
+        if all(r.runs[name].series.eval.predicted_f1 is not None for r in results):  # with the guesses filled in
+            _line(axes[1], step, [[max(f) for f in r.runs[name].series.eval.predicted_f1 or ()] for r in results],
+                  marker=".", ls="--", label=f"{name}, with the guesses", color=f"C{i}")
     axes[0].set(xlabel="step", ylabel="strict path F1", ylim=(0, 1.02), title="Base's global map"
                 + _repeats_note(results))
     axes[1].set(xlabel="step", title="Best rover belief")
     axes[1].axhline(F1_GOAL, color="0.6", ls="--", lw=0.8)
     axes[0].legend()
+    if any(r.runs[name].series.eval.predicted_f1 is not None for r in results for name in r.runs):
+        axes[1].legend(fontsize=7)
     return _png(fig)
 
 
@@ -523,11 +540,19 @@ def plot_knowing(results: Sequence[MissionResult]) -> bytes:
         _line(axes[2], s.step, [[float(np.mean(f)) for f in run.series.false_free] for run in runs], **kw)
         _line(axes[3], ev.step, [[float(np.mean(f)) for f in run.series.eval.belief_success] for run in runs],
               marker=".", **kw)
+        if all(run.series.eval.predicted_success is not None for run in runs):  # with the guesses filled in
+            dashed = {"color": f"C{i}", "ls": "--", "label": f"{name}, with the guesses"}
+            _line(axes[2], ev.step, [[float(np.mean(f)) for f in run.series.eval.predicted_false_free or ()]
+                                     for run in runs], marker=".", **dashed)
+            _line(axes[3], ev.step, [[float(np.mean(f)) for f in run.series.eval.predicted_success or ()]
+                                     for run in runs], marker=".", **dashed)
     axes[0].set(xlabel="step", ylabel="mean over the rovers", ylim=(0, 1.02), title="Accuracy on observed cells")
     axes[1].set(xlabel="step", ylim=(0, 1.02), title="Accuracy on cells nobody observed")
     axes[2].set(xlabel="step", ylim=(0, None), title="False-free rate (hazards planned as FREE)")
     axes[3].set(xlabel="step", ylim=(0, 1.02), title="Executed path success" + _repeats_note(results))
     axes[0].legend()
+    if any(r.runs[name].series.eval.predicted_success is not None for r in results for name in r.runs):
+        axes[3].legend(fontsize=7)
     return _png(fig)
 
 

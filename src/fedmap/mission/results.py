@@ -48,12 +48,29 @@ class EvalSeries:
     #: connects whose path planned on the belief, driven on the truth, reaches the goal
     #: without entering an impassable cell
     belief_success: tuple[tuple[float, ...], ...]
+    #: with ``predictor = "learned"``, per rover, the same scores of its belief with the
+    #: predictor's guesses filled in (every unknown cell its likelier class: the map it plans
+    #: paths on), scored as strictly: its path F1, executed path success and false-free rate
+    #: (the share of its FREE cells, observed or guessed, that are impassable in the truth).
+    #: None (and not written) without a predictor.
+    predicted_f1: tuple[tuple[float, ...], ...] | None = None
+    predicted_success: tuple[tuple[float, ...], ...] | None = None
+    predicted_false_free: tuple[tuple[float, ...], ...] | None = None
 
     def to_dict(self) -> dict[str, list]:
-        return {"step": list(self.step), "psnr": list(self.psnr), "ssim": list(self.ssim),
-                "accuracy": list(self.accuracy), "f1": list(self.f1), "f1_tolerant": list(self.f1_tolerant),
-                "belief_f1": [list(f) for f in self.belief_f1],
-                "belief_success": [list(f) for f in self.belief_success]}
+        out: dict[str, list] = {
+            "step": list(self.step), "psnr": list(self.psnr), "ssim": list(self.ssim), "accuracy": list(self.accuracy),
+            "f1": list(self.f1), "f1_tolerant": list(self.f1_tolerant), "belief_f1": [list(f) for f in self.belief_f1],
+            "belief_success": [list(f) for f in self.belief_success]}
+        for name in PREDICTED_SERIES:  # missions without a predictor keep the metrics they had
+            values = getattr(self, name)
+            if values is not None:
+                out[name] = [list(f) for f in values]
+        return out
+
+
+#: The :class:`EvalSeries` of the belief with the predictor's guesses filled in.
+PREDICTED_SERIES = ("predicted_f1", "predicted_success", "predicted_false_free")
 
 
 @dataclass(frozen=True)
@@ -144,6 +161,12 @@ class MissionSummary:
     #: nobody had observed, every rover's on the map it held, pooled
     #: (:func:`~fedmap.evaluation.metrics.prediction_scores`); None (and not written) without one
     final_prediction: dict[str, float] | None = None
+    #: with ``predictor = "learned"``: the rovers' beliefs with the guesses filled in
+    #: (:attr:`EvalSeries.predicted_f1`): ``f1_step``, the first evaluation step their mean
+    #: strict path F1 reached :data:`F1_GOAL` (None: never), and at the last step the means
+    #: over the rovers ``final_f1``, ``final_success`` and ``final_false_free``; None (and not
+    #: written) without one
+    predicted_belief: dict[str, float | int | None] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The ``summary`` of ``metrics.json``: every field under its own name (so
@@ -154,8 +177,9 @@ class MissionSummary:
         out["first_belief_f1_step_per_rover"] = list(self.first_belief_f1_step_per_rover)
         out["messages"] = dict(self.messages)
         out["ready_coverage"] = READY_COVERAGE
-        if self.final_prediction is None:  # missions without a predictor keep the metrics they had
-            del out["final_prediction"]
+        for name in ("final_prediction", "predicted_belief"):  # missions without a predictor keep their metrics
+            if out[name] is None:
+                del out[name]
         return out
 
 
@@ -312,6 +336,9 @@ class EvalRow:
     f1_tolerant: float
     belief_f1: tuple[float, ...]
     belief_success: tuple[float, ...]
+    predicted_f1: tuple[float, ...] | None = None
+    predicted_success: tuple[float, ...] | None = None
+    predicted_false_free: tuple[float, ...] | None = None
 
 
 def series_of(rows: list[StepRow], evals: list[EvalRow]) -> TimeSeries:
@@ -319,7 +346,10 @@ def series_of(rows: list[StepRow], evals: list[EvalRow]) -> TimeSeries:
     ev = EvalSeries(step=tuple(e.step for e in evals), psnr=tuple(e.psnr for e in evals),
                     ssim=tuple(e.ssim for e in evals), accuracy=tuple(e.accuracy for e in evals),
                     f1=tuple(e.f1 for e in evals), f1_tolerant=tuple(e.f1_tolerant for e in evals),
-                    belief_f1=tuple(e.belief_f1 for e in evals), belief_success=tuple(e.belief_success for e in evals))
+                    belief_f1=tuple(e.belief_f1 for e in evals), belief_success=tuple(e.belief_success for e in evals),
+                    **{name: tuple(getattr(e, name) for e in evals) if evals and all(getattr(e, name) is not None
+                                                                                    for e in evals) else None
+                       for name in PREDICTED_SERIES})
     return TimeSeries(step=tuple(r.step for r in rows), coverage=tuple(r.coverage for r in rows),
                       redundant=tuple(r.redundant for r in rows), accuracy=tuple(r.accuracy for r in rows),
                       accuracy_observed=tuple(r.accuracy_observed for r in rows),
@@ -386,7 +416,18 @@ def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig, 
         ready_step=ready,
         ready_bytes=None if ready is None else int(np.sum(series.bytes_up[at[ready]]) +
                                                    np.sum(series.bytes_down[at[ready]])),
+        predicted_belief=predicted_belief(ev, config.rovers),
     )
+
+
+def predicted_belief(ev: EvalSeries, rovers: int) -> dict[str, float | int | None] | None:
+    """:attr:`MissionSummary.predicted_belief` of the evaluation series (None without a predictor)."""
+    if ev.predicted_f1 is None or ev.predicted_success is None or ev.predicted_false_free is None or not ev.step:
+        return None
+    team = [float(np.mean(f[:rovers])) for f in ev.predicted_f1]  # the rovers' (helicopters plan no paths)
+    return {"f1_step": first_step(ev.step, team, F1_GOAL), "final_f1": team[-1],
+            "final_success": float(np.mean(ev.predicted_success[-1][:rovers])),
+            "final_false_free": float(np.mean(ev.predicted_false_free[-1][:rovers]))}
 
 
 

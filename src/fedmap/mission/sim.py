@@ -161,9 +161,18 @@ class _Run:
         if evaluate:
             g = self.scorer.scores(s.global_map())
             own = [self.own_scorer[k].path(v) for k, v in enumerate(views)]
+            guessed: dict[str, tuple[float, ...]] = {}
+            if w.predictor is not None and not isinstance(w, FramedWorld):  # the belief each rover plans paths on
+                filled = [w.predicted(k, v).classes for k, v in enumerate(views)]
+                paths = [self.own_scorer[k].path(f) for k, f in enumerate(filled)]
+                guessed = {"predicted_f1": tuple(p.f1 for p in paths),
+                           "predicted_success": tuple(p.success for p in paths),
+                           "predicted_false_free": tuple(
+                               float(((f == FREE) & ((truth if o is None else o) == IMPASSABLE)).sum()
+                                     / max(int((f == FREE).sum()), 1)) for f, o in zip(filled, w.own_truth))}
             self.evals.append(EvalRow(step=t, psnr=g.psnr, ssim=g.ssim, accuracy=g.accuracy, f1=g.path.f1,
                                       f1_tolerant=g.path.tolerant.f1, belief_f1=tuple(p.f1 for p in own),
-                                      belief_success=tuple(p.success for p in own)))
+                                      belief_success=tuple(p.success for p in own), **guessed))
         if self.on_snapshot is not None:
             c = self.config
             self.on_snapshot(Snapshot(
