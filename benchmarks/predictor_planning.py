@@ -1,0 +1,244 @@
+"""Does planning with the map predictor pay? Steps until the team's belief is good enough to
+plan on, with and without the predictor, on the default mission, Gale and Hadley.
+
+    python benchmarks/predictor_planning.py                   # 3 missions x 10 seeds, 400 steps (~4 min)
+    python benchmarks/predictor_planning.py --seeds 0 1 --missions default   # a quick look
+
+Every mission runs ``predictive`` twice from the same seed: without the predictor (today)
+and with ``[mission] predictor = "learned"`` (planning with the guesses). The measure is the
+issue's: the first evaluation step the rovers' mean strict path F1 reaches 0.9, scored on
+the belief the team plans on: the observed belief without the predictor, the belief with
+the guesses filled in with it (``summary.predicted_belief.f1_step``). Beside it: the first
+step the observed belief reaches 0.9 with the predictor, and the same guesses filled into
+the beliefs of the run *without* it (``fill only``: the predictor run on the map each rover
+holds at every evaluation, exploration unchanged, so the bytes are the same to the byte);
+95 % coverage; the team's bytes over the mission and up to the step the goal was reached;
+false-free of the observed and the filled beliefs at the end; accuracy of the guesses on
+the cells nobody observed.
+
+The missions run 400 steps (the default mission's file has 150, Gale's and Hadley's 300):
+long enough for the runs without the predictor to reach the goal, so that "sooner" can be
+measured. A run that never reaches it counts as 410 steps (said in the table). "Sooner" is
+``1 - mean(with) / mean(without)`` over the seeds of a mission, and the paired difference
+per seed is given with its 95 % Student's t interval.
+
+Gale and Hadley need ``../shared/data`` (``--data``); the package never does. Writes
+``planning.json``, ``planning.md`` and ``planning.png`` to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+MISSIONS = ("default", "gale", "hadley")
+NEVER = 10  #: a run that never reaches a level counts as steps + NEVER
+
+
+def mission_file(name: str) -> Path | None:
+    return None if name == "default" else ROOT / f"examples/mission_{name}.toml"
+
+
+def run_one(job: tuple[str, int, str, int, str]) -> dict:
+    """One ``predictive`` mission: its figures (see the module docstring)."""
+    name, seed, predictor, steps, data = job
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    import torch
+
+    torch.set_num_threads(1)
+    from fedmap.maps.grid import FREE, IMPASSABLE
+    from fedmap.mission import load_mission, mission_terrain
+    from fedmap.mission.sim import prepare_mission
+    from fedmap.mission.world import PredictedView
+    from fedmap.nets.predictor import shipped_predictor
+
+    path = mission_file(name)
+    if path is not None and not (Path(data) / "mars").exists():
+        raise SystemExit(f"{name}: needs the data folder, {data} has none (--data)")
+    config, source, _ = load_mission(path, seed=seed,
+                                     mission={"steps": steps, "strategies": ["predictive"], "predictor": predictor})
+    truth, elevation, prior, profiles = mission_terrain(config, source)
+    m = prepare_mission(config, truth, elevation=elevation, prior=prior, profiles=profiles, thresholds=source.thresholds)
+    model = shipped_predictor()
+    fill: dict[int, tuple[float, float]] = {}  # without the predictor: the guesses filled into the same beliefs
+
+    def look(snap) -> None:
+        if snap.eval is None or predictor != "none":
+            return
+        f1s, ff = [], []
+        for view in snap.views[:config.rovers]:
+            filled = PredictedView.of(model, view).classes
+            f1s.append(m.scorer.path(filled).f1)
+            free = filled == FREE
+            ff.append(float((free & (truth.classes == IMPASSABLE)).sum()) / max(int(free.sum()), 1))
+        fill[snap.step] = (float(np.mean(f1s)), float(np.mean(ff)))
+
+    t0 = time.perf_counter()
+    r = m.new_run("predictive", on_snapshot=look).run()
+    s = r.summary
+    total = [int(np.sum(u) + np.sum(d)) for u, d in zip(r.series.bytes_up, r.series.bytes_down)]
+    at = dict(zip(r.series.step, total))
+    pb = s.predicted_belief or {}
+    goal = pb.get("f1_step") if predictor != "none" else s.team_f1_step
+    fill_step = next((t for t, (f, _) in sorted(fill.items()) if f >= 0.9 - 1e-12), None)
+    return {"mission": name, "seed": seed, "predictor": predictor, "seconds": time.perf_counter() - t0,
+            "goal_step": goal, "observed_f1_step": s.team_f1_step, "fill_only_step": fill_step,
+            "coverage_95": s.coverage_steps[0.95], "bytes": s.bytes_up + s.bytes_down,
+            "bytes_to_goal": None if goal is None else at[goal],
+            "false_free": s.final_false_free_mean,
+            "filled_false_free": pb.get("final_false_free") if predictor != "none" else
+            (fill[max(fill)][1] if fill else None),
+            "unobserved_accuracy": (s.final_prediction or {}).get("accuracy"),
+            "unobserved_all_free": (s.final_prediction or {}).get("accuracy_all_free")}
+
+
+def steps_or_never(v: int | None, steps: int) -> int:
+    return steps + NEVER if v is None else int(v)
+
+
+def t_interval(diffs: list[float]) -> tuple[float, float, float]:
+    from scipy import stats
+
+    d = np.asarray(diffs, dtype=float)
+    if len(d) < 2:
+        return float(d.mean()), float(d.mean()), float(d.mean())
+    half = float(stats.t.ppf(0.975, len(d) - 1)) * float(d.std(ddof=1)) / np.sqrt(len(d))
+    return float(d.mean()), float(d.mean() - half), float(d.mean() + half)
+
+
+def summarise(rows: list[dict], steps: int) -> list[dict]:
+    out = []
+    for name in [*dict.fromkeys(r["mission"] for r in rows), "all"]:
+        pairs = [(a, b) for a in rows for b in rows if a["mission"] == b["mission"] and a["seed"] == b["seed"]
+                 and a["predictor"] == "none" and b["predictor"] == "learned" and name in ("all", a["mission"])]
+        if not pairs:
+            continue
+        base = [steps_or_never(a["goal_step"], steps) for a, _ in pairs]
+        learned = [steps_or_never(b["goal_step"], steps) for _, b in pairs]
+        fill = [steps_or_never(a["fill_only_step"], steps) for a, _ in pairs]
+        obs = [steps_or_never(b["observed_f1_step"], steps) for _, b in pairs]
+        cov_a = [steps_or_never(a["coverage_95"], steps) for a, _ in pairs]
+        cov_b = [steps_or_never(b["coverage_95"], steps) for _, b in pairs]
+        mean = float(np.mean(base))
+        out.append({
+            "mission": name, "seeds": len(pairs),
+            "never": {"without": sum(a["goal_step"] is None for a, _ in pairs),
+                      "with": sum(b["goal_step"] is None for _, b in pairs)},
+            "goal_without": mean, "goal_with": float(np.mean(learned)),
+            "sooner": 1 - float(np.mean(learned)) / mean,
+            "sooner_paired_steps": t_interval([a - b for a, b in zip(base, learned)]),
+            "sooner_per_seed": [1 - b / a for a, b in zip(base, learned)],
+            "with_sooner_later": [sum(b < a for a, b in zip(base, learned)), sum(b > a for a, b in zip(base, learned))],
+            "observed_with": float(np.mean(obs)), "observed_sooner": 1 - float(np.mean(obs)) / mean,
+            "fill_only": float(np.mean(fill)), "fill_only_sooner": 1 - float(np.mean(fill)) / mean,
+            "coverage95_without": float(np.mean(cov_a)), "coverage95_with": float(np.mean(cov_b)),
+            "bytes_ratio": sum(b["bytes"] for _, b in pairs) / sum(a["bytes"] for a, _ in pairs),
+            "bytes_to_goal_ratio": (sum(b["bytes_to_goal"] or 0 for _, b in pairs)
+                                    / max(sum(a["bytes_to_goal"] or 0 for a, _ in pairs), 1)
+                                    if all(a["bytes_to_goal"] and b["bytes_to_goal"] for a, b in pairs) else None),
+            "false_free_without": float(np.mean([a["false_free"] for a, _ in pairs])),
+            "false_free_with": float(np.mean([b["false_free"] for _, b in pairs])),
+            "filled_false_free_with": float(np.mean([b["filled_false_free"] for _, b in pairs])),
+            "unobserved_accuracy": float(np.mean([b["unobserved_accuracy"] for _, b in pairs
+                                                  if b["unobserved_accuracy"] is not None] or [np.nan])),
+            "unobserved_all_free": float(np.mean([b["unobserved_all_free"] for _, b in pairs
+                                                  if b["unobserved_all_free"] is not None] or [np.nan])),
+        })
+    return out
+
+
+def markdown(result: dict) -> str:
+    steps = result["steps"]
+    lines = [f"`{result['command']}` ({result['machine']}); {steps} steps, `predictive`, 4 rovers; a run that "
+             f"never reaches a level counts as {steps + NEVER}.", "",
+             "| mission | seeds | F1≥0.9 without (observed belief) | with (guesses filled in) | sooner | paired, "
+             "steps [95 % CI] | sooner / later | with: observed belief | fill only (no planning use) | 95 % "
+             "coverage without → with | bytes with / without | bytes to the goal | false-free observed, "
+             "without / with | false-free filled, with | guesses right on unobserved (all free) |",
+             "|---|---:|---:|---:|---:|---|---|---:|---:|---|---:|---:|---|---:|---|"]
+    for s in result["summary"]:
+        d, lo, hi = s["sooner_paired_steps"]
+        never = s["never"]
+        lines.append(
+            f"| {s['mission']} | {s['seeds']} | {s['goal_without']:.0f}"
+            + (f" ({never['without']} never)" if never["without"] else "")
+            + f" | {s['goal_with']:.0f}" + (f" ({never['with']} never)" if never["with"] else "")
+            + f" | **{s['sooner']:.1%}** | {d:.1f} [{lo:.1f}, {hi:.1f}] | {s['with_sooner_later'][0]} / "
+            f"{s['with_sooner_later'][1]} | {s['observed_with']:.0f} ({s['observed_sooner']:.1%}) | "
+            f"{s['fill_only']:.0f} ({s['fill_only_sooner']:.1%}) | {s['coverage95_without']:.0f} → "
+            f"{s['coverage95_with']:.0f} | {s['bytes_ratio']:.3f} | "
+            + ("-" if s["bytes_to_goal_ratio"] is None else f"{s['bytes_to_goal_ratio']:.3f}")
+            + f" | {s['false_free_without']:.4f} / {s['false_free_with']:.4f} | {s['filled_false_free_with']:.4f} | "
+            f"{s['unobserved_accuracy']:.3f} ({s['unobserved_all_free']:.3f}) |")
+    return "\n".join(lines) + "\n"
+
+
+def figure(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = result["steps"]
+    fig, ax = plt.subplots(figsize=(5.2, 5))
+    for i, name in enumerate(dict.fromkeys(r["mission"] for r in result["runs"])):
+        by = {(r["seed"], r["predictor"]): r for r in result["runs"] if r["mission"] == name}
+        xs = [steps_or_never(by[(s, "none")]["goal_step"], steps) for s, p in by if p == "none" and (s, "learned") in by]
+        ys = [steps_or_never(by[(s, "learned")]["goal_step"], steps) for s, p in by if p == "none" and (s, "learned") in by]
+        ax.scatter(xs, ys, color=f"C{i}", label=name, alpha=0.8)
+    lo, hi = 0, steps + NEVER + 10
+    ax.plot([lo, hi], [lo, hi], color="0.5", lw=1, label="as soon")
+    ax.plot([lo, hi], [lo, 0.85 * hi], color="0.5", lw=1, ls="--", label="15 % sooner")
+    ax.axvline(steps, color="0.7", lw=0.8, ls=":", label=f"end of the mission ({steps + NEVER}: never)")
+    ax.axhline(steps, color="0.7", lw=0.8, ls=":")
+    ax.set(xlim=(lo, hi), ylim=(lo, hi), xlabel="without the predictor: step the observed belief reached F1 ≥ 0.9",
+           ylabel="with it: step the belief with the guesses reached F1 ≥ 0.9",
+           title="Team belief good enough to plan on (predictive)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--missions", nargs="+", choices=MISSIONS, default=list(MISSIONS))
+    ap.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
+    ap.add_argument("--steps", type=int, default=400)
+    ap.add_argument("--workers", type=int, default=2, help="missions run side by side, one thread each")
+    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared/data")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/predictor_planning")
+    args = ap.parse_args()
+    jobs = [(name, seed, p, args.steps, str(args.data)) for name in args.missions for seed in args.seeds
+            for p in ("none", "learned")]
+    t0 = time.perf_counter()
+    rows = []
+    with ProcessPoolExecutor(args.workers) as pool:
+        for i, row in enumerate(pool.map(run_one, jobs), 1):
+            rows.append(row)
+            print(f"  {i}/{len(jobs)} {row['mission']} seed {row['seed']} {row['predictor']}: F1>=0.9 at "
+                  f"{row['goal_step']}, {row['bytes']:,} B ({time.perf_counter() - t0:.0f} s)", flush=True)
+    info = Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []
+    cpu = next((ln.split(":", 1)[1].strip() for ln in info if ln.startswith("model name")), platform.machine())
+    result = {"command": "python benchmarks/predictor_planning.py " + " ".join(sys.argv[1:]), "machine": cpu,
+              "steps": args.steps, "runs": rows, "summary": summarise(rows, args.steps),
+              "seconds": time.perf_counter() - t0}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "planning.json").write_text(json.dumps(result, indent=1))
+    md = markdown(result)
+    (args.out / "planning.md").write_text(md)
+    figure(result, args.out / "planning.png")
+    print(md)
+
+
+if __name__ == "__main__":
+    main()
