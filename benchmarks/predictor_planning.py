@@ -22,6 +22,13 @@ measured. A run that never reaches it counts as 410 steps (said in the table). "
 ``1 - mean(with) / mean(without)`` over the seeds of a mission, and the paired difference
 per seed is given with its 95 % Student's t interval.
 
+``--ablation`` takes one of the predictor's two planning uses away in the runs with it:
+``no-uncertainty`` counts every unknown cell 1 in a frontier's gain (not the entropy of its
+guess), ``no-costs`` gives every unknown cell the plain ``unknown_cost`` (not the expected
+cost of its guess; paths are then the shortest again). Heights are never an input, and
+every run uses the shipped offline model (no fine-tuning), so those two ablations are the
+rows without ``--ablation``.
+
 Gale and Hadley need ``../shared/data`` (``--data``); the package never does. Writes
 ``planning.json``, ``planning.md`` and ``planning.png`` to ``--out``.
 """
@@ -41,6 +48,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSIONS = ("default", "gale", "hadley")
+ABLATIONS = ("none", "no-uncertainty", "no-costs")
 NEVER = 10  #: a run that never reaches a level counts as steps + NEVER
 
 
@@ -48,13 +56,24 @@ def mission_file(name: str) -> Path | None:
     return None if name == "default" else ROOT / f"examples/mission_{name}.toml"
 
 
-def run_one(job: tuple[str, int, str, int, str]) -> dict:
+def ablate(what: str) -> None:
+    """Take one planning use of the predictor away in this process (see ``--ablation``)."""
+    from fedmap.mission import frontiers
+
+    if what == "no-uncertainty":
+        frontiers.entropy_bits = lambda p: np.ones(np.shape(p))  # type: ignore[assignment]
+    elif what == "no-costs":
+        frontiers.predicted_cost = lambda p, unknown_cost: np.full(np.shape(p), float(unknown_cost))  # type: ignore[assignment]
+
+
+def run_one(job: tuple[str, int, str, int, str, str]) -> dict:
     """One ``predictive`` mission: its figures (see the module docstring)."""
-    name, seed, predictor, steps, data = job
+    name, seed, predictor, steps, data, ablation = job
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
 
     torch.set_num_threads(1)
+    ablate(ablation)
     from fedmap.maps.grid import FREE, IMPASSABLE
     from fedmap.mission import load_mission, mission_terrain
     from fedmap.mission.sim import prepare_mission
@@ -158,8 +177,10 @@ def summarise(rows: list[dict], steps: int) -> list[dict]:
 
 def markdown(result: dict) -> str:
     steps = result["steps"]
+    ablation = result.get("ablation", "none")
     lines = [f"`{result['command']}` ({result['machine']}); {steps} steps, `predictive`, 4 rovers; a run that "
-             f"never reaches a level counts as {steps + NEVER}.", "",
+             f"never reaches a level counts as {steps + NEVER}"
+             + ("." if ablation == "none" else f"; ablation: **{ablation}** in the runs with the predictor."), "",
              "| mission | seeds | F1≥0.9 without (observed belief) | with (guesses filled in) | sooner | paired, "
              "steps [95 % CI] | sooner / later | with: observed belief | fill only (no planning use) | 95 % "
              "coverage without → with | bytes with / without | bytes to the goal | false-free observed, "
@@ -214,11 +235,12 @@ def main() -> None:
     ap.add_argument("--missions", nargs="+", choices=MISSIONS, default=list(MISSIONS))
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
     ap.add_argument("--steps", type=int, default=400)
+    ap.add_argument("--ablation", choices=ABLATIONS, default="none", help="take a planning use away (see above)")
     ap.add_argument("--workers", type=int, default=2, help="missions run side by side, one thread each")
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared/data")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/predictor_planning")
     args = ap.parse_args()
-    jobs = [(name, seed, p, args.steps, str(args.data)) for name in args.missions for seed in args.seeds
+    jobs = [(name, seed, p, args.steps, str(args.data), args.ablation) for name in args.missions for seed in args.seeds
             for p in ("none", "learned")]
     t0 = time.perf_counter()
     rows = []
@@ -230,7 +252,7 @@ def main() -> None:
     info = Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []
     cpu = next((ln.split(":", 1)[1].strip() for ln in info if ln.startswith("model name")), platform.machine())
     result = {"command": "python benchmarks/predictor_planning.py " + " ".join(sys.argv[1:]), "machine": cpu,
-              "steps": args.steps, "runs": rows, "summary": summarise(rows, args.steps),
+              "steps": args.steps, "ablation": args.ablation, "runs": rows, "summary": summarise(rows, args.steps),
               "seconds": time.perf_counter() - t0}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "planning.json").write_text(json.dumps(result, indent=1))
