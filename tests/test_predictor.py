@@ -220,12 +220,13 @@ def test_the_beliefs_with_the_guesses_filled_in_are_scored_strictly_at_every_eva
 
     truth, mission = _small_mission("raw")
     c = mission.config
-    want: dict[int, tuple[list[float], list[float], list[float]]] = {}
+    want: dict[int, tuple[list[float], list[float], list[float], list[float]]] = {}
 
     def look(snap) -> None:
         if snap.eval is None:
             return
-        f1s, successes, false_free = [], [], []
+        f1s, successes, false_free, right = [], [], [], []
+        nobody = ~np.any([r.local != UNKNOWN for r in holder["run"].team], axis=0)
         for view in snap.views:
             p = predict(shipped_predictor(), view)[1]
             filled = np.where(view == UNKNOWN, np.where(p > 0.5, IMPASSABLE, FREE), view)
@@ -236,9 +237,12 @@ def test_the_beliefs_with_the_guesses_filled_in_are_scored_strictly_at_every_eva
             successes.append(scores.success)
             free = filled == FREE
             false_free.append(float((free & (truth.classes == IMPASSABLE)).sum()) / max(int(free.sum()), 1))
-        want[snap.step] = (f1s, successes, false_free)
+            right.append(float((filled == truth.classes)[nobody].mean()) if nobody.any() else 1.0)
+        want[snap.step] = (f1s, successes, false_free, right)
 
-    run = mission.new_run("raw", on_snapshot=look).run()
+    holder: dict = {}
+    holder["run"] = mission.new_run("raw", on_snapshot=look)
+    run = holder["run"].run()
     ev = run.series.eval
     assert list(ev.step) == sorted(want) and ev.predicted_f1 is not None
     assert ev.predicted_success is not None and ev.predicted_false_free is not None
@@ -246,6 +250,8 @@ def test_the_beliefs_with_the_guesses_filled_in_are_scored_strictly_at_every_eva
         assert ev.predicted_f1[i] == pytest.approx(want[t][0])
         assert ev.predicted_success[i] == pytest.approx(want[t][1])
         assert ev.predicted_false_free[i] == pytest.approx(want[t][2])
+        assert ev.predicted_accuracy_unobserved is not None
+        assert ev.predicted_accuracy_unobserved[i] == pytest.approx(want[t][3])
     means = [float(np.mean(want[t][0][:c.rovers])) for t in ev.step]
     first = next((t for t, m in zip(ev.step, means) if m >= F1_GOAL), None)
     summary = run.summary.to_dict()["predicted_belief"]

@@ -542,6 +542,8 @@ def plot_knowing(results: Sequence[MissionResult]) -> bytes:
               marker=".", **kw)
         if all(run.series.eval.predicted_success is not None for run in runs):  # with the guesses filled in
             dashed = {"color": f"C{i}", "ls": "--", "label": f"{name}, with the guesses"}
+            _line(axes[1], ev.step, [[float(np.mean(f)) for f in run.series.eval.predicted_accuracy_unobserved or ()]
+                                     for run in runs], marker=".", **dashed)
             _line(axes[2], ev.step, [[float(np.mean(f)) for f in run.series.eval.predicted_false_free or ()]
                                      for run in runs], marker=".", **dashed)
             _line(axes[3], ev.step, [[float(np.mean(f)) for f in run.series.eval.predicted_success or ()]

@@ -51,11 +51,13 @@ class EvalSeries:
     #: with ``predictor = "learned"``, per rover, the same scores of its belief with the
     #: predictor's guesses filled in (every unknown cell its likelier class: the map it plans
     #: paths on), scored as strictly: its path F1, executed path success and false-free rate
-    #: (the share of its FREE cells, observed or guessed, that are impassable in the truth).
-    #: None (and not written) without a predictor.
+    #: (the share of its FREE cells, observed or guessed, that are impassable in the truth),
+    #: and the share of the cells nobody had observed that its guesses got right (1.0 when
+    #: there are none). None (and not written) without a predictor.
     predicted_f1: tuple[tuple[float, ...], ...] | None = None
     predicted_success: tuple[tuple[float, ...], ...] | None = None
     predicted_false_free: tuple[tuple[float, ...], ...] | None = None
+    predicted_accuracy_unobserved: tuple[tuple[float, ...], ...] | None = None
 
     def to_dict(self) -> dict[str, list]:
         out: dict[str, list] = {
@@ -70,7 +72,7 @@ class EvalSeries:
 
 
 #: The :class:`EvalSeries` of the belief with the predictor's guesses filled in.
-PREDICTED_SERIES = ("predicted_f1", "predicted_success", "predicted_false_free")
+PREDICTED_SERIES = ("predicted_f1", "predicted_success", "predicted_false_free", "predicted_accuracy_unobserved")
 
 
 @dataclass(frozen=True)
@@ -339,6 +341,7 @@ class EvalRow:
     predicted_f1: tuple[float, ...] | None = None
     predicted_success: tuple[float, ...] | None = None
     predicted_false_free: tuple[float, ...] | None = None
+    predicted_accuracy_unobserved: tuple[float, ...] | None = None
 
 
 def series_of(rows: list[StepRow], evals: list[EvalRow]) -> TimeSeries:

@@ -169,7 +169,8 @@ class _Run:
                            "predicted_success": tuple(p.success for p in paths),
                            "predicted_false_free": tuple(
                                float(((f == FREE) & ((truth if o is None else o) == IMPASSABLE)).sum()
-                                     / max(int((f == FREE).sum()), 1)) for f, o in zip(filled, w.own_truth))}
+                                     / max(int((f == FREE).sum()), 1)) for f, o in zip(filled, w.own_truth)),
+                           "predicted_accuracy_unobserved": tuple(share(f == truth, n_seen == 0) for f in filled)}
             self.evals.append(EvalRow(step=t, psnr=g.psnr, ssim=g.ssim, accuracy=g.accuracy, f1=g.path.f1,
                                       f1_tolerant=g.path.tolerant.f1, belief_f1=tuple(p.f1 for p in own),
                                       belief_success=tuple(p.success for p in own), **guessed))
