@@ -125,17 +125,30 @@ VALUES: dict[str, Callable[[MissionSummary], float | int | None]] = {
 }
 
 
+#: Values of missions with a predictor (``predictor = "learned"``), after :data:`VALUES`: the
+#: first step the rovers' beliefs with the guesses filled in reached a mean F1 of 0.9.
+PREDICTED_VALUES: dict[str, Callable[[MissionSummary], float | int | None]] = {
+    "guessed F1≥0.9 at": lambda s: None if s.predicted_belief is None else s.predicted_belief["f1_step"],
+}
+
 #: Values that are shares (0..1); the others are counts (steps, bytes), never below 0.
 SHARES = ("coverage", "belief accuracy", "belief F1", "path success", "false-free", "global F1")
 
 
+def values_of(results: Sequence[MissionResult]) -> dict[str, Callable[[MissionSummary], float | int | None]]:
+    """:data:`VALUES`, and :data:`PREDICTED_VALUES` when the missions ran with a predictor."""
+    guessed = any(run.summary.predicted_belief is not None for r in results for run in r.runs.values())
+    return {**VALUES, **PREDICTED_VALUES} if guessed else dict(VALUES)
+
+
 def intervals(results: Sequence[MissionResult]) -> dict[str, dict[str, Interval | None]]:
-    """``{strategy: {value: interval over the repeats}}`` for every value of :data:`VALUES`."""
+    """``{strategy: {value: interval over the repeats}}`` for every value of :func:`values_of`."""
     names = list(results[0].runs)
     return {n: {v: interval([get(r.runs[n].summary) for r in results],
-                            bounds=(0.0, 1.0) if v in SHARES else (0.0, math.inf)) for v, get in VALUES.items()}
+                            bounds=(0.0, 1.0) if v in SHARES else (0.0, math.inf))
+                for v, get in values_of(results).items()}
             for n in names}
 
 
-__all__ = ["LEVEL", "REPEAT_SPREAD", "SHARES", "VALUES", "Interval", "interval", "intervals", "repeat_configs",
-           "run_repeats", "what_varies"]
+__all__ = ["LEVEL", "PREDICTED_VALUES", "REPEAT_SPREAD", "SHARES", "VALUES", "Interval", "interval", "intervals",
+           "repeat_configs", "run_repeats", "values_of", "what_varies"]

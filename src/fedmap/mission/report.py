@@ -33,7 +33,7 @@ from fedmap._util import AtomicDir, atomic_write_bytes
 from fedmap.maps.grid import PALETTE
 from fedmap.mission.link import BASE
 from fedmap.mission.maps_out import write_mission_maps
-from fedmap.mission.repeats import VALUES, Interval, interval, intervals, what_varies
+from fedmap.mission.repeats import Interval, interval, intervals, values_of, what_varies
 from fedmap.mission.results import READY_COVERAGE
 from fedmap.mission.sensing import disk_offsets
 from fedmap.mission.sim import COVERAGE_LEVELS, F1_GOAL, MissionResult, MissionSummary
@@ -257,15 +257,16 @@ def verdict(result: MissionResult, repeats: Sequence[MissionResult] | None = Non
 #: Decimals of each value of a repeats table (:data:`~fedmap.mission.repeats.VALUES`).
 _REPEAT_DECIMALS = {"coverage": 3, "belief accuracy": 3, "belief F1": 2, "path success": 2, "false-free": 3,
                     "global F1": 2, "team bytes": 0, "steps to 95 %": 0, "team F1≥0.9 at": 0, "plannable at": 0,
-                    "bytes to plannable": 0}
+                    "bytes to plannable": 0, "guessed F1≥0.9 at": 0}
 
 
 def repeat_rows(results: Sequence[MissionResult]) -> tuple[list[str], list[list[str]]]:
     """Header and one row per strategy: each value's mean over the repeats with its 95 %
     interval, ``mean [lo, hi]`` (a step some repeats never reached says in how many it was)."""
     ivs = intervals(results)
-    header = ["strategy", *VALUES]
-    return header, [[name, *(_fmt_interval(ivs[name][v], _REPEAT_DECIMALS[v]) for v in VALUES)] for name in ivs]
+    values = list(values_of(results))
+    header = ["strategy", *values]
+    return header, [[name, *(_fmt_interval(ivs[name][v], _REPEAT_DECIMALS[v]) for v in values)] for name in ivs]
 
 
 def table_rows(result: MissionResult) -> tuple[list[str], list[list[str]]]:
@@ -375,7 +376,10 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
           if c.prior.kind == "orbital" else []),
         *([f"**Repeats**: {what_varies(result.config, len(repeats))}. Each value is the mean over the repeats "
            "with its 95 % interval (Student's t); a step some repeats never reached gives the mean of those that "
-           "did and how many. *team F1≥0.9 at*: first step the rovers' mean belief F1 reached 0.9; *plannable at*: "
+           "did and how many. *team F1≥0.9 at*: first step the rovers' mean belief F1 reached 0.9; "
+           + ("*guessed F1≥0.9 at*: the same, of their beliefs with the predictor's guesses filled in; "
+              if c.predictor != "none" else "")
+           + "*plannable at*: "
            f"first step it had and the coverage was {READY_COVERAGE:.0%}. Per-repeat values: `metrics.json` "
            "(`repeats`). The animations show the first repeat.", ""] if repeats is not None and len(repeats) > 1
           else []),
