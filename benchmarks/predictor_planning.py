@@ -3,6 +3,7 @@ plan on, with and without the predictor, on the default mission, Gale and Hadley
 
     python benchmarks/predictor_planning.py                   # 3 missions x 10 seeds, 400 steps (~4 min)
     python benchmarks/predictor_planning.py --seeds 0 1 --missions default   # a quick look
+    python benchmarks/predictor_planning.py --combine A/planning.json B/planning.json --out C   # several calls as one
 
 Every mission runs ``predictive`` twice from the same seed: without the predictor (today)
 and with ``[mission] predictor = "learned"`` (planning with the guesses). The measure is the
@@ -239,7 +240,28 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2, help="missions run side by side, one thread each")
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared/data")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/predictor_planning")
+    ap.add_argument("--combine", type=Path, nargs="+", default=None,
+                    help="planning.json files of earlier calls (same steps and ablation): their runs summarised as one, "
+                         "no mission run")
     args = ap.parse_args()
+    if args.combine:
+        parts = [json.loads(f.read_text()) for f in args.combine]
+        if len({(q["steps"], q.get("ablation", "none")) for q in parts}) != 1:
+            raise SystemExit("--combine: the files were made with other steps or ablations; combine like with like")
+        rows = [r for q in parts for r in q["runs"]]
+        seen = [(r["mission"], r["seed"], r["predictor"]) for r in rows]
+        if len(set(seen)) != len(seen):
+            raise SystemExit("--combine: a mission and seed is in two files; each run may count once")
+        result = {**parts[0], "command": "python benchmarks/predictor_planning.py " + " ".join(sys.argv[1:]),
+                  "runs": rows, "summary": summarise(rows, parts[0]["steps"]),
+                  "seconds": sum(q["seconds"] for q in parts)}
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "planning.json").write_text(json.dumps(result, indent=1))
+        md = markdown(result)
+        (args.out / "planning.md").write_text(md)
+        figure(result, args.out / "planning.png")
+        print(md)
+        return
     jobs = [(name, seed, p, args.steps, str(args.data), args.ablation) for name in args.missions for seed in args.seeds
             for p in ("none", "learned")]
     t0 = time.perf_counter()
