@@ -165,12 +165,13 @@ class _Run:
             if w.predictor is not None and not isinstance(w, FramedWorld):  # the belief each rover plans paths on
                 filled = [w.predicted(k, v).classes for k, v in enumerate(views)]
                 paths = [self.own_scorer[k].path(f) for k, f in enumerate(filled)]
+                truths = [truth if o is None else o for o in w.own_truth]  # a profile rover's own classes
                 guessed = {"predicted_f1": tuple(p.f1 for p in paths),
                            "predicted_success": tuple(p.success for p in paths),
-                           "predicted_false_free": tuple(
-                               float(((f == FREE) & ((truth if o is None else o) == IMPASSABLE)).sum()
-                                     / max(int((f == FREE).sum()), 1)) for f, o in zip(filled, w.own_truth)),
-                           "predicted_accuracy_unobserved": tuple(share(f == truth, n_seen == 0) for f in filled)}
+                           "predicted_false_free": tuple(float(((f == FREE) & (o == IMPASSABLE)).sum())
+                                                         / max(int((f == FREE).sum()), 1) for f, o in zip(filled, truths)),
+                           "predicted_accuracy_unobserved": tuple(share(f == o, n_seen == 0)
+                                                                  for f, o in zip(filled, truths))}
             self.evals.append(EvalRow(step=t, psnr=g.psnr, ssim=g.ssim, accuracy=g.accuracy, f1=g.path.f1,
                                       f1_tolerant=g.path.tolerant.f1, belief_f1=tuple(p.f1 for p in own),
                                       belief_success=tuple(p.success for p in own), **guessed))
