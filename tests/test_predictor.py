@@ -263,6 +263,32 @@ def test_the_beliefs_with_the_guesses_filled_in_are_scored_strictly_at_every_eva
     assert "predicted_f1" not in plain.series.eval.to_dict()
 
 
+def test_the_report_tables_the_beliefs_with_the_guesses_even_when_nothing_was_left_unobserved():
+    """report.md gives each strategy's filled beliefs: the step their mean reached 0.9 beside the
+    observed beliefs', and the final scores, from the summary; the table stays when no cell
+    was left unobserved (no guesses to score at the end, but the beliefs were filled before)."""
+    from dataclasses import replace as swap
+
+    from fedmap.mission.report import report_md
+    from fedmap.mission.sim import run_mission
+
+    truth, mission = _small_mission("raw")
+    result = run_mission(mission.config, truth, frames=1)
+    s = result.runs["raw"].summary
+    p = s.predicted_belief
+    assert p is not None
+    row = (f"| raw | {'-' if p['f1_step'] is None else p['f1_step']} | "
+           f"{'-' if s.team_f1_step is None else s.team_f1_step} | {p['final_f1']:.2f} | {p['final_success']:.2f} | "
+           f"{p['final_false_free']:.3f} |")
+    assert row in report_md(result, title="t")
+    run = result.runs["raw"]
+    seen_all = swap(result, runs={"raw": swap(run, summary=swap(s, final_prediction=None))})
+    text = report_md(seen_all, title="t")
+    assert row in text and "**The map predictor's guesses**" not in text
+    plain = run_mission(swap(mission.config, predictor="none"), truth, frames=1)
+    assert "guesses filled in" not in report_md(plain, title="t")
+
+
 def test_retraining_with_the_same_seed_gives_the_same_bytes(tmp_path):
     coll = earth_like(size=32, per_category=1, seed=0, categories=("urban", "natural"))
     beliefs, truths = exploration_samples(coll, steps=12, every=6, rovers=2)

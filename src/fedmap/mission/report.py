@@ -383,7 +383,7 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
            f"first step it had and the coverage was {READY_COVERAGE:.0%}. Per-repeat values: `metrics.json` "
            "(`repeats`). The animations show the first repeat.", ""] if repeats is not None and len(repeats) > 1
           else []),
-        *_prediction_lines(result),
+        *_prediction_lines(result, repeated=repeats is not None and len(repeats) > 1),
         *_frames_lines(result),
         side_by_side(result, repeats),
         verdict(result, repeats), "",
@@ -420,20 +420,27 @@ def _frames_lines(result: MissionResult) -> list[str]:
     return out
 
 
-def _prediction_lines(result: MissionResult) -> list[str]:
-    """With ``predictor = "learned"``: a table of the guesses on the cells nobody observed at the last step."""
+def _prediction_lines(result: MissionResult, *, repeated: bool = False) -> list[str]:
+    """With ``predictor = "learned"``: a table of the guesses on the cells nobody observed at the
+    last step (when some were left), and one of the beliefs with the guesses filled in
+    (``repeated``: both of the first repeat)."""
     rows = [(n, r.summary.final_prediction) for n, r in result.runs.items() if r.summary.final_prediction]
-    if not rows:
-        return []
-    out = ["**The map predictor's guesses** at the last step, on the cells no rover had observed (every "
-           "rover's guesses on the map it held, pooled; a guess is impassable above P = 1/2). They are used for "
-           "planning only, never counted as observed or shared. *all free*: the accuracy of guessing FREE everywhere.",
-           "", "| strategy | cells | accuracy | all free | impassable IoU | Brier | ECE |", "|---|---|---|---|---|---|---|"]
-    out += [f"| {n} | {int(p['cells']):,} | {p['accuracy']:.3f} | {p['accuracy_all_free']:.3f} | "
-            f"{p['iou_impassable']:.3f} | {p['brier']:.3f} | {p['ece']:.3f} |" for n, p in rows]
     filled = [(n, r.summary) for n, r in result.runs.items() if r.summary.predicted_belief]
+    if not rows and not filled:
+        return []
+    out = [] if not repeated else ["The predictor's tables below are the first repeat's (the repeats table gives "
+                                   "*guessed F1≥0.9 at* over every repeat).", ""]
+    if rows:
+        out += ["**The map predictor's guesses** at the last step, on the cells no rover had observed (every "
+                "rover's guesses on the map it held, pooled; a guess is impassable above P = 1/2). They are used for "
+                "planning only, never counted as observed or shared. *all free*: the accuracy of guessing FREE "
+                "everywhere.", "", "| strategy | cells | accuracy | all free | impassable IoU | Brier | ECE |",
+                "|---|---|---|---|---|---|---|"]
+        out += [f"| {n} | {int(p['cells']):,} | {p['accuracy']:.3f} | {p['accuracy_all_free']:.3f} | "
+                f"{p['iou_impassable']:.3f} | {p['brier']:.3f} | {p['ece']:.3f} |" for n, p in rows]
+        out.append("")
     if filled:
-        out += ["", "**The beliefs with the guesses filled in** (every unknown cell its likelier class: the map a "
+        out += ["**The beliefs with the guesses filled in** (every unknown cell its likelier class: the map a "
                 "rover plans paths on), scored as strictly as the beliefs (the guessed cells count as what they "
                 "guess), mean over the rovers; *F1≥0.9 at*: the first evaluation step their mean reached it, "
                 "against the observed beliefs' (*observed*). *false-free*: the share of the FREE cells, observed or "
@@ -443,7 +450,8 @@ def _prediction_lines(result: MissionResult) -> list[str]:
         out += [f"| {n} | {_fmt(p['f1_step'], 0)} | {_fmt(s.team_f1_step, 0)} | {_fmt(p['final_f1'], 2)} | "
                 f"{_fmt(p['final_success'], 2)} | {_fmt(p['final_false_free'], 3)} |"
                 for n, s in filled if (p := s.predicted_belief) is not None]
-    return [*out, ""]
+        out.append("")
+    return out
 
 
 # --------------------------------------------------------------------------- plots
