@@ -245,6 +245,9 @@ def main() -> None:
                          "no mission run")
     args = ap.parse_args()
     if args.combine:
+        missing = [str(f) for f in args.combine if not f.is_file()]
+        if missing:
+            raise SystemExit(f"--combine: no such file: {', '.join(missing)}")
         parts = [json.loads(f.read_text()) for f in args.combine]
         if len({(q["steps"], q.get("ablation", "none")) for q in parts}) != 1:
             raise SystemExit("--combine: the files were made with other steps or ablations; combine like with like")
