@@ -683,6 +683,19 @@ def test_an_instruction_lost_on_the_link_is_sent_again_not_waited_for(monkeypatc
     assert sorted(int(m.content["config"]["node"]) for m in got) == [7, 8] and time.monotonic() - t0 >= 1.5
 
 
+def test_a_message_never_answered_is_copied_at_most_resend_max_times(monkeypatch):
+    """A node that is down (every instruction to it lost) gets RESEND_MAX copies of its
+    message, no more, however long the deadline: it would run every one when it came back."""
+    from fedmap.flower import polling
+
+    monkeypatch.setattr(polling, "RESEND_MIN", 0.1)
+    monkeypatch.setattr(polling, "RESEND_FACTOR", 0.5)
+    copies: list[Message] = []
+    got = polling.exchange(_LossyGrid(9, lost=1000, delay=0.05), _three(), 2.0, resend=True, on_resend=copies.extend)
+    assert sorted(int(m.content["config"]["node"]) for m in got) == [7, 8]
+    assert [c.metadata.dst_node_id for c in copies] == [9] * polling.RESEND_MAX
+
+
 def test_replies_to_a_message_and_its_copies_are_taken_once(monkeypatch):
     """A rover that was only slow: its message is sent again (more than once), then the
     replies to the message and to every copy come back in one poll. The exchange returns

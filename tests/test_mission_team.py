@@ -87,3 +87,60 @@ def test_a_slow_rover_of_the_same_process_is_waited_for_not_sent_its_order_again
     assert team.send("raw", {0: b"order"}, {}) == {0: REPORT}
     assert grid.orders == 1
     assert team.faults == []
+
+
+class TwoRoverGrid:
+    """Rovers 0 and 1 on nodes 7 and 8. The first order to node 8 is lost on the link (the
+    SuperLink has it for delivered; the rover never sees it): it is never answered. Every
+    other order is answered at the next pull, each with its own rover's report."""
+
+    def __init__(self) -> None:
+        self.orders: list[int] = []  # the node of every order pushed
+        self.pending: dict[str, Message] = {}
+
+    def get_node_ids(self):
+        return [7, 8]
+
+    def push_messages(self, msgs):
+        ids = []
+        for m in msgs:
+            m.metadata.__dict__["_message_id"] = m.object_id
+            ids.append(m.object_id)
+            node = m.metadata.dst_node_id
+            if m.metadata.message_type == MessageType.QUERY:
+                self.pending[m.object_id] = Message(RecordDict({"config": ConfigRecord(
+                    {"rover": node - 7, "boot": "pid"})}), reply_to=m)
+                continue
+            self.orders.append(node)
+            if node == 8 and self.orders.count(8) == 1:
+                continue  # lost
+            report = Report("raw", node - 7, 5, (1, 1), None, True, None, [], None, {}, [], []).to_bytes()
+            self.pending[m.object_id] = Message(RecordDict({"report": to_record(report),
+                                                            "config": ConfigRecord({"boot": "pid"})}), reply_to=m)
+        return ids
+
+    def pull_messages(self, ids):
+        return [self.pending.pop(i) for i in list(ids) if i in self.pending]
+
+
+def test_an_order_lost_on_the_link_is_sent_again_long_before_the_deadline(tmp_path, monkeypatch):
+    """Rover 0 answers at once; rover 1's order never arrives. Once it has gone unanswered
+    RESEND_FACTOR times as long as rover 0's report took (at least RESEND_MIN), a copy goes
+    to the same node, and rover 1's report to it is taken: well before the round's deadline,
+    with the copy in the faults. (Without the resend the base waits out the deadline.)"""
+    import time
+
+    monkeypatch.setattr(polling, "RESEND_MIN", 0.3)
+    grid = TwoRoverGrid()
+    run = MissionRun(mission="", strategies=("raw",), out=tmp_path / "m", frames=1, connect_timeout=5.0,
+                     deadline=20.0, rejoin=30.0, resume=False)
+    (tmp_path / "m.run").mkdir()
+    team = mission_server._Team(grid, run, 2)
+    t0 = time.monotonic()
+    got = team.send("raw", {0: b"order 0", 1: b"order 1"}, {})
+    took = time.monotonic() - t0
+    assert {k: Report.from_bytes(v).rover for k, v in got.items()} == {0: 0, 1: 1}
+    assert took < 5.0, took  # not the 20 s deadline
+    assert sorted(grid.orders) == [7, 8, 8]  # one copy, to rover 1's node
+    assert [(f["rover"], f["fault"].split(";")[0]) for f in team.faults] == [
+        (1, "its order went unanswered far longer than the others' took (lost on the link?)")]

@@ -7,7 +7,10 @@ each sync round (a ``train`` message carrying the order's bytes) and takes its r
 What crosses is fedmap's own frames (:mod:`fedmap.mission.remote`) as a ``uint8`` array
 (:mod:`fedmap.flower.records`); the ledger counts the strategy's messages inside them, as
 the simulator does. A report or order damaged on the way fails its check and the order
-is sent again (the rover answers a repeated order with the same report). A rover that lost
+is sent again (the rover answers a repeated order with the same report), and so is an
+order that goes unanswered far longer than the other rovers' took (lost on the link:
+:func:`~fedmap.flower.polling.exchange` with ``resend``; the first report to either copy
+is taken). A rover that lost
 its state gets its order again with every order it was sent before, and rebuilds itself
 from them (:meth:`~fedmap.mission.remote.RoverNode.rebuild`). Each fault is a line of the
 run's ``faults`` and of the log. At the end every rover gets a
@@ -49,6 +52,10 @@ def say(out: Path, level: int, line: str) -> None:
 RESENDS = 3
 #: Seconds the base waits for a node to say which rover (and which process) it is.
 ASK_WAIT = 10.0
+#: Copies of an order that goes unanswered far longer than the others took (lost on the link).
+#: One: a rover whose process was killed runs every copy queued for it when it comes back,
+#: each a ClientApp process, before the order the base then sends it to rebuild itself.
+ORDER_COPIES = 1
 
 
 class _Team:
@@ -132,7 +139,17 @@ class _Team:
                 restarted.update(back)
                 return {i for i in ids if sent.get(i) in back}
 
-            for reply in exchange(self.grid, msgs, wait, overdue=overdue):
+            def resent(copies: list[Message]) -> None:  # the rover answers a copy with the same report
+                rover_of = {n: r for r, n in self.node_of.items()}
+                for c in copies:
+                    r = rover_of.get(c.metadata.dst_node_id)
+                    if r is not None:
+                        sent[c.object_id] = r
+                        self._fault(strategy, r, "its order went unanswered far longer than the others' took "
+                                                 "(lost on the link?); sent again, the first report to either taken")
+
+            for reply in exchange(self.grid, msgs, wait, overdue=overdue, resend=True, on_resend=resent,
+                                  most=ORDER_COPIES):
                 k = sent.get(reply.metadata.reply_to_message_id)
                 if k is None or reply.has_error():
                     continue  # a Flower error: the node is gone, as if it had not answered

@@ -27,7 +27,8 @@ the link never sees it, while the SuperLink has it for delivered (seen on a link
 120 s deadline). With ``resend``, :func:`exchange` sends a message again, as a new message
 to the same node, once it has waited :data:`RESEND_FACTOR` times as long as the slowest
 reply so far took (at least :data:`RESEND_MIN` s) without a reply; the first reply to any
-copy answers it. A reply cut on its way up is sent again the same way: each poll's pulls
+copy answers it; at most :data:`RESEND_MAX` copies of a message go. A reply cut on its way
+up is sent again the same way: each poll's pulls
 give up after that same patience (not the deadline), and a reply whose body did not come
 (Flower's :data:`REPLY_LOST` error) has its message sent again at once; the error is kept
 as that message's answer only if nothing better comes before the deadline. The receiver
@@ -64,8 +65,11 @@ POLL = 0.02
 LAST_LOOK = 2.0
 #: With ``resend``: a message unanswered for this many times the slowest reply so far is sent again ...
 RESEND_FACTOR = 3.0
-#: ... but never sooner than this many seconds after it was last sent.
+#: ... but never sooner than this many seconds after it was last sent ...
 RESEND_MIN = 10.0
+#: ... and at most this many copies of one message (by default: a node that is down would be sent
+#: one every RESEND_MIN s, and run each when it came back).
+RESEND_MAX = 3
 #: Flower's error for a reply whose message reached the SuperLink but whose body did not.
 REPLY_LOST = "Reply message objects are unavailable"
 #: Seconds between calls of :func:`exchange`'s ``overdue`` (a mission's base asks, that often,
@@ -96,7 +100,7 @@ def copy_of(msg: Message) -> Message:
 
 def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = POLL,
              overdue: Callable[[set[str]], set[str]] | None = None, resend: bool = False,
-             on_resend: Callable[[list[Message]], None] | None = None) -> list[Message]:
+             on_resend: Callable[[list[Message]], None] | None = None, most: int = RESEND_MAX) -> list[Message]:
     """Push ``msgs``, then pull their replies every ``poll`` s until all are in or
     ``timeout`` s have passed; no pull outlasts the deadline (:func:`pulls_within`), and one
     last look after it takes the replies that arrived whole while a pull waited for a cut one.
@@ -105,13 +109,14 @@ def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = P
     :data:`OVERDUE`: a reply cut on the link comes back as Flower's :data:`REPLY_LOST` error
     then, not at the deadline). ``resend``: a message that
     goes unanswered much longer than the others took is sent again (the module's
-    docstring), and ``on_resend`` is called with the copies; one reply per message is
-    returned (the first, to whichever copy)."""
+    docstring), at most ``most`` times, and ``on_resend`` is called with the copies; one
+    reply per message is returned (the first, to whichever copy)."""
     pushed = list(grid.push_messages(msgs))
     first_of = {i: i for i in pushed if i}  # any copy's ID -> the ID of the message it copies
     original = {i: m for i, m in zip(pushed, msgs) if i}
     start = time.monotonic()
     sent_at = dict.fromkeys(first_of, start)  # message -> when its last copy went out
+    copies_of = dict.fromkeys(first_of, 0)  # message -> copies sent
     ids = set(first_of)  # the IDs still waited for (copies included)
     answered: set[str] = set()
     replies: list[Message] = []
@@ -155,11 +160,12 @@ def exchange(grid: Grid, msgs: list[Message], timeout: float, *, poll: float = P
         waiting = {first_of[i] for i in ids} | (cut.keys() - answered)
         if waiting and resend and (slowest is not None or cut):
             now, wait = time.monotonic(), patience()
-            due = sorted(f for f in waiting if now - sent_at[f] >= wait)
+            due = sorted(f for f in waiting if now - sent_at[f] >= wait and copies_of[f] < most)
             if due:
                 copies = [copy_of(original[f]) for f in due]
                 for f, new in zip(due, grid.push_messages(copies)):
                     sent_at[f] = now
+                    copies_of[f] += 1
                     if new:
                         first_of[new] = f
                         ids.add(new)
