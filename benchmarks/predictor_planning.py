@@ -75,8 +75,9 @@ def run_one(job: tuple[str, int, str, int, str, str]) -> dict:
 
     torch.set_num_threads(1)
     ablate(ablation)
-    from fedmap.maps.grid import FREE, IMPASSABLE
+    from fedmap.maps.grid import FREE
     from fedmap.mission import load_mission, mission_terrain
+    from fedmap.mission.results import false_free
     from fedmap.mission.sim import prepare_mission
     from fedmap.mission.world import PredictedView
     from fedmap.nets.predictor import shipped_predictor
@@ -98,8 +99,7 @@ def run_one(job: tuple[str, int, str, int, str, str]) -> dict:
         for view in snap.views[:config.rovers]:
             filled = PredictedView.of(model, view).classes
             f1s.append(m.scorer.path(filled).f1)
-            free = filled == FREE
-            ff.append(float((free & (truth.classes == IMPASSABLE)).sum()) / max(int(free.sum()), 1))
+            ff.append(false_free(filled == FREE, truth.classes))
         fill[snap.step] = (float(np.mean(f1s)), float(np.mean(ff)))
 
     t0 = time.perf_counter()
@@ -231,6 +231,16 @@ def figure(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def write(result: dict, out: Path) -> None:
+    """``planning.json``, ``planning.md`` and ``planning.png`` of ``result`` in ``out``; prints the table."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "planning.json").write_text(json.dumps(result, indent=1))
+    md = markdown(result)
+    (out / "planning.md").write_text(md)
+    figure(result, out / "planning.png")
+    print(md)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--missions", nargs="+", choices=MISSIONS, default=list(MISSIONS))
@@ -258,12 +268,7 @@ def main() -> None:
         result = {**parts[0], "command": "python benchmarks/predictor_planning.py " + " ".join(sys.argv[1:]),
                   "runs": rows, "summary": summarise(rows, parts[0]["steps"]),
                   "seconds": sum(q["seconds"] for q in parts)}
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "planning.json").write_text(json.dumps(result, indent=1))
-        md = markdown(result)
-        (args.out / "planning.md").write_text(md)
-        figure(result, args.out / "planning.png")
-        print(md)
+        write(result, args.out)
         return
     jobs = [(name, seed, p, args.steps, str(args.data), args.ablation) for name in args.missions for seed in args.seeds
             for p in ("none", "learned")]
@@ -279,12 +284,7 @@ def main() -> None:
     result = {"command": "python benchmarks/predictor_planning.py " + " ".join(sys.argv[1:]), "machine": cpu,
               "steps": args.steps, "ablation": args.ablation, "runs": rows, "summary": summarise(rows, args.steps),
               "seconds": time.perf_counter() - t0}
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "planning.json").write_text(json.dumps(result, indent=1))
-    md = markdown(result)
-    (args.out / "planning.md").write_text(md)
-    figure(result, args.out / "planning.png")
-    print(md)
+    write(result, args.out)
 
 
 if __name__ == "__main__":

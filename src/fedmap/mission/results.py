@@ -16,7 +16,7 @@ import numpy as np
 
 from fedmap.evaluation.paths import PathScores, path_f1
 from fedmap.evaluation.scores import MapScores, score_map
-from fedmap.maps.grid import GridMap
+from fedmap.maps.grid import IMPASSABLE, GridMap
 from fedmap.mission.link import Message
 from fedmap.mission.protocol import DroppedUpdate
 from fedmap.mission.settings import MissionConfig
@@ -368,6 +368,12 @@ def share(hit: np.ndarray, where: np.ndarray) -> float:
     """The share of the ``where`` cells that are ``hit`` (1.0 when there are none: nothing to get wrong)."""
     n = int(where.sum())
     return float((hit & where).sum() / n) if n else 1.0
+
+
+def false_free(free: np.ndarray, truth: np.ndarray) -> float:
+    """The share of the ``free`` cells (a map's FREE cells) that are impassable in ``truth``
+    (0.0 when there are none: nothing planned as free)."""
+    return float((free & (truth == IMPASSABLE)).sum() / max(int(free.sum()), 1))
 
 
 

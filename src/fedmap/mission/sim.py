@@ -51,6 +51,7 @@ from fedmap.mission.results import (
     StepRow,
     StrategyRun,
     TimeSeries,
+    false_free,
     series_of,
     share,
     summarise,
@@ -142,13 +143,13 @@ class _Run:
             (delivered if ok else dropped)[side] += 1
         self.views = views = team.views
         free = [w.planning_map(v) == FREE for v in views]
+        truths = [truth if o is None else o for o in w.own_truth]  # a profile rover's own classes
         self.rows.append(StepRow(
             step=t, coverage=float((n_seen > 0).mean()), redundant=float((n_seen > 1).mean()),
             accuracy=tuple(float((b == truth).mean()) for b in beliefs),
             accuracy_observed=tuple(share(b == truth, n_seen > 0) for b in beliefs),
             accuracy_unobserved=tuple(share(b == truth, n_seen == 0) for b in beliefs),
-            false_free=tuple(float((f & ((truth if o is None else o) == IMPASSABLE)).sum() / max(int(f.sum()), 1))
-                             for f, o in zip(free, w.own_truth)),
+            false_free=tuple(false_free(f, o) for f, o in zip(free, truths)),
             distance=tuple(team.distances), bytes_up=tuple(up), bytes_down=tuple(down),
             up_delivered=delivered[UP], up_dropped=dropped[UP],
             down_delivered=delivered[DOWN], down_dropped=dropped[DOWN]))
@@ -165,11 +166,9 @@ class _Run:
             if w.predictor is not None and not isinstance(w, FramedWorld):  # the belief each rover plans paths on
                 filled = [w.predicted(k, v).classes for k, v in enumerate(views)]
                 paths = [self.own_scorer[k].path(f) for k, f in enumerate(filled)]
-                truths = [truth if o is None else o for o in w.own_truth]  # a profile rover's own classes
                 guessed = {"predicted_f1": tuple(p.f1 for p in paths),
                            "predicted_success": tuple(p.success for p in paths),
-                           "predicted_false_free": tuple(float(((f == FREE) & (o == IMPASSABLE)).sum())
-                                                         / max(int((f == FREE).sum()), 1) for f, o in zip(filled, truths)),
+                           "predicted_false_free": tuple(false_free(f == FREE, o) for f, o in zip(filled, truths)),
                            "predicted_accuracy_unobserved": tuple(share(f == o, n_seen == 0)
                                                                   for f, o in zip(filled, truths))}
             self.evals.append(EvalRow(step=t, psnr=g.psnr, ssim=g.ssim, accuracy=g.accuracy, f1=g.path.f1,
