@@ -45,8 +45,12 @@ from fedmap.flower.mission_task import MissionRun, read_result, result_path
 from fedmap.flower.task import run_status_path, write_status
 from fedmap.mission.results import MissionResult
 
-#: Seconds between a local rover's polls of its SuperLink (loopback: polls cost nothing).
-LOCAL_POLL = 0.05
+#: Seconds between a local rover's polls of its SuperLink, and its SuperExec's for a task. Polls
+#: are not free on two cores: with three loopback missions side by side (tests/, the suite's lanes)
+#: rovers polling every 0.05 s (the base every 0.02 s) took a quarter of the CPU and made each
+#: mission 190 s against 147 s at 0.25 s (the base 0.05 s, :data:`fedmap.flower.polling.POLL`);
+#: alone, 0.25 s cost a round nothing measurable (docs/processes.md).
+LOCAL_POLL = 0.25
 #: Seconds between a local rover's heartbeats; None: Flower's own (30 s in 1.41), no
 #: ``--heartbeat`` passed. The base station takes a rover for gone after two missed ones.
 #: 10 s (gone after 20 s) was tried: a killed rover started again (its key, so its node id,

@@ -59,8 +59,10 @@ def quick_pulls(first: float = FIRST_RETRY, cap: float = RETRY_CAP) -> None:
         kw["initial_backoff"], kw["backoff_cap"] = first, cap
 
 
-#: Seconds between a base station's polls for replies (Flower's ``send_and_receive``: 3 s).
-POLL = 0.02
+#: Seconds between a base station's polls for replies (Flower's ``send_and_receive``: 3 s). Each
+#: poll costs the SuperLink and the ServerApp CPU: 0.02 s cost a loaded two-core machine more
+#: than it saved (fedmap.flower.deploy.LOCAL_POLL).
+POLL = 0.05
 #: Seconds the last look after a deadline gives each reply body still missing.
 LAST_LOOK = 2.0
 #: With ``resend``: a message unanswered for this many times the slowest reply so far is sent again ...

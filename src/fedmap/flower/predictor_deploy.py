@@ -17,6 +17,7 @@ from pathlib import Path
 from fedmap.errors import FedmapError
 from fedmap.flower import POLL_ENV, SUPEREXEC_POLL_ENV
 from fedmap.flower.checkpoint import run_dir
+from fedmap.flower.deploy import LOCAL_POLL
 from fedmap.flower.launch import (
     SUPERLINK_EXES,
     SUPERNODE_EXES,
@@ -36,9 +37,6 @@ from fedmap.flower.predictor_task import PredictorRun, read_rounds
 from fedmap.flower.rover import supernode_argv
 from fedmap.flower.task import run_status_path, write_status
 from fedmap.nets.model import Weights
-
-#: Seconds between a local site's polls of its SuperLink (loopback: polls cost nothing).
-LOCAL_POLL = 0.05
 
 
 def predictor_app_dir() -> Path:
