@@ -45,6 +45,7 @@ Gale and Hadley need ``../shared/data`` (``--data``); the package never does. Wr
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -75,30 +76,30 @@ def ablate(what: str) -> None:
     elif what == "expected-error":
         frontiers.entropy_bits = lambda p: 2 * np.minimum(np.asarray(p, float), 1 - np.asarray(p, float))  # type: ignore[assignment]
     elif what == "half-floor":
-        # a worker runs many missions: wrap the library's entropy, never an earlier wrapper
-        entropy = frontiers.__dict__.setdefault("_library_entropy_bits", frontiers.entropy_bits)
+        entropy = frontiers.entropy_bits  # the library's: ablate() runs once per process (init_worker)
         frontiers.entropy_bits = lambda p: 0.5 + 0.5 * entropy(p)  # type: ignore[assignment]
-    elif what == "shrunk-rate":
-        from fedmap.maps.grid import IMPASSABLE, UNKNOWN
+    elif what == "shrunk-rate":  # the map's share read with 4,096 cells of the training share added
         from fedmap.nets import predictor
 
-        def shrunk(classes, cells: float = 4096.0, rate: float = float(predictor.shipped_predictor().base_rate)) -> float:
-            b = np.asarray(classes)
-            return (int((b == IMPASSABLE).sum()) + cells * rate) / (int((b != UNKNOWN).sum()) + cells)
-
-        predictor.known_rate = shrunk  # type: ignore[assignment]
+        predictor.known_rate = functools.partial(  # type: ignore[assignment]
+            predictor.known_rate, cells=4096.0, rate=float(predictor.shipped_predictor().base_rate))
     elif what == "no-costs":
         frontiers.predicted_cost = lambda p, unknown_cost: np.full(np.shape(p), float(unknown_cost))  # type: ignore[assignment]
 
 
-def run_one(job: tuple[str, int, str, int, str, str]) -> dict:
+def init_worker(ablation: str) -> None:
+    """A worker process, once: one thread, and the ablation (a wrapper applied per job would wrap itself)."""
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    ablate(ablation)
+
+
+def run_one(job: tuple[str, int, str, int, str]) -> dict:
     """One ``predictive`` mission: its figures (see the module docstring)."""
-    name, seed, predictor, steps, data, ablation = job
+    name, seed, predictor, steps, data = job
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
 
     torch.set_num_threads(1)
-    ablate(ablation)
     from fedmap.maps.grid import FREE
     from fedmap.mission import load_mission, mission_terrain
     from fedmap.mission.results import false_free
@@ -313,11 +314,11 @@ def main() -> None:
                   "seconds": sum(q["seconds"] for q in parts)}
         write(result, args.out)
         return
-    jobs = [(name, seed, p, args.steps, str(args.data), args.ablation) for name in args.missions for seed in args.seeds
+    jobs = [(name, seed, p, args.steps, str(args.data)) for name in args.missions for seed in args.seeds
             for p in ("none", "learned")]
     t0 = time.perf_counter()
     rows = []
-    with ProcessPoolExecutor(args.workers) as pool:
+    with ProcessPoolExecutor(args.workers, initializer=init_worker, initargs=(args.ablation,)) as pool:
         for i, row in enumerate(pool.map(run_one, jobs), 1):
             rows.append(row)
             print(f"  {i}/{len(jobs)} {row['mission']} seed {row['seed']} {row['predictor']}: F1>=0.9 at "

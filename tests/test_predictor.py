@@ -83,6 +83,9 @@ def test_the_guesses_follow_the_maps_own_base_rate():
     _, p = predict(model, belief)
     # the impassable share of the known cells, one pseudo-count each way
     assert known_rate(belief) == ((belief == IMPASSABLE).sum() + 1) / ((belief != UNKNOWN).sum() + 2)
+    # damped towards a prior share: 100 cells of share 0.3 added (the planning benchmark's shrunk-rate ablation)
+    assert known_rate(belief, cells=100, rate=0.3) == pytest.approx(
+        ((belief == IMPASSABLE).sum() + 30) / ((belief != UNKNOWN).sum() + 100))
     assert 0.05 < float(model.base_rate) < 0.95  # learned from the training maps, not the 0.5 placeholder
     logit = lambda q: np.log(q) - np.log1p(-q)
     shift = logit(known_rate(belief)) - logit(float(model.base_rate))

@@ -124,11 +124,12 @@ def one_thread(deterministic: bool = False) -> Iterator[None]:
             torch.use_deterministic_algorithms(was)
 
 
-def known_rate(classes: np.ndarray) -> float:
-    """The impassable share of a map's known cells, with one pseudo-count of each class
-    (a map with nothing known gives 1/2)."""
+def known_rate(classes: np.ndarray, *, cells: float = 2.0, rate: float = 0.5) -> float:
+    """The impassable share of a map's known cells, read with ``cells`` more cells of
+    impassable share ``rate`` added: by default one pseudo-count of each class (a map with
+    nothing known gives 1/2)."""
     b = np.asarray(classes)
-    return (int((b == IMPASSABLE).sum()) + 1) / (int((b != UNKNOWN).sum()) + 2)
+    return (int((b == IMPASSABLE).sum()) + cells * rate) / (int((b != UNKNOWN).sum()) + cells)
 
 
 def _logit(p: float) -> float:
