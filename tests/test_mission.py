@@ -730,3 +730,26 @@ def test_rovers_training_side_by_side_send_what_they_send_one_after_another(monk
     for a, b in zip(one.sharing.rovers, two.sharing.rovers):
         for name, w in a.held_w.items():
             np.testing.assert_array_equal(b.held_w[name], w)
+
+
+def test_a_raw_downlink_over_its_budget_sends_the_newest_cells_that_fit():
+    """A downlink budget below what the base has for a rover cuts the message to the cells
+    stamped latest (protocol.cut_to_budget) instead of sending nothing: a base that left
+    nothing out (BaseEnd.withheld: None) once turned its candidate mask into integers, so
+    the cut-offs were read at cells 0 and 1 and no cut fitted."""
+    from fedmap.mission import load_mission, mission_terrain, run_mission
+
+    def downlinks(budget):
+        link = {"loss": 0.0} if budget is None else {"loss": 0.0, "downlink_bytes": budget}
+        config, source, _ = load_mission(None, seed=0, mission={"strategies": ["raw"], "steps": 60},
+                                         overrides=[{"link": link}])
+        truth, *_ = mission_terrain(config, source)
+        return {(m.round, m.rover): m.bytes for m in run_mission(config, truth).runs["raw"].ledger
+                if m.direction == "down"}
+
+    free = downlinks(None)
+    budget = min(free.values()) * 7 // 8  # below every whole downlink: each must be cut to be sent
+    cut = downlinks(budget)
+    sent = {key: b for key, b in cut.items() if b > 0}
+    assert sent, cut  # cut to the newest cells, not dropped
+    assert all(b <= budget < free[key] for key, b in sent.items())

@@ -561,7 +561,7 @@ class _Placer:
         self.owner_round = np.full(shape, -1, dtype=np.int64)  # and the round it was merged
         self.log: list[Placing] = []
 
-    def withheld(self, k: int) -> np.ndarray | bool:
+    def withheld(self, k: int) -> np.ndarray | None:
         """A downlink leaves out the global cells rover ``k`` gave: it holds them in its own frame."""
         return self.owner == k
 

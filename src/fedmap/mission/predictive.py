@@ -264,7 +264,7 @@ class PredictiveBase(BaseEnd):
             news = [self.trails[j][self.fwd[k][j]:] for j in others]
             marks = [self.targets[j] for j in others]
             refs = [self.fwd_targets[k][j] for j in others]
-            lacking = (self.base != UNKNOWN) & (known == UNKNOWN) & ~self.withheld(k)
+            lacking = self.lacking(k, self.base, known)
             if not lacking.any() and not any(news) and marks == refs and not self.must_send(k):
                 continue  # it holds everything the base has
             derive = self.coding.candidates(anchors)

@@ -244,10 +244,17 @@ class BaseEnd:
         """Its round, once the uplinks that arrived are in: a downlink per rover it answers."""
         return {}
 
-    def withheld(self, k: int) -> np.ndarray | bool:
-        """Cells of the global map a downlink to rover ``k`` leaves out (none: it sends every
-        cell the rover lacks; a base of maps without a shared frame leaves out the rover's own)."""
-        return False
+    def withheld(self, k: int) -> np.ndarray | None:
+        """Cells of the global map a downlink to rover ``k`` leaves out (None: none, it sends
+        every cell the rover lacks; a base of maps without a shared frame leaves out the rover's own)."""
+        return None
+
+    def lacking(self, k: int, base: np.ndarray, held: np.ndarray) -> np.ndarray:
+        """Boolean map of the cells of the global map ``base`` a downlink to rover ``k``, which
+        holds ``held``, may carry: known in ``base``, unknown in ``held``, not :meth:`withheld`."""
+        out = (base != UNKNOWN) & (held == UNKNOWN)
+        w = self.withheld(k)
+        return out if w is None else out & ~w
 
     def delivered(self, k: int, round_no: int, ok: bool) -> None:
         """The acknowledgement of its downlink of round ``round_no`` to rover ``k``."""

@@ -169,7 +169,7 @@ class RawBase(BaseEnd):
                 body = self.layer.body(encode_map(m, reference=ref), self.base_z, mask & np.isfinite(self.base_z))
                 return pack_down("map", "", self.reports, body)
 
-            candidates = (self.base != UNKNOWN) & (ref == UNKNOWN) & ~self.withheld(k)
+            candidates = self.lacking(k, self.base, ref)
             payload, sent = cut_to_budget(make, self.base_stamp, candidates, self.budget)
             self._sending[k, round_no] = np.where(sent | (ref != UNKNOWN), self.base, UNKNOWN).astype(np.uint8)
             out[k] = Outgoing(payload, "map")
