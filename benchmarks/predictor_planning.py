@@ -90,16 +90,15 @@ def ablate(what: str) -> None:
 def init_worker(ablation: str) -> None:
     """A worker process, once: one thread, and the ablation (a wrapper applied per job would wrap itself)."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    import torch
+
+    torch.set_num_threads(1)
     ablate(ablation)
 
 
 def run_one(job: tuple[str, int, str, int, str]) -> dict:
     """One ``predictive`` mission: its figures (see the module docstring)."""
     name, seed, predictor, steps, data = job
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    import torch
-
-    torch.set_num_threads(1)
     from fedmap.maps.grid import FREE
     from fedmap.mission import load_mission, mission_terrain
     from fedmap.mission.results import false_free
