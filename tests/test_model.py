@@ -174,3 +174,48 @@ def test_grid_net_starts_as_the_empty_map_and_is_local():
         last_touched = int(np.ceil(16 / cell_px))  # the cell containing the border + 1 for interpolation
         assert torch.all(g[:, last_touched + 1 :] == 0), f"level {r}: gradient leaks right"
         assert torch.all(g[:, : max(last_touched - 1, 1)].sum(0) > 0)  # and the left cells do learn
+
+
+def _bilinear_border(grid: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """A hand-written reading of ``grid`` (C, r, r) at ``v`` (N, 2) in (x, y) = (col, row)
+    fractions: pixel centres at (i + 0.5) / r, clamped to the border (align_corners=False)."""
+    c, r, _ = grid.shape
+    x = np.clip(v[:, 0] * r - 0.5, 0, r - 1)
+    y = np.clip(v[:, 1] * r - 0.5, 0, r - 1)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    x1, y1 = np.minimum(x0 + 1, r - 1), np.minimum(y0 + 1, r - 1)
+    fx, fy = x - x0, y - y0
+    return ((1 - fy) * (1 - fx) * grid[:, y0, x0] + (1 - fy) * fx * grid[:, y0, x1]
+            + fy * (1 - fx) * grid[:, y1, x0] + fy * fx * grid[:, y1, x1]).T
+
+
+def test_grid_net_features_are_the_bilinear_reading_and_its_gradient_to_the_bit():
+    """GridNet reads its F channels as F batch entries (so torch runs them on every thread).
+    Its features match a hand-written bilinear reading, and its features and gradients
+    equal torch's ``grid_sample`` of the grid as one entry of F channels, bit for bit."""
+    from fedmap.nets.model import grid_config
+
+    torch.set_num_threads(2)  # the parallel path (the autouse fixture restores the worker's threads)
+    m = build_model(grid_config(64, levels=2, features=4))
+    g = torch.Generator().manual_seed(5)
+    for p in m.parameters():
+        p.data.copy_(torch.randn(p.shape, generator=g))
+    v = torch.rand(5000, 2, generator=g) * 1.2 - 0.1  # some points beyond the border
+    upstream = torch.randn(5000, 8, generator=g)
+
+    feats = m.features(v)
+    feats.backward(upstream)
+    got = [p.grad.clone() for p in m.grids]
+
+    ref = []
+    for G in m.grids:
+        G.grad = None
+        ref.append(nn.functional.grid_sample(G, (v * 2 - 1).view(1, -1, 1, 2), mode="bilinear",
+                                             padding_mode="border", align_corners=False).view(G.shape[1], -1).T)
+    ref_feats = torch.cat(ref, dim=1)
+    ref_feats.backward(upstream)
+    assert torch.equal(feats, ref_feats)
+    for a, p in zip(got, m.grids):
+        assert torch.equal(a, p.grad)
+    hand = np.concatenate([_bilinear_border(G.detach()[0].double().numpy(), v.double().numpy()) for G in m.grids], axis=1)
+    np.testing.assert_allclose(feats.detach().numpy(), hand, atol=1e-5)
