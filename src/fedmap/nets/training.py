@@ -167,6 +167,12 @@ KNOWN_ONLY_CELLS = 1 << 16
 #: computed in chunks of this many cells, its gradients accumulated
 #: (:func:`_streamed_step`): the same step in bounded memory.
 STREAM_CELLS = 1 << 20
+#: A streamed GridNet step reads its grids at this many cells at a time, and runs its
+#: decoder on them in chunks of :data:`STREAM_CELLS`: every backward of torch's
+#: ``grid_sample`` zeroes a gradient the size of the whole grid (84 M numbers at 4096²) and
+#: adds it to the last, so fewer, longer reads cost less, while the decoder's activations
+#: (32 numbers a cell) stay a chunk's. The reading's own memory is 16 numbers a cell.
+GRID_CHUNK = 1 << 22
 #: Adam's default ``eps`` (torch's).
 ADAM_EPS = 1e-8
 
@@ -264,7 +270,10 @@ def fit(
             x, y, wt = (feats, target, weight) if idx is None else (feats[idx], target[idx], weight[idx])
             opt.zero_grad(set_to_none=True)
             if stream:  # full batch (config.batch is None) of more than STREAM_CELLS cells
-                losses.append(_streamed_step(head, x, y, wt, penalty, bf16))
+                if isinstance(model, GridNet):  # its grids read in long chunks, its decoder in short ones
+                    losses.append(_streamed_step(model.head, x, y, wt, penalty, bf16, features=model.features))
+                else:
+                    losses.append(_streamed_step(head, x, y, wt, penalty, bf16))
                 opt.step()
                 if on_step is not None:
                     on_step(len(losses), losses[-1])
@@ -317,19 +326,38 @@ def _adam_eps(model: torch.nn.Module, n: int) -> float:
 
 
 def _streamed_step(head: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, y: torch.Tensor,
-                   wt: torch.Tensor, penalty: Callable[[], torch.Tensor] | None, bf16: bool) -> float:
+                   wt: torch.Tensor, penalty: Callable[[], torch.Tensor] | None, bf16: bool, *,
+                   features: Callable[[torch.Tensor], torch.Tensor] | None = None) -> float:
     """The gradient of one full-batch step, accumulated over chunks of :data:`STREAM_CELLS`
     cells (the loss is a weighted sum over cells, so the chunks' gradients add up to the
     whole batch's): memory stays at one chunk's activations whatever the map's size.
-    Returns the step's loss."""
+    Returns the step's loss.
+
+    ``features``: a GridNet's trained reading of its grids (``head`` is then its decoder).
+    It is read for :data:`GRID_CHUNK` cells at a time; the decoder's gradient on those
+    features is taken chunk by chunk and sent back through one reading (the decoder is
+    frozen: it has no gradient of its own to accumulate)."""
     total = wt.sum().clamp_min(1.0)
     value = 0.0
-    for a in range(0, x.shape[0], STREAM_CELLS):
-        with torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
-            pred = head(x[a:a + STREAM_CELLS])
-        part = _loss(pred.float(), y[a:a + STREAM_CELLS], wt[a:a + STREAM_CELLS], total)
-        part.backward()
-        value += part.item()
+    if features is None:
+        for a in range(0, x.shape[0], STREAM_CELLS):
+            with torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
+                pred = head(x[a:a + STREAM_CELLS])
+            part = _loss(pred.float(), y[a:a + STREAM_CELLS], wt[a:a + STREAM_CELLS], total)
+            part.backward()
+            value += part.item()
+    else:
+        for a in range(0, x.shape[0], GRID_CHUNK):
+            read = features(x[a:a + GRID_CHUNK])
+            flat = read.detach()
+            grad = torch.empty_like(flat)
+            for b in range(0, flat.shape[0], STREAM_CELLS):
+                leaf = flat[b:b + STREAM_CELLS].requires_grad_()
+                lo, hi = a + b, a + b + leaf.shape[0]
+                part = _loss(head(leaf), y[lo:hi], wt[lo:hi], total)
+                grad[b:b + leaf.shape[0]] = torch.autograd.grad(part, leaf)[0]
+                value += part.item()
+            read.backward(grad)
     if penalty is not None:
         term = penalty()
         term.backward()
