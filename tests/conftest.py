@@ -28,6 +28,7 @@ def _torch_threads_stay_put():
     if torch.get_num_threads() != THREADS:
         torch.set_num_threads(THREADS)
 
+
 def compile_fedmap() -> None:
     """fedmap's sources compiled to bytecode (``__pycache__``, ignored by git) where they are
     not yet.
