@@ -208,7 +208,16 @@ class GridNet(nn.Module):
         return torch.cat(out, dim=1)
 
     def head(self, feats: torch.Tensor) -> torch.Tensor:
-        return torch.sigmoid(torch.relu(feats @ self.w1.T + self.b1) @ self.w2.T + self.b2)
+        """The frozen decoder, ``sigmoid(relu(feats w1ᵀ + b1) w2ᵀ + b2)``, its bias, ReLU and
+        sigmoid applied in place: a product's backward needs its inputs, not its output, so
+        nothing autograd keeps is overwritten, and the values and gradients are those of the
+        plain expression to the bit (``tests/test_model.py``). On every cell of a big map the
+        decoder's 32-wide activations are memory traffic: its forward and backward on 4 M
+        cells took 376-382 ms written out, 342-348 ms in place (Zen 4, 2 threads)."""
+        hidden = feats @ self.w1.T
+        hidden.add_(self.b1).relu_()
+        out = hidden @ self.w2.T
+        return out.add_(self.b2).sigmoid_()
 
     def forward(self, v: torch.Tensor) -> torch.Tensor:
         return self.head(self.features(v))
