@@ -243,6 +243,7 @@ def fit(
         coords, target, weight = coords[keep], target[keep], weight[keep]
     stream = per_cell and config.batch is None and coords.shape[0] > STREAM_CELLS
     bf16 = False
+    trained: Callable[[torch.Tensor], torch.Tensor] | None = None  # a reading whose weights train (grids)
     if getattr(model, "cacheable_features", False):
         bf16 = config.precision == "bf16"
         with torch.no_grad():
@@ -252,6 +253,7 @@ def fit(
         head = model.head
     else:
         feats, head = coords, model  # features are trained (grid encodings)
+        trained = model.features
     opt = _adam(model, config.lr, _adam_eps(model, feats.shape[0]))
     gen = torch.Generator().manual_seed(seed)
     n = feats.shape[0]
@@ -270,10 +272,7 @@ def fit(
             x, y, wt = (feats, target, weight) if idx is None else (feats[idx], target[idx], weight[idx])
             opt.zero_grad(set_to_none=True)
             if stream:  # full batch (config.batch is None) of more than STREAM_CELLS cells
-                if isinstance(model, GridNet):  # its grids read in long chunks, its decoder in short ones
-                    losses.append(_streamed_step(model.head, x, y, wt, penalty, bf16, features=model.features))
-                else:
-                    losses.append(_streamed_step(head, x, y, wt, penalty, bf16))
+                losses.append(_streamed_step(model.head, x, y, wt, penalty, bf16, features=trained))
                 opt.step()
                 if on_step is not None:
                     on_step(len(losses), losses[-1])
@@ -333,7 +332,7 @@ def _streamed_step(head: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor
     whole batch's): memory stays at one chunk's activations whatever the map's size.
     Returns the step's loss.
 
-    ``features``: a GridNet's trained reading of its grids (``head`` is then its decoder).
+    ``features``: a trained reading of ``x`` (a GridNet's grids; ``head`` is its decoder).
     It is read for :data:`GRID_CHUNK` cells at a time; the decoder's gradient on those
     features is taken chunk by chunk and sent back through one reading (the decoder is
     frozen: it has no gradient of its own to accumulate)."""
