@@ -144,6 +144,42 @@ def test_a_streamed_full_batch_step_is_the_one_pass_step(monkeypatch, blob_map, 
         np.testing.assert_allclose(w2[k], w1[k], rtol=1e-4, atol=1e-6)
 
 
+def test_the_compiled_decoder_pass_is_the_decoder_loss_and_its_gradient(monkeypatch):
+    """The compiled pass of a streamed GridNet step against torch autograd in float64 on the
+    written-out decoder and loss: the same loss and feature gradients to float rounding,
+    nothing where a cell's weight is 0, and the same bits whether its parts run on one
+    thread or two (parts of 700 cells, blocks of 256: every kind of remainder)."""
+    from fedmap.nets import training
+    from fedmap.nets.model import grid_config
+
+    net = build_model(grid_config(16), seed=3)
+    g = torch.Generator().manual_seed(0)
+    n = 2_000
+    feats = torch.randn(n, 8, generator=g) * 0.7
+    y = torch.rand(n, 3, generator=g).round()
+    wt = (torch.rand(n, generator=g) < 0.8).float()
+    total = float(wt.sum()) + 5.0  # the whole batch's weight (a chunk's is less)
+
+    leaf = feats.double().requires_grad_()
+    w1, b1, w2, b2 = (t.double() for t in (net.w1, net.b1, net.w2, net.b2))
+    pred = torch.sigmoid(torch.relu(leaf @ w1.T + b1) @ w2.T + b2)
+    want = (((pred - y.double()) ** 2).mean(dim=1) * wt.double()).sum() / total
+    want.backward()
+
+    monkeypatch.setattr(training, "DECODER_PART", 700)
+    results = []
+    for threads in (1, 2):
+        monkeypatch.setattr(torch, "get_num_threads", lambda threads=threads: threads)
+        results.append(training._decoder_pass(net, feats, y, wt, total))
+    (grad, loss), (grad2, loss2) = results
+    assert torch.equal(grad, grad2) and loss == loss2
+    assert loss == pytest.approx(want.item(), rel=1e-5)
+    scale = leaf.grad.abs().max().item()
+    np.testing.assert_allclose(grad.numpy(), leaf.grad.numpy(), rtol=1e-4, atol=1e-5 * scale)
+    assert not grad[wt == 0].any()
+    assert grad[wt > 0].abs().sum(dim=1).gt(0).float().mean() > 0.5  # and not nothing where it counts
+
+
 def test_a_large_grid_fit_is_adam_on_a_loss_scaled_to_the_reference_size(monkeypatch, blob_map):
     """Above KNOWN_ONLY_CELLS a GridNet's Adam eps is scaled by KNOWN_ONLY_CELLS / n: the same
     steps as Adam with the default eps on the loss times n / KNOWN_ONLY_CELLS (a hand loop)."""
