@@ -178,6 +178,9 @@ GRID_CHUNK = 1 << 22
 #: many, run on torch's threads; each part's loss is its own sum, and the parts add up in
 #: order, so the loss does not depend on the number of threads.
 DECODER_PART = 1 << 18
+#: A full-batch GridNet step on more than this many cells is a streamed step
+#: (:func:`_streamed_step`), whose decoder runs in one compiled pass (:func:`_decoder_pass`).
+DECODER_PASS_ABOVE = 1 << 16
 #: Adam's default ``eps`` (torch's).
 ADAM_EPS = 1e-8
 
@@ -246,7 +249,8 @@ def fit(
     if per_cell and config.masked and coords.shape[0] > KNOWN_ONLY_ABOVE and not bool(weight.all()):
         keep = weight > 0  # a zero-weight cell adds nothing to the loss or its gradient
         coords, target, weight = coords[keep], target[keep], weight[keep]
-    stream = per_cell and config.batch is None and coords.shape[0] > STREAM_CELLS
+    stream = per_cell and config.batch is None and \
+        coords.shape[0] > (DECODER_PASS_ABOVE if isinstance(model, GridNet) else STREAM_CELLS)
     bf16 = False
     grid_net: GridNet | None = None  # a GridNet: its streamed steps run the compiled decoder pass
     if getattr(model, "cacheable_features", False):
@@ -384,7 +388,8 @@ def _decoder_pass(net: GridNet, feats: torch.Tensor, y: torch.Tensor, wt: torch.
     t = np.ascontiguousarray(y.numpy(), dtype=np.float32)
     w = np.ascontiguousarray(wt.numpy(), dtype=np.float32)
     weights = [np.ascontiguousarray(b.detach().numpy(), dtype=np.float32) for b in (net.w1, net.b1, net.w2, net.b2)]
-    grad = np.empty_like(f)
+    out = torch.empty_like(feats)  # torch's allocator, as the reading's own gradient
+    grad = out.numpy()
     bounds = list(range(0, f.shape[0], DECODER_PART)) + [f.shape[0]]
     sums = np.zeros(len(bounds) - 1)
     scale = 1.0 / total
@@ -399,7 +404,7 @@ def _decoder_pass(net: GridNet, feats: torch.Tensor, y: torch.Tensor, wt: torch.
     else:
         for k in range(len(sums)):
             run(k)
-    return torch.from_numpy(grad), float(sums.sum()) * scale / 3.0
+    return out, float(sums.sum()) * scale / 3.0
 
 
 @functools.cache
