@@ -11,6 +11,7 @@ import ctypes
 import functools
 import os
 import platform
+import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
@@ -362,6 +363,7 @@ def _streamed_step(head: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor
                                              float(total))
             read.backward(grad)
             value += chunk_loss
+            del read, grad  # before the next chunk's reading is allocated
     if penalty is not None:
         term = penalty()
         term.backward()
@@ -388,8 +390,7 @@ def _decoder_pass(net: GridNet, feats: torch.Tensor, y: torch.Tensor, wt: torch.
     t = np.ascontiguousarray(y.numpy(), dtype=np.float32)
     w = np.ascontiguousarray(wt.numpy(), dtype=np.float32)
     weights = [np.ascontiguousarray(b.detach().numpy(), dtype=np.float32) for b in (net.w1, net.b1, net.w2, net.b2)]
-    out = torch.empty_like(feats)  # torch's allocator, as the reading's own gradient
-    grad = out.numpy()
+    grad = np.empty_like(f)
     bounds = list(range(0, f.shape[0], DECODER_PART)) + [f.shape[0]]
     sums = np.zeros(len(bounds) - 1)
     scale = 1.0 / total
@@ -404,13 +405,22 @@ def _decoder_pass(net: GridNet, feats: torch.Tensor, y: torch.Tensor, wt: torch.
     else:
         for k in range(len(sums)):
             run(k)
-    return out, float(sums.sum()) * scale / 3.0
+    return torch.from_numpy(grad), float(sums.sum()) * scale / 3.0
+
+
+_COMPILING = threading.Lock()
+
+
+def _decoder_kernel():
+    """:func:`_decoder_rows` compiled with numba (cached on disk), releasing the GIL.
+    Compiled at the first streamed GridNet step, not at import, and once: rovers that
+    train side by side on threads (a mission's) wait for the first to compile it."""
+    with _COMPILING:
+        return _compiled_decoder()
 
 
 @functools.cache
-def _decoder_kernel():
-    """:func:`_decoder_rows` compiled with numba (cached on disk), releasing the GIL.
-    Compiled at the first streamed GridNet step, not at import."""
+def _compiled_decoder():
     from numba import njit
 
     kernel = njit(cache=True, nogil=True)(_decoder_rows)
