@@ -167,7 +167,8 @@ KNOWN_ONLY_ABOVE = 0
 KNOWN_ONLY_CELLS = 1 << 16
 #: Above this many training cells, a full-batch step of a network without BatchNorm is
 #: computed in chunks of this many cells, its gradients accumulated
-#: (:func:`_streamed_step`): the same step in bounded memory.
+#: (:func:`_streamed_step`): the same step in bounded memory. A GridNet's step is streamed
+#: from :data:`DECODER_PASS_ABOVE` cells.
 STREAM_CELLS = 1 << 20
 #: A streamed GridNet step reads its grids at this many cells at a time, and runs its
 #: decoder on them in one compiled pass (:func:`_decoder_pass`: its activations stay in
@@ -282,7 +283,7 @@ def fit(
         for idx in batches:
             x, y, wt = (feats, target, weight) if idx is None else (feats[idx], target[idx], weight[idx])
             opt.zero_grad(set_to_none=True)
-            if stream:  # full batch (config.batch is None) of more than STREAM_CELLS cells
+            if stream:  # full batch (config.batch is None) of more than STREAM_CELLS cells (GridNet: DECODER_PASS_ABOVE)
                 losses.append(_streamed_step(model.head, x, y, wt, penalty, bf16, grid_net=grid_net))
                 opt.step()
                 if on_step is not None:
