@@ -128,9 +128,10 @@ def test_a_streamed_full_batch_step_is_the_one_pass_step(monkeypatch, blob_map, 
 
     monkeypatch.setattr(training, "_adam_eps", lambda model, n: training.ADAM_EPS)  # the same Adam in both runs
     runs = []
-    for cells, grid_chunk in ((1 << 20, 1 << 22), (50, 120)):  # one pass on every cell; known cells only, the
-        # decoder in chunks of 50 cells, the grids read 120 at a time (576 cells in all)
+    for cells, grid_chunk in ((1 << 20, 1 << 22), (50, 120)):  # one pass on every cell; known cells only, streamed
+        # above 50 cells (a GridNet's threshold is DECODER_PASS_ABOVE), the grids read 120 at a time (576 cells in all)
         monkeypatch.setattr(training, "STREAM_CELLS", cells)
+        monkeypatch.setattr(training, "DECODER_PASS_ABOVE", cells)
         monkeypatch.setattr(training, "GRID_CHUNK", grid_chunk)
         monkeypatch.setattr(training, "KNOWN_ONLY_ABOVE", cells)
         model = build_model(grid_config(24), seed=0)

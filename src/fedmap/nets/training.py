@@ -251,10 +251,10 @@ def fit(
     if per_cell and config.masked and coords.shape[0] > KNOWN_ONLY_ABOVE and not bool(weight.all()):
         keep = weight > 0  # a zero-weight cell adds nothing to the loss or its gradient
         coords, target, weight = coords[keep], target[keep], weight[keep]
+    grid_net = model if isinstance(model, GridNet) else None  # its streamed steps run the compiled decoder pass
     stream = per_cell and config.batch is None and \
-        coords.shape[0] > (DECODER_PASS_ABOVE if isinstance(model, GridNet) else STREAM_CELLS)
+        coords.shape[0] > (STREAM_CELLS if grid_net is None else DECODER_PASS_ABOVE)
     bf16 = False
-    grid_net: GridNet | None = None  # a GridNet: its streamed steps run the compiled decoder pass
     if getattr(model, "cacheable_features", False):
         bf16 = config.precision == "bf16"
         with torch.no_grad():
@@ -264,8 +264,6 @@ def fit(
         head = model.head
     else:
         feats, head = coords, model  # features are trained (grid encodings)
-        if isinstance(model, GridNet):
-            grid_net = model
     opt = _adam(model, config.lr, _adam_eps(model, feats.shape[0]))
     gen = torch.Generator().manual_seed(seed)
     n = feats.shape[0]
