@@ -721,3 +721,42 @@ def test_region_blocks_cover_each_change_and_its_neighbours():
     changed[19, 16] = True  # neighbours rows 18-19, cols 15-16: blocks (2, 1) and the partial (2, 2)
     near = region_blocks(changed).reshape(3, 3)
     assert near.tolist() == [[True, True, False], [True, True, False], [False, True, True]]
+
+
+def test_a_kernel_is_compiled_once_however_many_threads_ask_at_once():
+    """Threads that ask for a compiled kernel before the first has it wait for that one's
+    (``functools.cache`` alone would run the builder in each: 4 here). Every numba kernel
+    fedmap builds is built this way."""
+    import threading
+    import time
+
+    from fedmap._util import compiled_once
+    from fedmap.evaluation import metrics
+    from fedmap.maps import planning
+    from fedmap.mission import frontiers
+    from fedmap.nets import training
+
+    built: list[int] = []
+
+    def build() -> object:
+        built.append(threading.get_ident())
+        time.sleep(0.2)  # a compilation: long enough for every thread to ask meanwhile
+        return object()
+
+    kernel = compiled_once(build)
+    start = threading.Barrier(4)
+    got: list[object] = []
+
+    def ask() -> None:
+        start.wait()
+        got.append(kernel())
+
+    threads = [threading.Thread(target=ask) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(built) == 1 and len(got) == 4 and all(g is got[0] for g in got)
+    for builder in (planning._compiled, metrics._ssim_kernel, frontiers._dijkstra, frontiers._candidate_search,
+                    training._decoder_kernel):
+        assert builder.__code__ is kernel.__code__, builder.__name__  # built by compiled_once

@@ -9,16 +9,18 @@ the previous result untouched.
 from __future__ import annotations
 
 import difflib
+import functools
 import json
 import math
 import os
 import shutil
 import stat
 import tempfile
+import threading
 import uuid
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -31,6 +33,33 @@ def cpu_cores() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         return os.cpu_count() or 1
+
+
+_T = TypeVar("_T")
+
+#: Held while a compiled kernel is built or loaded (:func:`compiled_once`): one at a time.
+_COMPILING = threading.RLock()
+
+
+def compiled_once(build: Callable[[], _T]) -> Callable[[], _T]:
+    """``build`` (a compiled kernel's builder: numba, compiled and cached on disk) run once per
+    process, behind one lock.
+
+    ``functools.cache`` alone runs a builder again in every thread that calls it before
+    the first call has returned. A mission's rovers train side by side on threads
+    (:func:`fedmap.mission.protocol.side_by_side`), and scoring and planning split their work
+    over threads, so two threads could compile the same kernel at once: twice the work, and
+    two threads in numba's compiler at once (a prototype's two threads calling one
+    uncompiled dispatcher never returned). Here the second waits for the first's kernel. A
+    builder may use another (the lock is re-entrant)."""
+    cached = functools.cache(build)
+
+    @functools.wraps(build)
+    def kernel() -> _T:
+        with _COMPILING:
+            return cached()
+
+    return kernel
 
 
 def one_line(exc: BaseException) -> str:

@@ -10,12 +10,11 @@ computes the renderings' figures from the classes without rendering them.
 
 from __future__ import annotations
 
-import functools
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from fedmap._util import cpu_cores
+from fedmap._util import compiled_once, cpu_cores
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import PALETTE
 
@@ -133,7 +132,7 @@ def _check_window(h: int, w: int) -> None:
         raise FedmapError(f"SSIM needs maps of at least {SSIM_WINDOW}x{SSIM_WINDOW} cells (its window), got {h}x{w}")
 
 
-@functools.cache
+@compiled_once
 def _ssim_kernel():
     """:func:`_ssim_rows` compiled with numba (cached on disk), releasing the GIL."""
     from numba import njit

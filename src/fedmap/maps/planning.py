@@ -22,7 +22,6 @@ ground); ``unknown_passable=True`` makes the planner optimistic instead.
 
 from __future__ import annotations
 
-import functools
 import heapq
 import math
 import threading
@@ -31,7 +30,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from scipy import ndimage
 
-from fedmap._util import cpu_cores
+from fedmap._util import compiled_once, cpu_cores
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN
 
@@ -182,7 +181,7 @@ def _buffers(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return kept
 
 
-@functools.cache
+@compiled_once
 def _compiled():
     """:func:`_search` compiled with numba (cached on disk), releasing the GIL. Compiled at
     the first plan, not at import: importing numba costs every fedmap command about 0.2 s,

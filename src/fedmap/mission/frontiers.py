@@ -37,12 +37,12 @@ and is never an observation. Three things change, nothing else:
 
 from __future__ import annotations
 
-import functools
 import heapq
 import threading
 
 import numpy as np
 
+from fedmap._util import compiled_once
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.maps.planning import astar
@@ -118,7 +118,7 @@ def travel_costs(belief: np.ndarray, start: tuple[int, int], unknown_cost: float
     return cum.reshape(h + 2, w + 2)[1:-1, 1:-1]
 
 
-@functools.cache
+@compiled_once
 def _dijkstra():
     """:func:`_settle` compiled with numba (cached on disk), compiled at the first pick."""
     from numba import njit
@@ -286,7 +286,7 @@ def _reset_pick_buffers(cum: np.ndarray, done: np.ndarray, touched: np.ndarray) 
     touched[0] = 0
 
 
-@functools.cache
+@compiled_once
 def _candidate_search():
     """:func:`_candidates` compiled with numba (cached on disk), compiled at the first pick,
     in one thread."""

@@ -11,7 +11,6 @@ import ctypes
 import functools
 import os
 import platform
-import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
@@ -20,6 +19,7 @@ import numpy as np
 import torch
 
 from fedmap._schema import setting
+from fedmap._util import compiled_once
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.maps.grid import GridMap
 from fedmap.nets.model import CoordNet, GridNet, grid_coords
@@ -407,19 +407,10 @@ def _decoder_pass(net: GridNet, feats: torch.Tensor, y: torch.Tensor, wt: torch.
     return torch.from_numpy(grad), float(sums.sum()) * scale / 3.0
 
 
-_COMPILING = threading.Lock()
-
-
+@compiled_once
 def _decoder_kernel():
     """:func:`_decoder_rows` compiled with numba (cached on disk), releasing the GIL.
-    Compiled at the first streamed GridNet step, not at import, and once: rovers that
-    train side by side on threads (a mission's) wait for the first to compile it."""
-    with _COMPILING:
-        return _compiled_decoder()
-
-
-@functools.cache
-def _compiled_decoder():
+    Compiled at the first streamed GridNet step, not at import, and once (:func:`~fedmap._util.compiled_once`)."""
     from numba import njit
 
     kernel = njit(cache=True, nogil=True)(_decoder_rows)
