@@ -51,7 +51,10 @@ def compiled_once(build: Callable[[], _T]) -> Callable[[], _T]:
     over threads, so two threads could compile the same kernel at once: twice the work, and
     two threads in numba's compiler at once (a prototype's two threads calling one
     uncompiled dispatcher never returned). Here the second waits for the first's kernel. A
-    builder may use another (the lock is re-entrant)."""
+    builder that compiles with a first call (the planners', SSIM's, the decoder pass's) is
+    done compiling when it returns; one that returns numba's lazy dispatcher (the frontier
+    search's) leaves the compilation to its first call, which numba's own compiler lock
+    serialises. A builder may use another (the lock is re-entrant)."""
     cached = functools.cache(build)
 
     @functools.wraps(build)
