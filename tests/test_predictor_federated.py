@@ -184,6 +184,8 @@ def test_flower_sites_on_real_processes_give_the_in_process_weights(tmp_path):
     for g, w in zip(got, want):
         assert set(g) == set(w)
         assert all(np.array_equal(g[k], w[k]) for k in w)
+    for k in range(2):  # every message ran in a ClientApp forked from the site's warm server, which logs it
+        assert "flwr-clientapp" in (tmp_path / "out.run" / f"site{k}.clientapps.log").read_text()
 
 
 def test_federate_predictor_command_writes_json_figure_and_weights(tmp_path):

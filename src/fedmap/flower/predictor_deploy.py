@@ -6,10 +6,20 @@ samples file, node config ``samples``), and the predictor's ServerApp
 (:mod:`fedmap.flower.predictor_server`) submitted with ``flwr run``. The command returns the
 global weights of every round; every process's log is in ``<out>.run/``. Nothing here
 imports ``flwr``.
+
+Each site's SuperNode runs its messages' ClientApps warm, as a rover's does
+(:mod:`fedmap.flower.warm`): one server process per site imports Flower's ClientApp
+runtime, torch and fedmap once and forks a ClientApp per message, instead of Flower's fresh
+``flwr-clientapp`` process per message that imports them all again.
 """
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
+import sys
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -34,7 +44,7 @@ from fedmap.flower.launch import (
     write_connection,
 )
 from fedmap.flower.predictor_task import PredictorRun, read_rounds
-from fedmap.flower.rover import supernode_argv
+from fedmap.flower.rover import supernode_argv, write_shim
 from fedmap.flower.task import run_status_path, write_status
 from fedmap.nets.model import Weights
 
@@ -63,6 +73,7 @@ def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_con
     env = flower_env(work / "flwr-home")
     run_status_path(out).unlink(missing_ok=True)
     port = free_port()
+    socks = Path(tempfile.mkdtemp(prefix="fedmap-sites-"))  # short paths: a Unix socket's is at most 107 bytes
     try:
         with Processes() as procs, sigterm_as_interrupt():
             procs.start("superlink", superlink_argv(host="127.0.0.1", port=port, tls=None, auth=False), env=env,
@@ -72,10 +83,15 @@ def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_con
             site_env = {**env, POLL_ENV: str(LOCAL_POLL), SUPEREXEC_POLL_ENV: str(LOCAL_POLL)}
             for k, f in enumerate(files):
                 node = {"partition-id": k, "samples": str(f), "done-file": str(work / f"site{k}.done")}
+                sock, shim = str(socks / f"site{k}.sock"), socks / f"site{k}-bin"
+                write_shim(shim, sock)  # the SuperNode's flwr-clientapp: hands each message to the warm server
+                node_env = {**site_env, "FLWR_HOME": str(work / f"site{k}-home"),
+                            "PATH": os.pathsep.join([str(shim), site_env["PATH"]])}
+                procs.start(f"site{k}-clientapps", [sys.executable, "-m", "fedmap.flower.warm", sock, json.dumps(node)],
+                            env=node_env, log=work / f"site{k}.clientapps.log", die_with_parent=True)
                 procs.start(f"site{k}", supernode_argv(superlink=f"127.0.0.1:{port}", port=free_port(),
                                                        node_config=node, root_cert=None, auth_key=None, max_wait=120),
-                            env={**site_env, "FLWR_HOME": str(work / f"site{k}-home")}, log=work / f"site{k}.log",
-                            die_with_parent=True)
+                            env=node_env, log=work / f"site{k}.log", die_with_parent=True)
             since = time.time() - 1
             submit_run(work / "flwr-home", {k: v for k, v in config.items()}, env=env, app=predictor_app_dir())
 
@@ -83,6 +99,7 @@ def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_con
                 procs.check_alive("superlink")
                 for k in range(len(files)):
                     procs.check_alive(f"site{k}")
+                    procs.check_alive(f"site{k}-clientapps")
 
             budget = run.connect_timeout + rounds * run.deadline + 120
             wait_for_result(out, since=since, timeout=budget, alive=alive, on_status=on_status)
@@ -91,6 +108,8 @@ def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_con
         write_status(out, "interrupted", message="interrupted")
         raise FedmapError(f"federated fine-tuning interrupted (round {st.get('round', 0)}); its processes are "
                           f"stopped; logs in {work}") from None
+    finally:
+        shutil.rmtree(socks, ignore_errors=True)
     return read_rounds(out, rounds)
 
 

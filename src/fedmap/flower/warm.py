@@ -67,6 +67,8 @@ def preload(node_config: dict) -> None:
         from fedmap.mission.remote import warm_up
 
         warm_up()  # the compiled planners, loaded once: the children inherit them
+    elif "samples" in node_config:  # a site of the predictor's fine-tuning (fedmap.flower.predictor_deploy)
+        import fedmap.flower.predictor_client  # noqa: F401
     else:
         from fedmap.flower.task import load_local_map
 
@@ -93,3 +95,7 @@ def serve(sock: str, node_config: dict) -> None:  # pragma: no cover - a long-li
             conn.close()
             _run_task(argv)
         threading.Thread(target=_answer, args=(conn, pid), daemon=True).start()
+
+
+if __name__ == "__main__":  # pragma: no cover - ``python -m fedmap.flower.warm SOCKET NODE_CONFIG_JSON``
+    serve(sys.argv[1], json.loads(sys.argv[2]))  # a server started as its own process (the predictor's sites)
