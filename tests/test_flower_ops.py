@@ -555,3 +555,39 @@ def test_a_warm_servers_child_builds_its_optimiser_without_importing(tmp_path, m
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip() == "[]", r.stdout[-2000:]
+
+
+def test_a_warm_stand_in_does_not_outlive_its_server_or_its_supernode(tmp_path):
+    """The stand-ins a SuperNode starts for ``flower-superexec`` and ``flwr-clientapp`` wait
+    for the rover's warm server to listen, but give up at once when its folder is gone (the
+    rover ended) or the SuperNode that started them died, not after their 300 s."""
+    import subprocess
+    import time
+
+    from fedmap.flower.rover import WARM_PROGRAMS, write_shim
+
+    folder = tmp_path / "server"
+    folder.mkdir()
+    write_shim(tmp_path / "bin", str(folder / "clientapp.sock"))
+    assert sorted(p.name for p in (tmp_path / "bin").iterdir()) == sorted(WARM_PROGRAMS)
+    shim = subprocess.Popen([str(tmp_path / "bin" / "flower-superexec"), "--parent-pid", "1"], stderr=subprocess.PIPE,
+                            text=True)
+    time.sleep(1.0)
+    assert shim.poll() is None  # the server may still be starting
+    folder.rmdir()
+    assert shim.wait(timeout=10) == 1 and "did not answer" in shim.communicate()[1]
+    folder.mkdir()
+    parent = subprocess.run(["bash", "-c", f"{tmp_path}/bin/flwr-clientapp --x >/dev/null 2>&1 & echo $!; sleep 0.5"],
+                            capture_output=True, text=True, timeout=10)  # the SuperNode, gone after 0.5 s
+    stat = Path(f"/proc/{int(parent.stdout.split()[0])}/stat")
+
+    def running() -> bool:  # neither gone nor a zombie left for its new parent to collect
+        try:
+            return stat.read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except OSError:
+            return False
+
+    t_end = time.monotonic() + 10
+    while running() and time.monotonic() < t_end:
+        time.sleep(0.1)
+    assert not running()

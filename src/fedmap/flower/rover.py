@@ -140,11 +140,14 @@ def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str 
     return cfg
 
 
-#: The stand-in ``flwr-clientapp`` script (``{python}`` and ``{socket}`` filled in): stdlib
-#: only, so it starts in milliseconds; it waits for the server for at most 300 s.
+#: The stand-in for a Flower program the SuperNode starts by name (``{python}``, ``{program}``
+#: and ``{socket}`` filled in): stdlib only, so it starts in milliseconds; it hands its
+#: arguments to the warm server, which forks the program, and exits with its exit code. It
+#: waits for the server for at most 300 s, and not at all once the process that started it
+#: (the SuperNode) or the server's folder is gone.
 WARM_SHIM = """#!{python} -I
-import json, socket, sys, time
-t_end = time.monotonic() + 300
+import json, os, socket, sys, time
+t_end, parent = time.monotonic() + 300, os.getppid()
 while True:
     try:
         s = socket.socket(socket.AF_UNIX)
@@ -152,21 +155,28 @@ while True:
         break
     except OSError:
         s.close()
-        if time.monotonic() > t_end:
-            sys.exit("flwr-clientapp: the rover's warm ClientApp server did not answer")
+        if time.monotonic() > t_end or os.getppid() != parent or not os.path.isdir({folder!r}):
+            sys.exit({program!r} + ": the rover's warm ClientApp server did not answer")
         time.sleep(0.2)
-s.sendall(json.dumps(sys.argv[1:]).encode() + b"\\n")
+s.sendall(json.dumps([{program!r}, *sys.argv[1:]]).encode() + b"\\n")
 reply = s.makefile().readline().strip()
 sys.exit(int(reply) if reply.lstrip("-").isdigit() else 1)
 """
 
+#: The programs a SuperNode starts by name that the warm server forks instead
+#: (:data:`fedmap.flower.warm.PROGRAMS`): its SuperExec, once, and a ClientApp per message.
+WARM_PROGRAMS = ("flower-superexec", "flwr-clientapp")
+
 
 def write_shim(bin_dir, sock: str) -> None:
-    """Write the stand-in ``flwr-clientapp`` into ``bin_dir`` (put it first on the SuperNode's PATH)."""
-    path = Path(bin_dir) / "flwr-clientapp"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(WARM_SHIM.format(python=sys.executable, socket=sock))
-    path.chmod(0o755)
+    """Write the stand-ins for ``flower-superexec`` and ``flwr-clientapp`` into ``bin_dir``
+    (put it first on the SuperNode's PATH)."""
+    for program in WARM_PROGRAMS:
+        path = Path(bin_dir) / program
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(WARM_SHIM.format(python=sys.executable, program=program, socket=sock,
+                                         folder=str(Path(sock).parent)))
+        path.chmod(0o755)
 
 
 def superlink_answers(address: str, *, tls: bool, timeout: float = PROBE_TIMEOUT) -> bool:
