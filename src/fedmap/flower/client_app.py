@@ -197,7 +197,7 @@ def flower_superexec_main(argv: list[str]) -> None:
     """Flower's ``flower-superexec`` command with ``argv``, in this process (a warm server's
     forked child, :mod:`fedmap.flower.warm`): the SuperNode's SuperExec, which asks the
     SuperNode for each message's task and starts its ClientApp, without a fresh Python
-    importing Flower's runtime again (1.3 s of CPU per rover)."""
+    importing Flower's runtime again (1.5 s of CPU per rover)."""
     import sys
 
     sys.argv = ["flower-superexec", *argv]

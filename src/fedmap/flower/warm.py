@@ -18,7 +18,7 @@ before forking, so the children start from a clean torch state.
 The SuperNode's SuperExec (``flower-superexec``, which asks the SuperNode for each
 message's task and starts its ``flwr-clientapp``) is forked the same way, once, through a
 stand-in of the same kind: Flower's own entry point, without a fresh Python importing
-Flower's runtime again (1.3 s of CPU per rover). It dies with the server.
+Flower's runtime again (1.5 s of CPU per rover). It dies with the server.
 """
 
 from __future__ import annotations
