@@ -564,12 +564,13 @@ def test_a_warm_stand_in_does_not_outlive_its_server_or_its_supernode(tmp_path):
     import subprocess
     import time
 
-    from fedmap.flower.rover import WARM_PROGRAMS, write_shim
+    from fedmap.flower.rover import write_shim
+    from fedmap.flower.warm import PROGRAMS
 
     folder = tmp_path / "server"
     folder.mkdir()
     write_shim(tmp_path / "bin", str(folder / "clientapp.sock"))
-    assert sorted(p.name for p in (tmp_path / "bin").iterdir()) == sorted(WARM_PROGRAMS)
+    assert sorted(p.name for p in (tmp_path / "bin").iterdir()) == sorted(PROGRAMS)
     shim = subprocess.Popen([str(tmp_path / "bin" / "flower-superexec"), "--parent-pid", "1"], stderr=subprocess.PIPE,
                             text=True)
     time.sleep(1.0)

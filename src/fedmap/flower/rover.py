@@ -163,15 +163,11 @@ reply = s.makefile().readline().strip()
 sys.exit(int(reply) if reply.lstrip("-").isdigit() else 1)
 """
 
-#: The programs a SuperNode starts by name that the warm server forks instead
-#: (:data:`fedmap.flower.warm.PROGRAMS`): its SuperExec, once, and a ClientApp per message.
-WARM_PROGRAMS = ("flower-superexec", "flwr-clientapp")
-
 
 def write_shim(bin_dir, sock: str) -> None:
-    """Write the stand-ins for ``flower-superexec`` and ``flwr-clientapp`` into ``bin_dir``
-    (put it first on the SuperNode's PATH)."""
-    for program in WARM_PROGRAMS:
+    """Write the stand-ins for the programs the warm server forks (:data:`fedmap.flower.warm.PROGRAMS`:
+    ``flower-superexec`` and ``flwr-clientapp``) into ``bin_dir`` (put it first on the SuperNode's PATH)."""
+    for program in warm_server.PROGRAMS:
         path = Path(bin_dir) / program
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(WARM_SHIM.format(python=sys.executable, program=program, socket=sock,

@@ -29,7 +29,8 @@ import socket
 import sys
 import threading
 
-#: The Flower programs this server forks, by the name the SuperNode starts them with.
+#: The Flower programs this server forks, by the name the SuperNode starts them with (each has a
+#: stand-in of that name: :func:`fedmap.flower.rover.write_shim`).
 PROGRAMS = ("flower-superexec", "flwr-clientapp")
 
 
@@ -40,11 +41,9 @@ def _run_task(program: str, argv: list[str]) -> None:  # pragma: no cover - runs
     code = 0
     try:
         if program == "flower-superexec":  # lives as long as its SuperNode, so not past this server either
-            if sys.platform.startswith("linux"):
-                import ctypes
-                import signal
+            from fedmap.flower.launch import set_death_signal
 
-                ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+            set_death_signal()
             flower_superexec_main(argv)
         else:
             flwr_clientapp_main(argv)
