@@ -592,3 +592,79 @@ def test_a_warm_stand_in_does_not_outlive_its_server_or_its_supernode(tmp_path):
     while running() and time.monotonic() < t_end:
         time.sleep(0.1)
     assert not running()
+
+
+@pytest.mark.slow
+def test_a_supernode_forked_by_the_warm_server_is_watched_and_stopped_like_a_process(tmp_path):
+    """A rover's SuperNode is forked by its warm server, not started as a fresh Python: it runs
+    in a process group of its own (the rover stops it, and what it started, as one group), the rover
+    sees its exit code as it would a process's, stops it through :class:`Processes`, and it
+    does not outlive the server."""
+    from fedmap.flower.warm import SUPERNODE
+
+    sock = str(tmp_path / "s.sock")
+    with open(tmp_path / "server.log", "wb") as log:
+        server = subprocess.Popen([sys.executable, "-m", "fedmap.flower.warm", sock,
+                                   json.dumps({"partition-id": 0, "samples": "unused"})], stdout=log,
+                                  stderr=subprocess.STDOUT)
+
+    def alive() -> bool:
+        return server.poll() is None
+
+    def running(pid: int) -> bool:  # neither gone nor a zombie
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except OSError:
+            return False
+
+    try:
+        log = tmp_path / "supernode.log"
+        bad = rover.WarmChild(sock, ["--no-such-option"], log=log, alive=alive)  # Flower's own argument parser: exit 2
+        assert bad.args[0] == SUPERNODE and bad.wait(timeout=60) == 2 and bad.poll() == 2
+        assert "--no-such-option" in log.read_text()  # its output, in the log it was given
+
+        argv = rover.supernode_argv(superlink=f"127.0.0.1:{free_port()}", port=free_port(),  # nobody listens there
+                                    node_config={"partition-id": 0}, root_cert=None, auth_key=None, max_wait=300)
+        assert argv[1:3] == ["-m", rover.SUPERNODE_MODULE]
+        child = rover.WarmChild(sock, argv[3:], log=log, alive=alive)
+        fields = Path(f"/proc/{child.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        assert int(fields[1]) == server.pid  # forked by the server ...
+        assert int(fields[2]) == child.pid  # ... in a process group of its own, from the start
+        assert child.poll() is None
+        with pytest.raises(subprocess.TimeoutExpired):
+            child.wait(timeout=0.5)
+        procs = Processes()
+        procs.adopt("supernode", child, log=log)
+        procs.stop("supernode", grace=20.0)
+        assert child.returncode is not None and not running(child.pid)
+
+        last = rover.WarmChild(sock, argv[3:], log=log, alive=alive)
+        assert running(last.pid)
+        server.kill()
+        server.wait(timeout=10)
+        assert last.wait(timeout=10) == -9  # the server's end of the line closed without an exit code
+        t_end = time.monotonic() + 10
+        while running(last.pid) and time.monotonic() < t_end:
+            time.sleep(0.1)
+        assert not running(last.pid)  # gone with the server
+    finally:
+        server.kill()
+        server.wait(timeout=10)
+
+
+def test_a_socket_folder_fits_a_unix_socket_however_long_tmpdir_is(tmp_path, monkeypatch):
+    """A rover's warm server listens on a Unix socket, whose path Linux caps at 107 bytes: under a
+    long TMPDIR (pytest's own is close) its folder moves to /tmp, and either way it is removed."""
+    deep = tmp_path / ("d" * 60) / ("e" * 60)
+    deep.mkdir(parents=True)
+    monkeypatch.setattr(launch.tempfile, "tempdir", str(deep))
+    with launch.socket_dir("fedmap-x-", "clientapp.sock") as d:
+        assert d.parent == Path("/tmp") and len(os.fsencode(d / "clientapp.sock")) <= launch.UNIX_SOCKET_PATH_MAX
+        with socket.socket(socket.AF_UNIX) as s:
+            s.bind(str(d / "clientapp.sock"))
+    assert not d.exists()
+    monkeypatch.setattr(launch.tempfile, "tempdir", str(tmp_path.parent.parent))  # short enough: stays there
+    with launch.socket_dir("fedmap-x-", "clientapp.sock") as d:
+        assert d.parent == tmp_path.parent.parent
+    assert not d.exists()
+    assert not list(deep.iterdir())  # nothing left where the first was tried

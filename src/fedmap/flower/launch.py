@@ -10,6 +10,7 @@ executables.
 
 from __future__ import annotations
 
+import contextlib
 import ipaddress
 import json
 import os
@@ -19,11 +20,13 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
@@ -74,13 +77,35 @@ def flower_env(flwr_home: Path) -> dict[str, str]:
             "FLWR_TELEMETRY_ENABLED": "0", "PYTHONUNBUFFERED": "1"}
 
 
-def set_death_signal() -> None:  # pragma: no cover - runs in the child between fork and exec
+def set_death_signal(parent: int | None = None) -> None:  # pragma: no cover - runs in a forked child
     """Linux: the child gets SIGKILL when the process that started it dies (even by ``kill -9``),
-    so a killed base station never leaves a SuperLink listening on its port."""
+    so a killed base station never leaves a SuperLink listening on its port. ``parent``: that
+    process's PID, taken before the fork; if it died before this call (nothing would signal
+    the child then) the child ends here."""
     if sys.platform.startswith("linux"):
         import ctypes
 
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if parent is not None and os.getppid() != parent:
+        os._exit(1)
+
+
+#: The longest path a Unix socket may have (Linux: 108 bytes with the terminating zero).
+UNIX_SOCKET_PATH_MAX = 107
+
+
+@contextlib.contextmanager
+def socket_dir(prefix: str, name: str) -> Iterator[Path]:
+    """A temporary folder for a Unix socket called ``name``, removed on exit: in the usual
+    temporary folder (``TMPDIR``), or in ``/tmp`` where that path would be too long for a socket."""
+    d = Path(tempfile.mkdtemp(prefix=prefix))
+    if len(os.fsencode(d / name)) > UNIX_SOCKET_PATH_MAX:
+        d.rmdir()
+        d = Path(tempfile.mkdtemp(prefix=prefix, dir="/tmp"))
+    try:
+        yield d
+    finally:
+        shutil.rmtree(d, ignore_errors=True)
 
 
 #: Where Linux says which ports it draws outgoing connections' source ports from.
@@ -154,11 +179,25 @@ def _pgid(pid: int) -> int:
         return -1
 
 
+class Proc(Protocol):
+    """What :class:`Processes` needs of a process: :class:`subprocess.Popen`'s ``pid``,
+    ``returncode``, ``poll``, ``wait`` and ``send_signal``."""
+
+    pid: int
+    returncode: int | None
+
+    def poll(self) -> int | None: ...
+
+    def wait(self, timeout: float | None = None) -> int: ...
+
+    def send_signal(self, sig: int) -> None: ...
+
+
 class Processes:
     """Processes started in their own sessions and stopped by PID (process group)."""
 
     def __init__(self) -> None:
-        self.procs: dict[str, subprocess.Popen] = {}
+        self.procs: dict[str, Proc] = {}
         self.logs: dict[str, Path] = {}
 
     def start(self, name: str, argv: list[str], *, env: dict, log: Path, new_session: bool = True,
@@ -171,6 +210,11 @@ class Processes:
             p = subprocess.Popen(argv, env=env, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                  start_new_session=new_session,
                                  preexec_fn=set_death_signal if die_with_parent else None)
+        self.procs[name], self.logs[name] = p, log
+        return p
+
+    def adopt(self, name: str, p: Proc, *, log: Path) -> Proc:
+        """Watch and stop ``p``, started another way (in a session of its own), as ``name``."""
         self.procs[name], self.logs[name] = p, log
         return p
 

@@ -17,9 +17,7 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -31,12 +29,14 @@ from fedmap.flower.deploy import LOCAL_POLL
 from fedmap.flower.launch import (
     SUPERLINK_EXES,
     SUPERNODE_EXES,
+    Proc,
     Processes,
     flower_env,
     free_port,
     read_status,
     require_executables,
     sigterm_as_interrupt,
+    socket_dir,
     submit_run,
     superlink_argv,
     wait_for_port,
@@ -44,9 +44,14 @@ from fedmap.flower.launch import (
     write_connection,
 )
 from fedmap.flower.predictor_task import PredictorRun, read_rounds
-from fedmap.flower.rover import supernode_argv, write_shim
+from fedmap.flower.rover import WarmChild, supernode_argv, write_shim
 from fedmap.flower.task import run_status_path, write_status
 from fedmap.nets.model import Weights
+
+
+def _server_alive(server: Proc) -> Callable[[], bool]:
+    """Whether a site's warm server is still running."""
+    return lambda: server.poll() is None
 
 
 def predictor_app_dir() -> Path:
@@ -73,14 +78,14 @@ def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_con
     env = flower_env(work / "flwr-home")
     run_status_path(out).unlink(missing_ok=True)
     port = free_port()
-    socks = Path(tempfile.mkdtemp(prefix="fedmap-sites-"))  # short paths: a Unix socket's is at most 107 bytes
     try:
-        with Processes() as procs, sigterm_as_interrupt():
+        with socket_dir("fedmap-sites-", "site999.sock") as socks, Processes() as procs, sigterm_as_interrupt():
             procs.start("superlink", superlink_argv(host="127.0.0.1", port=port, tls=None, auth=False), env=env,
                         log=work / "superlink.log", die_with_parent=True)
             wait_for_port("127.0.0.1", port, timeout=60, alive=lambda: procs.check_alive("superlink"))
             write_connection(work / "flwr-home", address=f"127.0.0.1:{port}", root_cert=None)
             site_env = {**env, POLL_ENV: str(LOCAL_POLL), SUPEREXEC_POLL_ENV: str(LOCAL_POLL)}
+            nodes = []
             for k, f in enumerate(files):
                 node = {"partition-id": k, "samples": str(f), "done-file": str(work / f"site{k}.done")}
                 sock, shim = str(socks / f"site{k}.sock"), socks / f"site{k}-bin"
@@ -89,9 +94,14 @@ def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_con
                             "PATH": os.pathsep.join([str(shim), site_env["PATH"]])}
                 procs.start(f"site{k}-clientapps", [sys.executable, "-m", "fedmap.flower.warm", sock, json.dumps(node)],
                             env=node_env, log=work / f"site{k}.clientapps.log", die_with_parent=True)
-                procs.start(f"site{k}", supernode_argv(superlink=f"127.0.0.1:{port}", port=free_port(),
-                                                       node_config=node, root_cert=None, auth_key=None, max_wait=120),
-                            env=node_env, log=work / f"site{k}.log", die_with_parent=True)
+                nodes.append((node, sock))
+            for k, (node, sock) in enumerate(nodes):  # each site's SuperNode, forked by its server
+                argv = supernode_argv(superlink=f"127.0.0.1:{port}", port=free_port(), node_config=node,
+                                      root_cert=None, auth_key=None, max_wait=120)
+                server = procs.procs[f"site{k}-clientapps"]
+                node_log = work / f"site{k}.log"
+                procs.adopt(f"site{k}", WarmChild(sock, argv[3:], log=node_log, alive=_server_alive(server)),
+                            log=node_log)
             since = time.time() - 1
             submit_run(work / "flwr-home", {k: v for k, v in config.items()}, env=env, app=predictor_app_dir())
 
@@ -108,8 +118,6 @@ def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_con
         write_status(out, "interrupted", message="interrupted")
         raise FedmapError(f"federated fine-tuning interrupted (round {st.get('round', 0)}); its processes are "
                           f"stopped; logs in {work}") from None
-    finally:
-        shutil.rmtree(socks, ignore_errors=True)
     return read_rounds(out, rounds)
 
 

@@ -26,8 +26,10 @@ imports ``flwr``.
 
 from __future__ import annotations
 
+import json
 import os
 import re
+import select
 import signal
 import socket
 import ssl
@@ -44,6 +46,7 @@ from fedmap.flower import warm as warm_server
 from fedmap.flower.faults import parse_fault
 from fedmap.flower.launch import (
     SUPERNODE_EXES,
+    Proc,
     Processes,
     flower_env,
     free_port,
@@ -51,6 +54,7 @@ from fedmap.flower.launch import (
     require_executables,
     set_death_signal,
     sigterm_as_interrupt,
+    socket_dir,
 )
 from fedmap.flower.mission_task import node_feed, parse_mission_fault
 from fedmap.flower.task import load_local_map
@@ -82,11 +86,15 @@ CONTACT = ("SuperNode ID:", "Received successfully", "Sent successfully", "Conne
 ENDED = ("Giving up reconnection", "SuperNode terminated gracefully", "Exit Code:")
 
 
+#: The module a rover runs its SuperNode from (Flower's ``flower-supernode``, with fixes).
+SUPERNODE_MODULE = "fedmap.flower.supernode"
+
+
 def supernode_argv(*, superlink: str, port: int, node_config: dict, root_cert: Path | None,
                    auth_key: Path | None, max_wait: float | None = None) -> list[str]:
     """Flower's ``flower-supernode`` through :mod:`fedmap.flower.supernode` (an EOF in a TLS
     handshake is retried rather than taken for a certificate problem)."""
-    argv = [sys.executable, "-m", "fedmap.flower.supernode", "--superlink", superlink, "--port", str(port),
+    argv = [sys.executable, "-m", SUPERNODE_MODULE, "--superlink", superlink, "--port", str(port),
             "--node-config", key_values(node_config)]
     argv += ["--root-certificates", str(root_cert)] if root_cert else ["--insecure"]
     if auth_key:
@@ -175,6 +183,77 @@ def write_shim(bin_dir, sock: str) -> None:
         path.chmod(0o755)
 
 
+class WarmChild:
+    """A SuperNode the rover's warm server forked at the rover's request
+    (:data:`fedmap.flower.warm.SUPERNODE`, its output appended to ``log``), watched and
+    stopped like a :class:`subprocess.Popen`: the server answers with the child's PID, then with its exit
+    code when it ends. The child runs in a process group of its own (its PID is the group's)
+    and dies with the server. ``alive()`` says whether the server is still there
+    while the rover waits for it to listen (at most ``timeout`` s)."""
+
+    def __init__(self, sock: str, argv: list[str], *, log: Path, alive: Callable[[], bool],
+                 timeout: float = 60.0) -> None:
+        self.args = [warm_server.SUPERNODE, str(Path(log).resolve()), *argv]
+        self.returncode: int | None = None
+        t_end = time.monotonic() + timeout
+        while True:
+            conn = socket.socket(socket.AF_UNIX)
+            try:
+                conn.connect(sock)
+                break
+            except OSError:
+                conn.close()
+                if time.monotonic() > t_end or not alive():
+                    raise FedmapError("the rover's warm ClientApp server did not answer (its log says why)") from None
+                time.sleep(0.05)
+        self._conn, self._buf = conn, b""
+        conn.sendall(json.dumps(self.args).encode() + b"\n")
+        line = self._line(timeout)
+        if line is None or not line.startswith("pid "):
+            conn.close()
+            raise FedmapError("the rover's warm ClientApp server did not start its SuperNode (its log says why)")
+        self.pid = int(line[4:])
+
+    def _line(self, timeout: float | None) -> str | None:
+        """The server's next line, waiting at most ``timeout`` s (None: no line yet); at the
+        end of the connection without one, ``"-9"`` (the server died, and its children with it)."""
+        t_end = None if timeout is None else time.monotonic() + timeout
+        while b"\n" not in self._buf:
+            left = None if t_end is None else max(t_end - time.monotonic(), 0.0)
+            ready, _, _ = select.select([self._conn], [], [], left)
+            if not ready:
+                return None
+            chunk = self._conn.recv(256)
+            if not chunk:
+                self._buf += b"-9\n"
+                break
+            self._buf += chunk
+        line, _, self._buf = self._buf.partition(b"\n")
+        return line.decode().strip()
+
+    def _ended(self, line: str | None) -> int | None:
+        if line is not None:
+            self.returncode = int(line) if line.lstrip("-").isdigit() else 1
+            self._conn.close()
+        return self.returncode
+
+    def poll(self) -> int | None:
+        return self.returncode if self.returncode is not None else self._ended(self._line(0.0))
+
+    def wait(self, timeout: float | None = None) -> int:
+        if self.returncode is None and self._ended(self._line(timeout)) is None:
+            raise subprocess.TimeoutExpired(self.args, timeout or 0.0)
+        assert self.returncode is not None
+        return self.returncode
+
+    def send_signal(self, sig: int) -> None:
+        if self.poll() is None:
+            try:
+                os.kill(self.pid, sig)
+            except ProcessLookupError:
+                pass
+
+
 def superlink_answers(address: str, *, tls: bool, timeout: float = PROBE_TIMEOUT) -> bool:
     """Whether an HTTP(S) server answers at ``HOST:PORT`` right now: what Flower's Fleet API
     is. A port that accepts connections and closes them (a relay whose far end is gone)
@@ -241,8 +320,8 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
     require_executables(SUPERNODE_EXES)
     root_cert = Path(root_cert).resolve() if root_cert is not None else None
     auth_key = Path(auth_key).resolve() if auth_key is not None else None
-    with tempfile.TemporaryDirectory(prefix="fedmap-rover-flwr-") as tmp, Processes() as procs, \
-            sigterm_as_interrupt():
+    with tempfile.TemporaryDirectory(prefix="fedmap-rover-flwr-") as tmp, \
+            socket_dir("fedmap-rover-", "clientapp.sock") as socks, Processes() as procs, sigterm_as_interrupt():
         done = Path(tmp) / "done"
         if node_config.get("mission") and not node_config.get("state-dir"):  # kept only while this rover runs
             node_config = {**node_config, "state-dir": str(Path(tmp) / "state")}
@@ -260,13 +339,24 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
         if heartbeat is not None:
             env[HEARTBEAT_ENV] = str(heartbeat)
         server = None
-        if warm:  # one process imports torch and fedmap once and forks a ClientApp per message
-            sock = str(Path(tmp) / "clientapp.sock")
+
+        def start(argv: list[str]) -> Proc:  # its own process group: stopping it stops what it started too
+            return procs.start("supernode", argv, env=env, log=log, new_session=True, die_with_parent=True)
+        if warm:  # one process imports torch and fedmap once and forks the SuperNode and a ClientApp per message
+            sock = str(socks / "clientapp.sock")  # a short path: a long TMPDIR would not fit a socket's
             write_shim(Path(tmp) / "bin", sock)
             env["PATH"] = os.pathsep.join([str(Path(tmp) / "bin"), env["PATH"]])
             server = fork_warm_server(sock, node_config, env=env, log=log)
+
+            cold = start
+
+            def start(argv: list[str]) -> Proc:  # ``python -m fedmap.flower.supernode ARGS``: the server runs it
+                if argv[1:3] != ["-m", SUPERNODE_MODULE]:
+                    return cold(argv)
+                child = WarmChild(sock, argv[3:], log=log, alive=lambda: _running(server))
+                return procs.adopt("supernode", child, log=log)
         try:
-            return _supervise(procs, pid, superlink, argv_for, port=port, env=env, log=log, done=done,
+            return _supervise(procs, pid, superlink, argv_for, start, port=port, done=done, log=log,
                               tls=root_cert is not None, max_wait=max_wait, self_registered=auth_key is None,
                               rejoin=rejoin)
         finally:
@@ -283,10 +373,11 @@ def fork_warm_server(sock: str, node_config: dict, *, env: dict, log: Path) -> i
     The server dies with this process (Linux), logs to ``log`` and runs in ``env``."""
     sys.stdout.flush()
     sys.stderr.flush()
+    rover = os.getpid()
     child = os.fork()
     if child == 0:  # pragma: no cover - the forked server
         try:
-            set_death_signal()
+            set_death_signal(rover)
             signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the rover's handler
             signal.signal(signal.SIGINT, signal.SIG_DFL)
             fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
@@ -304,6 +395,14 @@ def fork_warm_server(sock: str, node_config: dict, *, env: dict, log: Path) -> i
     return child
 
 
+def _running(pid: int) -> bool:
+    """Whether this process's child ``pid`` is still running."""
+    try:
+        return os.waitpid(pid, os.WNOHANG) == (0, 0)
+    except ChildProcessError:
+        return False
+
+
 def _reap(pid: int) -> None:
     """Stop the forked warm server and collect it."""
     try:
@@ -313,18 +412,20 @@ def _reap(pid: int) -> None:
         pass
 
 
-def _supervise(procs: Processes, pid, superlink: str, argv_for: Callable[[int], list[str]], *, port: int, env: dict,
-               log: Path, done: Path, tls: bool, max_wait: float, self_registered: bool, rejoin: bool = False) -> int:
+def _supervise(procs: Processes, pid, superlink: str, argv_for: Callable[[int], list[str]],
+               start: Callable[[list[str]], Proc], *, port: int, log: Path, done: Path, tls: bool, max_wait: float,
+               self_registered: bool, rejoin: bool = False) -> int:
     """Run SuperNodes until the run ends for this rover (0) or a one-line failure.
 
     ``argv_for(p)``: a SuperNode's command with its local API on port ``p``: ``port``, or
-    (``port`` 0) a free one, picked again for the next SuperNode when this one's was taken."""
+    (``port`` 0) a free one, picked again for the next SuperNode when this one's was taken.
+    ``start(argv)``: starts it, as ``procs``' ``"supernode"``, logging to ``log``."""
     watch = _Watch(superlink, tls=tls, max_wait=max_wait, self_registered=self_registered)
     watch.ever_reached = rejoin
     restarts = 0  # in a row, without the SuperNode reaching its SuperLink in between
     local = port or free_port()
     for total in range(1, ROVER_RESTARTS_TOTAL + 2):
-        text = watch.run(procs, argv_for(local), env=env, log=log, done=done)
+        text = watch.run(procs, start, argv_for(local), log=log, done=done)
         if done.exists():
             return 0
         if port_taken(text):
@@ -353,13 +454,15 @@ class _Watch:
         self.reached = False  # whether the current SuperNode reached its SuperLink
         self.ever_reached = False  # ... or any of this rover's SuperNodes
 
-    def run(self, procs: Processes, argv: list[str], *, env: dict, log: Path, done: Path) -> str:
-        """Start a SuperNode and wait until it stops, the run is over for this rover
-        (``done`` exists) or the SuperLink has been silent for ``max_wait``; returns its log."""
+    def run(self, procs: Processes, starter: Callable[[list[str]], Proc], argv: list[str], *, log: Path,
+            done: Path) -> str:
+        """Start a SuperNode (``starter(argv)``, in its own process group: stopping it stops the
+        SuperExec and ClientApps it started too, which would otherwise outlive it briefly and
+        write into the rover's temporary Flower home) and wait until it stops, the run is over
+        for this rover (``done`` exists) or the SuperLink has been silent for ``max_wait``;
+        returns its log."""
         start = log.stat().st_size if log.exists() else 0  # this SuperNode's lines start here
-        # its own process group: stopping it stops the SuperExec and ClientApps it started too (they
-        # would otherwise outlive it briefly and write into the rover's temporary Flower home)
-        p = procs.start("supernode", argv, env=env, log=log, new_session=True, die_with_parent=True)
+        p = starter(argv)
         self.reached, probed, ended_at = False, time.monotonic(), None
         text, contacts = "", 0
         while p.poll() is None:
@@ -430,7 +533,7 @@ def replies_owed(text: str) -> tuple[int, int]:
     return len(taken), max(len(taken) - text.count("Sent successfully"), 0)
 
 
-def _wait_for_last_reply(p: subprocess.Popen, log: Path, start: int, *, wait: float) -> bool:
+def _wait_for_last_reply(p: Proc, log: Path, start: int, *, wait: float) -> bool:
     """Wait until the SuperNode has sent a reply for every message it took (True: its log
     says so), it exits, or ``wait`` seconds pass."""
     end = time.monotonic() + wait

@@ -19,12 +19,21 @@ The SuperNode's SuperExec (``flower-superexec``, which asks the SuperNode for ea
 message's task and starts its ``flwr-clientapp``) is forked the same way, once, through a
 stand-in of the same kind: Flower's own entry point, without a fresh Python importing
 Flower's runtime again (1.5 s of CPU per rover). It dies with the server.
+
+The rover's SuperNode itself is forked the same way, at the rover's own request (no
+stand-in: :class:`fedmap.flower.rover.WarmChild`): a fresh ``flower-supernode`` process
+imports Flower's runtime first (1.7 s of CPU), and a rover starts one at every start and
+after every link fault that ends one. It runs in a process group of its own, as it would
+as a process of its own (the rover stops it and what it started as one group), and dies
+with the server. The server answers that request with the child's PID first, then its exit code.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import select
+import signal
 import socket
 import sys
 import threading
@@ -32,18 +41,34 @@ import threading
 #: The Flower programs this server forks, by the name the SuperNode starts them with (each has a
 #: stand-in of that name: :func:`fedmap.flower.rover.write_shim`).
 PROGRAMS = ("flower-superexec", "flwr-clientapp")
+#: The program the rover asks for itself (:class:`fedmap.flower.rover.WarmChild`): its SuperNode
+#: (:mod:`fedmap.flower.supernode`), in a process group of its own; the request's first argument
+#: is the log its output goes to, and the answer starts with ``pid <PID>``.
+SUPERNODE = "flower-supernode"
+#: Seconds the server, listening, waits for a first request before it loads what the ClientApps
+#: need (a rover asks for its SuperNode within 0.05 s; a predictor's site starts its own).
+FIRST_WAIT = 1.0
 
 
-def _run_task(program: str, argv: list[str]) -> None:  # pragma: no cover - runs in a forked child
-    """Flower's own ``program`` entry point with ``argv``, in this (forked) process."""
+def _run_task(program: str, argv: list[str], server: int) -> None:  # pragma: no cover - runs in a forked child
+    """Flower's own ``program`` entry point with ``argv``, in this process, forked by ``server``."""
     from fedmap.flower.client_app import flower_superexec_main, flwr_clientapp_main
+    from fedmap.flower.launch import set_death_signal
 
     code = 0
     try:
-        if program == "flower-superexec":  # lives as long as its SuperNode, so not past this server either
-            from fedmap.flower.launch import set_death_signal
+        if program == SUPERNODE:  # a process group of its own, as the rover's Processes give; not past this server
+            os.setpgid(0, 0)
+            set_death_signal(server)
+            log, *argv = argv
+            fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            os.dup2(fd, 1)
+            os.dup2(fd, 2)
+            from fedmap.flower.supernode import main as supernode_main
 
-            set_death_signal()
+            supernode_main(argv)
+        elif program == "flower-superexec":  # lives as long as its SuperNode, so not past this server either
+            set_death_signal(server)
             flower_superexec_main(argv)
         else:
             flwr_clientapp_main(argv)
@@ -76,6 +101,7 @@ def preload(node_config: dict) -> None:
     import torch._dynamo  # noqa: F401
 
     import fedmap.flower.client_app  # noqa: F401 - the imports the children no longer pay (Flower's runtime too)
+    import fedmap.flower.supernode  # noqa: F401 - the SuperNode's (nothing more than the ClientApp's, measured)
 
     if node_config.get("mission"):  # a mission rover: its world comes with the base's first order
         import fedmap.flower.mission_client  # noqa: F401
@@ -91,12 +117,24 @@ def preload(node_config: dict) -> None:
 
 
 def serve(sock: str, node_config: dict) -> None:  # pragma: no cover - a long-lived process
-    """Import once, then fork a ClientApp process per request until killed."""
-    preload(node_config)
+    """Import once, then fork a process per request until killed.
+
+    It listens as soon as Flower's SuperNode is imported, and imports the rest
+    (:func:`preload`) only after forking the rover's SuperNode, its first request: the SuperNode
+    connects to the SuperLink while the server loads what the ClientApps need. A request for a
+    ClientApp or a SuperExec made earlier waits until that is loaded."""
+    import fedmap.flower.supernode  # noqa: F401 - what a SuperNode needs
+
     srv = socket.socket(socket.AF_UNIX)
     srv.bind(sock)
     srv.listen(16)
+    server, loaded = os.getpid(), False
     while True:
+        if not loaded:  # the rover asks for its SuperNode as soon as the server listens
+            ready, _, _ = select.select([srv], [], [], FIRST_WAIT)
+            if not ready:  # nobody asked: load now
+                preload(node_config)
+                loaded = True
         conn, _ = srv.accept()
         line = conn.makefile().readline()
         try:
@@ -104,14 +142,23 @@ def serve(sock: str, node_config: dict) -> None:  # pragma: no cover - a long-li
         except ValueError:
             conn.close()
             continue
-        if program not in PROGRAMS:
+        if program not in (*PROGRAMS, SUPERNODE):
             conn.close()
             continue
+        if program != SUPERNODE and not loaded:
+            preload(node_config)
+            loaded = True
         pid = os.fork()
         if pid == 0:
             srv.close()
             conn.close()
-            _run_task(program, argv)
+            _run_task(program, argv, server)
+        if program == SUPERNODE:
+            try:
+                os.setpgid(pid, pid)  # here too: its group exists before the rover may signal it
+                conn.sendall(f"pid {pid}\n".encode())
+            except OSError:  # the rover is gone: so is the reason for its SuperNode
+                os.kill(pid, signal.SIGKILL)
         threading.Thread(target=_answer, args=(conn, pid), daemon=True).start()
 
 
