@@ -668,3 +668,16 @@ def test_a_socket_folder_fits_a_unix_socket_however_long_tmpdir_is(tmp_path, mon
         assert d.parent == tmp_path.parent.parent
     assert not d.exists()
     assert not list(deep.iterdir())  # nothing left where the first was tried
+
+
+def test_rover_keys_are_registered_in_one_process_and_a_bad_one_is_named_in_one_line(tmp_path):
+    """All of a mission's keys go through one Flower CLI process (fedmap.flower.register); a
+    key that is not one is a one-line error naming it."""
+    env = flower_env(tmp_path / "home")
+    launch.write_connection(tmp_path / "home", address=f"127.0.0.1:{free_port()}", root_cert=None)
+    (tmp_path / "bad.pub").write_text("not a key")
+    with pytest.raises(FedmapError) as err:
+        launch.register_keys([tmp_path / "bad.pub"], env=env)
+    message = str(err.value)
+    assert "\n" not in message and "bad.pub" in message and message.startswith("flwr supernode register failed")
+    launch.register_keys([], env=env)  # nothing to register: no process at all

@@ -23,7 +23,6 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -330,12 +329,19 @@ def flwr_cli(args: list[str], *, env: dict, timeout: float) -> str:
 
 
 def register_keys(keys: list[Path], *, env: dict, timeout: float = 60.0) -> None:
-    """``flwr supernode register`` every rover key, side by side (each is a Flower CLI process
-    of about a second, mostly its start-up); the first failure is raised."""
-    with ThreadPoolExecutor(max_workers=max(len(keys), 1)) as pool:
-        for done in [pool.submit(flwr_cli, ["supernode", "register", str(pub), CONNECTION], env=env, timeout=timeout)
-                     for pub in keys]:
-            done.result()
+    """``flwr supernode register`` every rover key, all in one process
+    (:mod:`fedmap.flower.register`: a Flower CLI process is about a second of CPU, mostly
+    its start-up); a failure is one line naming the key."""
+    if not keys:
+        return
+    argv = [sys.executable, "-m", "fedmap.flower.register", CONNECTION, *map(str, keys)]
+    try:
+        r = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=timeout * len(keys),
+                           stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        raise FedmapError(f"flwr supernode register did not finish in {timeout * len(keys):g} s") from None
+    if r.returncode != 0:
+        raise FedmapError(f"flwr supernode register failed: {_one_line(r.stderr or r.stdout)}")
 
 
 def _one_line(text: str) -> str:
