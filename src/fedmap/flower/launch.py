@@ -213,7 +213,7 @@ class Processes:
         return p
 
     def adopt(self, name: str, p: Proc, *, log: Path) -> Proc:
-        """Watch and stop ``p``, started another way (in a session of its own), as ``name``."""
+        """Watch and stop ``p``, started another way (in a process group of its own), as ``name``."""
         self.procs[name], self.logs[name] = p, log
         return p
 

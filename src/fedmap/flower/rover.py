@@ -186,10 +186,10 @@ def write_shim(bin_dir, sock: str) -> None:
 class WarmChild:
     """A SuperNode the rover's warm server forked at the rover's request
     (:data:`fedmap.flower.warm.SUPERNODE`, its output appended to ``log``), watched and
-    stopped like a :class:`subprocess.Popen`: the server answers with the child's PID, then with its exit
-    code when it ends. The child runs in a process group of its own (its PID is the group's)
-    and dies with the server. ``alive()`` says whether the server is still there
-    while the rover waits for it to listen (at most ``timeout`` s)."""
+    stopped like a :class:`subprocess.Popen`: the server answers with the child's PID, then
+    with its exit code when it ends. The child runs in a process group of its own (its PID
+    is the group's) and dies with the server. ``alive()`` says whether the server is still
+    there while the rover waits for it to listen (at most ``timeout`` s)."""
 
     def __init__(self, sock: str, argv: list[str], *, log: Path, alive: Callable[[], bool],
                  timeout: float = 60.0) -> None:
@@ -457,10 +457,11 @@ class _Watch:
     def run(self, procs: Processes, starter: Callable[[list[str]], Proc], argv: list[str], *, log: Path,
             done: Path) -> str:
         """Start a SuperNode (``starter(argv)``, in its own process group: stopping it stops the
-        SuperExec and ClientApps it started too, which would otherwise outlive it briefly and
-        write into the rover's temporary Flower home) and wait until it stops, the run is over
-        for this rover (``done`` exists) or the SuperLink has been silent for ``max_wait``;
-        returns its log."""
+        processes it started too, a cold SuperExec and ClientApps, which would otherwise outlive
+        it briefly and write into the rover's temporary Flower home, or a warm rover's
+        stand-ins; a SuperExec forked by the warm server ends when it sees its SuperNode gone,
+        Flower's ``--parent-pid`` check) and wait until it stops, the run is over for this
+        rover (``done`` exists) or the SuperLink has been silent for ``max_wait``; returns its log."""
         start = log.stat().st_size if log.exists() else 0  # this SuperNode's lines start here
         p = starter(argv)
         self.reached, probed, ended_at = False, time.monotonic(), None
