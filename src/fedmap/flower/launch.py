@@ -89,6 +89,14 @@ def set_death_signal(parent: int | None = None) -> None:  # pragma: no cover - r
         os._exit(1)
 
 
+def output_to(log: Path | str) -> None:  # pragma: no cover - runs in a forked child
+    """Send this process's stdout and stderr (file descriptors 1 and 2) to the end of ``log``."""
+    fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+
+
 #: The longest path a Unix socket may have (Linux: 108 bytes with the terminating zero).
 UNIX_SOCKET_PATH_MAX = 107
 

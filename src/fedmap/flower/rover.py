@@ -51,6 +51,7 @@ from fedmap.flower.launch import (
     flower_env,
     free_port,
     key_values,
+    output_to,
     require_executables,
     set_death_signal,
     sigterm_as_interrupt,
@@ -339,22 +340,17 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
         if heartbeat is not None:
             env[HEARTBEAT_ENV] = str(heartbeat)
         server = None
-
-        def start(argv: list[str]) -> Proc:  # its own process group: stopping it stops what it started too
-            return procs.start("supernode", argv, env=env, log=log, new_session=True, die_with_parent=True)
         if warm:  # one process imports torch and fedmap once and forks the SuperNode and a ClientApp per message
             sock = str(socks / "clientapp.sock")  # a short path: a long TMPDIR would not fit a socket's
             write_shim(Path(tmp) / "bin", sock)
             env["PATH"] = os.pathsep.join([str(Path(tmp) / "bin"), env["PATH"]])
             server = fork_warm_server(sock, node_config, env=env, log=log)
 
-            cold = start
-
-            def start(argv: list[str]) -> Proc:  # ``python -m fedmap.flower.supernode ARGS``: the server runs it
-                if argv[1:3] != ["-m", SUPERNODE_MODULE]:
-                    return cold(argv)
+        def start(argv: list[str]) -> Proc:  # in its own process group: stopping it stops what it started too
+            if server is not None and argv[1:3] == ["-m", SUPERNODE_MODULE]:  # the warm server forks it
                 child = WarmChild(sock, argv[3:], log=log, alive=lambda: _running(server))
                 return procs.adopt("supernode", child, log=log)
+            return procs.start("supernode", argv, env=env, log=log, new_session=True, die_with_parent=True)
         try:
             return _supervise(procs, pid, superlink, argv_for, start, port=port, done=done, log=log,
                               tls=root_cert is not None, max_wait=max_wait, self_registered=auth_key is None,
@@ -380,9 +376,7 @@ def fork_warm_server(sock: str, node_config: dict, *, env: dict, log: Path) -> i
             set_death_signal(rover)
             signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the rover's handler
             signal.signal(signal.SIGINT, signal.SIG_DFL)
-            fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-            os.dup2(fd, 1)
-            os.dup2(fd, 2)
+            output_to(log)
             os.environ.clear()
             os.environ.update(env)
             warm_server.serve(sock, node_config)

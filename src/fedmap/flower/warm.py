@@ -53,7 +53,7 @@ FIRST_WAIT = 1.0
 def _run_task(program: str, argv: list[str], server: int) -> None:  # pragma: no cover - runs in a forked child
     """Flower's own ``program`` entry point with ``argv``, in this process, forked by ``server``."""
     from fedmap.flower.client_app import flower_superexec_main, flwr_clientapp_main
-    from fedmap.flower.launch import set_death_signal
+    from fedmap.flower.launch import output_to, set_death_signal
 
     code = 0
     try:
@@ -61,9 +61,7 @@ def _run_task(program: str, argv: list[str], server: int) -> None:  # pragma: no
             os.setpgid(0, 0)
             set_death_signal(server)
             log, *argv = argv
-            fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-            os.dup2(fd, 1)
-            os.dup2(fd, 2)
+            output_to(log)
             from fedmap.flower.supernode import main as supernode_main
 
             supernode_main(argv)
