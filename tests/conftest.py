@@ -68,15 +68,20 @@ def pytest_configure(config):
 
 def pytest_collection_modifyitems(config, items):
     """The loopback lanes (``xdist_group`` "loopback-a" / "-b" / "-c", see addopts in
-    pyproject.toml) first, in lane order: pytest-xdist hands out work in collection order, so
-    each worker starts on its lane at once and the short tests fill the gaps around them. A
-    lane reached only after the short tests before it ends the run minutes later. The order
-    of tests within a lane and of the rest is kept (a stable sort)."""
-    def lane(item) -> str:
+    pyproject.toml) first, in lane order, then the other ``slow`` tests, then the rest:
+    pytest-xdist hands out work in collection order, so each worker starts on its lane at
+    once and the short tests fill the gaps around them. A lane reached only after the short
+    tests before it ends the run minutes later, and so does a long test handed out last: the
+    reproduction's CLI run (55 s under load), last in the alphabet, ran alone at the end of
+    the suite for 25 s. The order of tests within a lane and within the rest is kept (a stable
+    sort)."""
+    def order(item) -> tuple[int, str]:
         mark = item.get_closest_marker("xdist_group")
-        return str(mark.args[0]) if mark else "~"  # after every lane name
+        if mark:
+            return 0, str(mark.args[0])
+        return (1 if item.get_closest_marker("slow") else 2), ""
 
-    items.sort(key=lane)
+    items.sort(key=order)
 
 
 #: A small network so tests of training and federation run in milliseconds.

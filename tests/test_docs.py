@@ -112,6 +112,7 @@ def test_readme_commands_are_what_ci_runs():
     assert "pip install -e . && fedmap demo" in readme[: readme.index("## ")]
 
 
+@pytest.mark.slow
 def test_mkdocs_build_strict(tmp_path):
     pytest.importorskip("mkdocs", reason="mkdocs is in the test extra: pip install -e '.[test]'")
     env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}

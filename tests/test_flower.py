@@ -321,6 +321,7 @@ def test_certs_verify(tmp_path):
     assert (tmp_path / "rover1").stat().st_mode & 0o077 == 0
 
 
+@pytest.mark.slow
 def test_fedmap_imports_and_runs_without_flwr(tmp_path):
     """Block flwr: the CLI loads, the demo's modules import, and rover/base-station say how to install."""
     code = (

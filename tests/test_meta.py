@@ -278,6 +278,7 @@ def test_pipeline_meta_init_config_errors():
 
 # -- CLI -------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_cli_meta_train_then_ablate(tmp_path, capsys):
     w = tmp_path / "w.safetensors"
     rc = main(["meta-train", "--net", "small", "--size", "16", "--per-category", "3", "--iterations", "2",

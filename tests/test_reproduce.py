@@ -30,6 +30,7 @@ def test_rounds_curve_matches_independent_runs():
             assert curve[k - 1]["f1"] == pytest.approx(g["path"]["f1"])
 
 
+@pytest.mark.slow
 def test_reproduce_report(tmp_path):
     out = tmp_path / "rep"
     res = reproduce(out, ReproduceConfig(**{**TINY, "ablation_tiles": 1, "ablation_max_steps": 3},
