@@ -652,6 +652,59 @@ def test_a_supernode_forked_by_the_warm_server_is_watched_and_stopped_like_a_pro
         server.wait(timeout=10)
 
 
+@pytest.mark.slow
+def test_a_local_deploys_rovers_are_forked_by_one_host_and_watched_like_processes(tmp_path):
+    """``--deploy local`` forks its rovers from one host process (``fedmap.cli.rover_host``) that
+    imported everything once: a rover's arguments reach ``fedmap rover`` (a bad one is its
+    one-line error and exit code 2, in the rover's log), it runs in a process group of its own,
+    its SuperNode and the rest are its own children as with a rover started cold, it ends with
+    ``fedmap rover``'s own exit code, and it does not outlive the host."""
+    from fedmap.flower.deploy import ROVER_HOST_MODULE
+    from fedmap.flower.warm import ROVER
+
+    sock = str(tmp_path / "h.sock")
+    with open(tmp_path / "host.log", "wb") as log:
+        host = subprocess.Popen([sys.executable, "-m", ROVER_HOST_MODULE, sock], stdout=log, stderr=subprocess.STDOUT)
+
+    def alive() -> bool:
+        return host.poll() is None
+
+    def stat(pid: int) -> list[str]:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+
+    def rover_args(k: int, max_wait: float) -> list[str]:  # nobody listens at the SuperLink's address
+        return ["rover", "--mission", "--partition-id", str(k), "--superlink", f"127.0.0.1:{free_port()}",
+                "--max-wait", f"{max_wait:g}"]
+
+    try:
+        log = tmp_path / "rover.log"
+        bad = rover.WarmChild(sock, ["rover", "--no-such-option"], log=log, alive=alive, program=ROVER)
+        assert bad.args[0] == ROVER and bad.wait(timeout=120) == 2
+        assert log.read_text().strip().splitlines() == ["error: No such option '--no-such-option'."]  # one line
+
+        gives_up = rover.WarmChild(sock, rover_args(0, 3), log=log, alive=alive, program=ROVER)
+        fields = stat(gives_up.pid)
+        assert int(fields[1]) == host.pid and int(fields[2]) == gives_up.pid  # forked, in a group of its own
+        assert gives_up.wait(timeout=120) == 2  # fedmap rover's own exit code: it gave up on the SuperLink
+        assert "rover 0: connecting to" in log.read_text() and "error: rover 0" in log.read_text()
+
+        last = rover.WarmChild(sock, rover_args(1, 300), log=tmp_path / "last.log", alive=alive, program=ROVER)
+        t_end = time.monotonic() + 60
+        while time.monotonic() < t_end and not ((tmp_path / "last.log").exists()  # the rover opens it
+                                                and "connecting to" in (tmp_path / "last.log").read_text()):
+            time.sleep(0.1)
+        host.kill()
+        host.wait(timeout=10)
+        assert last.wait(timeout=10) == -9  # the host's end of the line closed without an exit code
+        t_end = time.monotonic() + 10
+        while Path(f"/proc/{last.pid}").exists() and stat(last.pid)[0] != "Z" and time.monotonic() < t_end:
+            time.sleep(0.1)
+        assert not Path(f"/proc/{last.pid}").exists() or stat(last.pid)[0] == "Z"  # gone with the host
+    finally:
+        host.kill()
+        host.wait(timeout=10)
+
+
 def test_a_socket_folder_fits_a_unix_socket_however_long_tmpdir_is(tmp_path, monkeypatch):
     """A rover's warm server listens on a Unix socket, whose path Linux caps at 107 bytes: under a
     long TMPDIR (pytest's own is close) its folder moves to /tmp, and either way it is removed."""

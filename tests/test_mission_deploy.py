@@ -65,7 +65,8 @@ def test_the_default_mission_on_processes_equals_the_mission_in_process(tmp_path
     for name in names:
         assert sum(m["bytes"] for m in deployed["strategies"][name]["ledger"]) > 0
     logs = {p.name for p in (out / "logs").iterdir()}
-    assert {"superlink.log", *(f"rover{k}.log" for k in range(4)), *(f"rover{k}.supernode.log" for k in range(4))} <= logs
+    assert {"superlink.log", "rover-host.log", *(f"rover{k}.log" for k in range(4)),
+            *(f"rover{k}.supernode.log" for k in range(4))} <= logs
     assert "TLS" not in r.stderr and "insecure" not in (out / "logs" / "rover0.log").read_text().lower()
 
 
@@ -82,20 +83,22 @@ def test_a_mission_on_processes_loses_nothing_to_faults(tmp_path):
     (tmp_path / "mission.toml").write_text(text)
     work = tmp_path / "out.run"
     killed: list[int] = []
+    hosts: list[bool] = []  # whether the rover killed was forked by the deploy's host of rovers
 
     def on_status(st: dict) -> None:
-        if st.get("step", 0) >= 40 and not killed:  # the rover's own process, with its SuperNode
-            pids = subprocess.run(["pgrep", "-f", "--", f"--partition-id 2 .*{work}"], capture_output=True,
-                                  text=True).stdout
-            for pid in map(int, pids.split()):
-                if b"rover" in Path(f"/proc/{pid}/cmdline").read_bytes() and pid != os.getpid():
-                    os.kill(pid, signal.SIGKILL)
-                    killed.append(pid)
+        if st.get("step", 0) >= 40 and not killed:  # the rover's own process (its SuperNode dies with it)
+            pid = int((work / "rover2.pid").read_text())
+            parent = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            hosts.append(b"fedmap.cli.rover_host" in Path(f"/proc/{parent}/cmdline").read_bytes())
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
             shutil.rmtree(work / "rover2.state", ignore_errors=True)  # everything it held is gone
 
     apart = deploy_mission(text, members=config.rovers, out=tmp_path / "out", strategies=("predictive",), frames=1,
                            rounds=len(config.sync_steps) + 1, faults={1: "corrupt@30"}, on_status=on_status)
-    assert killed
+    assert killed and hosts == [True]
+    restarted = int((work / "rover2.pid").read_text())
+    assert restarted != killed[0]  # started again, and its PID recorded
     here = _in_process(tmp_path / "mission.toml")
     _same(here, apart, ("predictive",))
     what = [f["fault"] for f in apart.faults]

@@ -14,6 +14,7 @@ Nothing here imports ``flwr``.
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import sys
 import time
@@ -21,10 +22,12 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
+from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
 from fedmap.flower.launch import (
     SUPERLINK_EXES,
+    Proc,
     Processes,
     Tls,
     check_exposure,
@@ -35,6 +38,7 @@ from fedmap.flower.launch import (
     register_keys,
     require_executables,
     sigterm_as_interrupt,
+    socket_dir,
     submit_run,
     superlink_argv,
     wait_for_port,
@@ -42,7 +46,9 @@ from fedmap.flower.launch import (
     write_connection,
 )
 from fedmap.flower.mission_task import MissionRun, read_result, result_path
+from fedmap.flower.rover import WarmChild
 from fedmap.flower.task import run_status_path, write_status
+from fedmap.flower.warm import ROVER
 from fedmap.mission.results import MissionResult
 
 #: Seconds between a local rover's polls of its SuperLink, and its SuperExec's for a task. Polls
@@ -62,6 +68,10 @@ LOCAL_POLL = 0.25
 LOCAL_HEARTBEAT: float | None = None
 #: ``--deploy local``: rover processes started again after they died, in all, before the mission fails.
 ROVER_PROCESS_RESTARTS = 20
+#: ``--deploy local``: the process the rovers are forked from (:func:`fedmap.flower.warm.serve_rovers`),
+#: its module and its socket's name. It imports fedmap, torch and Flower's runtime once for the team:
+#: a rover started as a fresh Python imports them for itself, about 5 s of CPU each.
+ROVER_HOST, ROVER_HOST_MODULE, ROVER_HOST_SOCKET = "rover-host", "fedmap.cli.rover_host", "rovers.sock"
 #: Where ``fedmap mission --deploy`` runs.
 DEPLOY_MODES = ("local", "base")
 
@@ -132,9 +142,15 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
     result_path(out).unlink(missing_ok=True)
     port = port or free_port(host if host not in ("0.0.0.0", "::", "") else "127.0.0.1")
     try:
-        with Processes() as procs, sigterm_as_interrupt():
+        with contextlib.ExitStack() as stack:
+            socks = stack.enter_context(socket_dir("fedmap-rovers-", ROVER_HOST_SOCKET)) if mode == "local" else None
+            procs = stack.enter_context(Processes())
+            stack.enter_context(sigterm_as_interrupt())
             procs.start("superlink", superlink_argv(host=host, port=port, tls=tls, auth=auth_keys is not None),
                         env=env, log=work / "superlink.log", die_with_parent=True)
+            if socks is not None:  # imports while the SuperLink starts: the rovers are forked from it
+                procs.start(ROVER_HOST, [sys.executable, "-m", ROVER_HOST_MODULE, str(socks / ROVER_HOST_SOCKET)],
+                            env=env, log=work / f"{ROVER_HOST}.log", die_with_parent=True)
             local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
             wait_for_port(local, port, timeout=60, alive=lambda: procs.check_alive("superlink"))
             write_connection(Path(env["FLWR_HOME"]), address=f"{local}:{port}", root_cert=tls.ca if tls else None)
@@ -142,13 +158,14 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
             rovers: list[str] = []
             argvs: dict[str, list[str]] = {}
             restarted: list[dict] = []
-            if mode == "local":
+            start_rover = _rover_starter(procs, socks, env=env, work=work) if socks is not None else None
+            if start_rover is not None:
                 for k in range(members):
                     name = f"rover{k}"
                     argvs[name] = rover_argv(k, superlink=f"127.0.0.1:{port}", root_cert=work / "certs" / "ca.crt",
                                              auth_key=work / "certs" / name, log=work / f"{name}.supernode.log",
                                              state=work / f"{name}.state", poll=poll, fault=(faults or {}).get(k))
-                    procs.start(name, argvs[name], env=env, log=work / f"{name}.log", die_with_parent=True)
+                    start_rover(name, argvs[name])
                     rovers.append(name)
             since = time.time() - 1
             submit_run(Path(env["FLWR_HOME"]), run_config, env=env, app=mission_app_dir())
@@ -167,8 +184,8 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
                     restarted.append({"strategy": st.get("strategy", ""), "rover": k,
                                       "fault": f"rover process exited (code {code}) near step {st.get('step', 0)}; "
                                                "started again"})
-                    procs.start(name, [*argvs[name], "--rejoin"], env=env, log=work / f"{name}.log",
-                                die_with_parent=True)
+                    assert start_rover is not None  # only local rovers are watched
+                    start_rover(name, [*argvs[name], "--rejoin"])
 
             budget = connect_timeout + 600 + max(len(strategies), 1) * rounds * deadline
             wait_for_result(out, since=since, timeout=budget, alive=alive,
@@ -185,6 +202,28 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
                           f"{st.get('step', 0)}); its processes are stopped; logs in {work}") from None
     result = read_result(out)
     return replace(result, faults=(*result.faults, *restarted))
+
+
+def _rover_starter(procs: Processes, socks: Path, *, env: dict, work: Path) -> Callable[[str, list[str]], None]:
+    """How a local deploy starts rover ``name`` with ``argv`` (:func:`rover_argv`): forked by
+    the host of rovers (:data:`ROVER_HOST`), or as a process of its own once the host is gone.
+    Its log is ``<name>.log`` and its PID is written to ``<name>.pid``, in ``work``."""
+    host = procs.procs[ROVER_HOST]
+    sock = str(socks / ROVER_HOST_SOCKET)
+
+    def start(name: str, argv: list[str]) -> None:
+        log = work / f"{name}.log"
+        p: Proc | None = None
+        if host.poll() is None:
+            try:
+                p = procs.adopt(name, WarmChild(sock, argv[3:], log=log, alive=lambda: host.poll() is None,
+                                                program=ROVER), log=log)
+            except FedmapError:  # the host died: this rover and the next start cold
+                p = None
+        if p is None:
+            p = procs.start(name, argv, env=env, log=log, die_with_parent=True)
+        atomic_write_bytes(work / f"{name}.pid", f"{p.pid}\n".encode())
+    return start
 
 
 def deploy_logs(out: Path) -> dict[str, str]:

@@ -185,17 +185,20 @@ def write_shim(bin_dir, sock: str) -> None:
 
 
 class WarmChild:
-    """A SuperNode the rover's warm server forked at the rover's request
-    (:data:`fedmap.flower.warm.SUPERNODE`, its output appended to ``log``), watched and
-    stopped like a :class:`subprocess.Popen`: the server answers with the child's PID, then
-    with its exit code when it ends. The child runs in a process group of its own (its PID
-    is the group's) and dies with the server. ``alive()`` says whether the server is still
-    there while the rover waits for it to listen (at most ``timeout`` s)."""
+    """A process a warm server forked on request, watched and stopped like a
+    :class:`subprocess.Popen`: a rover's SuperNode forked by the rover's warm server
+    (``program`` :data:`fedmap.flower.warm.SUPERNODE`), or a rover forked by a local deploy's
+    host of rovers (:data:`fedmap.flower.warm.ROVER`). Its output is appended to ``log``. The
+    server answers with the child's PID, then with its exit code when it ends. The child runs
+    in a process group of its own (its PID is the group's) and dies with the server.
+    ``alive()`` says whether the server is still there while we wait for it to listen (at
+    most ``timeout`` s)."""
 
     def __init__(self, sock: str, argv: list[str], *, log: Path, alive: Callable[[], bool],
-                 timeout: float = 60.0) -> None:
-        self.args = [warm_server.SUPERNODE, str(Path(log).resolve()), *argv]
+                 timeout: float = 60.0, program: str = warm_server.SUPERNODE) -> None:
+        self.args = [program, str(Path(log).resolve()), *argv]
         self.returncode: int | None = None
+        what = "the rover's SuperNode" if program == warm_server.SUPERNODE else "a rover"
         t_end = time.monotonic() + timeout
         while True:
             conn = socket.socket(socket.AF_UNIX)
@@ -205,14 +208,14 @@ class WarmChild:
             except OSError:
                 conn.close()
                 if time.monotonic() > t_end or not alive():
-                    raise FedmapError("the rover's warm ClientApp server did not answer (its log says why)") from None
+                    raise FedmapError(f"the warm server for {what} did not answer (its log says why)") from None
                 time.sleep(0.05)
         self._conn, self._buf = conn, b""
         conn.sendall(json.dumps(self.args).encode() + b"\n")
         line = self._line(timeout)
         if line is None or not line.startswith("pid "):
             conn.close()
-            raise FedmapError("the rover's warm ClientApp server did not start its SuperNode (its log says why)")
+            raise FedmapError(f"the warm server for {what} did not start it (its log says why)")
         self.pid = int(line[4:])
 
     def _line(self, timeout: float | None) -> str | None:

@@ -26,6 +26,14 @@ imports Flower's runtime first (1.7 s of CPU), and a rover starts one at every s
 after every link fault that ends one. It runs in a process group of its own, as it would
 as a process of its own (the rover stops it and what it started as one group), and dies
 with the server. The server answers that request with the child's PID first, then its exit code.
+
+``fedmap mission --deploy local`` runs every rover of the team on one machine, and each
+rover process would import fedmap, torch and Flower's runtime for itself (about 5 s of CPU
+before it connects). It starts one *host* instead (:func:`serve_rovers`, run by
+:mod:`fedmap.cli.rover_host`), which imports all of that once and forks each rover process
+(``fedmap rover ...``, :data:`ROVER`) at the deploy's request, the same way: a process group
+of its own, its output to the rover's log, the PID and then the exit code sent back. A rover
+then forks its warm server and SuperNode from itself as ever, with nothing left to import.
 """
 
 from __future__ import annotations
@@ -37,6 +45,7 @@ import signal
 import socket
 import sys
 import threading
+from collections.abc import Callable
 
 #: The Flower programs this server forks, by the name the SuperNode starts them with (each has a
 #: stand-in of that name: :func:`fedmap.flower.rover.write_shim`).
@@ -45,6 +54,10 @@ PROGRAMS = ("flower-superexec", "flwr-clientapp")
 #: (:mod:`fedmap.flower.supernode`), in a process group of its own; the request's first argument
 #: is the log its output goes to, and the answer starts with ``pid <PID>``.
 SUPERNODE = "flower-supernode"
+#: The program a local deploy asks its host of rovers for (:func:`serve_rovers`): a rover process,
+#: ``fedmap rover`` with the request's arguments, in a process group of its own; the request's
+#: first argument is the log its output goes to, and the answer starts with ``pid <PID>``.
+ROVER = "fedmap-rover"
 #: Seconds the server, listening, waits for a first request before it loads what the ClientApps
 #: need (a rover asks for its SuperNode within 0.05 s; a predictor's site starts its own).
 FIRST_WAIT = 1.0
@@ -53,26 +66,47 @@ FIRST_WAIT = 1.0
 def _run_task(program: str, argv: list[str], server: int) -> None:  # pragma: no cover - runs in a forked child
     """Flower's own ``program`` entry point with ``argv``, in this process, forked by ``server``."""
     from fedmap.flower.client_app import flower_superexec_main, flwr_clientapp_main
-    from fedmap.flower.launch import output_to, set_death_signal
+    from fedmap.flower.launch import set_death_signal
 
-    code = 0
-    try:
+    def run() -> None:
         if program == SUPERNODE:  # a process group of its own, as the rover's Processes give; not past this server
-            os.setpgid(0, 0)
-            set_death_signal(server)
-            log, *argv = argv
-            output_to(log)
             from fedmap.flower.supernode import main as supernode_main
 
-            supernode_main(argv)
+            supernode_main(_own_group(argv, server))
         elif program == "flower-superexec":  # lives as long as its SuperNode, so not past this server either
             set_death_signal(server)
             flower_superexec_main(argv)
         else:
             flwr_clientapp_main(argv)
+    _exit_with(run)
+
+
+def _own_group(argv: list[str], server: int) -> list[str]:  # pragma: no cover - runs in a forked child
+    """In a child forked at a request for a program in a process group of its own (the request's
+    first argument is its log): that group, death with ``server``, the output to the log; the
+    program's arguments."""
+    from fedmap.flower.launch import output_to, set_death_signal
+
+    os.setpgid(0, 0)
+    set_death_signal(server)
+    log, *rest = argv
+    output_to(log)
+    return rest
+
+
+def _exit_with(run: Callable[[], object]) -> None:  # pragma: no cover - runs in a forked child
+    """Run ``run()`` and end this forked child with its exit code, as a process would end: an int
+    returned or passed to :class:`SystemExit`, 0 for anything else, 1 for any other exception."""
+    code = 0
+    try:
+        result = run()
+        code = result if isinstance(result, int) else 0
     except SystemExit as e:
-        code = e.code if isinstance(e.code, int) else 1
+        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
     except BaseException:  # noqa: BLE001 - report any failure as an exit code, like a process would
+        import traceback
+
+        traceback.print_exc()
         code = 1
     sys.stdout.flush()
     sys.stderr.flush()
@@ -114,6 +148,43 @@ def preload(node_config: dict) -> None:
         load_local_map(node_config)  # cached: the children inherit the rover's map
 
 
+def _listen(sock: str) -> socket.socket:
+    srv = socket.socket(socket.AF_UNIX)
+    srv.bind(sock)
+    srv.listen(16)
+    return srv
+
+
+def _request(srv: socket.socket) -> tuple[socket.socket, str, list[str]] | None:
+    """The next request: its connection, program and arguments (None: not one)."""
+    conn, _ = srv.accept()
+    line = conn.makefile().readline()
+    try:
+        program, *argv = [str(a) for a in json.loads(line)]
+    except ValueError:
+        conn.close()
+        return None
+    return conn, program, argv
+
+
+def _fork(srv: socket.socket, conn: socket.socket, child: Callable[[], None], *, own_group: bool) -> None:
+    """Fork ``child()`` (it never returns) and send its exit code on ``conn`` when it ends;
+    ``own_group``: it runs in a process group of its own (set here too, so the group exists
+    before the requester may signal it), and its PID is sent first."""
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the forked child
+        srv.close()
+        conn.close()
+        child()
+    if own_group:
+        try:
+            os.setpgid(pid, pid)
+            conn.sendall(f"pid {pid}\n".encode())
+        except OSError:  # the requester is gone: so is the reason for the child
+            os.kill(pid, signal.SIGKILL)
+    threading.Thread(target=_answer, args=(conn, pid), daemon=True).start()
+
+
 def serve(sock: str, node_config: dict) -> None:  # pragma: no cover - a long-lived process
     """Import once, then fork a process per request until killed.
 
@@ -123,9 +194,7 @@ def serve(sock: str, node_config: dict) -> None:  # pragma: no cover - a long-li
     ClientApp or a SuperExec made earlier waits until that is loaded."""
     import fedmap.flower.supernode  # noqa: F401 - what a SuperNode needs
 
-    srv = socket.socket(socket.AF_UNIX)
-    srv.bind(sock)
-    srv.listen(16)
+    srv = _listen(sock)
     server, loaded = os.getpid(), False
     while True:
         if not loaded:  # the rover asks for its SuperNode as soon as the server listens
@@ -133,31 +202,40 @@ def serve(sock: str, node_config: dict) -> None:  # pragma: no cover - a long-li
             if not ready:  # nobody asked: load now
                 preload(node_config)
                 loaded = True
-        conn, _ = srv.accept()
-        line = conn.makefile().readline()
-        try:
-            program, *argv = [str(a) for a in json.loads(line)]
-        except ValueError:
-            conn.close()
+        request = _request(srv)
+        if request is None:
             continue
+        conn, program, argv = request
         if program not in (*PROGRAMS, SUPERNODE):
             conn.close()
             continue
         if program != SUPERNODE and not loaded:
             preload(node_config)
             loaded = True
-        pid = os.fork()
-        if pid == 0:
-            srv.close()
+        _fork(srv, conn, lambda: _run_task(program, argv, server), own_group=program == SUPERNODE)
+
+
+def serve_rovers(sock: str, rover: Callable[[list[str]], object]) -> None:  # pragma: no cover - a long-lived process
+    """The host of a local deploy's rovers: import what a mission rover, its warm server and its
+    SuperNode need, once, then fork ``rover(argv)`` (``fedmap rover``'s entry point) per
+    :data:`ROVER` request until killed. Each rover runs in a process group of its own with its
+    output in the request's log, and dies with the host. The host runs no torch operation."""
+    preload({"mission": True})
+    srv = _listen(sock)
+    host = os.getpid()
+    while True:
+        request = _request(srv)
+        if request is None:
+            continue
+        conn, program, argv = request
+        if program != ROVER:
             conn.close()
-            _run_task(program, argv, server)
-        if program == SUPERNODE:
-            try:
-                os.setpgid(pid, pid)  # here too: its group exists before the rover may signal it
-                conn.sendall(f"pid {pid}\n".encode())
-            except OSError:  # the rover is gone: so is the reason for its SuperNode
-                os.kill(pid, signal.SIGKILL)
-        threading.Thread(target=_answer, args=(conn, pid), daemon=True).start()
+            continue
+
+        def child(argv: list[str] = argv) -> None:  # pragma: no cover - the forked rover
+            rest = _own_group(argv, host)
+            _exit_with(lambda: rover(rest))
+        _fork(srv, conn, child, own_group=True)
 
 
 if __name__ == "__main__":  # pragma: no cover - ``python -m fedmap.flower.warm SOCKET NODE_CONFIG_JSON``
