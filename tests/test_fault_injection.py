@@ -192,7 +192,8 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
     pytest.importorskip("flwr")
     from tests.test_flower_e2e import _team  # the four rovers' maps and the ground truth, saved as files
 
-    from fedmap.flower.launch import Processes, flower_env, free_port, make_certs, run_base_station
+    from fedmap.flower.deploy import ROVER_HOST_SOCKET, RoverHost
+    from fedmap.flower.launch import Processes, flower_env, free_port, make_certs, run_base_station, socket_dir
 
     monkeypatch.setenv("FLWR_HOME", str(tmp_path / "flwr-home"))
     maps = _team(tmp_path)
@@ -224,11 +225,11 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
         for name, p in bad.items():
             errs[name] = p.communicate(timeout=120)[1]
         faults = {2: "bitflip@1", 3: "nan@2"}
-        for k in range(4):
+        for k in range(4):  # forked from a host of rovers, as `fedmap mission --deploy local` starts them
             # a rover keeps reconnecting for 30 s: Flower's backoff waits at most 20 s between tries, so
             # every call is through within 3 + 20 s of the cut
-            rovers.start(f"rover{k}", _rover_argv(proxy.port, k, tmp_path, certs, fault=faults.get(k), max_wait=30),
-                         env=flower_env(tmp_path / f"home{k}"), log=tmp_path / f"rover{k}.log")
+            host.start(f"rover{k}", _rover_argv(proxy.port, k, tmp_path, certs, fault=faults.get(k), max_wait=30),
+                       env=flower_env(tmp_path / f"home{k}"), log=tmp_path / f"rover{k}.log")
 
     def on_status(st: dict, rovers: Processes) -> None:
         if st.get("round", 0) >= 2 and not cut:
@@ -236,7 +237,8 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
             cut.append(True)
 
     try:
-        with Processes() as rovers:
+        with socket_dir("fedmap-rovers-", ROVER_HOST_SOCKET) as socks, Processes() as rovers:
+            host = RoverHost(rovers, socks, env=flower_env(tmp_path / "host-home"), log=tmp_path / "rover-host.log")
             status = run_base_station({**run, "out": str(out), "truth": str(tmp_path / "truth.npy")},
                                       host="127.0.0.1", port=port, certs=certs, auth_keys=keys,
                                       on_ready=lambda: start(rovers), on_status=lambda st: on_status(st, rovers))
@@ -285,7 +287,8 @@ def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     pytest.importorskip("flwr")
     from tests.test_flower_e2e import _team
 
-    from fedmap.flower.launch import Processes, flower_env, free_port, run_base_station
+    from fedmap.flower.deploy import ROVER_HOST_SOCKET, RoverHost
+    from fedmap.flower.launch import Processes, flower_env, free_port, run_base_station, socket_dir
     from fedmap.flower.server_app import LOST_REPLY, NO_REPLY, NOT_CONNECTED
 
     monkeypatch.setenv("FLWR_HOME", str(tmp_path / "flwr-home"))
@@ -311,11 +314,12 @@ def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
             argv = [sys.executable, "-m", "fedmap", "rover", "--superlink", f"127.0.0.1:{via}",
                     "--partition-id", str(k), "--map", str(tmp_path / f"local{k}.npy"), "--max-wait", "30",
                     "--log", str(tmp_path / f"supernode{k}.log")]
-            rovers.start(f"rover{k}", argv, env=flower_env(tmp_path / f"home{k}"), log=tmp_path / f"rover{k}.log")
+            host.start(f"rover{k}", argv, env=flower_env(tmp_path / f"home{k}"), log=tmp_path / f"rover{k}.log")
         threading.Thread(target=keep_dropping, daemon=True).start()
 
     try:
-        with Processes() as rovers:
+        with socket_dir("fedmap-rovers-", ROVER_HOST_SOCKET) as socks, Processes() as rovers:
+            host = RoverHost(rovers, socks, env=flower_env(tmp_path / "host-home"), log=tmp_path / "rover-host.log")
             status = run_base_station({**run, "out": str(out), "truth": str(tmp_path / "truth.npy")},
                                       host="127.0.0.1", port=port, on_ready=lambda: start(rovers))
             codes = {k: rovers.procs[f"rover{k}"].wait(timeout=120) for k in range(4)}

@@ -17,7 +17,8 @@ pytest.importorskip("flwr")
 from fedmap.explore import explore  # noqa: E402
 from fedmap.federation.codecs import Encoder  # noqa: E402
 from fedmap.federation.runner import run_federation  # noqa: E402
-from fedmap.flower.launch import Processes, flower_env, free_port, run_base_station  # noqa: E402
+from fedmap.flower.deploy import ROVER_HOST_SOCKET, RoverHost  # noqa: E402
+from fedmap.flower.launch import Processes, flower_env, free_port, run_base_station, socket_dir  # noqa: E402
 from fedmap.flower.settings import RunSettings  # noqa: E402
 from fedmap.maps.io import save_map  # noqa: E402
 from fedmap.maps.sources import TerrainSource, load_truth  # noqa: E402
@@ -54,11 +55,17 @@ def _team(tmp_path):
 HEARTBEAT = ["--heartbeat", "10"]
 
 
-def _start_rovers(procs: Processes, port: int, tmp_path, rovers=range(4), extra=()) -> None:
-    for k in rovers:  # each `fedmap rover` in its own process group, stopped by its PID
+def _start_rovers(procs: Processes, port: int, tmp_path, rovers=range(4), extra=(), host: RoverHost | None = None):
+    """Each `fedmap rover` in its own process group, stopped by its PID: forked by ``host`` (a host
+    of rovers, as ``fedmap mission --deploy local`` starts them), or as a process of its own."""
+    for k in rovers:
         argv = [sys.executable, "-m", "fedmap", "rover", "--superlink", f"127.0.0.1:{port}", "--partition-id", str(k),
                 "--map", str(tmp_path / f"local{k}.npy"), "--port", str(free_port()), *extra]
-        procs.start(f"rover{k}", argv, env=flower_env(tmp_path / f"rover{k}-home"), log=tmp_path / f"rover{k}.log")
+        env, log = flower_env(tmp_path / f"rover{k}-home"), tmp_path / f"rover{k}.log"
+        if host is not None:
+            host.start(f"rover{k}", argv, env=env, log=log)
+        else:
+            procs.start(f"rover{k}", argv, env=env, log=log)
 
 
 def _reference(maps):
@@ -72,21 +79,28 @@ def _reference_with(maps, run, **participation):
     return init, run_federation(init, net, maps, RunSettings.from_run_config(run).federation, **participation)
 
 
-def _run(tmp_path, run: dict, on_status=None, extra=()):
+def _run(tmp_path, run: dict, on_status=None, extra=(), forked=True):
+    """The base station and four rovers; ``forked``: the rovers are forked from one host of rovers
+    that imported fedmap, torch and Flower once (5 s of CPU less per rover; ``on_status(status, rovers, port,
+    host)`` gets it), else each is a fresh Python, as on a robot of its own."""
     port, out = free_port(), tmp_path / "out"
     maps = _team(tmp_path)
-    with Processes() as rovers:
+    with socket_dir("fedmap-rovers-", ROVER_HOST_SOCKET) as socks, Processes() as rovers:
+        host = RoverHost(rovers, socks, env=flower_env(tmp_path / "host-home"), log=tmp_path / "rover-host.log") \
+            if forked else None
         status = run_base_station({**run, "out": str(out), "truth": str(tmp_path / "truth.npy")}, host="127.0.0.1",
                                   port=port,
-                                  on_ready=lambda: _start_rovers(rovers, port, tmp_path, extra=extra),
-                                  on_status=(lambda st: on_status(st, rovers, port)) if on_status else None)
+                                  on_ready=lambda: _start_rovers(rovers, port, tmp_path, extra=extra, host=host),
+                                  on_status=(lambda st: on_status(st, rovers, port, host)) if on_status else None)
     assert status["state"] == "done"
     return maps, out, json.loads((out / "metrics.json").read_text())
 
 
 @pytest.mark.xdist_group("loopback-b")  # a long loopback run: see addopts in pyproject.toml
 def test_four_rovers_one_round_equal_the_in_process_runner(flower_home):
-    maps, out, m = _run(flower_home, {**RUN, "deadline": 300.0})
+    """Four rovers started as a fresh Python each, as on robots of their own (the other loopback
+    tests fork theirs from a host of rovers)."""
+    maps, out, m = _run(flower_home, {**RUN, "deadline": 300.0}, forked=False)
     init, ref = _reference(maps)
     got = get_weights(load_model(out / "global_model.safetensors"))
     for k in ref.weights:
@@ -107,7 +121,7 @@ def test_four_rovers_one_round_equal_the_in_process_runner(flower_home):
 def test_a_rover_killed_mid_round_leaves_three(flower_home):
     killed = []
 
-    def kill_rover3(st, rovers, port):
+    def kill_rover3(st, rovers, port, host):
         if st["state"] == "running" and st.get("round") == 1 and not st.get("saved") and not killed:
             rovers.stop("rover3", sig=signal.SIGKILL)  # by its PID (process group), while the round runs
             killed.append(True)
@@ -139,10 +153,10 @@ def test_a_killed_rover_restarted_rejoins_with_an_update_codec(flower_home):
     run = {**RUN, "rounds": 3, "downlink": "update-int4+zstd", "deadline": 120.0}
     events = []
 
-    def kill_and_restart_rover3(st, rovers, port):
+    def kill_and_restart_rover3(st, rovers, port, host):
         if st["state"] == "running" and st.get("round") == 2 and not st.get("saved") and not events:
             rovers.stop("rover3", sig=signal.SIGKILL)
-            _start_rovers(rovers, port, flower_home, rovers=[3])
+            _start_rovers(rovers, port, flower_home, rovers=[3], host=host)
             events.append("restarted")
 
     maps, out, m = _run(flower_home, run, on_status=kill_and_restart_rover3)

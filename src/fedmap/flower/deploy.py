@@ -148,9 +148,8 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
             stack.enter_context(sigterm_as_interrupt())
             procs.start("superlink", superlink_argv(host=host, port=port, tls=tls, auth=auth_keys is not None),
                         env=env, log=work / "superlink.log", die_with_parent=True)
-            if socks is not None:  # imports while the SuperLink starts: the rovers are forked from it
-                procs.start(ROVER_HOST, [sys.executable, "-m", ROVER_HOST_MODULE, str(socks / ROVER_HOST_SOCKET)],
-                            env=env, log=work / f"{ROVER_HOST}.log", die_with_parent=True)
+            # the rovers are forked from it; it imports while the SuperLink starts
+            rover_host = RoverHost(procs, socks, env=env, log=work / f"{ROVER_HOST}.log") if socks is not None else None
             local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
             wait_for_port(local, port, timeout=60, alive=lambda: procs.check_alive("superlink"))
             write_connection(Path(env["FLWR_HOME"]), address=f"{local}:{port}", root_cert=tls.ca if tls else None)
@@ -158,8 +157,12 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
             rovers: list[str] = []
             argvs: dict[str, list[str]] = {}
             restarted: list[dict] = []
-            start_rover = _rover_starter(procs, socks, env=env, work=work) if socks is not None else None
-            if start_rover is not None:
+
+            def start_rover(name: str, argv: list[str]) -> None:  # its PID recorded for whoever runs the machine
+                assert rover_host is not None  # only --deploy local starts rovers
+                p = rover_host.start(name, argv, env=env, log=work / f"{name}.log")
+                atomic_write_bytes(work / f"{name}.pid", f"{p.pid}\n".encode())
+            if rover_host is not None:
                 for k in range(members):
                     name = f"rover{k}"
                     argvs[name] = rover_argv(k, superlink=f"127.0.0.1:{port}", root_cert=work / "certs" / "ca.crt",
@@ -184,7 +187,6 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
                     restarted.append({"strategy": st.get("strategy", ""), "rover": k,
                                       "fault": f"rover process exited (code {code}) near step {st.get('step', 0)}; "
                                                "started again"})
-                    assert start_rover is not None  # only local rovers are watched
                     start_rover(name, [*argvs[name], "--rejoin"])
 
             budget = connect_timeout + 600 + max(len(strategies), 1) * rounds * deadline
@@ -204,26 +206,30 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
     return replace(result, faults=(*result.faults, *restarted))
 
 
-def _rover_starter(procs: Processes, socks: Path, *, env: dict, work: Path) -> Callable[[str, list[str]], None]:
-    """How a local deploy starts rover ``name`` with ``argv`` (:func:`rover_argv`): forked by
-    the host of rovers (:data:`ROVER_HOST`), or as a process of its own once the host is gone.
-    Its log is ``<name>.log`` and its PID is written to ``<name>.pid``, in ``work``."""
-    host = procs.procs[ROVER_HOST]
-    sock = str(socks / ROVER_HOST_SOCKET)
+class RoverHost:
+    """A host of rovers (:data:`ROVER_HOST`, :func:`fedmap.flower.warm.serve_rovers`) started
+    under ``procs``, its socket in ``socks`` (a short folder: :func:`~fedmap.flower.launch.socket_dir`),
+    its output in ``log``. It imports while the caller goes on; :meth:`start` forks a rover from it."""
 
-    def start(name: str, argv: list[str]) -> None:
-        log = work / f"{name}.log"
-        p: Proc | None = None
-        if host.poll() is None:
+    def __init__(self, procs: Processes, socks: Path, *, env: dict, log: Path) -> None:
+        self.procs, self.sock = procs, str(socks / ROVER_HOST_SOCKET)
+        self.proc = procs.start(ROVER_HOST, [sys.executable, "-m", ROVER_HOST_MODULE, self.sock], env=env, log=log,
+                                die_with_parent=True)
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def start(self, name: str, argv: list[str], *, env: dict, log: Path) -> Proc:
+        """Rover ``name``: ``argv`` (``[python, -m, fedmap, rover, ...]``) forked by the host,
+        watched by ``procs`` as ``name``, its output in ``log``; once the host is gone, started
+        as a process of its own in ``env`` instead. It dies with the host, or with us."""
+        if self.alive():
             try:
-                p = procs.adopt(name, WarmChild(sock, argv[3:], log=log, alive=lambda: host.poll() is None,
-                                                program=ROVER), log=log)
-            except FedmapError:  # the host died: this rover and the next start cold
-                p = None
-        if p is None:
-            p = procs.start(name, argv, env=env, log=log, die_with_parent=True)
-        atomic_write_bytes(work / f"{name}.pid", f"{p.pid}\n".encode())
-    return start
+                return self.procs.adopt(name, WarmChild(self.sock, argv[3:], log=log, alive=self.alive, program=ROVER),
+                                        log=log)
+            except FedmapError:  # the host died meanwhile: this rover and the next start cold
+                pass
+        return self.procs.start(name, argv, env=env, log=log, die_with_parent=True)
 
 
 def deploy_logs(out: Path) -> dict[str, str]:
@@ -232,4 +238,4 @@ def deploy_logs(out: Path) -> dict[str, str]:
     return {f"logs/{p.name}": p.read_text(errors="replace") for p in sorted(work.glob("*.log"))}
 
 
-__all__ = ["DEPLOY_MODES", "deploy_logs", "deploy_mission", "mission_app_dir", "rover_argv"]
+__all__ = ["DEPLOY_MODES", "RoverHost", "deploy_logs", "deploy_mission", "mission_app_dir", "rover_argv"]
