@@ -58,7 +58,9 @@ def _kind(pid: int) -> str | None:
         return None
     for key, kind in (("flower-superlink", "SuperLink"), ("flwr-serverapp", "ServerApp (base station)"),
                       ("fedmap.flower.supernode", "SuperNode"), ("flower-superexec", "SuperExec"),
-                      ("flwr-clientapp", "ClientApp stand-in"), ("fedmap rover", "rover (and its warm ClientApps)")):
+                      ("flwr-clientapp", "ClientApp stand-in"), ("fedmap rover", "rover (and its warm ClientApps)"),
+                      # a fork keeps its parent's command line: the host, its rovers, their warm servers and SuperNodes
+                      ("fedmap.cli.rover_host", "host of rovers and its forks")):
         if key in cmd:
             return kind
     return None
