@@ -279,7 +279,7 @@ def test_pipeline_meta_init_config_errors():
 # -- CLI -------------------------------------------------------------------------------
 
 @pytest.mark.slow
-def test_cli_meta_train_then_ablate(tmp_path, capsys):
+def test_cli_meta_train_then_ablate(tmp_path, capsys, monkeypatch):
     w = tmp_path / "w.safetensors"
     rc = main(["meta-train", "--net", "small", "--size", "16", "--per-category", "3", "--iterations", "2",
                "--inner-steps", "1", "--meta-batch", "1", "--prior-steps", "2", "--holdout", "1", "--threads", "1",
@@ -288,11 +288,17 @@ def test_cli_meta_train_then_ablate(tmp_path, capsys):
     assert rc == 0, out.err
     assert load_model(w).config == preset("small")
     assert read_checkpoint_info(w)["command"].startswith("fedmap meta-train")
-    # the ablation runs the paper network: a small-network file is refused in one line
-    rc = main(["ablate-init", "--size", "16", "--maps", "1", "--init-weights", str(w), "-o", str(tmp_path / "a")])
+    # the ablation runs the paper network: a small-network file is refused in one line, before
+    # the empty-map prior's fit (150 steps of the paper network by default) is started
+    import fedmap.meta.ablation as ablation
+
+    fitted: list[int] = []
+    with monkeypatch.context() as m:
+        m.setattr(ablation, "empty_prior", lambda *a, **k: fitted.append(1))
+        rc = main(["ablate-init", "--size", "16", "--maps", "1", "--init-weights", str(w), "-o", str(tmp_path / "a")])
     err = capsys.readouterr().err
     assert rc == 2 and err.startswith("error:") and "built with" in err and len(err.strip().splitlines()) == 1
-    assert not (tmp_path / "a").exists()
+    assert not (tmp_path / "a").exists() and fitted == []
 
     rc = main(["ablate-init", "--size", "16", "--maps", "2", "--max-steps", "4", "--prior-steps", "2",
                "--threads", "1", "-o", str(tmp_path / "a")])

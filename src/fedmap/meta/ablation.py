@@ -215,10 +215,11 @@ def make_inits(*, init_weights: str | Path | None, prior_steps: int, seed: int,
     """The three initialisations of Table I: random, empty-map prior, meta (default: shipped)."""
 
     net_config = net_config or preset("paper")
+    meta = load_init_weights(net_config, init_weights)  # first: a wrong file is refused before the prior's fit
     return {
         "random": get_weights(build_model(net_config, seed=seed)),
         "empty": get_weights(empty_prior(net_config, steps=prior_steps, seed=seed, precision=precision)),
-        "meta": load_init_weights(net_config, init_weights),
+        "meta": meta,
     }
 
 
