@@ -199,6 +199,23 @@ def test_a_base_station_beyond_loopback_needs_tls_and_authentication(tmp_path):
         deploy_mission("[mission]\n", members=1, out=tmp_path / "out", mode="cloud")
 
 
+@pytest.mark.parametrize("args, message", [
+    (["--deploy", "cloud"], "error: unknown --deploy 'cloud': choose one of local, base"),
+    (["--deploy", "base", "--listen", "nope"], "error: --listen must be HOST:PORT, got 'nope'"),
+    (["--deploy", "local", "--strategies", "central"], "error: none of the strategies central runs on processes"),
+])
+def test_a_wrong_deploy_argument_is_one_line_before_the_terrain_loads(tmp_path, capsys, monkeypatch, args, message):
+    import fedmap.cli.mission as cli_mission
+    from fedmap.cli import main
+
+    loaded: list[int] = []
+    monkeypatch.setattr(cli_mission, "mission_terrain", lambda *a, **k: loaded.append(1))
+    assert main(["mission", *args, "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(message) and len(err.strip().splitlines()) == 1, err
+    assert loaded == [] and not (tmp_path / "out").exists()
+
+
 @pytest.mark.xdist_group("loopback-c")
 def test_a_mission_base_refuses_an_unregistered_key_and_a_wrong_ca(tmp_path):
     """The mission's base station (``--deploy base``) with TLS and two registered rover keys:

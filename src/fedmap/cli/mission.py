@@ -62,11 +62,13 @@ def mission(
     t0 = time.perf_counter()
     cfg, source, resolved = load_mission(config, preset=preset, terrain=terrain,
                                          overrides=[*parse_sets(set_), settings or {}])
+    plan = None
     if deploy is not None:
         inprocess = [o for o, on in (("--repeats", repeats > 1), ("--record", record is not None), ("--live", live),
                                      ("--rosbag", rosbag is not None)) if on]
         if inprocess:
             raise FedmapError(f"{', '.join(inprocess)} run in process only, not with --deploy")
+        plan = _deploy_plan(cfg, deploy, listen)  # before the terrain loads: a wrong argument costs nothing
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
         truth, elevation, prior, profiles = mission_terrain(cfg, source)
@@ -106,7 +108,8 @@ def mission(
             progress.update(tasks[name], completed=step, loss=f"coverage {coverage:.0%}")
 
         if deploy is not None:
-            results = [_deployed(cfg, resolved, deploy, out=out, animation=animation, progress=progress, listen=listen,
+            assert plan is not None
+            results = [_deployed(cfg, resolved, deploy, plan, out=out, animation=animation, progress=progress,
                                  certs=certs, auth_keys=auth_keys, insecure=insecure, resume=resume)]
         else:
             with recorder if recorder is not None else nullcontext():  # stops the server, keeps the MCAP only on success
@@ -167,10 +170,9 @@ def mission(
     console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
 
 
-def _deployed(cfg, resolved: dict, mode: str, *, out: Path, animation: bool, progress, listen: str,
-              certs: Optional[Path], auth_keys: Optional[Path], insecure: bool, resume: bool):
-    """The mission on real processes (:func:`fedmap.flower.deploy.deploy_mission`), with a
-    progress bar per strategy from the base station's status."""
+def _deploy_plan(cfg, mode: str, listen: str) -> tuple[tuple[str, ...], list[str], str, str]:
+    """What ``--deploy mode`` runs, checked: the strategies that run on processes, those left
+    out, and ``--listen``'s host and port."""
     if mode not in DEPLOY_MODES:
         raise FedmapError(f"unknown --deploy {mode!r}: choose one of {', '.join(DEPLOY_MODES)}")
     names = tuple(n for n in cfg.strategies if n in DEPLOYABLE)
@@ -179,11 +181,19 @@ def _deployed(cfg, resolved: dict, mode: str, *, out: Path, animation: bool, pro
         raise FedmapError(f"none of the strategies {', '.join(cfg.strategies)} runs on processes; these do: "
                           f"{', '.join(DEPLOYABLE)}")
     check_deployable(cfg, names)  # the topology and latency, before any process starts
-    if left:
-        console.print(f"note: {', '.join(left)} stay(s) out of a mission on processes (not one end per machine)")
     host, _, port = listen.rpartition(":")
     if mode == "base" and not (host and port.isdigit()):
         raise FedmapError(f"--listen must be HOST:PORT, got {listen!r}")
+    return names, left, host, port
+
+
+def _deployed(cfg, resolved: dict, mode: str, plan: tuple[tuple[str, ...], list[str], str, str], *, out: Path,
+              animation: bool, progress, certs: Optional[Path], auth_keys: Optional[Path], insecure: bool, resume: bool):
+    """The mission on real processes (:func:`fedmap.flower.deploy.deploy_mission`) as
+    :func:`_deploy_plan` planned it, with a progress bar per strategy from the base station's status."""
+    names, left, host, port = plan
+    if left:
+        console.print(f"note: {', '.join(left)} stay(s) out of a mission on processes (not one end per machine)")
     members = cfg.rovers + cfg.helicopters
     start = progress.add_task(f"start the SuperLink, {members} rover processes and the base station" if mode == "local"
                               else "start the SuperLink and the base station; wait for the rovers", total=None, loss="")
