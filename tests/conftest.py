@@ -73,7 +73,7 @@ def pytest_collection_modifyitems(config, items):
     once and the short tests fill the gaps around them. A lane reached only after the short
     tests before it ends the run minutes later, and so does a long test handed out last: the
     reproduction's CLI run (55 s under load), last in the alphabet, ran alone at the end of
-    the suite for 25 s. The order of tests within a lane and within the rest is kept (a stable
+    the suite for 17 s. The order of tests within a lane and within the rest is kept (a stable
     sort)."""
     def order(item) -> tuple[int, str]:
         mark = item.get_closest_marker("xdist_group")
