@@ -723,6 +723,47 @@ def test_a_socket_folder_fits_a_unix_socket_however_long_tmpdir_is(tmp_path, mon
     assert not list(deep.iterdir())  # nothing left where the first was tried
 
 
+def test_a_killed_processes_temporary_folder_is_removed_by_the_next_one_and_no_other_is(tmp_path):
+    """A rover killed with SIGKILL cannot remove its temporary folders; the next process to make
+    one of that kind does. Folders of live processes, folders without an owner file and a folder
+    whose PID now belongs to another process (a different start time) are told apart."""
+    code = ("import sys, time\nfrom fedmap.flower.launch import owned_temp_dir\n"
+            "cm = owned_temp_dir('fedmap-t-', parent=sys.argv[1])\nprint(cm.__enter__(), flush=True)\ntime.sleep(120)\n")
+    p = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        killed = Path(p.stdout.readline().strip())
+        assert killed.parent == tmp_path and (killed / launch.OWNER_FILE).read_text().split()[0] == str(p.pid)
+    finally:
+        p.kill()
+        p.wait(timeout=30)
+        p.stdout.close()
+    assert killed.is_dir()  # SIGKILL: no clean-up of its own
+    sleeper = subprocess.Popen(["sleep", "120"])
+    try:
+        started = Path(f"/proc/{sleeper.pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
+        live = tmp_path / "fedmap-t-live"
+        live.mkdir()
+        (live / launch.OWNER_FILE).write_text(f"{sleeper.pid} {started}\n")
+        reused = tmp_path / "fedmap-t-reused"  # the sleeper's PID, but another start: its owner is gone
+        reused.mkdir()
+        (reused / launch.OWNER_FILE).write_text(f"{sleeper.pid} {int(started) - 1}\n")
+        unowned = tmp_path / "fedmap-t-unowned"
+        unowned.mkdir()
+        other = tmp_path / "fedmap-u-other"  # another prefix: not this kind's to remove
+        other.mkdir()
+        (other / launch.OWNER_FILE).write_text(f"{p.pid} 1\n")
+        with launch.owned_temp_dir("fedmap-t-", parent=tmp_path) as mine:
+            assert mine.is_dir() and (mine / launch.OWNER_FILE).read_text().split()[0] == str(os.getpid())
+            assert not killed.exists() and not reused.exists()
+            assert live.is_dir() and unowned.is_dir() and other.is_dir()
+            assert launch.sweep_stale_dirs(tmp_path, "fedmap-t-") == []  # its own, live, is kept
+        assert not mine.exists()
+    finally:
+        sleeper.kill()
+        sleeper.wait(timeout=30)
+    assert launch.sweep_stale_dirs(tmp_path, "fedmap-t-") == [live]  # once the sleeper is gone
+
+
 def test_rover_keys_are_registered_in_one_process_and_a_bad_one_is_named_in_one_line(tmp_path):
     """All of a mission's keys go through one Flower CLI process (fedmap.flower.register); a
     key that is not one is a one-line error naming it."""

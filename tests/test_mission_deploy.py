@@ -12,6 +12,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -22,6 +23,7 @@ pytest.importorskip("flwr")
 
 from fedmap.errors import FedmapError  # noqa: E402
 from fedmap.flower.deploy import deploy_mission  # noqa: E402
+from fedmap.flower.launch import OWNER_FILE  # noqa: E402
 from fedmap.flower.mission_task import MISSION_RUN_DEFAULTS  # noqa: E402
 from fedmap.maps.grid import UNKNOWN  # noqa: E402
 from fedmap.mission import load_mission, mission_terrain, run_mission  # noqa: E402
@@ -83,6 +85,7 @@ def test_a_mission_on_processes_loses_nothing_to_faults(tmp_path):
     (tmp_path / "mission.toml").write_text(text)
     work = tmp_path / "out.run"
     killed: list[int] = []
+    left: list[Path] = []
     hosts: list[bool] = []  # whether the rover killed was forked by the deploy's host of rovers
 
     def on_status(st: dict) -> None:
@@ -90,6 +93,7 @@ def test_a_mission_on_processes_loses_nothing_to_faults(tmp_path):
             pid = int((work / "rover2.pid").read_text())
             parent = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
             hosts.append(b"fedmap.cli.rover_host" in Path(f"/proc/{parent}/cmdline").read_bytes())
+            left.extend(_temp_dirs_of(pid))  # its temporary folders, which a SIGKILL leaves behind
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)
             shutil.rmtree(work / "rover2.state", ignore_errors=True)  # everything it held is gone
@@ -99,6 +103,7 @@ def test_a_mission_on_processes_loses_nothing_to_faults(tmp_path):
     assert killed and hosts == [True]
     restarted = int((work / "rover2.pid").read_text())
     assert restarted != killed[0]  # started again, and its PID recorded
+    assert len(left) == 2 and not [d for d in left if d.exists()]  # the restarted rover removed the killed one's
     here = _in_process(tmp_path / "mission.toml")
     _same(here, apart, ("predictive",))
     what = [f["fault"] for f in apart.faults]
@@ -113,6 +118,19 @@ def test_a_mission_on_processes_loses_nothing_to_faults(tmp_path):
     last = run.series.coverage[-1]
     held = run.frames[-1].global_map != UNKNOWN
     assert abs(held.mean() - last) < 1e-12
+
+
+def _temp_dirs_of(pid: int) -> list[Path]:
+    """The temporary folders whose owner file names process ``pid``."""
+    found = []
+    for parent in {Path(tempfile.gettempdir()), Path("/tmp")}:
+        for d in parent.glob("fedmap-*"):
+            try:
+                if (d / OWNER_FILE).read_text().split()[0] == str(pid):
+                    found.append(d)
+            except (OSError, IndexError):
+                continue
+    return found
 
 
 def _kill_everything_of(tmp_path) -> int:

@@ -99,20 +99,89 @@ def output_to(log: Path | str) -> None:  # pragma: no cover - runs in a forked c
 
 #: The longest path a Unix socket may have (Linux: 108 bytes with the terminating zero).
 UNIX_SOCKET_PATH_MAX = 107
+#: The file in a process's temporary folder naming the process (PID and start time) that owns it.
+OWNER_FILE = "owner"
+
+
+def _start_time(pid: int) -> str | None:
+    """When process ``pid`` started (clock ticks since boot, Linux's ``/proc``), "" where that
+    cannot be read (another OS), None when there is no such process or it has exited (a zombie)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return None
+    except OSError:
+        return ""
+    fields = stat.rsplit(")", 1)[1].split()  # from field 3 on: the name before it may hold spaces
+    return None if fields[0] in ("Z", "X") else fields[19]  # its state; field 22, its start time
+
+
+def _alive(pid: int, started: str) -> bool:
+    if pid <= 0:
+        return False
+    now = _start_time(pid)
+    if now is None:
+        return False
+    if now == "" or started == "":  # no /proc: a PID in use is taken as the owner
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            return True
+        return True
+    return now == started  # else the PID is another process's now
+
+
+def sweep_stale_dirs(parent: Path, prefix: str) -> list[Path]:
+    """Remove the folders ``parent/prefix*`` that :func:`owned_temp_dir` made for processes that
+    are gone (a rover or mission killed with SIGKILL cannot remove its own). A folder is removed
+    only when its owner file names a process that no longer runs; one without that file, or not
+    this user's, is left alone. Returns the folders removed."""
+    removed: list[Path] = []
+    try:
+        candidates = [d for d in parent.iterdir() if d.name.startswith(prefix)]
+    except OSError:
+        return removed
+    uid = os.getuid()
+    for d in candidates:
+        try:
+            if d.is_symlink() or not d.is_dir() or d.stat().st_uid != uid:
+                continue
+            pid_text, started = (d / OWNER_FILE).read_text().split("\n")[0].split(" ", 1)
+            pid = int(pid_text)
+        except (OSError, ValueError):
+            continue
+        if not _alive(pid, started.strip()):
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+    return removed
 
 
 @contextlib.contextmanager
-def socket_dir(prefix: str, name: str) -> Iterator[Path]:
-    """A temporary folder for a Unix socket called ``name``, removed on exit: in the usual
-    temporary folder (``TMPDIR``), or in ``/tmp`` where that path would be too long for a socket."""
-    d = Path(tempfile.mkdtemp(prefix=prefix))
-    if len(os.fsencode(d / name)) > UNIX_SOCKET_PATH_MAX:
-        d.rmdir()
-        d = Path(tempfile.mkdtemp(prefix=prefix, dir="/tmp"))
+def owned_temp_dir(prefix: str, *, parent: Path | str | None = None, socket_name: str | None = None) -> Iterator[Path]:
+    """A temporary folder for this process, removed on exit, in ``parent`` (default: the usual
+    temporary folder, ``TMPDIR``). It holds an owner file naming this process, so that a later
+    run can remove it if this process is killed before it can (:func:`sweep_stale_dirs`, which
+    runs here first). ``socket_name``: the folder is for a Unix socket of that name, and is made in
+    ``/tmp`` where the usual temporary folder's path would be too long for a socket."""
+    base = Path(parent) if parent is not None else Path(tempfile.gettempdir())
+    if socket_name is not None and len(os.fsencode(base / (prefix + "x" * 8) / socket_name)) > UNIX_SOCKET_PATH_MAX:
+        base = Path("/tmp")
+    sweep_stale_dirs(base, prefix)
+    d = Path(tempfile.mkdtemp(prefix=prefix, dir=base))
     try:
+        pid = os.getpid()
+        (d / OWNER_FILE).write_text(f"{pid} {_start_time(pid) or ''}\n")
         yield d
     finally:
         shutil.rmtree(d, ignore_errors=True)
+
+
+def socket_dir(prefix: str, name: str) -> contextlib.AbstractContextManager[Path]:
+    """A temporary folder for a Unix socket called ``name``, removed on exit: in the usual
+    temporary folder (``TMPDIR``), or in ``/tmp`` where that path would be too long for a socket."""
+    return owned_temp_dir(prefix, socket_name=name)
 
 
 #: Where Linux says which ports it draws outgoing connections' source ports from.

@@ -35,7 +35,6 @@ import socket
 import ssl
 import subprocess
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -52,6 +51,7 @@ from fedmap.flower.launch import (
     free_port,
     key_values,
     output_to,
+    owned_temp_dir,
     require_executables,
     set_death_signal,
     sigterm_as_interrupt,
@@ -324,7 +324,7 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
     require_executables(SUPERNODE_EXES)
     root_cert = Path(root_cert).resolve() if root_cert is not None else None
     auth_key = Path(auth_key).resolve() if auth_key is not None else None
-    with tempfile.TemporaryDirectory(prefix="fedmap-rover-flwr-") as tmp, \
+    with owned_temp_dir("fedmap-rover-flwr-") as tmp, \
             socket_dir("fedmap-rover-", "clientapp.sock") as socks, Processes() as procs, sigterm_as_interrupt():
         done = Path(tmp) / "done"
         if node_config.get("mission") and not node_config.get("state-dir"):  # kept only while this rover runs
