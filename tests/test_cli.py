@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import fedmap.pipeline as pipeline_mod
+from fedmap._util import OUTPUT_MARKER
 from fedmap.cli import main
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import GridMap, classes_from_rgb
@@ -97,6 +98,7 @@ def test_failed_run_keeps_previous_results(tmp_path, capsys, monkeypatch):
     out = tmp_path / "run"
     out.mkdir()
     (out / "metrics.json").write_text('{"previous": true}')
+    (out / OUTPUT_MARKER).write_text("")  # an earlier run's folder
 
     def boom(*a, **k):
         raise FedmapError("simulated failure while rendering")

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fedmap._util import OUTPUT_MARKER
 from fedmap.cli import main
 from fedmap.maps.dem import Dem
 from fedmap.maps.io import load_map
@@ -112,6 +113,7 @@ def test_bad_toml_and_earlier_results_kept(tmp_path, capsys):
     out = tmp_path / "o"
     out.mkdir()
     (out / "metrics.json").write_text("{}")
+    (out / OUTPUT_MARKER).write_text("")  # an earlier run's folder
     cfg = tmp_path / "run.toml"
     cfg.write_text("[explore]\nagnets = 3\n")
     rc, _, err = _run([cfg, "-o", out], capsys)

@@ -119,20 +119,74 @@ def atomic_write_bytes(path, data: bytes) -> None:
 
 
 
+#: The file that marks a folder as written by fedmap (:class:`AtomicDir`): a later run may
+#: replace such a folder as a whole, and no other.
+OUTPUT_MARKER = ".fedmap-output"
+
+
+def check_output_dir(target: str | os.PathLike) -> Path:
+    """Where a result folder goes, checked before any work is done; returns it resolved.
+
+    The folder is replaced as a whole at the end of the run, so it must be new, empty, or an
+    earlier output of fedmap (it holds :data:`OUTPUT_MARKER`): a folder of the user's own files
+    (``-o ~/data``), a file, or the folder this process runs in is refused in one line, and so is
+    a place that cannot be written."""
+    out = Path(target).expanduser().resolve()
+    shown = os.fspath(target)
+    if out == Path(out.anchor):
+        raise FedmapError(f"cannot write {shown}: it is the root folder")
+    if out.exists() and not out.is_dir():
+        raise FedmapError(f"cannot write {shown}: it exists and is not a folder")
+    if out.is_dir():
+        if Path.cwd().resolve().is_relative_to(out):
+            raise FedmapError(f"cannot write {shown}: it is, or holds, the current folder, which the run would replace")
+        try:
+            mine = (out / OUTPUT_MARKER).is_file() or not any(out.iterdir())
+        except OSError as exc:
+            raise FedmapError(f"cannot write {shown}: {one_line(exc)}") from exc
+        if not mine:
+            raise FedmapError(f"{shown} exists and is not a fedmap output folder (no {OUTPUT_MARKER} in it); the run "
+                              "replaces its output folder as a whole: choose a new --out, or empty or remove this one")
+    try:  # a folder made and removed where the run's own will be (a root user's access() says yes to /proc)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        os.rmdir(tempfile.mkdtemp(prefix=f".{out.name}.check-", dir=out.parent))
+    except OSError as exc:  # the reason without the probe's name
+        raise FedmapError(f"cannot write {shown}: {exc.strerror or one_line(exc)} (in {out.parent})") from exc
+    return out
+
+
+def _umask() -> int:
+    """This process's umask, read without changing it (Linux: ``/proc/self/status``; elsewhere
+    the usual 022)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0o022
+
+
 class AtomicDir:
     """Write a result folder completely or not at all.
 
-    Files go into a temporary sibling folder; :meth:`commit` swaps it into place (the old
-    folder is removed only after the new one is complete). On an exception nothing of
-    the new run is left behind and the old folder is untouched.
+    Files go into a temporary sibling folder, swapped into place when the ``with`` block ends
+    without an exception (the old folder is removed only after the new one is in place). On an exception nothing of
+    the new run is left behind and the old folder is untouched. Only a new or empty folder,
+    or one fedmap wrote (:func:`check_output_dir`), is replaced; the new folder holds
+    :data:`OUTPUT_MARKER` and keeps the old one's permissions (a new one: the umask's).
     """
 
     def __init__(self, target: str | os.PathLike) -> None:
         self.target = Path(target)
 
     def __enter__(self) -> Path:
-        self.target.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.tmp-", dir=self.target.parent))
+        self.target = check_output_dir(self.target)
+        try:
+            self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.tmp-", dir=self.target.parent))
+            (self.tmp / OUTPUT_MARKER).write_text("written by fedmap: the next run into this folder replaces it\n")
+        except OSError as exc:
+            raise FedmapError(f"cannot write {self.target}: {one_line(exc)}") from exc
         return self.tmp
 
     def __exit__(self, exc_type, exc, tb) -> None:
@@ -140,10 +194,22 @@ class AtomicDir:
             shutil.rmtree(self.tmp, ignore_errors=True)
             return
         old = None
-        if self.target.exists():
-            old = self.target.with_name(f".{self.target.name}.old-{os.getpid()}")
-            os.replace(self.target, old)
-        os.replace(self.tmp, self.target)
+        try:
+            if self.target.exists():
+                check_output_dir(self.target)  # still fedmap's (nothing else took the name meanwhile)
+                os.chmod(self.tmp, stat.S_IMODE(self.target.stat().st_mode))
+                old = self.target.with_name(f".{self.target.name}.old-{os.getpid()}")
+                os.replace(self.target, old)
+            else:
+                os.chmod(self.tmp, 0o777 & ~_umask())
+            os.replace(self.tmp, self.target)
+        except BaseException as exc:
+            if old is not None and not self.target.exists():
+                os.replace(old, self.target)  # the old folder back where it was
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            if isinstance(exc, OSError):
+                raise FedmapError(f"cannot write {self.target}: {one_line(exc)}") from exc
+            raise
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
 

@@ -10,7 +10,7 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from fedmap._util import AtomicDir, atomic_write_bytes
+from fedmap._util import AtomicDir, atomic_write_bytes, check_output_dir
 from fedmap.cli.ui import console, fit, fmt, progress_bar, stage_callbacks
 from fedmap.config import method_config
 from fedmap.errors import FedmapError
@@ -50,6 +50,7 @@ def bandwidth(
     out: Path = typer.Option(Path("fedmap-out/bandwidth"), "--out", "-o", help="Output folder (replaced atomically)."),
 ) -> None:
     """Table III with real bytes: model codecs vs raw, JPEG, WebP, PNG and zstd of the map."""
+    check_output_dir(out)
     if streams is not None:
         _cell_streams(streams, out)
         return
@@ -173,6 +174,7 @@ def reproduce(
                             "curve_epochs": curve_epochs, "random_baseline": random_baseline,
                             "precision": precision}.items() if v is not None}
     config = ReproduceConfig.quick(**kw) if quick else ReproduceConfig(**kw)
+    check_output_dir(out)
     t0 = time.perf_counter()
     with progress_bar() as progress:
         on_stage, on_step = stage_callbacks(progress)

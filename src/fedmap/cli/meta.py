@@ -14,6 +14,7 @@ import typer
 from rich.table import Table
 
 from fedmap import __version__
+from fedmap._util import check_output_dir
 from fedmap.cli.ui import console, progress_bar
 from fedmap.errors import FedmapError
 from fedmap.maps.traversability import TraversabilityThresholds
@@ -140,6 +141,7 @@ def ablate_init(
     config = AblationConfig(n_steps=steps, lr=lr, max_steps=max_steps, seed=seed, precision=precision)
     if maps < 1:
         raise FedmapError(f"need at least one test map, got {maps}")
+    check_output_dir(out)
     coll = _collection(collection, layout=layout, size=size, per_category=maps, categories=categories,
                        max_slope=max_slope, seed=seed)
     test = pick_maps(coll.maps(), maps, seed=seed)

@@ -13,11 +13,12 @@ from rich.markup import escape
 from rich.table import Table
 
 from fedmap import _schema
-from fedmap._util import cpu_cores, to_json
+from fedmap._util import check_output_dir, cpu_cores, to_json
 from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import console, fit, progress_bar, terrain_line
 from fedmap.errors import FedmapError
 from fedmap.flower.deploy import DEPLOY_MODES, deploy_logs, deploy_mission
+from fedmap.maps.rosbag import check_bag_path
 from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.bag import SyncMaps
 from fedmap.mission.recording import Recorder
@@ -62,6 +63,7 @@ def mission(
     t0 = time.perf_counter()
     cfg, source, resolved = load_mission(config, preset=preset, terrain=terrain,
                                          overrides=[*parse_sets(set_), settings or {}])
+    _check_outputs(out, record=record, rosbag=rosbag)
     plan = None
     if deploy is not None:
         inprocess = [o for o, on in (("--repeats", repeats > 1), ("--record", record is not None), ("--live", live),
@@ -185,6 +187,19 @@ def _deploy_plan(cfg, mode: str, listen: str) -> tuple[tuple[str, ...], list[str
     if mode == "base" and not (host and port.isdigit()):
         raise FedmapError(f"--listen must be HOST:PORT, got {listen!r}")
     return names, left, host, port
+
+
+def _check_outputs(out: Path, *, record: Path | None, rosbag: Path | None) -> None:
+    """Before any work: the output folder can be replaced (:func:`check_output_dir`), the bag
+    written, and neither the recording nor the bag lies inside the output folder, which the run
+    replaces as a whole at its end (they would go with the old folder)."""
+    folder = check_output_dir(out)
+    for option, path in (("--record", record), ("--rosbag", rosbag)):
+        if path is not None and Path(path).expanduser().resolve().is_relative_to(folder):
+            raise FedmapError(f"{option} {path} is inside the output folder {out}, which the run replaces as a whole; "
+                              "write it elsewhere")
+    if rosbag is not None:
+        check_bag_path(rosbag)
 
 
 def _deployed(cfg, resolved: dict, mode: str, plan: tuple[tuple[str, ...], list[str], str, str], *, out: Path,

@@ -18,7 +18,7 @@ import numpy as np
 import typer
 
 from fedmap import _schema
-from fedmap._util import atomic_write_bytes, clean_json, to_json
+from fedmap._util import atomic_write_bytes, check_output_dir, clean_json, to_json
 from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import F1_CAPTION, comparison_table, console, progress_bar, scores_table, stage_callbacks, terrain_line
 from fedmap.config import dumps_toml, load_run, parse_set
@@ -42,6 +42,7 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
     outputs are written side by side (:func:`fedmap.outputs.write_comparison`).
     """
     overrides = [parse_set(s) for s in set_ or []] + [settings]
+    check_output_dir(out)  # before the work: a folder that is not fedmap's, or cannot be written, is refused
     if methods and len(methods) > 1:
         return _execute_many(methods, overrides, out=out, export=export)
     export = list(check_formats(export))  # a bad format stops the run before it starts

@@ -299,6 +299,20 @@ def _check_topic(topic: str) -> str:
     return topic
 
 
+def check_bag_path(path) -> Path:
+    """Where a bag goes, checked before any work: a new folder, or an existing ROS 2 bag (which
+    is replaced), in a folder that can be written; otherwise a one-line error."""
+    path = Path(path)
+    if path.exists() and not (path.is_dir() and (path / "metadata.yaml").is_file()):
+        raise FedmapError(f"{path} exists and is not a ROS 2 bag; a bag is written to a new folder")
+    try:  # a folder made and removed where the bag's own will be
+        path.parent.mkdir(parents=True, exist_ok=True)
+        os.rmdir(tempfile.mkdtemp(prefix=f".{path.name}.check-", dir=path.parent))
+    except OSError as exc:  # the reason without the probe's name
+        raise FedmapError(f"cannot write ROS 2 bag {path}: {exc.strerror or one_line(exc)} (in {path.parent})") from exc
+    return path
+
+
 def write_bag(messages: Iterable[tuple[str, int, GridMap]], path, *, frame_id: str = "map",
               storage: str = "sqlite3") -> Path:
     """Write ``(topic, time in ns, map)`` messages as OccupancyGrids into a new ROS 2 bag folder.
@@ -310,13 +324,10 @@ def write_bag(messages: Iterable[tuple[str, int, GridMap]], path, *, frame_id: s
     from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
     from rosbags.typesys import Stores, get_typestore
 
-    path = Path(path)
+    path = check_bag_path(path)
     if storage not in STORAGES:
         raise FedmapError(f"unknown bag storage {storage!r}; choose one of {', '.join(STORAGES)}")
-    if path.exists() and not (path.is_dir() and (path / "metadata.yaml").is_file()):
-        raise FedmapError(f"{path} exists and is not a ROS 2 bag; a bag is written to a new folder")
     typestore = get_typestore(Stores.ROS2_HUMBLE)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
     try:
         plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP

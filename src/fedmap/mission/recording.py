@@ -210,7 +210,10 @@ class Recorder:
             self._tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
             ctx = foxglove.Context()
             out = _Out(ctx, self._channels(ctx), sequential=False)
-            out.sink = foxglove.open_mcap(self._tmp, allow_overwrite=True, context=ctx)
+            try:
+                out.sink = foxglove.open_mcap(self._tmp, allow_overwrite=True, context=ctx)
+            except Exception as exc:  # the SDK raises its own error types (an unwritable folder)
+                raise FedmapError(f"cannot record to {self.path}: {' '.join(str(exc).split())}") from exc
             self.outs.append(out)
         if live:
             ctx = foxglove.Context()
