@@ -37,7 +37,7 @@ def bandwidth(
     size: Optional[int] = typer.Option(None, help="Map side for the rate-distortion comparison (64..4096) [128]; "
                                        "--layer elevation: every terrain is resampled to it (--dem's: 3 or more)."),
     pairs: int = typer.Option(75, help="Random start/goal pairs for the path F1."),
-    seed: int = typer.Option(0),
+    seed: int = typer.Option(0, min=0),
     federated: bool = typer.Option(True, help="Also run fedmap's federated configurations on the same map."),
     streams: Optional[str] = typer.Option(None, help="Instead: bits per new cell on a mission's uplink stream, "
                                           "for every cell coder ('default' or a mission TOML file)."),
@@ -165,7 +165,7 @@ def reproduce(
     eta: float = typer.Option(1e-2, help="Server learning rate for FedAdam/FedYogi."),
     curve_epochs: Optional[int] = typer.Option(None, "--curve-epochs", help="Local epochs per round in the rounds curve [10]."),
     random_baseline: bool = typer.Option(False, "--random-baseline", help="Table II: also the paper's FedAvg from a random start."),
-    seed: int = typer.Option(0),
+    seed: int = typer.Option(0, min=0),
     precision: str = typer.Option("auto", help="Training arithmetic: auto (bf16 where the CPU has native bf16, else fp32), bf16 or fp32."),
     out: Path = typer.Option(Path("fedmap-out/reproduce"), "--out", "-o", help="Report folder (replaced atomically)."),
 ) -> None:

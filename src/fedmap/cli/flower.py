@@ -98,7 +98,7 @@ def rover(
     size: int = typer.Option(DEFAULT_BUILTIN_SIZE, help="Generator: map side in cells."),
     agents: int = typer.Option(ExploreConfig().agents, help="Generator: rovers in the team."),
     explore: str = typer.Option(ExploreConfig().mode, help="Generator: exploration pattern."),
-    seed: int = typer.Option(0, help="Generator: seed (the same as the base station's)."),
+    seed: int = typer.Option(0, min=0, help="Generator: seed (the same as the base station's)."),
     root_cert: Optional[Path] = typer.Option(None, "--root-cert", help="TLS: the base station's ca.crt (else insecure)."),
     auth_key: Optional[Path] = typer.Option(None, "--auth-key", help="SuperNode authentication: this rover's private key."),
     port: int = typer.Option(0, help="Local port of the SuperNode's own API (0: any free port)."),
@@ -142,9 +142,11 @@ def certs(
                                    help="Name or IP the rovers use to reach the base station (repeat)."),
     rovers: int = typer.Option(4, help="SuperNode authentication key pairs to make (rover0..)."),
     days: int = typer.Option(365, help="Certificate lifetime in days."),
+    force: bool = typer.Option(False, "--force", help="Replace the CA and keys already in the folder (every base "
+                               "station and rover set up with them must get the new ones)."),
 ) -> None:
     """TLS certificates for the SuperLink and SuperNode authentication keys for the rovers."""
-    files = make_certs(out_dir, hosts=host, rovers=rovers, days=days)
+    files = make_certs(out_dir, hosts=host, rovers=rovers, days=days, overwrite=force)
     console.print(f"{out_dir}: " + ", ".join(f.name for f in files))
     console.print("base station: fedmap base-station --certs DIR --auth-keys DIR; "
                   "rover k: fedmap rover --root-cert DIR/ca.crt --auth-key DIR/roverK ...")

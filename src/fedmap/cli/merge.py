@@ -7,6 +7,7 @@ confidence, lists what was refused and writes the merged map.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Optional
 
@@ -35,6 +36,20 @@ def _table(result: MergeResult, names: list[str]) -> Table:
     return fit(t)
 
 
+def _load(path: Path, pixel_size: float | None):
+    """A map with its stored cell size; ``--pixel-size`` only for a map that stores none (a
+    stored size it contradicts is a one-line error, not silently replaced)."""
+    grid = load_map(path)
+    if pixel_size is None:
+        return grid
+    if grid.meta.get("pixel_size_from", "default") == "default":
+        return load_map(path, pixel_size=pixel_size)
+    if not math.isclose(grid.pixel_size, pixel_size, rel_tol=1e-9):
+        raise FedmapError(f"{path} stores {grid.pixel_size:g} m cells but --pixel-size says {pixel_size:g}; "
+                          "--pixel-size is for maps that store no cell size (.npy)")
+    return grid
+
+
 def merge(
     maps: list[Path] = typer.Argument(..., metavar="MAP...", help="Two or more class maps (.png, .npy, .tif, ROS .yaml "
                                       "or a ROS 2 bag) of one cell size; the first one's frame is the merged map's."),
@@ -61,7 +76,7 @@ def merge(
     for m in maps:
         if m.exists() and out.exists() and out.resolve() == m.resolve():
             raise FedmapError(f"the merged map would overwrite its input {m}; choose another -o")
-    grids = [load_map(m, pixel_size=pixel_size) for m in maps]
+    grids = [_load(m, pixel_size) for m in maps]
     result = merge_maps(grids, gate=gate, min_overlap=min_overlap, min_margin=min_margin)
     names = [str(m) for m in maps]
     console.print(_table(result, names))

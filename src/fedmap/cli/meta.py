@@ -77,7 +77,7 @@ def meta_train(
     prior_steps: int = typer.Option(150, "--prior-steps", help="Adam steps of the empty-map prior theta_0."),
     holdout: int = typer.Option(2, help="Maps per category held out for validation."),
     val_every: int = typer.Option(25, "--val-every", help="Validation PSNR every this many iterations."),
-    seed: int = typer.Option(0),
+    seed: int = typer.Option(0, min=0),
     precision: str = typer.Option("auto", help="Training arithmetic: auto (bf16 where the CPU has native bf16, else fp32), bf16 or fp32."),
     threads: int = typer.Option(2, help="torch CPU threads (with bf16, 2 threads are 1.6x faster than 1 on an idle 2-core CPU; use 1 on a busy one)."),
     out: Path = typer.Option(Path("fedmap-out/meta/meta_init.safetensors"), "--out", "-o",
@@ -131,7 +131,7 @@ def ablate_init(
     max_steps: int = typer.Option(150, "--max-steps", help="Cap for the steps-to-reach count."),
     init_weights: Optional[Path] = typer.Option(None, "--init-weights", help="Meta weights (default: the shipped ones)."),
     prior_steps: int = typer.Option(150, "--prior-steps", help="Adam steps of the empty-map prior."),
-    seed: int = typer.Option(1, help="Seed for the test maps (builtin), the random init and the prior."),
+    seed: int = typer.Option(1, min=0, help="Seed for the test maps (builtin), the random init and the prior."),
     precision: str = typer.Option("auto", help="Training arithmetic: auto (bf16 where the CPU has native bf16, else fp32), bf16 or fp32."),
     threads: int = typer.Option(2, help="torch CPU threads."),
     out: Path = typer.Option(Path("fedmap-out/ablate-init"), "--out", "-o", help="Output folder (replaced atomically)."),
@@ -193,7 +193,7 @@ def meta_coder(
     max_slope: Optional[float] = _MAX_SLOPE,
     size: int = typer.Option(128, help="Map side in cells."),
     steps: int = typer.Option(150, help="Steps of the predictive mission run on every map."),
-    seed: int = typer.Option(0),
+    seed: int = typer.Option(0, min=0),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Where to write the prior (default: the one "
                                        "the installed fedmap ships and reads)."),
 ) -> None:
@@ -224,7 +224,7 @@ def meta_predictor(
     batch: int = typer.Option(8, help="Maps per Adam step."),
     crop: int = typer.Option(96, help="Side of the random crop of every map, cells."),
     lr: float = typer.Option(2e-3, help="Adam learning rate (cosine-decayed to 5 %)."),
-    seed: int = typer.Option(0),
+    seed: int = typer.Option(0, min=0),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Where to write the weights (default: the file "
                                        "the installed fedmap ships and reads)."),
 ) -> None:

@@ -54,7 +54,7 @@ def federate_predictor(
     held_out_seeds: int = typer.Option(2, "--held-out-seeds", help="Missions (seeds 0..N-1) scored on the held-out "
                                        "site."),
     init: Optional[Path] = typer.Option(None, "--init", help="Weights to start from (default: the shipped predictor)."),
-    seed: int = typer.Option(0),
+    seed: int = typer.Option(0, min=0),
     deploy: Optional[str] = typer.Option(None, "--deploy", help="local: the federated rounds on real processes with "
                                          "Flower (a SuperLink and one SuperNode per site on this machine, each "
                                          "holding only its own samples); default: in process."),

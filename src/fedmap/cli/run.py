@@ -158,7 +158,7 @@ def terrain(
     kind: str = typer.Argument(..., help="mars, moon or ice."),
     out: Path = typer.Argument(..., help="Output map (.png, .npy, .tif GeoTIFF or ROS .yaml)."),
     size: int = typer.Option(256, help="Map side in cells (64..4096)."),
-    seed: int = typer.Option(0),
+    seed: int = typer.Option(0, min=0),
     dem_out: Optional[Path] = typer.Option(None, "--dem", help="Also save the DEM as .npy."),
 ) -> None:
     """Generate a built-in terrain's traversability map."""
@@ -178,7 +178,7 @@ def evaluate(
     learned: Path = typer.Argument(..., help="Learned map (.png, .npy, .tif or ROS .yaml)."),
     truth: Path = typer.Argument(..., help="Ground-truth map (.png, .npy, .tif or ROS .yaml)."),
     pairs: int = typer.Option(75, help="Random start/goal pairs."),
-    seed: int = typer.Option(0),
+    seed: int = typer.Option(0, min=0),
     unknown_passable: bool = typer.Option(False, help="Let the planner cross UNKNOWN cells."),
 ) -> None:
     """PSNR, SSIM and A* path F1 of a map against ground truth (strict, tolerant and paper-literal)."""

@@ -127,7 +127,7 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
         if host != "127.0.0.1" or certs is not None or auth_keys is not None:
             raise FedmapError("--deploy local makes its own certificates on 127.0.0.1; --host, --certs and --auth-keys "
                               "are for --deploy base")
-        make_certs(work / "certs", hosts=["127.0.0.1", "localhost"], rovers=members)
+        make_certs(work / "certs", hosts=["127.0.0.1", "localhost"], rovers=members, overwrite=True)
         certs = auth_keys = work / "certs"
     check_exposure(host, tls=certs is not None, auth=auth_keys is not None, insecure=insecure)
     tls = Tls.from_dir(certs) if certs is not None else None

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from fedmap._util import atomic_write_bytes
+from fedmap._util import atomic_write_bytes, one_line
 from fedmap.errors import FedmapError
 from fedmap.flower import require_flwr
 from fedmap.flower.settings import RunSettings
@@ -465,13 +465,34 @@ def wait_for_result(out: Path, *, since: float, timeout: float, alive: Callable[
     raise FedmapError(f"the run did not finish in {timeout:g} s (see the SuperLink log)")
 
 
-def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365) -> list[Path]:
+#: The longest certificate lifetime ``make_certs`` accepts, in days (100 years).
+MAX_CERT_DAYS = 36_500
+
+
+def _check_host(h: str) -> str:
+    """A host name (RFC 1123 labels) or an IP address, else a one-line error."""
+    try:
+        ipaddress.ip_address(h)
+        return h
+    except ValueError:
+        pass
+    labels = h.rstrip(".").split(".")
+    if not h or len(h) > 253 or not all(
+            0 < len(lab) <= 63 and lab[0] != "-" and lab[-1] != "-" and all(c.isascii() and (c.isalnum() or c == "-")
+                                                                             for c in lab) for lab in labels):
+        raise FedmapError(f"--host {h!r} is not a host name or an IP address")
+    return h
+
+
+def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365, overwrite: bool = False) -> list[Path]:
     """A CA, a server certificate for ``hosts`` and one SuperNode auth key pair per rover.
 
     Files: ``ca.crt``, ``ca.key``, ``server.pem``, ``server.key`` (TLS; the SuperLink
     uses the last three plus ``ca.crt``, rovers need only ``ca.crt``), and
     ``rover{k}`` / ``rover{k}.pub`` (ECDSA P-384 in OpenSSH format, Flower's SuperNode
     authentication: the rover keeps the private key, the base registers the ``.pub``).
+    A folder that already holds a CA is refused unless ``overwrite``: a new CA locks out every
+    base station and rover set up with the old one.
     """
     import datetime as dt
     import ipaddress
@@ -483,6 +504,22 @@ def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365)
 
     if rovers < 0:
         raise FedmapError(f"rovers must be >= 0, got {rovers}")
+    if not 1 <= days <= MAX_CERT_DAYS:
+        raise FedmapError(f"days must be in [1, {MAX_CERT_DAYS}], got {days}")
+    if not hosts:
+        raise FedmapError("give at least one --host")
+    hosts = [_check_host(h) for h in hosts]
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise FedmapError(f"cannot write certificates to {out_dir}: it exists and is not a folder")
+    held = [n for n in ("ca.crt", "ca.key") if (out_dir / n).exists()]
+    if held and not overwrite:
+        raise FedmapError(f"{out_dir} already holds a CA ({', '.join(held)}); a new one would lock out every base station "
+                          "and rover set up with it: choose another folder, or pass --force to replace it")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FedmapError(f"cannot write certificates to {out_dir}: {exc.strerror or one_line(exc)}") from exc
     now = dt.datetime.now(dt.UTC)
     pem = serialization.Encoding.PEM
 
@@ -518,7 +555,6 @@ def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365)
         files[f"rover{k}"] = rk.private_bytes(pem, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption())
         files[f"rover{k}.pub"] = rk.public_key().public_bytes(serialization.Encoding.OpenSSH,
                                                               serialization.PublicFormat.OpenSSH) + b"\n"
-    out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for fname, data in files.items():
         atomic_write_bytes(out_dir / fname, data)

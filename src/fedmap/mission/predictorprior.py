@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fedmap.errors import FedmapError
 from fedmap.meta.collections import MapCollection, earth_like
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.sim import run_mission
@@ -45,6 +46,9 @@ def exploration_samples(collection: MapCollection | None = None, *, steps: int =
     steps (from step ``every``) of a ``raw`` mission on every map of ``collection``
     (default: :func:`~fedmap.meta.collections.earth_like` at 128², 6 maps per category).
     ``on_map(done, total)`` follows the progress."""
+    if not 1 <= every <= steps:
+        raise FedmapError(f"every must be in [1, steps] = [1, {steps}] (a rover's map is kept every that many steps), "
+                          f"got {every}")
     coll = collection if collection is not None else earth_like(size=128, per_category=6, seed=seed)
     maps = coll.maps()
     beliefs: list[np.ndarray] = []

@@ -39,6 +39,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
+import math
 import os
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
@@ -173,8 +174,8 @@ class PredictorTraining:
         for name in ("steps", "batch", "crop"):
             if getattr(self, name) < 1:
                 raise FedmapError(f"predictor training {name} must be >= 1, got {getattr(self, name)}")
-        if not self.lr > 0:
-            raise FedmapError(f"predictor training lr must be > 0, got {self.lr}")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise FedmapError(f"predictor training lr must be finite and > 0, got {self.lr}")
 
 
 def _dihedral(a: np.ndarray, k: int) -> np.ndarray:
@@ -252,8 +253,14 @@ def save_predictor(model: MapPredictor, path: str | os.PathLike, *, extra: dict 
     metadata key, sorted: the same model gives the same bytes)."""
     from safetensors.torch import save
 
+    state = model.state_dict()
+    bad = sum(int((~torch.isfinite(v)).sum()) for v in state.values() if v.is_floating_point())
+    if bad:  # a diverged training: never written over a good file
+        total = sum(v.numel() for v in state.values() if v.is_floating_point())
+        raise FedmapError(f"not writing {path}: {bad:,} of {total:,} predictor weights are NaN or infinite "
+                          "(the training diverged: try a smaller learning rate)")
     meta = {"fedmap": json.dumps({"predictor": asdict(model.config), "extra": extra or {}}, sort_keys=True)}
-    atomic_write_bytes(path, save({k: v.contiguous() for k, v in model.state_dict().items()}, metadata=meta))
+    atomic_write_bytes(path, save({k: v.contiguous() for k, v in state.items()}, metadata=meta))
     return Path(path)
 
 

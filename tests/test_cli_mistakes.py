@@ -1,0 +1,90 @@
+"""User mistakes found by a review of the commands' bad-input paths: each is one line with exit
+status 2, before any expensive work, and nothing that was there is lost."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from fedmap.cli import main
+from fedmap.errors import FedmapError
+from fedmap.maps.grid import GridMap
+from fedmap.maps.io import load_map, save_map
+from fedmap.maps.sources import TerrainSource, load_truth
+from fedmap.nets.predictor import MapPredictor, PredictorConfig, PredictorTraining, load_predictor, save_predictor
+
+
+def _one_line_error(capsys, *args) -> str:
+    rc = main([*map(str, args)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("error: ") and len(err.strip().splitlines()) == 1, (args, rc, err)
+    return err
+
+
+@pytest.mark.parametrize("command", [["evaluate", "a.png", "b.png"], ["ablate-init"], ["meta-coder"],
+                                     ["meta-predictor"], ["federate-predictor", "a.png"], ["bandwidth"],
+                                     ["reproduce"]])
+def test_a_negative_seed_is_refused_by_every_command(command, capsys):
+    err = _one_line_error(capsys, *command, "--seed", "-1")
+    assert "--seed" in err and "-1" in err
+
+
+def test_a_diverged_predictor_is_never_written_and_a_bad_schedule_is_refused_first(tmp_path, capsys):
+    model = MapPredictor(PredictorConfig(stem=4, width=8, dilations=(1, 2)))
+    good = save_predictor(model, tmp_path / "p.safetensors").read_bytes()
+    with torch.no_grad():
+        next(model.parameters()).view(-1)[0] = float("nan")
+    with pytest.raises(FedmapError, match=r"1 of [\d,]+ predictor weights are NaN or infinite") as e:
+        save_predictor(model, tmp_path / "p.safetensors")
+    assert "\n" not in str(e.value)
+    assert (tmp_path / "p.safetensors").read_bytes() == good  # the earlier file is whole
+    assert load_predictor(tmp_path / "p.safetensors") is not None
+    for lr in (float("inf"), float("nan"), 0.0):
+        with pytest.raises(FedmapError, match="lr must be finite and > 0"):
+            PredictorTraining(lr=lr)
+    for every, steps in (("0", "5"), ("50", "2")):
+        err = _one_line_error(capsys, "meta-predictor", "--every", every, "--steps", steps, "--per-category", "1",
+                              "-o", tmp_path / "p.safetensors")
+        assert "every must be in [1, steps]" in err
+    assert (tmp_path / "p.safetensors").read_bytes() == good
+
+
+def test_certs_keep_an_existing_ca_unless_forced_and_refuse_bad_arguments(tmp_path, capsys):
+    folder = tmp_path / "c"
+    assert main(["certs", str(folder), "--rovers", "1"]) == 0
+    capsys.readouterr()
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    err = _one_line_error(capsys, "certs", folder, "--rovers", "1")
+    assert "already holds a CA" in err and "--force" in err
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    assert main(["certs", str(folder), "--rovers", "1", "--force"]) == 0
+    capsys.readouterr()
+    assert (folder / "ca.crt").read_bytes() != before["ca.crt"]
+    (tmp_path / "afile").write_text("x")
+    for args, expect in ((["--days", "-5"], "days must be in [1, 36500]"), (["--days", "99999999"], "days must be"),
+                         (["--host", ""], "is not a host name"), (["--host", "bad host!"], "is not a host name")):
+        assert expect in _one_line_error(capsys, "certs", tmp_path / "new", *args)
+    assert "is not a folder" in _one_line_error(capsys, "certs", tmp_path / "afile")
+    assert "cannot write certificates to /proc/c" in _one_line_error(capsys, "certs", "/proc/c")
+    assert not (tmp_path / "new").exists()
+
+
+def test_merge_takes_pixel_size_only_for_maps_that_store_none(tmp_path, capsys):
+    classes = load_truth(TerrainSource(size=128), seed=3).classes[:100, :100]
+    save_map(GridMap(classes, 1.0, "a"), tmp_path / "a.tif")
+    np.save(tmp_path / "b.npy", classes)
+    err = _one_line_error(capsys, "merge", tmp_path / "a.tif", tmp_path / "b.npy", "--pixel-size", "3",
+                          "-o", tmp_path / "m.tif")
+    assert "stores 1 m cells but --pixel-size says 3" in err and not (tmp_path / "m.tif").exists()
+    assert main(["merge", str(tmp_path / "a.tif"), str(tmp_path / "b.npy"), "--pixel-size", "1",
+                 "-o", str(tmp_path / "m.tif")]) == 0
+    assert load_map(tmp_path / "m.tif").pixel_size == 1.0
+
+
+def test_the_installed_command_gives_these_errors_without_a_traceback(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "fedmap", "certs", "/proc/c"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.startswith("error: cannot write certificates") and "Traceback" not in r.stderr
