@@ -49,7 +49,7 @@ def test_a_diverged_predictor_is_never_written_and_a_bad_schedule_is_refused_fir
     for every, steps in (("0", "5"), ("50", "2")):
         err = _one_line_error(capsys, "meta-predictor", "--every", every, "--steps", steps, "--per-category", "1",
                               "-o", tmp_path / "p.safetensors")
-        assert "every must be in [1, steps]" in err
+        assert "--every must be in [1, --steps]" in err
     assert (tmp_path / "p.safetensors").read_bytes() == good
 
 
@@ -88,3 +88,36 @@ def test_merge_takes_pixel_size_only_for_maps_that_store_none(tmp_path, capsys):
 def test_the_installed_command_gives_these_errors_without_a_traceback(tmp_path):
     r = subprocess.run([sys.executable, "-m", "fedmap", "certs", "/proc/c"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and r.stderr.startswith("error: cannot write certificates") and "Traceback" not in r.stderr
+
+
+def test_more_mistakes_are_one_line_before_the_work(tmp_path, capsys, monkeypatch):
+    import fedmap.cli.meta as cli_meta
+    import fedmap.cli.mission as cli_mission
+
+    calls = []
+    monkeypatch.setattr(cli_meta, "learn_coder_prior", lambda *a, **k: calls.append("missions"))
+    monkeypatch.setattr(cli_mission, "mission_terrain", lambda *a, **k: calls.append("terrain"))
+    assert "cannot write /proc/mc.bin" in _one_line_error(capsys, "meta-coder", "-o", "/proc/mc.bin")
+    assert "at least 16x16" in _one_line_error(capsys, "ablate-init", "--size", "10")
+    assert "unknown collection layout 'kiti'" in _one_line_error(capsys, "ablate-init", "--layout", "kiti")
+    assert "is for a collection folder" in _one_line_error(capsys, "meta-coder", "--layout", "dem")
+    for flag in (["--resume"], ["--listen", "0.0.0.0:9092"], ["--insecure"]):
+        err = _one_line_error(capsys, "mission", *flag, "-o", tmp_path / "m")
+        assert flag[0] in err and "add --deploy" in err
+    assert "--pairs" in _one_line_error(capsys, "evaluate", "a.png", "b.png", "--pairs", "99999999999")
+    err = _one_line_error(capsys, "mision")
+    assert err.count("Did you mean") == 1 and "'mission'" in err
+    assert not calls
+
+
+def test_export_into_a_file_or_an_unwritable_place_is_one_line(tmp_path, capsys):
+    out = tmp_path / "m"
+    assert main(["mission", "--size", "64", "--steps", "8", "--sync-every", "4", "--rovers", "2",
+                 "--strategies", "raw", "--no-animation", "-o", str(out)]) == 0
+    capsys.readouterr()
+    (tmp_path / "afile").write_text("keep")
+    err = _one_line_error(capsys, "export", out, "-f", "npy", "-o", tmp_path / "afile")
+    assert "it exists and is not a folder" in err and (tmp_path / "afile").read_text() == "keep"
+    assert "cannot write to /proc/e" in _one_line_error(capsys, "export", out, "-f", "npy", "-o", "/proc/e")
+    assert main(["export", str(out), "-f", "npy", "-o", str(tmp_path / "e")]) == 0
+    assert (tmp_path / "e" / "raw_global.npy").is_file()

@@ -119,6 +119,34 @@ def atomic_write_bytes(path, data: bytes) -> None:
 
 
 
+def make_dir(path: str | os.PathLike) -> Path:
+    """``mkdir -p`` with a one-line error naming the folder (a file in the way, no permission)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise FedmapError(f"cannot write to {path}: it exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FedmapError(f"cannot write to {path}: {exc.strerror or one_line(exc)}") from exc
+    return path
+
+
+def check_output_file(path: str | os.PathLike) -> Path:
+    """Where a result file goes, checked before any work is done: not a folder, and its folder
+    can be written (a file made and removed there); otherwise a one-line error."""
+    path = Path(path)
+    if path.is_dir():
+        raise FedmapError(f"cannot write {path}: it is a folder")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=f".{path.name}.check-", dir=path.parent)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:  # the reason without the probe's name
+        raise FedmapError(f"cannot write {path}: {exc.strerror or one_line(exc)} (in {path.parent})") from exc
+    return path
+
+
 #: The file that marks a folder as written by fedmap (:class:`AtomicDir`): a later run may
 #: replace such a folder as a whole, and no other.
 OUTPUT_MARKER = ".fedmap-output"

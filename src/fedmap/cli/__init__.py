@@ -17,6 +17,7 @@ User mistakes (bad files, bad options) print one line ``error: ...`` and exit 2.
 
 from __future__ import annotations
 
+import re
 import sys
 
 import click
@@ -82,7 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     except click.UsageError as e:
         if isinstance(e, getattr(click.exceptions, "NoArgsIsHelpError", ())):
             return 0  # help was printed
-        print(f"error: {e.format_message()}", file=sys.stderr)
+        message = re.sub(r"( Did you mean [^?]*\?)(?:\1)+", r"\1", e.format_message())  # typer and click both add it
+        print(f"error: {message}", file=sys.stderr)
         return 2
     except click.exceptions.Abort:
         print("error: aborted", file=sys.stderr)

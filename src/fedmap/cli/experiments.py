@@ -36,7 +36,7 @@ def bandwidth(
     terrain: str = typer.Option("mars", help="Built-in terrain: mars, moon or ice."),
     size: Optional[int] = typer.Option(None, help="Map side for the rate-distortion comparison (64..4096) [128]; "
                                        "--layer elevation: every terrain is resampled to it (--dem's: 3 or more)."),
-    pairs: int = typer.Option(75, help="Random start/goal pairs for the path F1."),
+    pairs: int = typer.Option(75, min=1, max=100_000, help="Random start/goal pairs for the path F1."),
     seed: int = typer.Option(0, min=0),
     federated: bool = typer.Option(True, help="Also run fedmap's federated configurations on the same map."),
     streams: Optional[str] = typer.Option(None, help="Instead: bits per new cell on a mission's uplink stream, "

@@ -14,23 +14,27 @@ import typer
 from rich.table import Table
 
 from fedmap import __version__
-from fedmap._util import check_output_dir
+from fedmap._util import check_output_dir, check_output_file
 from fedmap.cli.ui import console, progress_bar
 from fedmap.errors import FedmapError
 from fedmap.maps.traversability import TraversabilityThresholds
 from fedmap.meta.ablation import AblationConfig, make_inits, pick_maps, run_ablation, write_ablation
-from fedmap.meta.collections import BUILTIN_CATEGORIES, MapCollection, earth_like, load_collection
+from fedmap.meta.collections import BUILTIN_CATEGORIES, LAYOUTS, MapCollection, earth_like, load_collection
 from fedmap.meta.reptile import MetaConfig
 from fedmap.meta.reptile import meta_train as run_meta_train
-from fedmap.mission.coderprior import learn_coder_prior, save_coder_prior
+from fedmap.mission.coderprior import learn_coder_prior, prior_path, save_coder_prior
 from fedmap.mission.predictorprior import exploration_samples, save_shipped_predictor
 from fedmap.nets.model import NetConfig, preset
-from fedmap.nets.predictor import PredictorTraining, count_parameters, train_predictor
+from fedmap.nets.predictor import SHIPPED_PREDICTOR, PredictorTraining, count_parameters, train_predictor
 
 
 def _collection(source: str, *, layout: str, size: int, per_category: int, categories: Optional[str],
                 max_slope: Optional[float], seed: int) -> MapCollection:
     names = tuple(c.strip() for c in categories.split(",") if c.strip()) if categories else None
+    if layout not in LAYOUTS:
+        raise FedmapError(f"unknown collection layout {layout!r}; choose one of {', '.join(LAYOUTS)}")
+    if source == "builtin" and layout != "maps":
+        raise FedmapError(f"--layout {layout} is for a collection folder; the built-in collection has no layout")
     if source == "builtin":
         return earth_like(size=size, per_category=per_category, seed=seed, categories=names or BUILTIN_CATEGORIES)
     th = TraversabilityThresholds(max_slope_deg=max_slope) if max_slope is not None else None
@@ -198,6 +202,7 @@ def meta_coder(
                                        "the installed fedmap ships and reads)."),
 ) -> None:
     """Learn the predictive coder's initial state: a predictive mission on every map of a collection."""
+    check_output_file(out if out is not None else prior_path())  # before the missions
     coll = _collection(collection, layout=layout, size=size, per_category=per_category, categories=categories,
                        max_slope=max_slope, seed=seed)
     t0 = time.perf_counter()
@@ -230,6 +235,9 @@ def meta_predictor(
 ) -> None:
     """Learn the map predictor: raw missions on a collection, then the network fitted to guess what the rovers' maps miss (one thread, deterministic: the same seed gives the same file)."""
     training = PredictorTraining(steps=train_steps, batch=batch, crop=crop, lr=lr, seed=seed)
+    if not 1 <= every <= steps:
+        raise FedmapError(f"--every must be in [1, --steps] = [1, {steps}], got {every}")
+    check_output_file(out if out is not None else SHIPPED_PREDICTOR)  # before the missions
     coll = _collection(collection, layout=layout, size=size, per_category=per_category, categories=categories,
                        max_slope=max_slope, seed=seed)
     t0 = time.perf_counter()

@@ -36,6 +36,10 @@ _SETTINGS = [*(s for s in _schema.walk(PipelineConfig) if s.section in ("", "ter
              *(s for name, cls in MISSION_SECTIONS.items() for s in _schema.settings(cls, name))]
 
 
+#: Where ``--deploy base`` listens unless ``--listen`` says otherwise.
+DEFAULT_LISTEN = "127.0.0.1:9092"
+
+
 @with_settings(parameters(_SETTINGS, skip=SHORTCUT_FLAGS), terrain=True)
 def mission(
     config: Optional[Path] = typer.Argument(None, help=escape("Mission TOML ([terrain], [thresholds], [mission], [link], [strategies.*]); default: built-in mars 128².")),
@@ -50,7 +54,7 @@ def mission(
     rosbag: Optional[Path] = typer.Option(None, "--rosbag", help="Also write every strategy's global map and every rover's belief at step 0, every sync and the last step as a ROS 2 bag folder of nav_msgs/OccupancyGrid (1 s a step; with --repeats, repeat 1's)."),
     port: int = typer.Option(8765, "--port", min=0, max=65535, help="The --live server's port on 127.0.0.1 (0: any free port)."),
     deploy: Optional[str] = typer.Option(None, "--deploy", help="Run the mission on real processes with Flower: local (a SuperLink, one rover process per rover and the base station on this machine, TLS and authentication), or base (only the base station; rovers join with fedmap rover --mission). Star topology, latency 0."),
-    listen: str = typer.Option("127.0.0.1:9092", "--listen", help="--deploy base: the SuperLink's HOST:PORT (rovers connect to it)."),
+    listen: Optional[str] = typer.Option(None, "--listen", help="--deploy base: the SuperLink's HOST:PORT (rovers connect to it) [127.0.0.1:9092]."),
     certs: Optional[Path] = typer.Option(None, "--certs", help="--deploy base: TLS folder from fedmap certs (ca.crt, server.pem, server.key)."),
     auth_keys: Optional[Path] = typer.Option(None, "--auth-keys", help="--deploy base: folder of the rovers' *.pub keys (SuperNode authentication)."),
     resume: bool = typer.Option(False, "--resume", help="--deploy: carry on from the base station's journal of an earlier run into the same --out that was killed (the rovers carry on from their state folders)."),
@@ -65,12 +69,17 @@ def mission(
                                          overrides=[*parse_sets(set_), settings or {}])
     _check_outputs(out, record=record, rosbag=rosbag)
     plan = None
+    if deploy is None:  # options of a mission on processes, given without one: a mistake, not ignored
+        alone = [o for o, on in (("--listen", listen is not None), ("--resume", resume), ("--certs", certs is not None),
+                                 ("--auth-keys", auth_keys is not None), ("--insecure", insecure)) if on]
+        if alone:
+            raise FedmapError(f"{', '.join(alone)} apply to a mission on processes only: add --deploy local or base")
     if deploy is not None:
         inprocess = [o for o, on in (("--repeats", repeats > 1), ("--record", record is not None), ("--live", live),
                                      ("--rosbag", rosbag is not None)) if on]
         if inprocess:
             raise FedmapError(f"{', '.join(inprocess)} run in process only, not with --deploy")
-        plan = _deploy_plan(cfg, deploy, listen)  # before the terrain loads: a wrong argument costs nothing
+        plan = _deploy_plan(cfg, deploy, listen or DEFAULT_LISTEN)  # before the terrain loads: a wrong argument costs nothing
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
         truth, elevation, prior, profiles = mission_terrain(cfg, source)

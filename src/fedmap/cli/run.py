@@ -177,7 +177,7 @@ def terrain(
 def evaluate(
     learned: Path = typer.Argument(..., help="Learned map (.png, .npy, .tif or ROS .yaml)."),
     truth: Path = typer.Argument(..., help="Ground-truth map (.png, .npy, .tif or ROS .yaml)."),
-    pairs: int = typer.Option(75, help="Random start/goal pairs."),
+    pairs: int = typer.Option(75, min=1, max=100_000, help="Random start/goal pairs."),
     seed: int = typer.Option(0, min=0),
     unknown_passable: bool = typer.Option(False, help="Let the planner cross UNKNOWN cells."),
 ) -> None:

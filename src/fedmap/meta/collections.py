@@ -210,11 +210,17 @@ def _natural(rng: np.random.Generator, n: int) -> np.ndarray:
 _GENERATORS = {"urban": _urban, "rural": _rural, "highway": _highway, "natural": _natural}
 
 
+#: The smallest side of a built-in map (below 12 the generators cannot place their features).
+MIN_BUILTIN_SIZE = 16
+
+
 def earth_like(*, size: int = 64, per_category: int = 32, seed: int = 0,
                categories: tuple[str, ...] = BUILTIN_CATEGORIES) -> MapCollection:
-    """The built-in Earth-like collection: ``per_category`` seeded maps per category."""
-    if size < 8 or per_category < 1:
-        raise FedmapError(f"need maps of at least 8x8 and one map per category, got size {size}, {per_category}")
+    """The built-in Earth-like collection: ``per_category`` seeded maps per category, of at
+    least :data:`MIN_BUILTIN_SIZE` cells a side (the generators' streets and blocks need room)."""
+    if size < MIN_BUILTIN_SIZE or per_category < 1:
+        raise FedmapError(f"need maps of at least {MIN_BUILTIN_SIZE}x{MIN_BUILTIN_SIZE} and one map per category, "
+                          f"got size {size} and {per_category} per category")
     cats = {}
     for ci, name in enumerate(categories):
         if name not in _GENERATORS:

@@ -12,8 +12,7 @@ reads it (``fedmap/weights/cell_prior.npz``); ``fedmap meta coder`` does both.
 
 from __future__ import annotations
 
-import os
-import tempfile
+import io
 from collections.abc import Callable
 from dataclasses import replace
 from importlib import resources
@@ -21,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fedmap._util import atomic_write_bytes
 from fedmap.coding.streamcodec import PARTS, PRIOR_FILE, CoderState, blank_state
 from fedmap.meta.collections import MapCollection, earth_like
 from fedmap.mission.predictive import PredictiveBase
@@ -70,13 +70,7 @@ def prior_path() -> Path:
 def save_coder_prior(state: CoderState, path: str | Path | None = None) -> Path:
     """Write ``state`` as the coder prior (atomically: a crash leaves the old file whole)."""
     out = Path(path) if path is not None else prior_path()
-    fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".npz.tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(f, **{n: getattr(state, n).astype(np.uint16) for n in PARTS})
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **{n: getattr(state, n).astype(np.uint16) for n in PARTS})
+    atomic_write_bytes(out, buf.getvalue())
     return out

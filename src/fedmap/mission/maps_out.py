@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fedmap._util import make_dir
 from fedmap.errors import FedmapError
 from fedmap.maps.export import EXPORT_FORMATS, check_formats, export_map, export_maps
 from fedmap.maps.grid import UNKNOWN, GridMap
@@ -101,8 +102,7 @@ def write_mission_maps(result: MissionResult, folder, *, beliefs: bool = False,
     maps = mission_maps(result, beliefs=beliefs)
     if not fmts or not maps:
         return []
-    target = Path(folder) / MAPS_DIR
-    target.mkdir(parents=True, exist_ok=True)
+    target = make_dir(Path(folder) / MAPS_DIR)
     return export_maps(maps, target, fmts)
 
 
@@ -138,6 +138,8 @@ def reexport_mission_maps(folder, fmt: str, *, out=None,
     (fmt,) = check_formats([fmt])
     sources = mission_map_files(folder)
     out_dir = Path(out) if out is not None else Path(folder) / MAPS_DIR
+    if out is not None:
+        make_dir(out_dir)  # before anything is read: a file in the way or an unwritable place is one line
     if fmt == "rosbag2":
         maps = {name: load_map(src, pixel_size=pixel_size) for name, src in sources.items()}
         (bag,) = export_maps(maps, out_dir, [fmt])
@@ -146,7 +148,7 @@ def reexport_mission_maps(folder, fmt: str, *, out=None,
     for name, src in sources.items():
         if targets[name].resolve() == src.resolve():
             raise FedmapError(f"exporting {src} as {fmt} would overwrite it; pass -o DIR")
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_dir(out_dir)
     done = []
     for name, src in sources.items():
         grid = load_map(src, pixel_size=pixel_size)
