@@ -121,3 +121,35 @@ def test_export_into_a_file_or_an_unwritable_place_is_one_line(tmp_path, capsys)
     assert "cannot write to /proc/e" in _one_line_error(capsys, "export", out, "-f", "npy", "-o", "/proc/e")
     assert main(["export", str(out), "-f", "npy", "-o", str(tmp_path / "e")]) == 0
     assert (tmp_path / "e" / "raw_global.npy").is_file()
+
+
+def test_federate_predictor_checks_its_arguments_before_the_sites_missions(tmp_path, capsys, monkeypatch):
+    import fedmap.cli.predictorfed as cli_pf
+
+    ran = []
+    monkeypatch.setattr(cli_pf, "site_maps", lambda *a, **k: ran.append(1))
+    files = []
+    for name in ("a", "b"):
+        f = tmp_path / f"mission_{name}.toml"
+        f.write_text('seed = 0\n[terrain]\nkind = "builtin"\nterrain = "mars"\nsize = 64\n')
+        files.append(str(f))
+    cases = [([files[0], "--held-out", str(tmp_path / "missing.toml")], "no such mission file"),
+             ([files[0], f"a={files[1]}", "--held-out", files[1]], "two sites share a name"),
+             ([files[0], "--held-out", f"a={files[1]}"], "is also a training site"),
+             ([files[0], "--held-out", files[1], "--rounds", "0"], "--rounds must be >= 1"),
+             ([files[0], "--held-out", files[1], "--init", str(tmp_path / "none.safetensors")], "no such predictor file"),
+             ([files[0], "--held-out", files[1], "-o", "/proc/pf"], "cannot write to /proc/pf")]
+    for args, expect in cases:
+        assert expect in _one_line_error(capsys, "federate-predictor", *args), args
+    assert not ran
+
+
+def test_terrain_refuses_a_dem_path_that_would_overwrite_the_map_or_is_not_npy(tmp_path, capsys):
+    (tmp_path / "x.npy").write_bytes(b"earlier")
+    err = _one_line_error(capsys, "terrain", "mars", tmp_path / "x.npy", "--size", "64", "--dem", tmp_path / "x.npy")
+    assert "is the map's own path" in err
+    err = _one_line_error(capsys, "terrain", "mars", tmp_path / "y.png", "--size", "64", "--dem", tmp_path / "d.txt")
+    assert "give a .npy path" in err
+    assert (tmp_path / "x.npy").read_bytes() == b"earlier" and not (tmp_path / "y.png").exists()
+    assert main(["terrain", "mars", str(tmp_path / "y.png"), "--size", "64", "--dem", str(tmp_path / "d.npy")]) == 0
+    assert np.load(tmp_path / "d.npy").shape == (64, 64) and load_map(tmp_path / "y.png").shape == (64, 64)

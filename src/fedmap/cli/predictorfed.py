@@ -10,6 +10,7 @@ from typing import Optional
 
 import typer
 
+from fedmap._util import make_dir
 from fedmap.cli.ui import console
 from fedmap.errors import FedmapError
 from fedmap.mission import load_mission, mission_terrain
@@ -28,11 +29,18 @@ from fedmap.mission.predictorfed import (
 from fedmap.nets.predictor import load_predictor, save_predictor, shipped_predictor
 
 
-def _site(spec: str, *, steps: int, seed: int) -> SiteMaps:
-    """``[NAME=]MISSION.toml`` -> the maps of a raw mission of that mission file on its terrain."""
+def _spec(spec: str) -> tuple[str, Path]:
+    """``[NAME=]MISSION.toml`` -> the site's name and its mission file (which must exist)."""
     name, _, path = spec.rpartition("=")
     p = Path(path)
-    name = name or p.stem.removeprefix("mission_")
+    if not p.is_file():
+        raise FedmapError(f"no such mission file: {p} (a site is [NAME=]MISSION.toml)")
+    return name or p.stem.removeprefix("mission_"), p
+
+
+def _site(spec: str, *, steps: int, seed: int) -> SiteMaps:
+    """``[NAME=]MISSION.toml`` -> the maps of a raw mission of that mission file on its terrain."""
+    name, p = _spec(spec)
     config, source, _ = load_mission(p, seed=seed, mission={"steps": steps, "strategies": ["raw"]})
     truth, elevation, _, profiles = mission_terrain(config, source)
     return site_maps(config, truth, name=name, every=10, elevation=elevation, profiles=profiles,
@@ -66,6 +74,16 @@ def federate_predictor(
     if held_out_seeds < 1:
         raise FedmapError(f"--held-out-seeds must be >= 1, got {held_out_seeds}")
     training = FineTuning(steps=local_steps, batch=batch, crop=crop, lr=lr, seed=seed)
+    if rounds < 1:
+        raise FedmapError(f"--rounds must be >= 1, got {rounds}")
+    # the cheap checks before the sites' missions run
+    names = [_spec(spec)[0] for spec in sites]
+    if len(set(names)) != len(names):
+        raise FedmapError(f"two sites share a name: {names}; name them NAME=MISSION.toml")
+    if _spec(held_out)[0] in names:
+        raise FedmapError(f"the held-out site {_spec(held_out)[0]} is also a training site")
+    init_weights = predictor_weights(load_predictor(init) if init else shipped_predictor())
+    make_dir(out)
     t0 = time.perf_counter()
     train = []
     for spec in sites:
@@ -73,16 +91,9 @@ def federate_predictor(
         train.append(Site.of(maps))
         console.print(f"site {maps.name}: {len(maps)} maps; its final map knows {(maps.final != 2).mean():.0%} "
                       "of the cells")
-    names = [s.name for s in train]
-    if len(set(names)) != len(names):
-        raise FedmapError(f"two sites share a name: {names}; name them NAME=MISSION.toml")
     held = _site(held_out, steps=steps, seed=0)
     for s in range(1, held_out_seeds):
         held = held.join(_site(held_out, steps=steps, seed=s))
-    if held.name in names:
-        raise FedmapError(f"the held-out site {held.name} is also a training site")
-    init_weights = predictor_weights(load_predictor(init) if init else shipped_predictor())
-    out.mkdir(parents=True, exist_ok=True)
     if deploy is None:
         console.print("training: federated (in process)")
         federated = federate(init_weights, train, training, rounds)

@@ -162,6 +162,11 @@ def terrain(
     dem_out: Optional[Path] = typer.Option(None, "--dem", help="Also save the DEM as .npy."),
 ) -> None:
     """Generate a built-in terrain's traversability map."""
+    if dem_out is not None:
+        if dem_out.suffix.lower() != ".npy":
+            raise FedmapError(f"--dem {dem_out}: the DEM is written as a NumPy array; give a .npy path")
+        if dem_out.expanduser().resolve() == out.expanduser().resolve():
+            raise FedmapError(f"--dem {dem_out} is the map's own path; give the DEM another name")
     dem = generate_dem(kind, size, seed=seed)
     grid = dem_to_traversability(dem)
     save_map(grid, out)
