@@ -153,3 +153,20 @@ def test_terrain_refuses_a_dem_path_that_would_overwrite_the_map_or_is_not_npy(t
     assert (tmp_path / "x.npy").read_bytes() == b"earlier" and not (tmp_path / "y.png").exists()
     assert main(["terrain", "mars", str(tmp_path / "y.png"), "--size", "64", "--dem", str(tmp_path / "d.npy")]) == 0
     assert np.load(tmp_path / "d.npy").shape == (64, 64) and load_map(tmp_path / "y.png").shape == (64, 64)
+
+
+def test_a_three_channel_array_of_class_codes_is_refused_not_read_as_black_pixels(tmp_path):
+    from fedmap.maps.grid import PALETTE
+
+    codes = np.zeros((64, 64, 3), np.uint8)
+    codes[10:20, 10:20] = 1
+    np.save(tmp_path / "codes.npy", codes)
+    with pytest.raises(FedmapError, match=r"holding only 0..1: class codes, not colours") as e:
+        load_map(tmp_path / "codes.npy")
+    assert "\n" not in str(e.value)
+    classes = np.zeros((64, 64), np.uint8)
+    classes[5:9] = 1
+    classes[30:] = 2
+    rgb = np.round(PALETTE[classes] * 255).astype(np.uint8)  # a real picture of the palette's colours
+    np.save(tmp_path / "rgb.npy", rgb)
+    np.testing.assert_array_equal(load_map(tmp_path / "rgb.npy").classes, classes)

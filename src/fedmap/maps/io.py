@@ -283,6 +283,9 @@ def _read_npy_map(path: Path) -> tuple[np.ndarray, dict]:
             )
         return arr.astype(np.uint8), {"decoded_as": "classes"}
     if arr.ndim == 3 and arr.shape[2] == 3 and (np.issubdtype(dt, np.floating) or dt == np.uint8):
+        if dt == np.uint8 and arr.size and arr.max() <= UNKNOWN:  # a picture in 0..2 of 255 would be black
+            raise FedmapError(f"map {path} is a {arr.shape} uint8 array holding only {arr.min()}..{arr.max()}: class "
+                              "codes, not colours? A class map is 2-D (H, W); an RGB map holds colours 0..255")
         rgb = arr.astype(np.float32)
         if dt == np.uint8:
             rgb /= 255.0
@@ -291,7 +294,7 @@ def _read_npy_map(path: Path) -> tuple[np.ndarray, dict]:
         return classes_from_rgb(rgb), {"decoded_as": "nearest colour"}
     raise FedmapError(
         f"map {path} has shape {arr.shape} and dtype {dt}: expected an integer (H, W) class array "
-        f"or a float (H, W, 3) RGB array in [0, 1]"
+        f"or an (H, W, 3) RGB array (float in [0, 1] or uint8 in 0..255)"
     )
 
 
