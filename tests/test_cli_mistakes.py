@@ -170,3 +170,10 @@ def test_a_three_channel_array_of_class_codes_is_refused_not_read_as_black_pixel
     rgb = np.round(PALETTE[classes] * 255).astype(np.uint8)  # a real picture of the palette's colours
     np.save(tmp_path / "rgb.npy", rgb)
     np.testing.assert_array_equal(load_map(tmp_path / "rgb.npy").classes, classes)
+
+
+@pytest.mark.parametrize("key, value", [("federation.beta1", "1.5"), ("federation.eta", "inf"),
+                                        ("federation.tau", "0")])
+def test_server_optimiser_settings_are_checked_whatever_the_aggregator(key, value, capsys):
+    err = _one_line_error(capsys, "run", "--size", "64", "--set", f"{key}={value}")  # fedavg, the default
+    assert "[federation]" in err and value in err

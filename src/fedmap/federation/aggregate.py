@@ -32,6 +32,7 @@ The averaging is done in float64 and the result cast back to float32.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
@@ -185,6 +186,16 @@ class CoverageAvg:
         return {}
 
 
+def check_server_settings(name: str, *, eta: float, beta1: float, beta2: float, tau: float, v0: float = 0.0) -> None:
+    """The server optimiser's settings (FedAdam, FedYogi) in range, else a one-line error
+    naming ``name``; checked whatever the aggregator, so a typo waits for no switch to FedAdam."""
+    if not (math.isfinite(eta) and eta > 0 and math.isfinite(tau) and tau > 0 and math.isfinite(v0) and v0 >= 0):
+        raise FedmapError(f"{name}: eta and tau must be finite and positive and v0 >= 0 "
+                          f"(got eta={eta}, tau={tau}, v0={v0})")
+    if not (0 <= beta1 < 1 and 0 <= beta2 < 1):
+        raise FedmapError(f"{name}: betas must be in [0, 1), got {beta1}, {beta2}")
+
+
 @dataclass
 class _FedOpt:
     """Shared server-optimiser state for FedAdam and FedYogi."""
@@ -203,11 +214,7 @@ class _FedOpt:
         def name(self) -> str: ...
 
     def __post_init__(self) -> None:
-        if not self.eta > 0 or not self.tau > 0 or self.v0 < 0:
-            raise FedmapError(f"{self.name}: eta and tau must be positive and v0 >= 0 "
-                              f"(got eta={self.eta}, tau={self.tau}, v0={self.v0})")
-        if not (0 <= self.beta1 < 1 and 0 <= self.beta2 < 1):
-            raise FedmapError(f"{self.name}: betas must be in [0, 1), got {self.beta1}, {self.beta2}")
+        check_server_settings(self.name, eta=self.eta, beta1=self.beta1, beta2=self.beta2, tau=self.tau, v0=self.v0)
 
     def _second_moment(self, v: np.ndarray, d2: np.ndarray) -> np.ndarray:  # pragma: no cover
         raise NotImplementedError

@@ -42,7 +42,7 @@ import numpy as np
 
 from fedmap._schema import setting, wiring
 from fedmap.errors import FedmapError, RejectedUpdate
-from fedmap.federation.aggregate import AGGREGATORS, Aggregator, make_aggregator
+from fedmap.federation.aggregate import AGGREGATORS, Aggregator, check_server_settings, make_aggregator
 from fedmap.federation.codecs import CodecSpec, Encoder, decode
 from fedmap.maps.grid import GridMap, check_same_frame
 from fedmap.nets.model import NetConfig, Weights, build_model, get_weights, set_weights
@@ -81,6 +81,7 @@ class FederationConfig:
             raise FedmapError(f"versions_kept must be a whole number of models from 0 to 255, got {k!r}")
         CodecSpec.parse(self.uplink)
         CodecSpec.parse(self.downlink)
+        check_server_settings("[federation]", eta=self.eta, beta1=self.beta1, beta2=self.beta2, tau=self.tau)
         self.make_aggregator()
 
     def make_aggregator(self) -> Aggregator:
