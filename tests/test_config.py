@@ -105,7 +105,7 @@ mode = "grid"
                                               "(did you mean 'pixel_size'?)"),
     ("explore = 3\n", "[explore] in run.toml must be a table"),
     ("[train\nepochs = 1\n", "cannot read config"),
-    ("[train]\nlr = nan\n", "[train] lr in run.toml must be"),
+    ("[train]\nlr = nan\n", "[train] lr in run.toml must be a finite number, got nan"),
 ])
 def test_config_mistakes_are_named(tmp_path, text, message):
     path = write(tmp_path, text)

@@ -205,6 +205,8 @@ def check_type(value: Any, types_: tuple[type, ...], what: str) -> None:
     """Raise a one-line :class:`FedmapError` unless ``value`` has one of ``types_``."""
     # bool is an int in Python, but `epochs = true` is a mistake.
     ok = isinstance(value, types_) and not (isinstance(value, bool) and bool not in types_)
+    if isinstance(value, float) and not math.isfinite(value) and float in types_:
+        raise FedmapError(f"{what} must be a finite number, got {value!r}")
     if isinstance(value, float) and not math.isfinite(value):
         ok = False
     if not ok:
