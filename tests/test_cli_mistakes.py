@@ -177,3 +177,20 @@ def test_a_three_channel_array_of_class_codes_is_refused_not_read_as_black_pixel
 def test_server_optimiser_settings_are_checked_whatever_the_aggregator(key, value, capsys):
     err = _one_line_error(capsys, "run", "--size", "64", "--set", f"{key}={value}")  # fedavg, the default
     assert "[federation]" in err and value in err
+
+
+def test_a_map_that_is_not_square_is_cut_to_its_centred_square_with_a_warning(tmp_path, capsys):
+    from fedmap.maps.sources import TerrainSource, load_truth
+
+    classes = np.zeros((64, 90), np.uint8)
+    classes[:, 13] = 1  # the first column of the centred square, and the last one
+    classes[:, 76] = 1
+    np.save(tmp_path / "wide.npy", classes)
+    truth = load_truth(TerrainSource(kind="map", path=str(tmp_path / "wide.npy")))
+    np.testing.assert_array_equal(truth.classes, classes[:, 13:77])
+    assert truth.meta["squared"].startswith("the map is 64x90 cells; the run uses its centred 64x64 square")
+    assert "columns 13..76" in truth.meta["squared"]
+    np.save(tmp_path / "square.npy", classes[:, 13:77])
+    assert "squared" not in load_truth(TerrainSource(kind="map", path=str(tmp_path / "square.npy"))).meta
+    assert "squared" not in load_truth(TerrainSource(kind="map", path=str(tmp_path / "wide.npy"),
+                                                     crop=[0, 64, 0, 64])).meta  # asked for: no warning

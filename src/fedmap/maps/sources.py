@@ -198,13 +198,26 @@ def load_source_dem(source: TerrainSource, *, seed: int = 0) -> Dem:
     else:
         dem = load_dem(source.path, **opts)
     rows, cols = _square_box(dem.shape, source.crop)
+    squared = square_note(dem.shape, rows, cols, source.crop)
     if (rows, cols) != ((0, dem.shape[0]), (0, dem.shape[1])):
         dem = crop_dem(dem, rows, cols)
+    if squared:
+        dem.meta["squared"] = squared
     if source.size is not None and source.size != dem.shape[0]:
         before = (dem.shape[0], dem.pixel_size)
         dem = resample_dem(dem, source.size, method=source.resample)
         dem.meta["resampled"] = resample_note(before, (dem.shape[0], dem.pixel_size), source.resample)
     return dem
+
+
+def square_note(shape: tuple[int, int], rows: tuple[int, int], cols: tuple[int, int], crop) -> str | None:
+    """One line when a map that is not square was cut to its centred square without a ``crop``
+    asking for it (the networks and the exploration need a square map), else None."""
+    if crop is not None or shape[0] == shape[1]:
+        return None
+    side = rows[1] - rows[0]
+    return (f"the map is {shape[0]}x{shape[1]} cells; the run uses its centred {side}x{side} square (rows "
+            f"{rows[0]}..{rows[1] - 1}, columns {cols[0]}..{cols[1] - 1}): set the terrain's crop to choose another")
 
 
 def _metres(v: float) -> str:
@@ -247,16 +260,18 @@ def load_terrain(source: TerrainSource, *, seed: int = 0, with_dem: bool = True)
     if source.kind == "map":
         grid = load_map(source.path, pixel_size=source.options.get("pixel_size"), topic=source.options.get("topic"))
         (r0, r1), (c0, c1) = _square_box(grid.shape, source.crop)
+        squared = square_note(grid.shape, (r0, r1), (c0, c1), source.crop)
         classes, px = grid.classes[r0:r1, c0:c1], grid.pixel_size
         transform = crop_transform(grid.transform, r0, c0)
         if source.size is not None and source.size != classes.shape[0]:
             px = px * classes.shape[0] / source.size
             transform = scale_transform(transform, classes.shape, (source.size, source.size))
             classes = _nearest_classes(classes, source.size)
-        return GridMap(classes, px, grid.source, {**grid.meta, "crop": [r0, r1, c0, c1]}, transform=transform,
-                       crs=grid.crs), None
+        meta = {**grid.meta, "crop": [r0, r1, c0, c1], **({"squared": squared} if squared else {})}
+        return GridMap(classes, px, grid.source, meta, transform=transform, crs=grid.crs), None
     dem = load_source_dem(source, seed=seed)
     truth = dem_to_traversability(dem, source.thresholds)
-    if "resampled" in dem.meta:  # said once, beside the truth (the CLI prints it)
-        truth.meta["resampled"] = dem.meta["resampled"]
+    for key in ("resampled", "squared"):  # said once, beside the truth (the CLI prints it)
+        if key in dem.meta:
+            truth.meta[key] = dem.meta[key]
     return truth, dem if with_dem else None
