@@ -194,3 +194,10 @@ def test_a_map_that_is_not_square_is_cut_to_its_centred_square_with_a_warning(tm
     assert "squared" not in load_truth(TerrainSource(kind="map", path=str(tmp_path / "square.npy"))).meta
     assert "squared" not in load_truth(TerrainSource(kind="map", path=str(tmp_path / "wide.npy"),
                                                      crop=[0, 64, 0, 64])).meta  # asked for: no warning
+
+
+def test_a_mission_file_given_to_run_says_which_command_runs_it(tmp_path, capsys):
+    f = tmp_path / "m.toml"
+    f.write_text("[mission]\nsteps = 5\n")
+    err = _one_line_error(capsys, "run", f)
+    assert "is a mission file" in err and "fedmap mission" in err

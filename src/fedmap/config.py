@@ -90,6 +90,8 @@ def load_toml(path) -> dict:
     """Read and validate a run config; relative terrain paths become relative to its folder."""
     path = Path(path)
     data = read_toml(path)
+    if "mission" in data and "mission" not in SECTIONS:  # a mission file given to run
+        raise FedmapError(f"{path.name} is a mission file ([mission]); run it with: fedmap mission {path}")
     validate(data, path.name)
     for s in path_settings():
         table = data.get(s.section, {})

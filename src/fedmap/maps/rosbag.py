@@ -114,7 +114,7 @@ def bag_storage(path) -> Path:
         if len(files) == 1:
             return files[0]
         why = "no" if not files else f"{len(files)}"
-        raise FedmapError(f"{path} is not a ROS 2 bag: no metadata.yaml, and {why} storage files "
+        raise FedmapError(f"{path} is a folder that is not a ROS 2 bag: no metadata.yaml, and {why} storage files "
                           f"({', '.join(BAG_SUFFIXES)}) where one is needed")
     if path.name == "metadata.yaml":
         return path.parent
