@@ -201,3 +201,13 @@ def test_a_mission_file_given_to_run_says_which_command_runs_it(tmp_path, capsys
     f.write_text("[mission]\nsteps = 5\n")
     err = _one_line_error(capsys, "run", f)
     assert "is a mission file" in err and "fedmap mission" in err
+
+
+def test_the_outputs_line_lists_maps_only_when_they_were_written(tmp_path, capsys):
+    tiny = ["mission", "--size", "64", "--steps", "6", "--sync-every", "3", "--rovers", "2", "--no-animation"]
+    for strategies, listed in (("none", False), ("raw", True)):
+        out = tmp_path / strategies
+        assert main([*tiny, "--strategies", strategies, "-o", str(out)]) == 0
+        text = capsys.readouterr().out
+        line = " ".join(text[text.index("outputs:"):text.index("wall time:")].split())  # however it was wrapped
+        assert ("maps/" in line) is listed and (out / "maps").is_dir() is listed, (strategies, line)

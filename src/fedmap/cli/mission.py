@@ -21,6 +21,7 @@ from fedmap.flower.deploy import DEPLOY_MODES, deploy_logs, deploy_mission
 from fedmap.maps.rosbag import check_bag_path
 from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.bag import SyncMaps
+from fedmap.mission.maps_out import MAPS_DIR
 from fedmap.mission.recording import Recorder
 from fedmap.mission.remote import DEPLOYABLE, check_deployable
 from fedmap.mission.repeats import run_repeats, what_varies
@@ -151,7 +152,7 @@ def mission(
     if repeats > 1:
         _print_repeats(results, title)
         console.print(verdict(result, results).replace("**", ""), soft_wrap=True)
-        console.print(f"outputs: {out}/  (metrics.json with every repeat, report.md, maps/, coverage.png, f1.png, "
+        console.print(f"outputs: {out}/  (metrics.json with every repeat, report.md, {_maps(out)}coverage.png, f1.png, "
                       f"accuracy_bytes.png, knowing.png{', mission_<strategy>.gif of repeat 1' if animation else ''})")
         console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
         return
@@ -176,8 +177,8 @@ def mission(
                      "not arrive, by why" if peer else "; up lost/over: uplink messages that did not arrive, by why")
                   + ". All columns: report.md.")
     console.print(verdict(result).replace("**", ""), soft_wrap=True)
-    console.print(f"outputs: {out}/  (metrics.json, report.md, maps/, coverage.png, f1.png, accuracy_bytes.png, knowing.png"
-                  f"{', mission_<strategy>.gif' if animation else ''})")
+    console.print(f"outputs: {out}/  (metrics.json, report.md, {_maps(out)}coverage.png, f1.png, accuracy_bytes.png, "
+                  f"knowing.png{', mission_<strategy>.gif' if animation else ''})")
     console.print(f"wall time: {time.perf_counter() - t0:.1f} s")
 
 
@@ -196,6 +197,12 @@ def _deploy_plan(cfg, mode: str, listen: str) -> tuple[tuple[str, ...], list[str
     if mode == "base" and not (host and port.isdigit()):
         raise FedmapError(f"--listen must be HOST:PORT, got {listen!r}")
     return names, left, host, port
+
+
+def _maps(out: Path) -> str:
+    """``maps/, `` in the outputs line when the run wrote that folder (a mission whose strategies
+    shared nothing has no global map to write)."""
+    return f"{MAPS_DIR}/, " if (out / MAPS_DIR).is_dir() else ""
 
 
 def _check_outputs(out: Path, *, record: Path | None, rosbag: Path | None) -> None:
