@@ -764,6 +764,34 @@ def test_a_killed_processes_temporary_folder_is_removed_by_the_next_one_and_no_o
     assert launch.sweep_stale_dirs(tmp_path, "fedmap-t-") == [live]  # once the sleeper is gone
 
 
+def test_without_proc_a_live_owner_is_told_by_its_pid_and_its_folder_kept(tmp_path, monkeypatch):
+    """Where there is no /proc (macOS) start times are unknown: a folder is removed only when
+    no process has its owner's PID."""
+    monkeypatch.setattr(launch, "PROC_SELF_STAT", tmp_path / "no-proc")
+    sleeper = subprocess.Popen(["sleep", "120"])
+    try:
+        live, gone = tmp_path / "fedmap-t-live", tmp_path / "fedmap-t-gone"
+        for d in (live, gone):
+            d.mkdir()
+        (live / launch.OWNER_FILE).write_text(f"{sleeper.pid} \n")
+        dead = subprocess.Popen(["true"])
+        dead.wait(timeout=30)
+        (gone / launch.OWNER_FILE).write_text(f"{dead.pid} \n")
+        assert launch.sweep_stale_dirs(tmp_path, "fedmap-t-") == [gone]
+        assert live.is_dir()
+    finally:
+        sleeper.kill()
+        sleeper.wait(timeout=30)
+
+
+def test_certs_forced_over_an_old_ca_leave_no_rover_key_of_it(tmp_path):
+    launch.make_certs(tmp_path, hosts=["127.0.0.1"], rovers=3)
+    (tmp_path / "notes.txt").write_text("mine")
+    launch.make_certs(tmp_path, hosts=["127.0.0.1"], rovers=1, overwrite=True)
+    assert sorted(p.name for p in tmp_path.glob("rover*")) == ["rover0", "rover0.pub"]
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
 def test_rover_keys_are_registered_in_one_process_and_a_bad_one_is_named_in_one_line(tmp_path):
     """All of a mission's keys go through one Flower CLI process (fedmap.flower.register); a
     key that is not one is a one-line error naming it."""

@@ -121,14 +121,16 @@ def test_a_mission_on_processes_loses_nothing_to_faults(tmp_path):
 
 
 def _temp_dirs_of(pid: int) -> list[Path]:
-    """The temporary folders whose owner file names process ``pid``."""
+    """The temporary folders whose owner file names the running process ``pid`` (its PID and
+    start time: a folder left by an earlier process with the same PID is not its)."""
+    started = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
     found = []
     for parent in {Path(tempfile.gettempdir()), Path("/tmp")}:
         for d in parent.glob("fedmap-*"):
             try:
-                if (d / OWNER_FILE).read_text().split()[0] == str(pid):
+                if (d / OWNER_FILE).read_text().split() == [str(pid), started]:
                     found.append(d)
-            except (OSError, IndexError):
+            except OSError:
                 continue
     return found
 

@@ -118,9 +118,22 @@ def test_atomic_dir_puts_the_old_folder_back_if_the_swap_fails(tmp_path, monkeyp
         return real(src, dst)
 
     monkeypatch.setattr(os, "replace", failing)
-    with pytest.raises(FedmapError, match="cannot write .*No space left"):
+    with pytest.raises(FedmapError, match="cannot write .*No space left.*this run's result is in") as e:
         with AtomicDir(out) as tmp:
             (tmp / "a.txt").write_text("second")
     monkeypatch.setattr(os, "replace", real)
     assert (out / "a.txt").read_text() == "first" and (out / OUTPUT_MARKER).is_file()
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["r"]
+    assert str(tmp) in str(e.value) and (tmp / "a.txt").read_text() == "second"  # the new result kept, named
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["r", tmp.name])  # no old folder left
+
+
+def test_an_output_of_an_earlier_fedmap_without_the_marker_is_still_replaced_and_a_look_alike_is_not(tmp_path):
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "metrics.json").write_text('{"timings": {"total_s": 1.0}, "global": {}}')
+    assert check_output_dir(old) == old.resolve()
+    mine = tmp_path / "ml"
+    mine.mkdir()
+    (mine / "metrics.json").write_text('{"accuracy": 0.9}')  # somebody else's metrics.json
+    with pytest.raises(FedmapError, match="is not a fedmap output folder"):
+        check_output_dir(mine)

@@ -152,6 +152,26 @@ def check_output_file(path: str | os.PathLike) -> Path:
 OUTPUT_MARKER = ".fedmap-output"
 
 
+#: The result files by which a folder written before :data:`OUTPUT_MARKER` existed is known,
+#: with a key their JSON object holds: a run's or mission's metrics, the reproduction, Table I,
+#: Table III and the elevation codecs' report.
+_EARLIER_OUTPUTS = {"metrics.json": ("timings", "strategies"), "reproduce.json": ("terrains",),
+                    "ablation.json": ("table",), "bandwidth.json": ("table3",), "elevation.json": ("points",)}
+
+
+def _earlier_output(folder: Path) -> bool:
+    """True when ``folder`` is an output an earlier fedmap wrote (before the marker): one of
+    :data:`_EARLIER_OUTPUTS` there, a JSON object with one of its keys."""
+    for name, keys in _EARLIER_OUTPUTS.items():
+        try:
+            data = json.loads((folder / name).read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(data, dict) and any(k in data for k in keys):
+            return True
+    return False
+
+
 def check_output_dir(target: str | os.PathLike) -> Path:
     """Where a result folder goes, checked before any work is done; returns it resolved.
 
@@ -168,8 +188,11 @@ def check_output_dir(target: str | os.PathLike) -> Path:
     if out.is_dir():
         if Path.cwd().resolve().is_relative_to(out):
             raise FedmapError(f"cannot write {shown}: it is, or holds, the current folder, which the run would replace")
+        if os.path.ismount(out):
+            raise FedmapError(f"cannot write {shown}: it is a mount point, which the run cannot replace; give a folder "
+                              "inside it")
         try:
-            mine = (out / OUTPUT_MARKER).is_file() or not any(out.iterdir())
+            mine = (out / OUTPUT_MARKER).is_file() or not any(out.iterdir()) or _earlier_output(out)
         except OSError as exc:
             raise FedmapError(f"cannot write {shown}: {one_line(exc)}") from exc
         if not mine:
@@ -226,7 +249,7 @@ class AtomicDir:
             if self.target.exists():
                 check_output_dir(self.target)  # still fedmap's (nothing else took the name meanwhile)
                 os.chmod(self.tmp, stat.S_IMODE(self.target.stat().st_mode))
-                old = self.target.with_name(f".{self.target.name}.old-{os.getpid()}")
+                old = self.target.with_name(f".{self.target.name}.old-{uuid.uuid4().hex[:12]}")
                 os.replace(self.target, old)
             else:
                 os.chmod(self.tmp, 0o777 & ~_umask())
@@ -234,9 +257,10 @@ class AtomicDir:
         except BaseException as exc:
             if old is not None and not self.target.exists():
                 os.replace(old, self.target)  # the old folder back where it was
+            if isinstance(exc, OSError):  # the finished result is kept where it was written, and named
+                raise FedmapError(f"cannot write {self.target}: {one_line(exc)}; this run's result is in "
+                                  f"{self.tmp}") from exc
             shutil.rmtree(self.tmp, ignore_errors=True)
-            if isinstance(exc, OSError):
-                raise FedmapError(f"cannot write {self.target}: {one_line(exc)}") from exc
             raise
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)

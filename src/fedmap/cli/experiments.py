@@ -10,7 +10,7 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from fedmap._util import AtomicDir, atomic_write_bytes, check_output_dir
+from fedmap._util import AtomicDir, check_output_dir
 from fedmap.cli.ui import console, fit, fmt, progress_bar, stage_callbacks
 from fedmap.config import method_config
 from fedmap.errors import FedmapError
@@ -151,9 +151,9 @@ def _cell_streams(mission: str, out: Path) -> None:
     console.print(t)
     console.print("bits/cell: per cell the messages carried; bits/map cell: per cell of the base's final map "
                   "(predictive does not resend cells a rover received, so it carries fewer)", soft_wrap=True)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(out / "cell_streams.json", json.dumps(report, indent=1).encode())
-    atomic_write_bytes(out / "cell_streams.md", markdown(report, f"{mission} ({source.label})").encode())
+    with AtomicDir(out) as tmp:
+        (tmp / "cell_streams.json").write_text(json.dumps(report, indent=1))
+        (tmp / "cell_streams.md").write_text(markdown(report, f"{mission} ({source.label})"))
     console.print(f"outputs: {out}/  (cell_streams.json, cell_streams.md); wall time {time.perf_counter() - t0:.1f} s")
 
 

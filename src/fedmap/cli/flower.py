@@ -14,6 +14,7 @@ from typing import Optional
 import typer
 
 from fedmap import _schema
+from fedmap._util import check_output_dir
 from fedmap.cli.options import parameters, with_settings
 from fedmap.cli.ui import console, progress_bar
 from fedmap.config import resolve
@@ -54,6 +55,7 @@ def base_station(
         if "keep_checkpoints" in base:
             cfg[flower_key("keep_checkpoints")] = base["keep_checkpoints"]
         console.print(f"resuming {out} from {Path(cfg['resume']).name}")
+    check_output_dir(out)  # before the SuperLink starts: a folder that is not fedmap's, or cannot be written
     rounds = RunSettings.from_run_config(cfg).federation.rounds
     t0 = time.perf_counter()
     with progress_bar() as progress:

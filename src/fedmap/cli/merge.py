@@ -42,7 +42,7 @@ def _load(path: Path, pixel_size: float | None):
     grid = load_map(path)
     if pixel_size is None:
         return grid
-    if grid.meta.get("pixel_size_from", "default") == "default":
+    if grid.meta.get("pixel_size_from", "default") not in ("file", "crs"):  # none stored, or only guessed
         return load_map(path, pixel_size=pixel_size)
     if not math.isclose(grid.pixel_size, pixel_size, rel_tol=1e-9):
         raise FedmapError(f"{path} stores {grid.pixel_size:g} m cells but --pixel-size says {pixel_size:g}; "

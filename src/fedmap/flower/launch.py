@@ -15,6 +15,7 @@ import ipaddress
 import json
 import os
 import random
+import re
 import shutil
 import signal
 import socket
@@ -99,6 +100,8 @@ def output_to(log: Path | str) -> None:  # pragma: no cover - runs in a forked c
 
 #: The longest path a Unix socket may have (Linux: 108 bytes with the terminating zero).
 UNIX_SOCKET_PATH_MAX = 107
+#: Where Linux says how this process runs; without it (macOS) a process's start time is unknown.
+PROC_SELF_STAT = Path("/proc/self/stat")
 #: The file in a process's temporary folder naming the process (PID and start time) that owns it.
 OWNER_FILE = "owner"
 
@@ -106,6 +109,8 @@ OWNER_FILE = "owner"
 def _start_time(pid: int) -> str | None:
     """When process ``pid`` started (clock ticks since boot, Linux's ``/proc``), "" where that
     cannot be read (another OS), None when there is no such process or it has exited (a zombie)."""
+    if not PROC_SELF_STAT.exists():  # no /proc (macOS): liveness by os.kill alone
+        return ""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
     except FileNotFoundError:
@@ -555,6 +560,10 @@ def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365,
         files[f"rover{k}"] = rk.private_bytes(pem, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption())
         files[f"rover{k}.pub"] = rk.public_key().public_bytes(serialization.Encoding.OpenSSH,
                                                               serialization.PublicFormat.OpenSSH) + b"\n"
+    if held:  # replacing a CA (overwrite): rover keys of the old one beyond the new count would still be registered
+        for stale in out_dir.glob("rover*"):
+            if re.fullmatch(r"rover\d+(\.pub)?", stale.name) and stale.name not in files:
+                stale.unlink()
     written = []
     for fname, data in files.items():
         atomic_write_bytes(out_dir / fname, data)
