@@ -17,7 +17,7 @@ TINY = ["--size", "64", "--steps", "4", "--sync-every", "2", "--rovers", "2", "-
         "--strategies", "none,raw", "--no-animation"]
 
 
-def _mission(args, capsys, monkeypatch=None):
+def _mission(args, capsys):
     rc = main(["mission", *map(str, args)])
     out = capsys.readouterr()
     return rc, out.out, out.err
