@@ -752,10 +752,13 @@ def test_a_killed_processes_temporary_folder_is_removed_by_the_next_one_and_no_o
         other = tmp_path / "fedmap-u-other"  # another prefix: not this kind's to remove
         other.mkdir()
         (other / launch.OWNER_FILE).write_text(f"{p.pid} 1\n")
+        elsewhere = tmp_path / "fedmap-t-elsewhere"  # a dead PID here, but made on another host or container
+        elsewhere.mkdir()
+        (elsewhere / launch.OWNER_FILE).write_text(f"{p.pid} 1 not-{socket.gethostname()}\n")
         with launch.owned_temp_dir("fedmap-t-", parent=tmp_path) as mine:
             assert mine.is_dir() and (mine / launch.OWNER_FILE).read_text().split()[0] == str(os.getpid())
             assert not killed.exists() and not reused.exists()
-            assert live.is_dir() and unowned.is_dir() and other.is_dir()
+            assert live.is_dir() and unowned.is_dir() and other.is_dir() and elsewhere.is_dir()
             assert launch.sweep_stale_dirs(tmp_path, "fedmap-t-") == []  # its own, live, is kept
         assert not mine.exists()
     finally:
@@ -773,10 +776,10 @@ def test_without_proc_a_live_owner_is_told_by_its_pid_and_its_folder_kept(tmp_pa
         live, gone = tmp_path / "fedmap-t-live", tmp_path / "fedmap-t-gone"
         for d in (live, gone):
             d.mkdir()
-        (live / launch.OWNER_FILE).write_text(f"{sleeper.pid} \n")
+        (live / launch.OWNER_FILE).write_text(f"{sleeper.pid} -\n")
         dead = subprocess.Popen(["true"])
         dead.wait(timeout=30)
-        (gone / launch.OWNER_FILE).write_text(f"{dead.pid} \n")
+        (gone / launch.OWNER_FILE).write_text(f"{dead.pid} -\n")
         assert launch.sweep_stale_dirs(tmp_path, "fedmap-t-") == [gone]
         assert live.is_dir()
     finally:

@@ -128,7 +128,7 @@ def _temp_dirs_of(pid: int) -> list[Path]:
     for parent in {Path(tempfile.gettempdir()), Path("/tmp")}:
         for d in parent.glob("fedmap-*"):
             try:
-                if (d / OWNER_FILE).read_text().split() == [str(pid), started]:
+                if (d / OWNER_FILE).read_text().split()[:2] == [str(pid), started]:
                     found.append(d)
             except OSError:
                 continue

@@ -102,7 +102,8 @@ def output_to(log: Path | str) -> None:  # pragma: no cover - runs in a forked c
 UNIX_SOCKET_PATH_MAX = 107
 #: Where Linux says how this process runs; without it (macOS) a process's start time is unknown.
 PROC_SELF_STAT = Path("/proc/self/stat")
-#: The file in a process's temporary folder naming the process (PID and start time) that owns it.
+#: The file in a process's temporary folder naming the process that owns it: its PID, its start
+#: time ("-" where unknown) and the host name (a container sharing the folder has another).
 OWNER_FILE = "owner"
 
 
@@ -148,16 +149,18 @@ def sweep_stale_dirs(parent: Path, prefix: str) -> list[Path]:
         candidates = [d for d in parent.iterdir() if d.name.startswith(prefix)]
     except OSError:
         return removed
-    uid = os.getuid()
+    uid, host = os.getuid(), socket.gethostname()
     for d in candidates:
         try:
             if d.is_symlink() or not d.is_dir() or d.stat().st_uid != uid:
                 continue
-            pid_text, started = (d / OWNER_FILE).read_text().split("\n")[0].split(" ", 1)
-            pid = int(pid_text)
-        except (OSError, ValueError):
+            fields = (d / OWNER_FILE).read_text().split()
+            pid, started = int(fields[0]), (fields[1] if len(fields) > 1 else "-")
+        except (OSError, ValueError, IndexError):
             continue
-        if not _alive(pid, started.strip()):
+        if len(fields) > 2 and fields[2] != host:
+            continue  # made on another machine or container sharing this folder: its processes are not visible here
+        if not _alive(pid, "" if started == "-" else started):
             shutil.rmtree(d, ignore_errors=True)
             removed.append(d)
     return removed
@@ -177,7 +180,7 @@ def owned_temp_dir(prefix: str, *, parent: Path | str | None = None, socket_name
     d = Path(tempfile.mkdtemp(prefix=prefix, dir=base))
     try:
         pid = os.getpid()
-        (d / OWNER_FILE).write_text(f"{pid} {_start_time(pid) or ''}\n")
+        (d / OWNER_FILE).write_text(f"{pid} {_start_time(pid) or '-'} {socket.gethostname()}\n")
         yield d
     finally:
         shutil.rmtree(d, ignore_errors=True)
