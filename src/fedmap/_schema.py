@@ -205,9 +205,9 @@ def check_type(value: Any, types_: tuple[type, ...], what: str) -> None:
     """Raise a one-line :class:`FedmapError` unless ``value`` has one of ``types_``."""
     # bool is an int in Python, but `epochs = true` is a mistake.
     ok = isinstance(value, types_) and not (isinstance(value, bool) and bool not in types_)
-    if isinstance(value, float) and not math.isfinite(value) and float in types_:
-        raise FedmapError(f"{what} must be a finite number, got {value!r}")
     if isinstance(value, float) and not math.isfinite(value):
+        if float in types_:
+            raise FedmapError(f"{what} must be a finite number, got {value!r}")
         ok = False
     if not ok:
         want = " or ".join(dict.fromkeys(_TYPE_NAMES[t] for t in types_))

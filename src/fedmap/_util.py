@@ -131,19 +131,24 @@ def make_dir(path: str | os.PathLike) -> Path:
     return path
 
 
+def check_writable(path: Path, what: str) -> None:
+    """``path`` can be written: its folder is made if missing, and a folder is made and removed
+    beside it (a root user's ``access()`` says yes even to ``/proc``); otherwise a one-line error
+    ``cannot write <what>: <reason> (in <folder>)``."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        os.rmdir(tempfile.mkdtemp(prefix=f".{path.name}.check-", dir=path.parent))
+    except OSError as exc:  # the reason without the probe's name
+        raise FedmapError(f"cannot write {what}: {exc.strerror or one_line(exc)} (in {path.parent})") from exc
+
+
 def check_output_file(path: str | os.PathLike) -> Path:
     """Where a result file goes, checked before any work is done: not a folder, and its folder
-    can be written (a file made and removed there); otherwise a one-line error."""
+    can be written (:func:`check_writable`); otherwise a one-line error."""
     path = Path(path)
     if path.is_dir():
         raise FedmapError(f"cannot write {path}: it is a folder")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=f".{path.name}.check-", dir=path.parent)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as exc:  # the reason without the probe's name
-        raise FedmapError(f"cannot write {path}: {exc.strerror or one_line(exc)} (in {path.parent})") from exc
+    check_writable(path, str(path))
     return path
 
 
@@ -198,11 +203,7 @@ def check_output_dir(target: str | os.PathLike) -> Path:
         if not mine:
             raise FedmapError(f"{shown} exists and is not a fedmap output folder (no {OUTPUT_MARKER} in it); the run "
                               "replaces its output folder as a whole: choose a new --out, or empty or remove this one")
-    try:  # a folder made and removed where the run's own will be (a root user's access() says yes to /proc)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        os.rmdir(tempfile.mkdtemp(prefix=f".{out.name}.check-", dir=out.parent))
-    except OSError as exc:  # the reason without the probe's name
-        raise FedmapError(f"cannot write {shown}: {exc.strerror or one_line(exc)} (in {out.parent})") from exc
+    check_writable(out, shown)
     return out
 
 

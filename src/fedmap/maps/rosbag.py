@@ -47,7 +47,7 @@ from typing import Any, Literal
 import numpy as np
 from affine import Affine
 
-from fedmap._util import one_line
+from fedmap._util import check_writable, one_line
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.ros import FREE_THRESH, OCCUPIED_THRESH, classes_from_occupancy, lower_left_origin
@@ -305,11 +305,7 @@ def check_bag_path(path) -> Path:
     path = Path(path)
     if path.exists() and not (path.is_dir() and (path / "metadata.yaml").is_file()):
         raise FedmapError(f"{path} exists and is not a ROS 2 bag; a bag is written to a new folder")
-    try:  # a folder made and removed where the bag's own will be
-        path.parent.mkdir(parents=True, exist_ok=True)
-        os.rmdir(tempfile.mkdtemp(prefix=f".{path.name}.check-", dir=path.parent))
-    except OSError as exc:  # the reason without the probe's name
-        raise FedmapError(f"cannot write ROS 2 bag {path}: {exc.strerror or one_line(exc)} (in {path.parent})") from exc
+    check_writable(path, f"ROS 2 bag {path}")
     return path
 
 

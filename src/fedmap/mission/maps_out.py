@@ -137,9 +137,7 @@ def reexport_mission_maps(folder, fmt: str, *, out=None,
     """
     (fmt,) = check_formats([fmt])
     sources = mission_map_files(folder)
-    out_dir = Path(out) if out is not None else Path(folder) / MAPS_DIR
-    if out is not None:
-        make_dir(out_dir)  # before anything is read: a file in the way or an unwritable place is one line
+    out_dir = make_dir(Path(out) if out is not None else Path(folder) / MAPS_DIR)  # before anything is read
     if fmt == "rosbag2":
         maps = {name: load_map(src, pixel_size=pixel_size) for name, src in sources.items()}
         (bag,) = export_maps(maps, out_dir, [fmt])
@@ -148,7 +146,6 @@ def reexport_mission_maps(folder, fmt: str, *, out=None,
     for name, src in sources.items():
         if targets[name].resolve() == src.resolve():
             raise FedmapError(f"exporting {src} as {fmt} would overwrite it; pass -o DIR")
-    make_dir(out_dir)
     done = []
     for name, src in sources.items():
         grid = load_map(src, pixel_size=pixel_size)
