@@ -653,6 +653,70 @@ def test_a_supernode_forked_by_the_warm_server_is_watched_and_stopped_like_a_pro
 
 
 @pytest.mark.slow
+def test_a_killed_warm_server_leaves_no_clientapp_running_and_no_requester_waiting(tmp_path):
+    """A rover killed mid-mission once left its warm server's ClientApp running for hours (it
+    retried its dead SuperNode's address forever) and its SuperExec's stand-in waiting on a
+    connection that ClientApp had inherited. Every child of the server dies with it, and holds
+    no other request's connection: each requester sees the end of its line at once."""
+    from fedmap.flower.warm import SUPERNODE
+
+    sock = str(tmp_path / "s.sock")
+    with open(tmp_path / "server.log", "wb") as log:
+        server = subprocess.Popen([sys.executable, "-m", "fedmap.flower.warm", sock,
+                                   json.dumps({"partition-id": 0, "samples": "unused"})], stdout=log,
+                                  stderr=subprocess.STDOUT)
+
+    def alive() -> bool:
+        return server.poll() is None
+
+    def children() -> set[int]:
+        found: set[int] = set()
+        for task in Path(f"/proc/{server.pid}/task").iterdir():
+            found |= {int(p) for p in (task / "children").read_text().split()}
+        return found
+
+    def running(pid: int) -> bool:  # neither gone nor a zombie
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except OSError:
+            return False
+
+    conn = None
+    try:
+        argv = rover.supernode_argv(superlink=f"127.0.0.1:{free_port()}", port=free_port(),  # nobody listens there
+                                    node_config={"partition-id": 0}, root_cert=None, auth_key=None, max_wait=300)
+        node = rover.WarmChild(sock, argv[3:], log=tmp_path / "supernode.log", alive=alive)
+        assert node.args[0] == SUPERNODE
+        # then a ClientApp, as the SuperExec's stand-in asks for one: its SuperNode's address is dead,
+        # so Flower's ClientApp retries it for as long as it runs
+        conn = socket.socket(socket.AF_UNIX)
+        conn.connect(sock)
+        conn.sendall(json.dumps(["flwr-clientapp", "--insecure", "--runtime-api-address",
+                                 f"127.0.0.1:{free_port()}", "--token", "1"]).encode() + b"\n")
+        t_end = time.monotonic() + 60
+        while not children() - {node.pid} and time.monotonic() < t_end:
+            time.sleep(0.05)
+        (app,) = children() - {node.pid}
+        time.sleep(1.0)
+        assert running(app)  # retrying its SuperNode
+
+        server.kill()
+        server.wait(timeout=10)
+        assert node.wait(timeout=10) == -9  # the end of the SuperNode's line: the ClientApp does not hold it
+        conn.settimeout(10)
+        assert conn.recv(16) == b""  # nor the ClientApp's own
+        t_end = time.monotonic() + 10
+        while (running(app) or running(node.pid)) and time.monotonic() < t_end:
+            time.sleep(0.1)
+        assert not running(app) and not running(node.pid)  # both gone with the server
+    finally:
+        server.kill()
+        server.wait(timeout=10)
+        if conn is not None:
+            conn.close()
+
+
+@pytest.mark.slow
 def test_a_local_deploys_rovers_are_forked_by_one_host_and_watched_like_processes(tmp_path):
     """``--deploy local`` forks its rovers from one host process (``fedmap.cli.rover_host``) that
     imported everything once: a rover's arguments reach ``fedmap rover`` (a bad one is its

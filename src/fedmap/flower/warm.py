@@ -9,7 +9,8 @@ rover's map, and listens on a Unix socket. The SuperNode is given a stand-in
 ``flwr-clientapp`` (:data:`fedmap.flower.rover.WARM_SHIM`, first on its ``PATH``) that
 passes its arguments to the server and waits; the server forks a child that runs Flower's
 own ``flwr-clientapp`` entry point with those arguments (already imported: nothing to
-load), and reports the child's exit code back to the stand-in.
+load), and reports the child's exit code back to the stand-in. Every child it forks dies with
+it (a rover's ClientApps too: nothing of a killed rover runs on) and holds none of its sockets.
 
 Each message still runs in its own process, as Flower expects (its state travels in the
 message's context); what is saved is the start-up. The server runs no torch operation
@@ -63,32 +64,28 @@ ROVER = "fedmap-rover"
 FIRST_WAIT = 1.0
 
 
-def _run_task(program: str, argv: list[str], server: int) -> None:  # pragma: no cover - runs in a forked child
-    """Flower's own ``program`` entry point with ``argv``, in this process, forked by ``server``."""
+def _run_task(program: str, argv: list[str]) -> None:  # pragma: no cover - runs in a forked child
+    """Flower's own ``program`` entry point with ``argv``, in this process, forked by the server."""
     from fedmap.flower.client_app import flower_superexec_main, flwr_clientapp_main
-    from fedmap.flower.launch import set_death_signal
 
     def run() -> None:
-        if program == SUPERNODE:  # a process group of its own, as the rover's Processes give; not past this server
+        if program == SUPERNODE:  # a process group of its own, as the rover's Processes give
             from fedmap.flower.supernode import main as supernode_main
 
-            supernode_main(_own_group(argv, server))
-        elif program == "flower-superexec":  # lives as long as its SuperNode, so not past this server either
-            set_death_signal(server)
+            supernode_main(_own_group(argv))
+        elif program == "flower-superexec":
             flower_superexec_main(argv)
         else:
             flwr_clientapp_main(argv)
     _exit_with(run)
 
 
-def _own_group(argv: list[str], server: int) -> list[str]:  # pragma: no cover - runs in a forked child
+def _own_group(argv: list[str]) -> list[str]:  # pragma: no cover - runs in a forked child
     """In a child forked at a request for a program in a process group of its own (the request's
-    first argument is its log): that group, death with ``server``, the output to the log; the
-    program's arguments."""
-    from fedmap.flower.launch import output_to, set_death_signal
+    first argument is its log): that group, the output to the log; the program's arguments."""
+    from fedmap.flower.launch import output_to
 
     os.setpgid(0, 0)
-    set_death_signal(server)
     log, *rest = argv
     output_to(log)
     return rest
@@ -113,6 +110,13 @@ def _exit_with(run: Callable[[], object]) -> None:  # pragma: no cover - runs in
     os._exit(code)
 
 
+#: The requests' connections this server holds open until their child ends (:func:`_answer`): a
+#: child forked for one request closes the others', or a requester would wait past the server's
+#: death for the end of a connection the child still held (a killed rover's warm server once left
+#: its SuperExec's stand-in and a ClientApp running for hours that way).
+_HELD: set[socket.socket] = set()
+
+
 def _answer(conn: socket.socket, pid: int) -> None:
     """Wait for the child ``pid`` and send its exit code to the stand-in."""
     _, status = os.waitpid(pid, 0)
@@ -121,6 +125,7 @@ def _answer(conn: socket.socket, pid: int) -> None:
     except OSError:
         pass
     finally:
+        _HELD.discard(conn)
         conn.close()
 
 
@@ -170,11 +175,16 @@ def _request(srv: socket.socket) -> tuple[socket.socket, str, list[str]] | None:
 def _fork(srv: socket.socket, conn: socket.socket, child: Callable[[], None], *, own_group: bool) -> None:
     """Fork ``child()`` (it never returns) and send its exit code on ``conn`` when it ends;
     ``own_group``: it runs in a process group of its own (set here too, so the group exists
-    before the requester may signal it), and its PID is sent first."""
+    before the requester may signal it), and its PID is sent first. The child dies with this
+    server (which answers for it) and holds none of its sockets."""
+    server = os.getpid()
     pid = os.fork()
     if pid == 0:  # pragma: no cover - the forked child
-        srv.close()
-        conn.close()
+        from fedmap.flower.launch import set_death_signal
+
+        for held in (srv, conn, *_HELD):
+            held.close()
+        set_death_signal(server)
         child()
     if own_group:
         try:
@@ -182,6 +192,7 @@ def _fork(srv: socket.socket, conn: socket.socket, child: Callable[[], None], *,
             conn.sendall(f"pid {pid}\n".encode())
         except OSError:  # the requester is gone: so is the reason for the child
             os.kill(pid, signal.SIGKILL)
+    _HELD.add(conn)
     threading.Thread(target=_answer, args=(conn, pid), daemon=True).start()
 
 
@@ -195,7 +206,7 @@ def serve(sock: str, node_config: dict) -> None:  # pragma: no cover - a long-li
     import fedmap.flower.supernode  # noqa: F401 - what a SuperNode needs
 
     srv = _listen(sock)
-    server, loaded = os.getpid(), False
+    loaded = False
     while True:
         if not loaded:  # the rover asks for its SuperNode as soon as the server listens
             ready, _, _ = select.select([srv], [], [], FIRST_WAIT)
@@ -212,7 +223,7 @@ def serve(sock: str, node_config: dict) -> None:  # pragma: no cover - a long-li
         if program != SUPERNODE and not loaded:
             preload(node_config)
             loaded = True
-        _fork(srv, conn, lambda: _run_task(program, argv, server), own_group=program == SUPERNODE)
+        _fork(srv, conn, lambda: _run_task(program, argv), own_group=program == SUPERNODE)
 
 
 def serve_rovers(sock: str, rover: Callable[[list[str]], object]) -> None:  # pragma: no cover - a long-lived process
@@ -222,7 +233,6 @@ def serve_rovers(sock: str, rover: Callable[[list[str]], object]) -> None:  # pr
     output in the request's log, and dies with the host. The host runs no torch operation."""
     preload({"mission": True})
     srv = _listen(sock)
-    host = os.getpid()
     while True:
         request = _request(srv)
         if request is None:
@@ -233,7 +243,7 @@ def serve_rovers(sock: str, rover: Callable[[list[str]], object]) -> None:  # pr
             continue
 
         def child(argv: list[str] = argv) -> None:  # pragma: no cover - the forked rover
-            rest = _own_group(argv, host)
+            rest = _own_group(argv)
             _exit_with(lambda: rover(rest))
         _fork(srv, conn, child, own_group=True)
 
