@@ -582,16 +582,28 @@ def test_a_warm_stand_in_does_not_outlive_its_server_or_its_supernode(tmp_path):
                             capture_output=True, text=True, timeout=10)  # the SuperNode, gone after 0.5 s
     stat = Path(f"/proc/{int(parent.stdout.split()[0])}/stat")
 
-    def running() -> bool:  # neither gone nor a zombie left for its new parent to collect
-        try:
-            return stat.read_text().rsplit(")", 1)[1].split()[0] != "Z"
-        except OSError:
-            return False
-
     t_end = time.monotonic() + 10
-    while running() and time.monotonic() < t_end:
+    while _running(int(stat.parent.name)) and time.monotonic() < t_end:  # neither gone nor a zombie
         time.sleep(0.1)
-    assert not running()
+    assert not _running(int(stat.parent.name))
+
+
+def _warm_server(tmp_path) -> tuple[str, subprocess.Popen]:
+    """A warm server started as its own process (as a predictor's site starts one): its socket and process."""
+    sock = str(tmp_path / "s.sock")
+    with open(tmp_path / "server.log", "wb") as log:
+        server = subprocess.Popen([sys.executable, "-m", "fedmap.flower.warm", sock,
+                                   json.dumps({"partition-id": 0, "samples": "unused"})], stdout=log,
+                                  stderr=subprocess.STDOUT)
+    return sock, server
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` runs: neither gone nor a zombie."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 @pytest.mark.slow
@@ -602,20 +614,10 @@ def test_a_supernode_forked_by_the_warm_server_is_watched_and_stopped_like_a_pro
     does not outlive the server."""
     from fedmap.flower.warm import SUPERNODE
 
-    sock = str(tmp_path / "s.sock")
-    with open(tmp_path / "server.log", "wb") as log:
-        server = subprocess.Popen([sys.executable, "-m", "fedmap.flower.warm", sock,
-                                   json.dumps({"partition-id": 0, "samples": "unused"})], stdout=log,
-                                  stderr=subprocess.STDOUT)
+    sock, server = _warm_server(tmp_path)
 
     def alive() -> bool:
         return server.poll() is None
-
-    def running(pid: int) -> bool:  # neither gone nor a zombie
-        try:
-            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-        except OSError:
-            return False
 
     try:
         log = tmp_path / "supernode.log"
@@ -636,17 +638,17 @@ def test_a_supernode_forked_by_the_warm_server_is_watched_and_stopped_like_a_pro
         procs = Processes()
         procs.adopt("supernode", child, log=log)
         procs.stop("supernode", grace=20.0)
-        assert child.returncode is not None and not running(child.pid)
+        assert child.returncode is not None and not _running(child.pid)
 
         last = rover.WarmChild(sock, argv[3:], log=log, alive=alive)
-        assert running(last.pid)
+        assert _running(last.pid)
         server.kill()
         server.wait(timeout=10)
         assert last.wait(timeout=10) == -9  # the server's end of the line closed without an exit code
         t_end = time.monotonic() + 10
-        while running(last.pid) and time.monotonic() < t_end:
+        while _running(last.pid) and time.monotonic() < t_end:
             time.sleep(0.1)
-        assert not running(last.pid)  # gone with the server
+        assert not _running(last.pid)  # gone with the server
     finally:
         server.kill()
         server.wait(timeout=10)
@@ -660,11 +662,7 @@ def test_a_killed_warm_server_leaves_no_clientapp_running_and_no_requester_waiti
     no other request's connection: each requester sees the end of its line at once."""
     from fedmap.flower.warm import SUPERNODE
 
-    sock = str(tmp_path / "s.sock")
-    with open(tmp_path / "server.log", "wb") as log:
-        server = subprocess.Popen([sys.executable, "-m", "fedmap.flower.warm", sock,
-                                   json.dumps({"partition-id": 0, "samples": "unused"})], stdout=log,
-                                  stderr=subprocess.STDOUT)
+    sock, server = _warm_server(tmp_path)
 
     def alive() -> bool:
         return server.poll() is None
@@ -674,12 +672,6 @@ def test_a_killed_warm_server_leaves_no_clientapp_running_and_no_requester_waiti
         for task in Path(f"/proc/{server.pid}/task").iterdir():
             found |= {int(p) for p in (task / "children").read_text().split()}
         return found
-
-    def running(pid: int) -> bool:  # neither gone nor a zombie
-        try:
-            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-        except OSError:
-            return False
 
     conn = None
     try:
@@ -698,7 +690,7 @@ def test_a_killed_warm_server_leaves_no_clientapp_running_and_no_requester_waiti
             time.sleep(0.05)
         (app,) = children() - {node.pid}
         time.sleep(1.0)
-        assert running(app)  # retrying its SuperNode
+        assert _running(app)  # retrying its SuperNode
 
         server.kill()
         server.wait(timeout=10)
@@ -706,9 +698,9 @@ def test_a_killed_warm_server_leaves_no_clientapp_running_and_no_requester_waiti
         conn.settimeout(10)
         assert conn.recv(16) == b""  # nor the ClientApp's own
         t_end = time.monotonic() + 10
-        while (running(app) or running(node.pid)) and time.monotonic() < t_end:
+        while (_running(app) or _running(node.pid)) and time.monotonic() < t_end:
             time.sleep(0.1)
-        assert not running(app) and not running(node.pid)  # both gone with the server
+        assert not _running(app) and not _running(node.pid)  # both gone with the server
     finally:
         server.kill()
         server.wait(timeout=10)
