@@ -152,6 +152,15 @@ def test_written_toml_reads_back_identically(tmp_path):
     assert resolve(back) == r  # the resolved config is a valid config that resolves to itself
 
 
+def test_a_toml_file_with_a_byte_order_mark_reads_as_without(tmp_path):
+    text = "[train]\nlr = 0.01\n"
+    plain = write(tmp_path, text, "plain.toml")
+    marked = tmp_path / "marked.toml"
+    marked.write_bytes(b"\xef\xbb\xbf" + text.encode())  # as Windows' Notepad saves UTF-8
+    assert resolve(marked) == resolve(plain)
+    assert resolve(marked)["train"]["lr"] == 0.01
+
+
 def test_parse_set():
     assert parse_set("train.lr=0.01") == {"train": {"lr": 0.01}}
     assert parse_set("federation.uplink = fp16") == {"federation": {"uplink": "fp16"}}

@@ -78,7 +78,7 @@ def read_toml(path: str | Path, what: str = "config") -> dict:
         raise FedmapError(f"no such {what} file: {path}")
     looks_like_terrain = path.suffix.lower() in TERRAIN_SUFFIXES
     try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
+        return tomllib.loads(path.read_text(encoding="utf-8-sig"))  # a byte-order mark (Windows' Notepad) is not TOML
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         if looks_like_terrain or isinstance(exc, UnicodeDecodeError):
             raise FedmapError(f"{path} is not a TOML {what} (it looks like a terrain file): pass it with --dem "
