@@ -85,6 +85,22 @@ def test_merge_takes_pixel_size_only_for_maps_that_store_none(tmp_path, capsys):
     assert load_map(tmp_path / "m.tif").pixel_size == 1.0
 
 
+def test_a_quoted_tilde_is_the_home_folder_for_every_path(tmp_path, monkeypatch, capsys):
+    """``-o "~/m.png"`` (quoted: the shell left the ``~``) is the home folder's, for the maps read
+    and the file written alike: merge wrote a folder named ``~`` where mission read the home folder."""
+    home, work = tmp_path / "home", tmp_path / "work"
+    home.mkdir()
+    work.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(work)
+    classes = load_truth(TerrainSource(size=128), seed=3).classes[:100, :100]
+    save_map(GridMap(classes, 1.0, "a"), home / "a.png")
+    assert main(["merge", "~/a.png", "~/a.png", "-o", "~/m.png"]) == 0
+    assert np.array_equal(load_map(home / "m.png").classes, classes)
+    assert not (work / "~").exists()
+    assert str(home / "m.png") in capsys.readouterr().out
+
+
 def test_the_installed_command_gives_these_errors_without_a_traceback(tmp_path):
     r = subprocess.run([sys.executable, "-m", "fedmap", "certs", "/proc/c"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and r.stderr.startswith("error: cannot write certificates") and "Traceback" not in r.stderr

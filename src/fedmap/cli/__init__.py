@@ -17,6 +17,7 @@ User mistakes (bad files, bad options) print one line ``error: ...`` and exit 2.
 
 from __future__ import annotations
 
+import os
 import re
 import sys
 
@@ -69,6 +70,22 @@ app.command()(mission.mission)
 _GLOBAL_FLAGS = ("--quiet", "-q", "--log-json")
 
 
+def _home_paths(group: click.Command) -> click.Command:
+    """``group`` with ``~`` expanded in every path it takes, as a shell expands it unquoted: a
+    quoted ``-o "~/out"`` is the home folder's ``out`` for every command and option alike (one
+    command wrote a folder named ``~`` where another read the home folder)."""
+    for command in group.commands.values() if isinstance(group, click.Group) else [group]:
+        for param in command.params:
+            if isinstance(param.type, click.Path) and not hasattr(param.type, "home"):
+                base = type(param.type)
+
+                def convert(self, value, param, ctx, base=base):
+                    return base.convert(self, os.path.expanduser(value) if isinstance(value, str) else value,
+                                        param, ctx)
+                param.type.__class__ = type(base.__name__, (base,), {"convert": convert, "home": True})
+    return group
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: one-line errors, no tracebacks for user mistakes. The global options
     ``--quiet`` and ``--log-json`` may also follow the command (``fedmap demo --quiet``)."""
@@ -76,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     globals_ = [a for a in args if a in _GLOBAL_FLAGS]
     args = globals_ + [a for a in args if a not in _GLOBAL_FLAGS]
     try:
-        code = app(args=args, standalone_mode=False)
+        code = _home_paths(typer.main.get_command(app))(args=args, standalone_mode=False)
     except FedmapError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
