@@ -15,6 +15,14 @@ odometry error and the error of where the team placed it (its estimate through i
 and the team's frame), in cells. Writes
 ``benchmarks/results/mission_frames/mission_frames.json``.
 
+Two what-ifs (star only; not fedmap's behaviour, which no option of the library changes):
+``--oracle`` gives the base each rover's *true* transform (its frame into the true frame, as
+the rover's pose is at that sync) wherever it would register the rover's cells: every sync
+placed exactly, also those with nothing to register on. ``--send-back`` sends a rover the
+global cells it gave too (fedmap leaves them out: laid back through an estimated transform
+they were worse than its own). Together they say what a perfect registration at every sync
+would give; results go to ``mission_frames_oracle.json`` and the like.
+
 The drift spread (``REALISTIC``) is that of a small rover's wheel odometry on loose ground:
 a scale error of 2 % of the distance driven (std per rover) and a heading drift of
 0.01 degree per metre; its start known to 1 m and 1 degree from the lander. See
@@ -33,6 +41,7 @@ import numpy as np
 
 from fedmap.maps.grid import UNKNOWN
 from fedmap.maps.registration import RigidTransform
+from fedmap.mission import frames as framed
 from fedmap.mission import load_mission, mission_terrain, run_mission
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -45,6 +54,30 @@ CONDITIONS: dict[str, dict | None] = {
     "unknown, drift, no lander image": {k: v for k, v in REALISTIC.items() if k != "lander_view"},
     "unknown start only": {"start_offset": 1.0, "start_heading": 1.0, "lander_view": 12.0},
 }
+
+
+def what_if(oracle: bool, send_back: bool) -> None:
+    """Patch the star's framed base for ``--oracle`` and ``--send-back`` (see the module)."""
+    if oracle:
+        poses: list = []
+        init = framed.FramedWorld.__init__
+
+        def remember(self, *a, **kw):
+            init(self, *a, **kw)
+            poses[:] = self.poses
+
+        def place_exactly(self, k: int, round_no: int) -> None:
+            if not self.pending[k].any():
+                return
+            t = poses[k].to_own().inverse()  # the rover's frame -> the true frame, now
+            self.log.append(framed.Placing(round_no, k, "oracle", 1.0, 0, (t.dy, t.dx, t.heading_deg)))
+            if self.transforms[k] is None:
+                self.first[k] = t
+            self._merge(k, t, round_no)
+        framed.FramedWorld.__init__ = remember
+        framed._Placer._place = place_exactly
+    if send_back:
+        framed._Placer.withheld = lambda self, k: None
 
 
 def one(frames: dict | None, seed: int, steps: int, strategies: list[str], topology: str = "star") -> dict:
@@ -94,7 +127,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--topology", default="star", choices=("star", "mesh"),
                    help="mesh: raw gossip, every agent placing what it receives (the lander an agent)")
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/mission_frames")
+    p.add_argument("--oracle", action="store_true", help="what if: the base places every sync by the true transform")
+    p.add_argument("--send-back", action="store_true", help="what if: a rover is sent the global cells it gave too")
     args = p.parse_args(argv)
+    if (args.oracle or args.send_back) and args.topology != "star":
+        p.error("--oracle and --send-back are what-ifs of the star's base")
+    what_if(args.oracle, args.send_back)
+    suffix = "".join(f"_{n}" for n, on in (("oracle", args.oracle), ("send_back", args.send_back)) if on)
     names = args.strategies.split(",")
     conditions = {c: CONDITIONS[c] for c in args.conditions.split(";")}
     if "known poses" not in conditions:
@@ -128,9 +167,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{t.get('belief_known_right', 1.0):8.3f} {t.get('own_map_right_true_pose', 1.0):8.3f}  "
               f"{', '.join(f'{a} {n}' for a, n in sorted(t['registrations'].items()))}")
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "mission_frames.json").write_text(json.dumps(
+    (args.out / f"mission_frames{suffix}.json").write_text(json.dumps(
         {"conditions": conditions, "topology": args.topology, "seeds": args.seeds, "steps": args.steps,
-         "table": table}, indent=1))
+         "oracle": args.oracle, "send_back": args.send_back, "table": table}, indent=1))
     return 0
 
 
