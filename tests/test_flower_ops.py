@@ -667,17 +667,22 @@ def test_a_killed_warm_server_leaves_no_clientapp_running_and_no_requester_waiti
     def alive() -> bool:
         return server.poll() is None
 
-    def children() -> set[int]:
+    def children() -> set[int]:  # the server's, from every process's parent PID
         found: set[int] = set()
-        for task in Path(f"/proc/{server.pid}/task").iterdir():
-            found |= {int(p) for p in (task / "children").read_text().split()}
+        for d in Path("/proc").iterdir():
+            try:
+                if d.name.isdigit() and int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == server.pid:
+                    found.add(int(d.name))
+            except (OSError, ValueError, IndexError):
+                continue
         return found
 
-    conn = None
+    conn, left = None, []
     try:
         argv = rover.supernode_argv(superlink=f"127.0.0.1:{free_port()}", port=free_port(),  # nobody listens there
                                     node_config={"partition-id": 0}, root_cert=None, auth_key=None, max_wait=300)
         node = rover.WarmChild(sock, argv[3:], log=tmp_path / "supernode.log", alive=alive)
+        left.append(node.pid)
         assert node.args[0] == SUPERNODE
         # then a ClientApp, as the SuperExec's stand-in asks for one: its SuperNode's address is dead,
         # so Flower's ClientApp retries it for as long as it runs
@@ -689,6 +694,7 @@ def test_a_killed_warm_server_leaves_no_clientapp_running_and_no_requester_waiti
         while not children() - {node.pid} and time.monotonic() < t_end:
             time.sleep(0.05)
         (app,) = children() - {node.pid}
+        left.append(app)
         time.sleep(1.0)
         assert _running(app)  # retrying its SuperNode
 
@@ -706,6 +712,9 @@ def test_a_killed_warm_server_leaves_no_clientapp_running_and_no_requester_waiti
         server.wait(timeout=10)
         if conn is not None:
             conn.close()
+        for pid in left:  # what a regression would leave running
+            if _running(pid):
+                os.kill(pid, signal.SIGKILL)
 
 
 @pytest.mark.slow

@@ -125,8 +125,8 @@ def _answer(conn: socket.socket, pid: int) -> None:
     except OSError:
         pass
     finally:
+        conn.close()  # then forgotten: a child forked in between closes it again, a no-op
         _HELD.discard(conn)
-        conn.close()
 
 
 def preload(node_config: dict) -> None:
@@ -180,11 +180,15 @@ def _fork(srv: socket.socket, conn: socket.socket, child: Callable[[], None], *,
     server = os.getpid()
     pid = os.fork()
     if pid == 0:  # pragma: no cover - the forked child
-        from fedmap.flower.launch import set_death_signal
+        try:
+            from fedmap.flower.launch import set_death_signal
 
-        for held in (srv, conn, *_HELD):
-            held.close()
-        set_death_signal(server)
+            for held in (srv, conn, *_HELD):
+                held.close()
+            _HELD.clear()
+            set_death_signal(server)
+        except BaseException:  # noqa: BLE001 - never fall back into the server's loop
+            os._exit(1)
         child()
     if own_group:
         try:
