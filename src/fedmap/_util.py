@@ -119,15 +119,17 @@ def atomic_write_bytes(path, data: bytes) -> None:
 
 
 
-def make_dir(path: str | os.PathLike) -> Path:
-    """``mkdir -p`` with a one-line error naming the folder (a file in the way, no permission)."""
+def make_dir(path: str | os.PathLike, what: str = "") -> Path:
+    """``mkdir -p`` with a one-line error naming the folder (a file in the way, no permission):
+    ``cannot write <what> to <path>: <reason>``."""
     path = Path(path)
+    head = f"cannot write {what + ' ' if what else ''}to {path}"
     if path.exists() and not path.is_dir():
-        raise FedmapError(f"cannot write to {path}: it exists and is not a folder")
+        raise FedmapError(f"{head}: it exists and is not a folder")
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise FedmapError(f"cannot write to {path}: {exc.strerror or one_line(exc)}") from exc
+        raise FedmapError(f"{head}: {exc.strerror or one_line(exc)}") from exc
     return path
 
 

@@ -23,7 +23,7 @@ from fedmap.meta.collections import BUILTIN_CATEGORIES, LAYOUTS, MapCollection, 
 from fedmap.meta.reptile import MetaConfig
 from fedmap.meta.reptile import meta_train as run_meta_train
 from fedmap.mission.coderprior import learn_coder_prior, prior_path, save_coder_prior
-from fedmap.mission.predictorprior import exploration_samples, save_shipped_predictor
+from fedmap.mission.predictorprior import check_every, exploration_samples, save_shipped_predictor
 from fedmap.nets.model import NetConfig, preset
 from fedmap.nets.predictor import SHIPPED_PREDICTOR, PredictorTraining, count_parameters, train_predictor
 
@@ -235,8 +235,7 @@ def meta_predictor(
 ) -> None:
     """Learn the map predictor: raw missions on a collection, then the network fitted to guess what the rovers' maps miss (one thread, deterministic: the same seed gives the same file)."""
     training = PredictorTraining(steps=train_steps, batch=batch, crop=crop, lr=lr, seed=seed)
-    if not 1 <= every <= steps:
-        raise FedmapError(f"--every must be in [1, --steps] = [1, {steps}], got {every}")
+    check_every(every, steps, ("--every", "--steps"))
     check_output_file(out if out is not None else SHIPPED_PREDICTOR)  # before the missions
     coll = _collection(collection, layout=layout, size=size, per_category=per_category, categories=categories,
                        max_slope=max_slope, seed=seed)

@@ -80,8 +80,9 @@ def federate_predictor(
     names = [_spec(spec)[0] for spec in sites]
     if len(set(names)) != len(names):
         raise FedmapError(f"two sites share a name: {names}; name them NAME=MISSION.toml")
-    if _spec(held_out)[0] in names:
-        raise FedmapError(f"the held-out site {_spec(held_out)[0]} is also a training site")
+    held_name = _spec(held_out)[0]
+    if held_name in names:
+        raise FedmapError(f"the held-out site {held_name} is also a training site")
     init_weights = predictor_weights(load_predictor(init) if init else shipped_predictor())
     make_dir(out)
     t0 = time.perf_counter()

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from fedmap._util import atomic_write_bytes, one_line
+from fedmap._util import atomic_write_bytes, make_dir
 from fedmap.errors import FedmapError
 from fedmap.flower import require_flwr
 from fedmap.flower.settings import RunSettings
@@ -518,16 +518,11 @@ def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365,
         raise FedmapError("give at least one --host")
     hosts = [_check_host(h) for h in hosts]
     out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise FedmapError(f"cannot write certificates to {out_dir}: it exists and is not a folder")
     held = [n for n in ("ca.crt", "ca.key") if (out_dir / n).exists()]
     if held and not overwrite:
         raise FedmapError(f"{out_dir} already holds a CA ({', '.join(held)}); a new one would lock out every base station "
                           "and rover set up with it: choose another folder, or pass --force to replace it")
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise FedmapError(f"cannot write certificates to {out_dir}: {exc.strerror or one_line(exc)}") from exc
+    make_dir(out_dir, "certificates")
     now = dt.datetime.now(dt.UTC)
     pem = serialization.Encoding.PEM
 

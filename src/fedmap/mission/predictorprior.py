@@ -39,6 +39,14 @@ from fedmap.nets.predictor import (
 RADII = (8.0, 5.0)
 
 
+def check_every(every: int, steps: int, names: tuple[str, str] = ("every", "steps")) -> None:
+    """``every`` (a rover's map is kept every that many steps) in [1, ``steps``], else a one-line
+    error naming them as ``names`` (the CLI's flags)."""
+    if not 1 <= every <= steps:
+        raise FedmapError(f"{names[0]} must be in [1, {names[1]}] = [1, {steps}] (a rover's map is kept every that "
+                          f"many steps), got {every}")
+
+
 def exploration_samples(collection: MapCollection | None = None, *, steps: int = 150, rovers: int = 4,
                         every: int = 10, seed: int = 0,
                         on_map: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -46,9 +54,7 @@ def exploration_samples(collection: MapCollection | None = None, *, steps: int =
     steps (from step ``every``) of a ``raw`` mission on every map of ``collection``
     (default: :func:`~fedmap.meta.collections.earth_like` at 128², 6 maps per category).
     ``on_map(done, total)`` follows the progress."""
-    if not 1 <= every <= steps:
-        raise FedmapError(f"every must be in [1, steps] = [1, {steps}] (a rover's map is kept every that many steps), "
-                          f"got {every}")
+    check_every(every, steps)
     coll = collection if collection is not None else earth_like(size=128, per_category=6, seed=seed)
     maps = coll.maps()
     beliefs: list[np.ndarray] = []
