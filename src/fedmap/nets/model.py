@@ -170,7 +170,8 @@ class GridNet(nn.Module):
     w1: torch.Tensor
     b1: torch.Tensor
     w2: torch.Tensor
-    b2: torch.Tensor
+    r1: torch.Tensor
+    c1: torch.Tensor
 
     def __init__(self, config: NetConfig) -> None:
         super().__init__()
@@ -181,8 +182,13 @@ class GridNet(nn.Module):
         w1 = torch.randn(c.decoder_hidden, fan_in, generator=g) * (2.0 / fan_in) ** 0.5 * 2.0
         b1 = torch.randn(c.decoder_hidden, generator=g) * 0.5
         w2 = torch.randn(3, c.decoder_hidden, generator=g) * (2.0 / c.decoder_hidden) ** 0.5 * 2.0
-        b2 = -(w2 @ torch.relu(b1))  # zero features -> logits 0 -> grey
-        for name, t in (("w1", w1), ("b1", b1), ("w2", w2), ("b2", b2)):
+        # relu(z) - relu(b1) in place of relu(z) plus a last bias -(w2 relu(b1)): zero features give
+        # hidden 0 and logits 0 exactly, so a fresh grid renders exactly grey (0.5) and a cell whose
+        # target is grey has exactly no gradient. With the bias, the logits were a sum of terms that
+        # cancel, whose rounding depends on the matrix kernel (the batch's size, the CPU): about 1e-8
+        # on some, 0 on others, and Adam turns a gradient of 1e-8 into a full step (it scales by 1/√v)
+        r1 = torch.relu(b1)
+        for name, t in (("w1", w1), ("b1", b1), ("w2", w2), ("r1", r1), ("c1", b1 - r1)):
             self.register_buffer(name, t, persistent=False)
 
     def features(self, v: torch.Tensor) -> torch.Tensor:  # (N, 2) in (0,1)^2 -> (N, L*F)
@@ -208,16 +214,17 @@ class GridNet(nn.Module):
         return torch.cat(out, dim=1)
 
     def head(self, feats: torch.Tensor) -> torch.Tensor:
-        """The frozen decoder, ``sigmoid(relu(feats w1ᵀ + b1) w2ᵀ + b2)``, its bias, ReLU and
-        sigmoid applied in place: a product's backward needs its inputs, not its output, so
-        nothing autograd keeps is overwritten, and the values and gradients are those of the
-        plain expression to the bit (``tests/test_model.py``). On every cell of a big map the
+        """The frozen decoder, ``sigmoid((relu(feats w1ᵀ + b1) - relu(b1)) w2ᵀ)``: zero features
+        are exactly grey, whatever the kernels' summation order. Computed as
+        ``max(feats w1ᵀ + c1, -r1) w2ᵀ`` (``r1 = relu(b1)``, ``c1 = b1 - r1 = min(b1, 0)``, both
+        exact), its bias, clamp and sigmoid applied in place: a product's backward needs its
+        inputs, not its output, so nothing autograd keeps is overwritten, and the values and
+        gradients are those of the plain expression to float rounding (``tests/test_model.py``). On every cell of a big map the
         decoder's 32-wide activations are memory traffic: its forward and backward on 4 M
         cells took 376-382 ms written out, 342-348 ms in place (Zen 4, 2 threads)."""
         hidden = feats @ self.w1.T
-        hidden.add_(self.b1).relu_()
-        out = hidden @ self.w2.T
-        return out.add_(self.b2).sigmoid_()
+        hidden.add_(self.c1).clamp_min_(-self.r1)
+        return (hidden @ self.w2.T).sigmoid_()
 
     def forward(self, v: torch.Tensor) -> torch.Tensor:
         return self.head(self.features(v))

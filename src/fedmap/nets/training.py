@@ -388,7 +388,7 @@ def _decoder_pass(net: GridNet, feats: torch.Tensor, y: torch.Tensor, wt: torch.
     f = np.ascontiguousarray(feats.numpy(), dtype=np.float32)
     t = np.ascontiguousarray(y.numpy(), dtype=np.float32)
     w = np.ascontiguousarray(wt.numpy(), dtype=np.float32)
-    weights = [np.ascontiguousarray(b.detach().numpy(), dtype=np.float32) for b in (net.w1, net.b1, net.w2, net.b2)]
+    weights = [np.ascontiguousarray(b.detach().numpy(), dtype=np.float32) for b in (net.w1, net.c1, net.w2, net.r1)]
     grad = np.empty_like(f)
     bounds = list(range(0, f.shape[0], DECODER_PART)) + [f.shape[0]]
     sums = np.zeros(len(bounds) - 1)
@@ -420,9 +420,9 @@ def _decoder_kernel():
     return kernel
 
 
-def _decoder_rows(f: np.ndarray, y: np.ndarray, wt: np.ndarray, scale: float, w1: np.ndarray, b1: np.ndarray,
-                  w2: np.ndarray, b2: np.ndarray, grad: np.ndarray, lo: int, hi: int, out: np.ndarray) -> None:
-    """For cells ``[lo, hi)``: ``o = sigmoid(relu(f w1ᵀ + b1) w2ᵀ + b2)``, their weighted
+def _decoder_rows(f: np.ndarray, y: np.ndarray, wt: np.ndarray, scale: float, w1: np.ndarray, c1: np.ndarray,
+                  w2: np.ndarray, r1: np.ndarray, grad: np.ndarray, lo: int, hi: int, out: np.ndarray) -> None:
+    """For cells ``[lo, hi)``: ``o = sigmoid(max(f w1ᵀ + c1, -r1) w2ᵀ)`` (``GridNet.head``), their weighted
     squared error ``Σ wt · Σ_k (o_k - y_k)²`` into ``out[0]``, and the gradient of
     :func:`_loss` (that sum over 3, times ``scale`` = 1 / total) on ``f`` into ``grad``.
     256 cells at a time, channel-major, so every inner loop runs along cells (SIMD)."""
@@ -445,9 +445,10 @@ def _decoder_rows(f: np.ndarray, y: np.ndarray, wt: np.ndarray, scale: float, w1
                 ft[d, i] = f[s + i, d]
         for k in range(3):
             for i in range(n):
-                z[k, i] = b2[k]
-        for j in range(H):  # hidden unit j: its pre-activation, ReLU, and its share of the logits
-            bj = b1[j]
+                z[k, i] = zero
+        for j in range(H):  # hidden unit j: its pre-activation, ReLU (shifted), and its share of the logits
+            bj = c1[j]
+            floor = -r1[j]
             for i in range(n):
                 h[j, i] = bj
             for d in range(D):
@@ -456,7 +457,7 @@ def _decoder_rows(f: np.ndarray, y: np.ndarray, wt: np.ndarray, scale: float, w1
                     h[j, i] += w * ft[d, i]
             a0, a1, a2 = w2[0, j], w2[1, j], w2[2, j]
             for i in range(n):
-                v = max(h[j, i], zero)
+                v = max(h[j, i], floor)
                 h[j, i] = v
                 z[0, i] += a0 * v
                 z[1, i] += a1 * v
@@ -473,8 +474,9 @@ def _decoder_rows(f: np.ndarray, y: np.ndarray, wt: np.ndarray, scale: float, w1
                 gt[d, i] = zero
         for j in range(H):  # back through hidden unit j (ReLU: only where it was positive)
             a0, a1, a2 = w2[0, j], w2[1, j], w2[2, j]
+            floor = -r1[j]
             for i in range(n):
-                dh[i] = (a0 * z[0, i] + a1 * z[1, i] + a2 * z[2, i]) if h[j, i] > zero else zero
+                dh[i] = (a0 * z[0, i] + a1 * z[1, i] + a2 * z[2, i]) if h[j, i] > floor else zero
             for d in range(D):
                 w = w1[j, d]
                 for i in range(n):
