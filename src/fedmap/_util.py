@@ -81,7 +81,7 @@ def varint(n: int) -> bytes:
             return bytes(out)
 
 
-def atomic_write_bytes(path, data: bytes) -> None:
+def atomic_write_bytes(path, data: bytes, *, mode: int | None = None) -> None:
     """Write ``data`` to ``path`` atomically.
 
     The bytes go to a temporary file in the same folder, are flushed to disk, and the
@@ -89,7 +89,8 @@ def atomic_write_bytes(path, data: bytes) -> None:
     the old file or the new one, never a partial write; if anything fails the temporary
     file is removed and an existing ``path`` is left untouched. The parent folder is
     created if missing. An existing file keeps its permission bits; a new one gets the
-    usual ``0o666 & ~umask``.
+    usual ``0o666 & ~umask``. ``mode`` (e.g. ``0o600`` for a private key): the file has these
+    bits, from its creation on (never readable by others, not even for a moment).
     """
     path = Path(path)
     try:
@@ -98,13 +99,14 @@ def atomic_write_bytes(path, data: bytes) -> None:
         raise FedmapError(f"cannot create folder {path.parent}: {one_line(exc)}") from exc
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
     try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0),
+                     0o666 if mode is None else mode)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
         try:
-            os.chmod(tmp, stat.S_IMODE(os.stat(path).st_mode))
+            os.chmod(tmp, stat.S_IMODE(os.stat(path).st_mode) if mode is None else mode)
         except FileNotFoundError:
             pass
         os.replace(tmp, path)

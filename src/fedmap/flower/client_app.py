@@ -51,7 +51,7 @@ from fedmap.federation.runner import model_version
 from fedmap.flower.faults import inject
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.settings import RunSettings
-from fedmap.flower.task import load_local_map, receive, rover_state, save_received, train_round
+from fedmap.flower.task import KEY_ROVER, check_key, load_local_map, receive, rover_state, save_received, train_round
 from fedmap.nets.model import Weights
 
 app = ClientApp()
@@ -136,6 +136,13 @@ def train(msg: Message, context: Context) -> Message:
     try:  # a bad run or node config is a mistake: reported as fatal, the base stops the run
         settings = RunSettings.from_run_config(dict(context.run_config))
         pid, local = load_local_map(dict(context.node_config))
+    except FedmapError as e:
+        return _error_reply(msg, {}, e)
+    try:
+        check_key(dict(context.node_config), msg.content["config"].get(KEY_ROVER))
+    except FedmapError as e:  # not fatal to the run: the base refuses this rover, the others go on
+        return _error_reply(msg, {"partition-id": pid}, RejectedUpdate(str(e)))
+    try:
         held, encoder = rover_state(settings, local, *_restore(context))
     except FedmapError as e:
         return _error_reply(msg, {}, e)

@@ -39,15 +39,13 @@ from fedmap.flower.launch import (
     require_executables,
     sigterm_as_interrupt,
     socket_dir,
+    start_superlink,
     submit_run,
-    superlink_argv,
-    wait_for_port,
     wait_for_result,
-    write_connection,
 )
 from fedmap.flower.mission_task import MissionRun, read_result, result_path
 from fedmap.flower.rover import WarmChild
-from fedmap.flower.task import run_status_path, write_status
+from fedmap.flower.task import rover_nodes_text, run_status_path, write_status
 from fedmap.flower.warm import ROVER
 from fedmap.mission.results import MissionResult
 
@@ -127,7 +125,8 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
         if host != "127.0.0.1" or certs is not None or auth_keys is not None:
             raise FedmapError("--deploy local makes its own certificates on 127.0.0.1; --host, --certs and --auth-keys "
                               "are for --deploy base")
-        make_certs(work / "certs", hosts=["127.0.0.1", "localhost"], rovers=members, overwrite=True)
+        # a throw-away CA (its key never written) and rover keys that go with the run (removed when it ends)
+        make_certs(work / "certs", hosts=["127.0.0.1", "localhost"], rovers=members, overwrite=True, keep_ca_key=False)
         certs = auth_keys = work / "certs"
     check_exposure(host, tls=certs is not None, auth=auth_keys is not None, insecure=insecure)
     tls = Tls.from_dir(certs) if certs is not None else None
@@ -146,14 +145,11 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
             socks = stack.enter_context(socket_dir("fedmap-rovers-", ROVER_HOST_SOCKET)) if mode == "local" else None
             procs = stack.enter_context(Processes())
             stack.enter_context(sigterm_as_interrupt())
-            procs.start("superlink", superlink_argv(host=host, port=port, tls=tls, auth=auth_keys is not None),
-                        env=env, log=work / "superlink.log", die_with_parent=True)
             # the rovers are forked from it; it imports while the SuperLink starts
             rover_host = RoverHost(procs, socks, env=env, log=work / f"{ROVER_HOST}.log") if socks is not None else None
-            local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
-            wait_for_port(local, port, timeout=60, alive=lambda: procs.check_alive("superlink"))
-            write_connection(Path(env["FLWR_HOME"]), address=f"{local}:{port}", root_cert=tls.ca if tls else None)
-            register_keys(keys, env=env)
+            address = start_superlink(procs, host=host, port=port, tls=tls, auth=auth_keys is not None, env=env,
+                                      work=work)
+            run_config["rover-nodes"] = rover_nodes_text(register_keys(keys, env=env))
             rovers: list[str] = []
             argvs: dict[str, list[str]] = {}
             restarted: list[dict] = []
@@ -173,10 +169,11 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
             since = time.time() - 1
             submit_run(Path(env["FLWR_HOME"]), run_config, env=env, app=mission_app_dir())
             if on_ready is not None:
-                on_ready(f"{local}:{port}")
+                on_ready(address)
 
             def alive() -> None:
                 procs.check_alive("superlink")
+                procs.check_alive("front")
                 for k, name in enumerate(rovers):
                     code = procs.procs[name].poll()
                     if code in (None, 0):
@@ -202,6 +199,10 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
         write_status(out, "interrupted", message="interrupted")
         raise FedmapError(f"mission interrupted ({st.get('strategy', 'before the first strategy')}, step "
                           f"{st.get('step', 0)}); its processes are stopped; logs in {work}") from None
+    finally:  # no private key outlives the run: the run's own certificates and the control secret
+        if mode == "local":
+            shutil.rmtree(work / "certs", ignore_errors=True)
+        Path(env["FLWR_HOME"], "control.secret").unlink(missing_ok=True)
     result = read_result(out)
     return replace(result, faults=(*result.faults, *restarted))
 

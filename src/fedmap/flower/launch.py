@@ -32,9 +32,14 @@ from fedmap._util import atomic_write_bytes, make_dir
 from fedmap.errors import FedmapError
 from fedmap.flower import require_flwr
 from fedmap.flower.settings import RunSettings
-from fedmap.flower.task import run_dir, run_status_path, truth_shape, write_status
+from fedmap.flower.task import rover_nodes_text, run_dir, run_status_path, truth_shape, write_status
 
 CONNECTION = "fedmap"  # the connection name written to $FLWR_HOME/config.toml
+#: The modules the launcher runs as processes: the SuperLink (Control API closed), the front and
+#: a rover's relay (:mod:`fedmap.flower.gate`), and fedmap's Control API calls.
+SUPERLINK_MODULE, GATE_MODULE, CONTROL_MODULE = "fedmap.flower.superlink", "fedmap.flower.gate", "fedmap.flower.control"
+#: Environment variable naming the launcher's control secret file (:mod:`fedmap.flower.control`).
+CONTROL_SECRET_ENV = "FEDMAP_CONTROL_SECRET_FILE"
 
 
 def app_dir() -> Path:
@@ -368,8 +373,12 @@ class Tls:
         return t
 
 
-def superlink_argv(*, host: str, port: int, tls: Tls | None, auth: bool, database: Path | None = None) -> list[str]:
-    argv = [flower_executable("flower-superlink"), "--host", host, "--port", str(port),
+def superlink_argv(*, port: int, tls: Tls | None, auth: bool, secret_file: Path,
+                   database: Path | None = None) -> list[str]:
+    """The SuperLink on 127.0.0.1:``port`` only, its Control API closed to requests without the
+    secret in ``secret_file`` (:mod:`fedmap.flower.superlink`); the rovers reach its Fleet API
+    through the front (:func:`front_argv`)."""
+    argv = [sys.executable, "-m", SUPERLINK_MODULE, str(secret_file), "--host", "127.0.0.1", "--port", str(port),
             "--disable-runtime-dependency-installation"]
     argv += (["--ssl-ca-certfile", str(tls.ca), "--ssl-certfile", str(tls.cert), "--ssl-keyfile", str(tls.key)]
              if tls else ["--insecure"])
@@ -378,6 +387,55 @@ def superlink_argv(*, host: str, port: int, tls: Tls | None, auth: bool, databas
     if database is not None:
         argv += ["--database", str(database)]
     return argv
+
+
+def front_argv(*, host: str, port: int, upstream_port: int, tls: Tls | None) -> list[str]:
+    """The front on ``host:port`` that forwards only the Fleet API to the SuperLink on
+    127.0.0.1:``upstream_port`` (:mod:`fedmap.flower.gate`); with ``tls``, mutual TLS: a
+    client must present a certificate of the base's CA (``roverK.crt``)."""
+    scheme = "https" if tls else "http"
+    argv = [sys.executable, "-m", GATE_MODULE, "front", "--host", host, "--port", str(port),
+            "--upstream", f"{scheme}://127.0.0.1:{upstream_port}"]
+    if tls:
+        argv += ["--certs", str(tls.ca.parent)]
+    return argv
+
+
+def new_secret(path: Path) -> Path:
+    """A fresh control secret in ``path``, readable by its owner only (made so, not chmod-ed after)."""
+    import secrets
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.unlink(missing_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(secrets.token_urlsafe(32) + "\n")
+    return path
+
+
+def start_superlink(procs: Processes, *, host: str, port: int, tls: Tls | None, auth: bool, env: dict, work: Path,
+                    database: Path | None = None) -> str:
+    """The base station's SuperLink (on loopback, Control API closed) and its front on
+    ``host:port`` (the Fleet API only; mutual TLS with ``tls``), both under ``procs`` and
+    listening when this returns; ``env`` gets the control secret's file
+    (:data:`fedmap.flower.control.SECRET_ENV`) and ``$FLWR_HOME`` a connection to the
+    SuperLink. Returns the address the rovers reach (``local:port``)."""
+    secret = new_secret(Path(env["FLWR_HOME"]) / "control.secret")
+    env[CONTROL_SECRET_ENV] = str(secret)
+    inner = free_port("127.0.0.1")
+    procs.start("superlink", superlink_argv(port=inner, tls=tls, auth=auth, secret_file=secret, database=database),
+                env=env, log=work / "superlink.log", die_with_parent=True)
+    procs.start("front", front_argv(host=host, port=port, upstream_port=inner, tls=tls), env=env,
+                log=work / "front.log", die_with_parent=True)
+
+    def alive() -> None:
+        procs.check_alive("superlink")
+        procs.check_alive("front")
+    local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
+    wait_for_port("127.0.0.1", inner, timeout=60, alive=alive)
+    wait_for_port(local, port, timeout=60, alive=alive)
+    write_connection(Path(env["FLWR_HOME"]), address=f"127.0.0.1:{inner}", root_cert=tls.ca if tls else None)
+    return f"{local}:{port}"
 
 
 def write_connection(flwr_home: Path, *, address: str, root_cert: Path | None) -> None:
@@ -401,25 +459,15 @@ def wait_for_port(host: str, port: int, *, timeout: float, alive: Callable[[], N
     raise FedmapError(f"nothing listens on {host}:{port} after {timeout:g} s")
 
 
-def flwr_cli(args: list[str], *, env: dict, timeout: float) -> str:
-    """Run ``flwr ARGS``; a failure becomes a one-line :class:`FedmapError`."""
-    try:
-        r = subprocess.run([flower_executable("flwr"), *args], env=env, capture_output=True, text=True, timeout=timeout,
-                           stdin=subprocess.DEVNULL)
-    except subprocess.TimeoutExpired:
-        raise FedmapError(f"flwr {args[0]} did not finish in {timeout:g} s") from None
-    if r.returncode != 0:
-        raise FedmapError(f"flwr {args[0]} failed (exit {r.returncode}): {_one_line(r.stdout + r.stderr)}")
-    return r.stdout
-
-
-def register_keys(keys: list[Path], *, env: dict, timeout: float = 60.0) -> None:
+def register_keys(keys: list[Path], *, env: dict, timeout: float = 60.0) -> dict[int, int]:
     """``flwr supernode register`` every rover key, all in one process
-    (:mod:`fedmap.flower.register`: a Flower CLI process is about a second of CPU, mostly
-    its start-up); a failure is one line naming the key."""
+    (:mod:`fedmap.flower.control`: a Flower CLI process is about a second of CPU, mostly
+    its start-up); a failure is one line naming the key. Returns ``{node id: rover}`` for
+    the keys named ``roverK.pub`` (:func:`rover_of_key`): the node that key authenticates is
+    rover K and no other."""
     if not keys:
-        return
-    argv = [sys.executable, "-m", "fedmap.flower.register", CONNECTION, *map(str, keys)]
+        return {}
+    argv = [sys.executable, "-m", CONTROL_MODULE, "register", CONNECTION, *map(str, keys)]
     try:
         r = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=timeout * len(keys),
                            stdin=subprocess.DEVNULL)
@@ -427,6 +475,20 @@ def register_keys(keys: list[Path], *, env: dict, timeout: float = 60.0) -> None
         raise FedmapError(f"flwr supernode register did not finish in {timeout * len(keys):g} s") from None
     if r.returncode != 0:
         raise FedmapError(f"flwr supernode register failed: {_one_line(r.stderr or r.stdout)}")
+    nodes: dict[int, int] = {}
+    for line in r.stdout.splitlines():
+        if line.startswith("{"):
+            got = json.loads(line)
+            k = rover_of_key(Path(got["key"]))
+            if k is not None:
+                nodes[int(got["node-id"])] = k
+    return nodes
+
+
+def rover_of_key(key: Path) -> int | None:
+    """The rover a key file is for, by its name (``roverK``, ``roverK.pub``, ``roverK.crt``), or None."""
+    m = re.fullmatch(r"rover(\d+)(\.pub|\.crt)?", Path(key).name)
+    return int(m.group(1)) if m else None
 
 
 def _one_line(text: str) -> str:
@@ -441,7 +503,13 @@ def submit_run(flwr_home: Path, run_config: dict, *, env: dict, timeout: float =
     the Flower App's folder; default :func:`app_dir`, the snapshot federation)."""
     overrides = flwr_home / "fedmap-run-config.toml"
     overrides.write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in run_config.items()))
-    flwr_cli(["run", str(app or app_dir()), CONNECTION, "--run-config", str(overrides)], env=env, timeout=timeout)
+    argv = [sys.executable, "-m", CONTROL_MODULE, "run", str(app or app_dir()), CONNECTION, str(overrides)]
+    try:
+        r = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        raise FedmapError(f"flwr run did not finish in {timeout:g} s") from None
+    if r.returncode != 0:
+        raise FedmapError(f"flwr run failed: {_one_line(r.stderr + r.stdout)}")
 
 
 def read_status(out: Path) -> dict | None:
@@ -492,15 +560,21 @@ def _check_host(h: str) -> str:
     return h
 
 
-def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365, overwrite: bool = False) -> list[Path]:
-    """A CA, a server certificate for ``hosts`` and one SuperNode auth key pair per rover.
+def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365, overwrite: bool = False,
+               keep_ca_key: bool = True) -> list[Path]:
+    """A CA, a server certificate for ``hosts`` and one key pair and client certificate per rover.
 
-    Files: ``ca.crt``, ``ca.key``, ``server.pem``, ``server.key`` (TLS; the SuperLink
-    uses the last three plus ``ca.crt``, rovers need only ``ca.crt``), and
-    ``rover{k}`` / ``rover{k}.pub`` (ECDSA P-384 in OpenSSH format, Flower's SuperNode
-    authentication: the rover keeps the private key, the base registers the ``.pub``).
-    A folder that already holds a CA is refused unless ``overwrite``: a new CA locks out every
-    base station and rover set up with the old one.
+    Files: ``ca.crt``, ``ca.key``, ``server.pem``, ``server.key`` (TLS; the base station
+    uses the last three plus ``ca.crt``, rovers need only ``ca.crt``; the server certificate
+    also names 127.0.0.1 and ``localhost``, where the base's own processes reach its
+    SuperLink), and per rover ``rover{k}`` / ``rover{k}.pub`` (ECDSA P-384 in OpenSSH format,
+    Flower's SuperNode authentication: the rover keeps the private key, the base registers
+    the ``.pub``) and ``rover{k}.crt``, the TLS client certificate of that key (common name
+    ``rover{k}``) that the base's front asks of every rover. Private keys are readable by
+    their owner only. ``keep_ca_key`` False: the CA's key is never written (nobody can make
+    another certificate of this CA: a run's own, throw-away CA). A folder that already holds
+    a CA is refused unless ``overwrite``: a new CA locks out every base station and rover set
+    up with the old one.
     """
     import datetime as dt
     import ipaddress
@@ -539,7 +613,7 @@ def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365,
           .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
           .sign(ca_key, hashes.SHA256()))
     sans: list[x509.GeneralName] = []
-    for h in hosts:
+    for h in dict.fromkeys([*hosts, "127.0.0.1", "localhost"]):
         try:
             sans.append(x509.IPAddress(ipaddress.ip_address(h)))
         except ValueError:
@@ -553,20 +627,28 @@ def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365,
            .sign(ca_key, hashes.SHA256()))
     files = {"ca.crt": ca.public_bytes(pem), "ca.key": key_bytes(ca_key), "server.pem": srv.public_bytes(pem),
              "server.key": key_bytes(srv_key)}
+    if not keep_ca_key:
+        del files["ca.key"]
     for k in range(rovers):
         rk = ec.generate_private_key(ec.SECP384R1())
         files[f"rover{k}"] = rk.private_bytes(pem, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption())
         files[f"rover{k}.pub"] = rk.public_key().public_bytes(serialization.Encoding.OpenSSH,
                                                               serialization.PublicFormat.OpenSSH) + b"\n"
+        client = (x509.CertificateBuilder().subject_name(name(f"rover{k}")).issuer_name(ca.subject)
+                  .public_key(rk.public_key()).serial_number(x509.random_serial_number())
+                  .not_valid_before(now - dt.timedelta(minutes=5)).not_valid_after(now + dt.timedelta(days=days))
+                  .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+                  .add_extension(x509.ExtendedKeyUsage([x509.oid.ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+                  .sign(ca_key, hashes.SHA256()))
+        files[f"rover{k}.crt"] = client.public_bytes(pem)
     if held:  # replacing a CA (overwrite): rover keys of the old one beyond the new count would still be registered
         for stale in out_dir.glob("rover*"):
-            if re.fullmatch(r"rover\d+(\.pub)?", stale.name) and stale.name not in files:
+            if re.fullmatch(r"rover\d+(\.pub|\.crt)?", stale.name) and stale.name not in files:
                 stale.unlink()
     written = []
     for fname, data in files.items():
-        atomic_write_bytes(out_dir / fname, data)
-        if fname.endswith(".key") or fname.startswith("rover") and not fname.endswith(".pub"):
-            os.chmod(out_dir / fname, 0o600)
+        private = fname.endswith(".key") or re.fullmatch(r"rover\d+", fname) is not None
+        atomic_write_bytes(out_dir / fname, data, mode=0o600 if private else None)
         written.append(out_dir / fname)
     return written
 
@@ -637,17 +719,17 @@ def _serve(procs: Processes, settings: RunSettings, run_config: dict, *, host: s
     """The base station's processes: SuperLink up, rover keys registered, run submitted, waited for."""
     work = run_dir(settings.out)
     flwr_home = Path(env["FLWR_HOME"])
-    procs.start("superlink", superlink_argv(host=host, port=port, tls=tls, auth=auth),
-                env=env, log=work / "superlink.log", die_with_parent=True)
-    alive = lambda: procs.check_alive("superlink")  # noqa: E731
-    local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
-    wait_for_port(local, port, timeout=60, alive=alive)
-    write_connection(flwr_home, address=f"{local}:{port}", root_cert=tls.ca if tls else None)
-    register_keys(keys, env=env)
+    start_superlink(procs, host=host, port=port, tls=tls, auth=auth, env=env, work=work)
+    nodes = register_keys(keys, env=env)
+    run_config = {**run_config, "rover-nodes": rover_nodes_text(nodes)}
     since = time.time() - 1
     submit_run(flwr_home, run_config, env=env)
     if on_ready is not None:
         on_ready()
+
+    def alive() -> None:
+        procs.check_alive("superlink")
+        procs.check_alive("front")
     b = settings.base
     budget = b.connect_timeout + settings.federation.rounds * (b.deadline + b.connect_timeout) + 600
     return wait_for_result(settings.out, since=since, timeout=budget, alive=alive, on_status=on_status)

@@ -26,6 +26,7 @@ from fedmap.errors import FedmapError
 from fedmap.flower.mission_task import CorruptMessage, LostState, damaged, node_feed, parse_mission_fault, rover_answer
 from fedmap.flower.polling import quick_pulls
 from fedmap.flower.records import from_record, to_record
+from fedmap.flower.task import KEY_ROVER, check_key
 from fedmap.mission.remote import Order
 
 app = ClientApp()
@@ -47,6 +48,10 @@ def _boot(context: Context) -> str:
 
 @app.query()
 def which(msg: Message, context: Context) -> Message:
+    try:
+        check_key(dict(context.node_config), msg.content["config"].get(KEY_ROVER))
+    except FedmapError as e:
+        return _error(msg, str(e), corrupt=False)
     return Message(RecordDict({"config": ConfigRecord({"rover": _rover(context), "boot": _boot(context)})}),
                    reply_to=msg)
 

@@ -34,7 +34,7 @@ from fedmap.flower.checkpoint import run_dir
 from fedmap.flower.mission_task import BaseJournal, MissionRun, mission_from_text, strategies_of, write_result
 from fedmap.flower.polling import exchange, quick_pulls
 from fedmap.flower.records import from_record, to_record
-from fedmap.flower.task import write_status
+from fedmap.flower.task import KEY_ROVER, parse_rover_nodes, write_status, wrong_key
 from fedmap.mission.remote import BaseNode, CorruptMessage, Report, check_deployable, pack_history, rounds
 from fedmap.mission.results import MissionResult
 
@@ -65,6 +65,8 @@ class _Team:
         self.grid, self.run, self.members = grid, run, members
         self.faults: list[dict] = []
         self.boot_of: dict[int, str] = {}  # rover -> the rover process its node last said it runs
+        self.key_rover = parse_rover_nodes(run.rover_nodes)  # node -> the rover its registered key is for
+        self.refused: set[int] = set()  # nodes refused: their key is another rover's
         self.node_of = self._connect()
 
     def _connect(self) -> dict[int, int]:
@@ -83,20 +85,32 @@ class _Team:
     def _which(self, nodes: set[int], wait: float | None = None) -> dict[int, int]:
         """Ask ``nodes`` which rover each is: ``{rover: node}`` (a node that does not answer is
         left out). Each answer's process (node config ``boot``) is noted in :attr:`boot_of`."""
+        nodes = set(nodes) - self.refused
         if not nodes:
             return {}
-        msgs = [Message(RecordDict({"config": ConfigRecord({})}), dst_node_id=n, message_type=MessageType.QUERY)
-                for n in sorted(nodes)]
+        msgs = [Message(RecordDict({"config": ConfigRecord({KEY_ROVER: self.key_rover.get(n, -1)})}), dst_node_id=n,
+                        message_type=MessageType.QUERY) for n in sorted(nodes)]
         sent = {m.object_id: n for m, n in zip(msgs, sorted(nodes))}
         found: dict[int, int] = {}
         wait = min(self.run.deadline, 30.0) if wait is None else wait
         for reply in exchange(self.grid, msgs, wait):
-            if reply.has_error() or "config" not in reply.content.config_records:
+            if reply.has_error():
+                continue
+            node = sent[reply.metadata.reply_to_message_id]
+            if "config" not in reply.content.config_records:
+                if "error" in reply.content.config_records:  # the rover refused to run as its key's number
+                    self.refused.add(node)
+                    self._fault("", -1, str(reply.content["error"]["reason"]))
                 continue
             k = int(reply.content["config"]["rover"])  # type: ignore[arg-type]
+            bound = self.key_rover.get(node)
+            if bound is not None and bound != k:  # a rover's key is its number
+                self.refused.add(node)
+                self._fault("", k, wrong_key(node, bound, k))
+                continue
             if not 0 <= k < self.members:
                 raise FedmapError(f"a node says it is rover {k}; the mission's team is 0..{self.members - 1}")
-            found[k] = sent[reply.metadata.reply_to_message_id]
+            found[k] = node
             self.boot_of[k] = str(reply.content["config"].get("boot", ""))
         return found
 

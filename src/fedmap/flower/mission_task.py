@@ -49,6 +49,7 @@ MISSION_RUN_DEFAULTS: dict[str, Any] = {
     "deadline": 600.0,  # seconds a sync round may take
     "rejoin": 300.0,  # seconds a rover that stopped answering may take to come back
     "resume": False,  # carry on from the base station's journal (a base that was killed)
+    "rover-nodes": "",  # each registered key's node and its rover, "node=rover,..." (the launcher's)
 }
 
 
@@ -64,6 +65,7 @@ class MissionRun:
     deadline: float
     rejoin: float
     resume: bool
+    rover_nodes: str = ""
 
     @classmethod
     def from_run_config(cls, cfg: dict) -> MissionRun:
@@ -75,7 +77,7 @@ class MissionRun:
             raise FedmapError("the mission run config has no mission (the resolved mission TOML)")
         names = tuple(s.strip() for s in str(c["strategies"]).split(",") if s.strip())
         return cls(str(c["mission"]), names, Path(str(c["out"])), int(c["frames"]), float(c["connect-timeout"]),
-                   float(c["deadline"]), float(c["rejoin"]), bool(c["resume"]))
+                   float(c["deadline"]), float(c["rejoin"]), bool(c["resume"]), str(c["rover-nodes"]))
 
 
 def mission_from_text(text: str, *, frames: int = 60) -> Mission:

@@ -37,11 +37,9 @@ from fedmap.flower.launch import (
     require_executables,
     sigterm_as_interrupt,
     socket_dir,
+    start_superlink,
     submit_run,
-    superlink_argv,
-    wait_for_port,
     wait_for_result,
-    write_connection,
 )
 from fedmap.flower.predictor_task import PredictorRun, read_rounds
 from fedmap.flower.rover import WarmChild, supernode_argv, write_shim
@@ -80,10 +78,7 @@ def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_con
     port = free_port()
     try:
         with socket_dir("fedmap-sites-", "site999.sock") as socks, Processes() as procs, sigterm_as_interrupt():
-            procs.start("superlink", superlink_argv(host="127.0.0.1", port=port, tls=None, auth=False), env=env,
-                        log=work / "superlink.log", die_with_parent=True)
-            wait_for_port("127.0.0.1", port, timeout=60, alive=lambda: procs.check_alive("superlink"))
-            write_connection(work / "flwr-home", address=f"127.0.0.1:{port}", root_cert=None)
+            start_superlink(procs, host="127.0.0.1", port=port, tls=None, auth=False, env=env, work=work)
             site_env = {**env, POLL_ENV: str(LOCAL_POLL), SUPEREXEC_POLL_ENV: str(LOCAL_POLL)}
             nodes = []
             for k, f in enumerate(files):
@@ -107,6 +102,7 @@ def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_con
 
             def alive() -> None:
                 procs.check_alive("superlink")
+                procs.check_alive("front")
                 for k in range(len(files)):
                     procs.check_alive(f"site{k}")
                     procs.check_alive(f"site{k}-clientapps")
@@ -118,6 +114,8 @@ def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_con
         write_status(out, "interrupted", message="interrupted")
         raise FedmapError(f"federated fine-tuning interrupted (round {st.get('round', 0)}); its processes are "
                           f"stopped; logs in {work}") from None
+    finally:
+        Path(env["FLWR_HOME"], "control.secret").unlink(missing_ok=True)
     return read_rounds(out, rounds)
 
 

@@ -43,7 +43,9 @@ from fedmap.errors import FedmapError
 from fedmap.flower import HEARTBEAT_ENV, HEARTBEAT_RANGE, POLL_ENV, SUPEREXEC_POLL_ENV
 from fedmap.flower import warm as warm_server
 from fedmap.flower.faults import parse_fault
+from fedmap.flower.gate import local_certificate
 from fedmap.flower.launch import (
+    GATE_MODULE,
     SUPERNODE_EXES,
     Proc,
     Processes,
@@ -56,6 +58,7 @@ from fedmap.flower.launch import (
     set_death_signal,
     sigterm_as_interrupt,
     socket_dir,
+    wait_for_port,
 )
 from fedmap.flower.mission_task import node_feed, parse_mission_fault
 from fedmap.flower.task import load_local_map
@@ -324,20 +327,28 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
     require_executables(SUPERNODE_EXES)
     root_cert = Path(root_cert).resolve() if root_cert is not None else None
     auth_key = Path(auth_key).resolve() if auth_key is not None else None
+    client_cert = None
+    if root_cert is not None and auth_key is not None:  # the base's front takes rovers with a certificate of its CA
+        client_cert = rover_certificate(auth_key, pid)
     with owned_temp_dir("fedmap-rover-flwr-") as tmp, \
             socket_dir("fedmap-rover-", "clientapp.sock") as socks, Processes() as procs, sigterm_as_interrupt():
-        done = Path(tmp) / "done"
+        done, refused = Path(tmp) / "done", Path(tmp) / "refused"
         if node_config.get("mission") and not node_config.get("state-dir"):  # kept only while this rover runs
             node_config = {**node_config, "state-dir": str(Path(tmp) / "state")}
         if node_config.get("mission"):  # this rover process, told apart from the one before a restart
             node_config = {**node_config, "boot": f"{os.getpid()}-{time.time_ns()}"}
-        cfg = {**node_config, "done-file": str(done)}
-
-        def argv_for(local: int) -> list[str]:
-            return supernode_argv(superlink=superlink, port=local, node_config=cfg, root_cert=root_cert,
-                                  auth_key=auth_key, max_wait=max_wait)
+        cfg = {**node_config, "done-file": str(done), "refused-file": str(refused)}
         log = Path(log) if log is not None else Path(tmp) / "supernode.log"
         env = flower_env(Path(flwr_home) if flwr_home else Path(tmp) / "flwr-home")
+        link, link_cert = superlink, root_cert  # where the SuperNode connects, and how
+        if client_cert is not None:  # through the relay, which presents the rover's certificate
+            assert auth_key is not None and root_cert is not None
+            link, link_cert = start_relay(procs, superlink, root_cert=root_cert, cert=client_cert, key=auth_key,
+                                          folder=Path(tmp), env=env, log=log)
+
+        def argv_for(local: int) -> list[str]:
+            return supernode_argv(superlink=link, port=local, node_config=cfg, root_cert=link_cert,
+                                  auth_key=auth_key, max_wait=max_wait)
         if poll is not None:  # how often the SuperNode asks for a message, and its SuperExec for a task
             env[POLL_ENV] = env[SUPEREXEC_POLL_ENV] = str(poll)
         if heartbeat is not None:
@@ -356,11 +367,63 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
             return procs.start("supernode", argv, env=env, log=log, new_session=True, die_with_parent=True)
         try:
             return _supervise(procs, pid, superlink, argv_for, start, port=port, done=done, log=log,
-                              tls=root_cert is not None, max_wait=max_wait, self_registered=auth_key is None,
-                              rejoin=rejoin)
+                              tls=link_cert is not None, max_wait=max_wait, self_registered=auth_key is None,
+                              rejoin=rejoin, probe=link, refused=refused)
         finally:
             if server is not None:
                 _reap(server)
+
+
+def rover_certificate(auth_key: Path, pid) -> Path:
+    """The rover's TLS client certificate, ``<auth key>.crt`` (``fedmap certs`` makes
+    ``roverK.crt`` beside ``roverK``), checked to be for this rover's number; else one line."""
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+
+    cert = Path(f"{auth_key}.crt")
+    if not cert.is_file():
+        raise FedmapError(f"rover {pid}: no client certificate {cert} beside --auth-key: the base station admits only "
+                          f"rovers with one; make them with `fedmap certs DIR --host BASE_HOST --rovers N --force` and "
+                          f"give every rover its new files")
+    try:
+        names = x509.load_pem_x509_certificate(cert.read_bytes()).subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    except ValueError as e:
+        raise FedmapError(f"rover {pid}: {cert} is not a PEM certificate ({e})") from None
+    cn = str(names[0].value) if names else ""
+    if cn.startswith("rover") and cn != f"rover{pid}":
+        raise FedmapError(f"rover {pid}: {cert} is {cn}'s certificate (a rover's key is its number): start it with "
+                          f"--partition-id {cn[5:]}, or with its own key (--auth-key DIR/rover{pid})")
+    return cert
+
+
+def start_relay(procs: Processes, superlink: str, *, root_cert: Path, cert: Path, key: Path, folder: Path, env: dict,
+                log: Path) -> tuple[str, Path]:
+    """The rover's relay (:func:`fedmap.flower.gate.serve_relay`) under ``procs``: it listens on
+    127.0.0.1 and carries the SuperNode's connections to ``superlink`` over mutual TLS, with
+    ``cert`` and the private key ``key`` (OpenSSH, as Flower's SuperNode reads it; written
+    as PEM into ``folder``, readable by its owner only). The SuperNode reaches the relay over
+    TLS too (Flower authenticates a SuperNode only over TLS), with a throw-away certificate
+    (:func:`~fedmap.flower.gate.local_certificate`). Returns the relay's address and that
+    certificate (the SuperNode's root certificate)."""
+    from cryptography.hazmat.primitives import serialization
+
+    try:
+        private = serialization.load_ssh_private_key(Path(key).read_bytes(), password=None)
+    except (ValueError, TypeError) as e:
+        raise FedmapError(f"no usable private key in {key} ({e})") from None
+    pem = folder / "tls.key"
+    fd = os.open(pem, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "wb") as fh:
+        fh.write(private.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                       serialization.NoEncryption()))
+    local_cert, local_key = local_certificate(folder)
+    port = free_port()
+    procs.start("relay", [sys.executable, "-m", GATE_MODULE, "relay", "--port", str(port), "--target", superlink,
+                          "--root-cert", str(root_cert), "--cert", str(cert), "--key", str(pem),
+                          "--local-cert", str(local_cert), "--local-key", str(local_key)],
+                env=env, log=log, die_with_parent=True)
+    wait_for_port("127.0.0.1", port, timeout=30, alive=lambda: procs.check_alive("relay"))
+    return f"127.0.0.1:{port}", local_cert
 
 
 def fork_warm_server(sock: str, node_config: dict, *, env: dict, log: Path) -> int:
@@ -411,20 +474,23 @@ def _reap(pid: int) -> None:
 
 def _supervise(procs: Processes, pid, superlink: str, argv_for: Callable[[int], list[str]],
                start: Callable[[list[str]], Proc], *, port: int, log: Path, done: Path, tls: bool, max_wait: float,
-               self_registered: bool, rejoin: bool = False) -> int:
+               self_registered: bool, rejoin: bool = False, probe: str | None = None,
+               refused: Path | None = None) -> int:
     """Run SuperNodes until the run ends for this rover (0) or a one-line failure.
 
     ``argv_for(p)``: a SuperNode's command with its local API on port ``p``: ``port``, or
     (``port`` 0) a free one, picked again for the next SuperNode when this one's was taken.
     ``start(argv)``: starts it, as ``procs``' ``"supernode"``, logging to ``log``."""
-    watch = _Watch(superlink, tls=tls, max_wait=max_wait, self_registered=self_registered)
+    watch = _Watch(probe or superlink, tls=tls, max_wait=max_wait, self_registered=self_registered)
     watch.ever_reached = rejoin
     restarts = 0  # in a row, without the SuperNode reaching its SuperLink in between
     local = port or free_port()
     for total in range(1, ROVER_RESTARTS_TOTAL + 2):
-        text = watch.run(procs, start, argv_for(local), log=log, done=done)
+        text = watch.run(procs, start, argv_for(local), log=log, done=done, refused=refused)
         if done.exists():
             return 0
+        if refused is not None and refused.exists():  # the base registered this rover's key as another rover's
+            raise FedmapError(refused.read_text(errors="replace").strip())
         if port_taken(text):
             if port:
                 raise FedmapError(f"rover {pid}: port {port} (--port, the SuperNode's local API) is in use on this "
@@ -452,7 +518,7 @@ class _Watch:
         self.ever_reached = False  # ... or any of this rover's SuperNodes
 
     def run(self, procs: Processes, starter: Callable[[list[str]], Proc], argv: list[str], *, log: Path,
-            done: Path) -> str:
+            done: Path, refused: Path | None = None) -> str:
         """Start a SuperNode (``starter(argv)``, in its own process group: stopping it stops the
         processes it started too, a cold SuperExec and ClientApps, which would otherwise outlive
         it briefly and write into the rover's temporary Flower home, or a warm rover's
@@ -473,6 +539,8 @@ class _Watch:
                 if p.poll() is None:
                     procs.stop("supernode", grace=2.0, sig=signal.SIGKILL if sent else signal.SIGTERM)
                 return text
+            if refused is not None and refused.exists():
+                break
             text = _read_from(log, start)
             now = time.monotonic()
             # every exchange the SuperNode logs is an answer from the SuperLink, not only its first:

@@ -20,7 +20,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import replace
-from logging import INFO
+from logging import INFO, WARNING
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +46,16 @@ from fedmap.flower.checkpoint import BaseState, read_checkpoint
 from fedmap.flower.polling import REPLY_LOST, exchange, quick_pulls
 from fedmap.flower.records import check_flower_count, from_record, to_record
 from fedmap.flower.settings import RunSettings
-from fedmap.flower.task import initial_weights, save_checkpoint, truth_shape, write_base_outputs, write_status
+from fedmap.flower.task import (
+    KEY_ROVER,
+    initial_weights,
+    parse_rover_nodes,
+    save_checkpoint,
+    truth_shape,
+    write_base_outputs,
+    write_status,
+    wrong_key,
+)
 from fedmap.nets.model import Weights
 
 app = ServerApp()
@@ -100,6 +109,7 @@ class FedmapStrategy(Strategy):
         self.shape: tuple[int, int] | None = truth_shape(settings)
         self.history: list[RoundRecord] = []
         self.node_partition: dict[int, int] = {}  # Flower node id -> rover index
+        self.key_rover = parse_rover_nodes(settings.base.rover_nodes)  # node id -> the rover its registered key is for
         self.node_version: dict[int, str] = {}  # Flower node id -> version of the model it holds
         self._sleep = sleep
         self._t0 = 0.0
@@ -129,7 +139,7 @@ class FedmapStrategy(Strategy):
             arrays = to_record(d.payload)
             self._down[n] = (d, check_flower_count(arrays, len(d.payload)))
             config = ConfigRecord({"server-round": server_round, "downlink-kind": d.kind,
-                                   "reference-version": d.reference})
+                                   "reference-version": d.reference, KEY_ROVER: self.key_rover.get(n, -1)})
             msgs.append(Message(RecordDict({"downlink": arrays, "config": config}), dst_node_id=n, message_type=kind))
         # Flower's message id is the object id (set when pushed); error replies made by the
         # SuperLink (e.g. "node unavailable") come from the SuperLink's own node id, so the
@@ -199,6 +209,11 @@ class FedmapStrategy(Strategy):
                 error: Any = msg.content["error"]
                 raise FedmapError(f"a rover (node {node}) failed before training: {error['reason']}")
             pid = int(met["partition-id"])
+            bound = self.key_rover.get(node)
+            if bound is not None and bound != pid:  # a rover's key is its number: refused, whatever it sent
+                node_errors[str(node)] = wrong_key(node, bound, pid)
+                log(WARNING, "fedmap: %s", node_errors[str(node)])
+                continue
             self.node_partition[node] = pid
             if "state" in msg.content.config_records:
                 self.node_version[node] = str(msg.content["state"]["held-version"])

@@ -51,6 +51,8 @@ class BaseStation:
     size: int = _schema.setting(DEFAULT_BUILTIN_SIZE, help="Side of the generated ground truth, cells")
     resume: str = _schema.setting("", help="A checkpoint folder this run continues from ('': none)")
     keep_checkpoints: int = _schema.setting(3, help="Per-round checkpoints kept in OUT.run/")
+    rover_nodes: str = _schema.setting("", help="Each registered key's node and its rover, 'node=rover,...' (set by "
+                                       "the launcher: a node claiming another rover's number is refused; '': none)")
 
     def __post_init__(self) -> None:
         if self.keep_checkpoints < 1:

@@ -112,6 +112,46 @@ def save_received(settings: RunSettings, local: GridMap, held: Weights, out: Pat
 # --------------------------------------------------------------------------- the base station
 
 
+#: The config key of a base's message that names the rover a node's registered key is for (-1: none).
+KEY_ROVER = "key-rover"
+
+
+def wrong_key(node: int, key_rover: int, claimed: int) -> str:
+    """The base's line for a node whose key is rover ``key_rover``'s and that says it is ``claimed``."""
+    return (f"node {node} holds rover {key_rover}'s registered key but says it is rover {claimed}: refused "
+            f"(a rover's key is its number)")
+
+
+def rover_nodes_text(nodes: dict[int, int]) -> str:
+    """``{node: rover}`` as the run config carries it: ``"node=rover,..."`` (\"\": no binding)."""
+    return ",".join(f"{n}={k}" for n, k in sorted(nodes.items()))
+
+
+def parse_rover_nodes(text: str) -> dict[int, int]:
+    """The inverse of :func:`rover_nodes_text`."""
+    out: dict[int, int] = {}
+    for part in filter(None, str(text).split(",")):
+        n, _, k = part.partition("=")
+        out[int(n)] = int(k)
+    return out
+
+
+def check_key(node_config: dict, key_rover: object) -> None:
+    """A rover told by the base that its registered key is rover ``key_rover``'s (-1 or
+    None: the base binds no number to it) refuses to run as any other: one line, also
+    written to the node config's ``refused-file`` (``fedmap rover`` ends with it)."""
+    pid = node_config.get("partition-id")
+    if key_rover is None or isinstance(key_rover, bool) or not isinstance(key_rover, int) or key_rover < 0 \
+            or key_rover == pid:
+        return
+    line = (f"rover {pid}: the base station registered this rover's key as rover {key_rover}'s: start it with "
+            f"--partition-id {key_rover}, or with its own key (--auth-key DIR/rover{pid})")
+    refused = node_config.get("refused-file")
+    if refused:
+        atomic_write_bytes(Path(str(refused)), line.encode())
+    raise FedmapError(line)
+
+
 def run_status_path(out: Path) -> Path:
     """``<out>.run/status.json``: ``{"state": "running" | "done" | "failed", ...}``."""
     return run_dir(out) / "status.json"
