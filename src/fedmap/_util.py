@@ -305,3 +305,42 @@ def check_keys(data: dict, allowed: Iterable[str], where: str) -> None:
     for key in data:
         if key not in allowed:
             raise FedmapError(f"unknown key {key!r} in {where}{suggest(key, allowed)}")
+
+
+#: Bytes a bounded decompression produces per read (:func:`inflate_zstd`, :func:`inflate_zlib`).
+_INFLATE_CHUNK = 1 << 20
+
+
+def inflate_zstd(data: bytes | memoryview, limit: int) -> bytes:
+    """The zstd frame(s) in ``data`` decoded, refused with :class:`ValueError` as soon as they
+    would decode to more than ``limit`` bytes: memory grows with what is decoded, chunk by
+    chunk, never with what a frame's header claims (a bomb of 10 kB can claim, and decode
+    to, a GB). The caller knows ``limit`` from what its own header announces, and bounds it."""
+    import io
+
+    import zstandard
+
+    out = bytearray()
+    try:
+        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(bytes(data)), read_across_frames=True) as r:
+            while chunk := r.read(_INFLATE_CHUNK):
+                out += chunk
+                if len(out) > limit:
+                    raise ValueError(f"it decodes to more than the {limit} bytes announced")
+    except zstandard.ZstdError as e:
+        raise ValueError(f"zstd: {e}") from None
+    return bytes(out)
+
+
+def inflate_zlib(data: bytes | memoryview, limit: int) -> bytes:
+    """:func:`inflate_zstd` for a zlib stream."""
+    import zlib
+
+    d = zlib.decompressobj()
+    try:
+        out = bytearray(d.decompress(bytes(data), limit + 1))
+    except zlib.error as e:
+        raise ValueError(f"zlib: {e}") from None
+    if len(out) > limit:
+        raise ValueError(f"it decodes to more than the {limit} bytes announced")
+    return bytes(out)

@@ -102,7 +102,7 @@ from dataclasses import dataclass
 import numpy as np
 import zstandard
 
-from fedmap._util import varint
+from fedmap._util import inflate_zstd, varint
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.nets.model import Weights
 
@@ -727,14 +727,14 @@ def decode(data: bytes, reference: Weights | None = None) -> Weights:
                 size = zstandard.frame_content_size(content)
                 if size < 0 or size > _MAX_CONTENT:
                     raise _Malformed("zstd frame without a plausible content size")
-                # streamed: memory grows with what the frame really decodes to, not with the size
-                # its header claims (a damaged header claiming 1.5 GB made one-shot decompress
-                # allocate it all before failing)
-                inflated = zstandard.ZstdDecompressor().decompressobj().decompress(bytes(content))
+                # streamed and bounded by the size its header claims: memory grows with what the
+                # frame decodes to, and stops there (a damaged header claiming 1.5 GB made one-shot
+                # decompress allocate it all before failing; a bomb decodes to far more than it claims)
+                inflated = inflate_zstd(content, size)
                 if len(inflated) != size:
                     raise _Malformed(f"zstd frame decoded to {len(inflated)} bytes, its header says {size}")
                 content = memoryview(inflated)
-            except zstandard.ZstdError as e:
+            except (zstandard.ZstdError, ValueError) as e:
                 raise _Malformed(f"zstd: {e}") from None
         # a scale that overflows decodes to inf, as a NaN sent in fp32 decodes to NaN: the
         # receiver's finiteness check (runner.base_step, rover_step) drops such an update

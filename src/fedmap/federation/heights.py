@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import zstandard
 
+from fedmap._util import inflate_zstd
 from fedmap.errors import FedmapError, RejectedUpdate
 
 KINDS: tuple[str, ...] = ("lossless", "lerc", "jxl", "j2k")
@@ -48,8 +49,8 @@ def _zstd(data: bytes) -> bytes:
 
 def _unzstd(data: bytes, expected: int, what: str) -> bytes:
     try:
-        out = zstandard.ZstdDecompressor().decompressobj().decompress(data)
-    except zstandard.ZstdError as exc:
+        out = inflate_zstd(data, expected)
+    except ValueError as exc:
         raise RejectedUpdate(f"height payload: damaged {what} ({exc})") from exc
     if len(out) != expected:
         raise RejectedUpdate(f"height payload: the {what} holds {len(out)} bytes, expected {expected}")

@@ -66,7 +66,7 @@ def main(argv: list[str]) -> int:
 
         register = sys.modules["flwr.cli.supernode.register"]
         said: list = []
-        register.print_json_to_stdout = said.append  # Flower prints the JSON answer past any redirection
+        register.print_json_to_stdout = said.append  # type: ignore[attr-defined]  # Flower prints the JSON answer past any redirection
         for key in keys:
             said.clear()
             code, text = _flwr(["supernode", "register", key, connection, "--format", "json"])

@@ -32,6 +32,7 @@ import ssl
 import sys
 from collections.abc import Awaitable, Callable
 from pathlib import Path
+from typing import Any
 
 #: The header that carries the launcher's secret to the SuperLink's Control API.
 CONTROL_HEADER = "x-fedmap-control"
@@ -91,7 +92,7 @@ class FleetFront:
 
     def __init__(self, upstream: str, *, upstream_ca: str | None = None, max_body: int = MAX_BODY) -> None:
         self.upstream, self.upstream_ca, self.max_body = upstream.rstrip("/"), upstream_ca, max_body
-        self.client = None
+        self.client: Any = None  # an httpx.AsyncClient, made in the server's event loop
 
     def _client(self):
         import httpx

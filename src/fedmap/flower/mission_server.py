@@ -61,8 +61,8 @@ ORDER_COPIES = 1
 class _Team:
     """The rovers' nodes on the grid, and the sending of orders to them."""
 
-    def __init__(self, grid: Grid, run: MissionRun, members: int) -> None:
-        self.grid, self.run, self.members = grid, run, members
+    def __init__(self, grid: Grid, run: MissionRun, members: int, shape: tuple[int, int] | None = None) -> None:
+        self.grid, self.run, self.members, self.shape = grid, run, members, shape
         self.faults: list[dict] = []
         self.boot_of: dict[int, str] = {}  # rover -> the rover process its node last said it runs
         self.key_rover = parse_rover_nodes(run.rover_nodes)  # node -> the rover its registered key is for
@@ -185,7 +185,7 @@ class _Team:
                     continue
                 raw = from_record(reply.content.array_records.get("report"))
                 try:
-                    Report.from_bytes(raw)
+                    Report.from_bytes(raw, shape=self.shape)
                 except CorruptMessage as e:
                     again[k] = todo[k]
                     damaged += 1
@@ -243,7 +243,7 @@ def run_mission_base(grid: Grid, run: MissionRun) -> MissionResult:
     check_deployable(mission.config, names)
     journal = BaseJournal(run.out, run.mission, resume=run.resume)
     c = mission.config
-    team = _Team(grid, run, c.rovers + c.helicopters)
+    team = _Team(grid, run, c.rovers + c.helicopters, tuple(mission.truth.shape))  # type: ignore[arg-type]
     runs = {}
     for name in names:
         t1 = time.perf_counter()

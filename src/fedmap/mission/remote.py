@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 import zstandard
 
+from fedmap._util import inflate_zstd
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN
 from fedmap.maps.planning import astar
@@ -63,6 +64,12 @@ _BLOB = struct.Struct("<I")
 #: Strategies a mission on processes runs: their rover ends hold only their own rover (``central``
 #: pools every rover's observations at once: a reference, not a protocol).
 DEPLOYABLE = ("none", "raw", "predictive", "rosgrid", "rosgrid-zlib", "paper", "fedmap")
+
+
+#: The largest map side a report's maps may claim, and the most bytes they may decode to (a
+#: receiver that knows its mission's map checks the shape too).
+MAX_SIDE = 8192
+MAX_REPORT_MAPS = 256 << 20
 
 
 class CorruptMessage(FedmapError):
@@ -141,9 +148,13 @@ class Order:
         h, blobs = unpack_frame(raw)
         if h.get("kind") != "order":
             raise CorruptMessage(f"expected an order, got a {h.get('kind')!r} message")
-        events = [("down", e[1], blobs[e[2]]) if e[0] == "down" else ("ack", e[1], bool(e[2])) for e in h["events"]]
-        return cls(h["strategy"], h["rover"], h["round"], h["step"], h["finish"], events, h.get("mission", ""),
-                   h.get("since", 0))
+        try:
+            events = [("down", e[1], blobs[e[2]]) if e[0] == "down" else ("ack", e[1], bool(e[2]))
+                      for e in h["events"]]
+            return cls(h["strategy"], h["rover"], h["round"], h["step"], h["finish"], events, h.get("mission", ""),
+                       h.get("since", 0))
+        except (KeyError, TypeError, IndexError, ValueError) as e:  # a header of the wrong layout
+            raise CorruptMessage(f"corrupted message: its header is not an order's ({type(e).__name__}: {e})") from None
 
 
 @dataclass
@@ -190,17 +201,22 @@ class Report:
         return pack_frame(head, [payload, _pack_maps(self.states)])
 
     @classmethod
-    def from_bytes(cls, raw: bytes) -> Report:
+    def from_bytes(cls, raw: bytes, *, shape: tuple[int, int] | None = None) -> Report:
+        """The report in ``raw``; :class:`CorruptMessage` for anything that is not one, or
+        whose maps are not of ``shape`` (the mission's, where the receiver knows it)."""
         h, blobs = unpack_frame(raw)
         if h.get("kind") != "report" or len(blobs) != 2:
             raise CorruptMessage(f"expected a report, got a {h.get('kind')!r} message")
-        up = None if h["uplink"] is None else Outgoing(blobs[0] if h["uplink"][1] else None, h["uplink"][0])
-        maps = _unpack_maps(blobs[1], len(h["states"]))
-        states = [StepState(s[0], b, v, o, _cell(s[1]), _cell(s[2]), s[3], s[4])  # type: ignore[arg-type]
-                  for s, (b, v, o) in zip(h["states"], maps)]
-        return cls(h["strategy"], h["rover"], h["step"], _cell(h["pos"]), _cell(h["target"]),  # type: ignore[arg-type]
-                   h["reached"], up, [bool(a) for a in h["answers"]], h["version"], h["journal"], states,
-                   [(int(c[0]), int(c[1])) for c in h["trail"]])
+        try:
+            up = None if h["uplink"] is None else Outgoing(blobs[0] if h["uplink"][1] else None, h["uplink"][0])
+            maps = _unpack_maps(blobs[1], len(h["states"]), shape)
+            states = [StepState(s[0], b, v, o, _cell(s[1]), _cell(s[2]), s[3], s[4])  # type: ignore[arg-type]
+                      for s, (b, v, o) in zip(h["states"], maps)]
+            return cls(h["strategy"], h["rover"], h["step"], _cell(h["pos"]), _cell(h["target"]),  # type: ignore[arg-type]
+                       h["reached"], up, [bool(a) for a in h["answers"]], h["version"], h["journal"], states,
+                       [(int(c[0]), int(c[1])) for c in h["trail"]])
+        except (KeyError, TypeError, IndexError, ValueError) as e:  # a header of the wrong layout
+            raise CorruptMessage(f"corrupted message: its header is not a report's ({type(e).__name__}: {e})") from None
 
 
 def _cell(c: list | None) -> Cell | None:
@@ -218,13 +234,26 @@ def _pack_maps(states: list[StepState]) -> bytes:
     return struct.pack("<II", h, w) + zstandard.ZstdCompressor(level=3).compress(delta.tobytes())
 
 
-def _unpack_maps(raw: bytes, n: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _unpack_maps(raw: bytes, n: int, shape: tuple[int, int] | None = None) -> list[tuple[np.ndarray, np.ndarray,
+                                                                                           np.ndarray]]:
+    """The maps of :func:`_pack_maps`: ``n`` steps of ``shape`` (when the receiver knows its
+    mission's; else any side up to :data:`MAX_SIDE`), at most :data:`MAX_REPORT_MAPS` bytes,
+    checked before anything is decoded and while it is."""
     if n == 0:
         return []
     try:
         h, w = struct.unpack_from("<II", raw)
-        delta = np.frombuffer(zstandard.ZstdDecompressor().decompress(raw[8:]), dtype=np.uint8).reshape(n, 3, h, w)
-    except (struct.error, zstandard.ZstdError, ValueError) as e:
+    except struct.error as e:
+        raise CorruptMessage(f"corrupted message: its maps do not decode ({e})") from None
+    if shape is not None and (h, w) != tuple(shape):
+        raise CorruptMessage(f"corrupted message: its maps are {h}x{w}, the mission's are {shape[0]}x{shape[1]}")
+    size = n * 3 * h * w
+    if not (0 < h <= MAX_SIDE and 0 < w <= MAX_SIDE) or size > MAX_REPORT_MAPS:
+        raise CorruptMessage(f"refused message: it announces {n} steps of {h}x{w} maps ({size} bytes), more than "
+                             f"a report may carry ({MAX_REPORT_MAPS} bytes, sides up to {MAX_SIDE})")
+    try:
+        delta = np.frombuffer(inflate_zstd(raw[8:], size), dtype=np.uint8).reshape(n, 3, h, w)
+    except ValueError as e:
         raise CorruptMessage(f"corrupted message: its maps do not decode ({e})") from None
     stack = np.bitwise_xor.accumulate(delta, axis=0)
     return [(s[0], s[1], s[2].astype(bool)) for s in stack]
@@ -421,6 +450,7 @@ class BaseNode:
                  on_snapshot: Callable | None = None, mission_id: str = "") -> None:
         check_deployable(mission.config, [name])
         self.name, self.config, self.mission_id = name, mission.config, mission_id
+        self.shape: tuple[int, int] = tuple(mission.truth.shape)  # type: ignore[assignment]  # the reports' maps
         self.stand_ins: list[RemoteRover] = []
         self.trails: list[list[Cell]] = []  # every member's cells driven, as reported (its start first)
         self.run = mission.new_run(name, ends=self._ends, on_snapshot=on_snapshot)
@@ -532,7 +562,7 @@ def rounds(base: BaseNode, send: Transport) -> Iterator[int]:
     orders = base.first_orders()
     while orders:
         raw = send({k: o.to_bytes() for k, o in orders.items()})
-        reports = {k: Report.from_bytes(r) for k, r in raw.items()}
+        reports = {k: Report.from_bytes(r, shape=base.shape) for k, r in raw.items()}
         step = next(iter(orders.values())).step
         orders = base.take(reports, orders)
         yield step

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
+from fedmap._util import inflate_zlib
 from fedmap.maps.grid import UNKNOWN
 from fedmap.maps.ros import classes_from_occupancy
 from fedmap.maps.rosbag import OCCUPANCY_GRID, OCCUPANCY_VALUES, occupancy_message
@@ -45,6 +46,8 @@ from fedmap.mission.protocol import BaseEnd, Cell, Journal, Outgoing, RoverEnd, 
 
 MSGTYPE = OCCUPANCY_GRID
 FRAME = "map"
+#: Bytes of an OccupancyGrid's CDR besides its cells (header, frame id, info, lengths): a generous bound.
+_CDR_HEAD = 1024
 #: zlib's level in ``rosgrid-zlib`` (9: the smallest output zlib gives; level 6, its default,
 #: gave 5-6 % more bytes on the default, Gale and Hadley missions).
 ZLIB_LEVEL = 9
@@ -88,7 +91,8 @@ class GridCodec:
     def decode(self, body: bytes) -> tuple[np.ndarray, int] | None:
         """The classes and stamp of a grid, or None when it is not a grid of this mission's frame."""
         try:
-            msg: Any = _TYPESTORE.deserialize_cdr(body if self.level is None else zlib.decompress(body), MSGTYPE)
+            cdr = body if self.level is None else inflate_zlib(body, self.shape[0] * self.shape[1] + _CDR_HEAD)
+            msg: Any = _TYPESTORE.deserialize_cdr(cdr, MSGTYPE)
         except Exception:  # a body that is not a grid: refused, whatever rosbags or zlib raised
             return None
         if ((int(msg.info.height), int(msg.info.width)) != self.shape or msg.header.frame_id != FRAME

@@ -22,10 +22,15 @@ import torch
 import zstandard
 from torch import nn
 
+from fedmap._util import inflate_zstd
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.nets.model import FourierFeatures
 
 _LEN = struct.Struct("<I")
+
+
+#: The widest and deepest network, and the largest map side, a height-field payload may claim.
+_MAX_WIDTH, _MAX_LAYERS, _MAX_SIDE = 1024, 16, 8192
 
 
 @dataclass(frozen=True)
@@ -138,11 +143,20 @@ def decode_heightnet(payload: bytes) -> np.ndarray:
     try:
         (n,) = _LEN.unpack_from(payload)
         meta = json.loads(payload[_LEN.size:_LEN.size + n])
-        net = HeightNet(HeightNetConfig(**meta["config"]))
-        raw = zstandard.ZstdDecompressor().decompressobj().decompress(payload[_LEN.size + n:])
+        config = HeightNetConfig(**meta["config"])
         h, w = (int(v) for v in meta["shape"])
-    except (struct.error, ValueError, KeyError, TypeError, zstandard.ZstdError) as exc:
+    except (struct.error, ValueError, KeyError, TypeError, FedmapError) as exc:
         raise RejectedUpdate(f"height-field payload: damaged ({type(exc).__name__})") from exc
+    # what a payload claims is checked before anything of that size is made
+    if max(config.mapping, config.hidden) > _MAX_WIDTH or config.layers > _MAX_LAYERS or not (
+            0 < h <= _MAX_SIDE and 0 < w <= _MAX_SIDE):
+        raise RejectedUpdate(f"height-field payload: it claims a {config} network for a {h}x{w} map, beyond the "
+                             f"limits (width {_MAX_WIDTH}, {_MAX_LAYERS} layers, sides {_MAX_SIDE})")
+    net = HeightNet(config)
+    try:
+        raw = inflate_zstd(payload[_LEN.size + n:], sum(4 + p.numel() for p in net.mlp.parameters()))
+    except ValueError as exc:
+        raise RejectedUpdate(f"height-field payload: damaged weights ({exc})") from exc
     off = 0
     with torch.no_grad():
         for p in net.mlp.parameters():
