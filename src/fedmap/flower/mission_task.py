@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import pickle
 import shutil
 import tomllib
@@ -100,9 +101,33 @@ def strategies_of(run: MissionRun, mission: Mission) -> tuple[str, ...]:
 # -- a rover between messages ----------------------------------------------------------------
 
 
-def state_file(state_dir: Path, order: Order) -> Path:
-    """Where a rover keeps its node of ``order``'s mission and strategy between messages."""
-    return Path(state_dir) / f"{order.mission or 'mission'}-{order.strategy}.pickle"
+def state_file(state_dir: Path, order: Order, k: int) -> Path:
+    """Where rover ``k`` keeps its node of ``order``'s mission and strategy between messages
+    (rovers sharing a state folder each keep their own file)."""
+    return Path(state_dir) / f"{order.mission or 'mission'}-{order.strategy}-rover{k}.pickle"
+
+
+def hold_state(state_dir: Path, k: int) -> int:
+    """Hold rover ``k``'s state in ``state_dir`` for as long as this process (and what it
+    forks) lives: an exclusive lock on ``rover{k}.lock`` there; returns its file descriptor.
+    A second process of rover ``k`` on the same folder would overwrite its state: refused
+    in one line."""
+    import fcntl
+
+    state_dir = Path(state_dir)
+    state_dir.mkdir(parents=True, exist_ok=True)
+    lock = state_dir / f"rover{k}.lock"
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        held = lock.read_text().strip() or "?"
+        raise FedmapError(f"rover {k}: another rover {k} process (PID {held}) keeps its state in {state_dir}: "
+                          "stop it first, or give this one its own --state") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return fd
 
 
 def rover_answer(state_dir: Path, mission_text: str, k: int, raw: bytes, *, feed: MapFeed | None = None,
@@ -117,7 +142,7 @@ def rover_answer(state_dir: Path, mission_text: str, k: int, raw: bytes, *, feed
     come from its own mapping software (:mod:`fedmap.mission.feed`). :class:`CorruptMessage`
     for a damaged order."""
     order = Order.from_bytes(raw)
-    path = state_file(state_dir, order)
+    path = state_file(state_dir, order, k)
     if history is not None:
         node = RoverNode.rebuild(mission_from_text(mission_text, frames=1), order.strategy, k,
                                  unpack_history(history), feed=feed)

@@ -60,7 +60,7 @@ from fedmap.flower.launch import (
     socket_dir,
     wait_for_port,
 )
-from fedmap.flower.mission_task import node_feed, parse_mission_fault
+from fedmap.flower.mission_task import hold_state, node_feed, parse_mission_fault
 from fedmap.flower.task import load_local_map
 
 #: Seconds a rover keeps trying to reach its SuperLink before it gives up (``fedmap rover --max-wait``).
@@ -335,6 +335,8 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
         done, refused = Path(tmp) / "done", Path(tmp) / "refused"
         if node_config.get("mission") and not node_config.get("state-dir"):  # kept only while this rover runs
             node_config = {**node_config, "state-dir": str(Path(tmp) / "state")}
+        if node_config.get("mission"):  # released when this rover process (and all it forked) ends
+            hold_state(Path(str(node_config["state-dir"])), int(pid))
         if node_config.get("mission"):  # this rover process, told apart from the one before a restart
             node_config = {**node_config, "boot": f"{os.getpid()}-{time.time_ns()}"}
         cfg = {**node_config, "done-file": str(done), "refused-file": str(refused)}
