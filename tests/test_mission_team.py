@@ -144,3 +144,22 @@ def test_an_order_lost_on_the_link_is_sent_again_long_before_the_deadline(tmp_pa
     assert sorted(grid.orders) == [7, 8, 8]  # one copy, to rover 1's node
     assert [(f["rover"], f["fault"].split(";")[0]) for f in team.faults] == [
         (1, "its order went unanswered far longer than the others' took (lost on the link?)")]
+
+
+def test_a_node_whose_key_is_another_rovers_is_refused_by_the_base(tmp_path):
+    """Node 7 holds rover 1's registered key but says it is rover 0 (a rover that ignores what
+    the base tells it): the base never takes it for rover 0, and says so once, in one line."""
+    import dataclasses
+
+    from fedmap.errors import FedmapError
+
+    run = MissionRun(mission="", strategies=("raw",), out=tmp_path / "m", frames=1, connect_timeout=2.0,
+                     deadline=5.0, rejoin=30.0, resume=False)
+    (tmp_path / "m.run").mkdir()
+    grid = OneRoverGrid()
+    with pytest.raises(FedmapError, match=r"rover\(s\) \[0\] did not connect"):
+        mission_server._Team(grid, dataclasses.replace(run, rover_nodes="7=1"), 1)
+    log = (tmp_path / "m.run" / "base.log").read_text()
+    assert log.count("node 7 holds rover 1's registered key but says it is rover 0: refused") == 1
+    team = mission_server._Team(OneRoverGrid(), dataclasses.replace(run, rover_nodes="7=0"), 1)  # its own key
+    assert team.node_of == {0: 7}
