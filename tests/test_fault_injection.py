@@ -216,7 +216,9 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
         # the refused rovers first, each until it ends (at its first answer from the link; the wait only
         # bounds a loaded machine's start-up): started beside the others, a slow start could meet the cut
         # or the end of the run (the SuperLink gone: "no SuperLink answered"), not the refusal
-        for name, argv in (("unregistered", _rover_argv(proxy.port, 0, tmp_path, certs, key=certs / "rover4",
+        # rover 4's key (its own number: a key given as another rover's is refused before connecting)
+        shutil.copyfile(tmp_path / "local0.npy", tmp_path / "local4.npy")
+        for name, argv in (("unregistered", _rover_argv(proxy.port, 4, tmp_path, certs, key=certs / "rover4",
                                                         max_wait=30)),
                            ("wrong-ca", _rover_argv(proxy.port, 1, tmp_path, certs, root_cert=other / "ca.crt",
                                                     max_wait=30))):

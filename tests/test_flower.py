@@ -312,13 +312,18 @@ def test_certs_verify(tmp_path):
     srv = x509.load_pem_x509_certificate((tmp_path / "server.pem").read_bytes())
     srv.verify_directly_issued_by(ca)  # raises if the signature does not check out
     san = srv.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
-    assert san.get_values_for_type(x509.DNSName) == ["base.local"]
-    assert [str(ip) for ip in san.get_values_for_type(x509.IPAddress)] == ["10.0.0.2"]
+    # the rovers' names, and loopback, where the base's own processes reach its SuperLink
+    assert san.get_values_for_type(x509.DNSName) == ["base.local", "localhost"]
+    assert [str(ip) for ip in san.get_values_for_type(x509.IPAddress)] == ["10.0.0.2", "127.0.0.1"]
     key = serialization.load_ssh_private_key((tmp_path / "rover1").read_bytes(), None)
     pub = serialization.load_ssh_public_key((tmp_path / "rover1.pub").read_bytes())
     assert isinstance(key, ec.EllipticCurvePrivateKey) and key.curve.name == "secp384r1"
     assert key.public_key().public_numbers() == pub.public_numbers()
     assert (tmp_path / "rover1").stat().st_mode & 0o077 == 0
+    client = x509.load_pem_x509_certificate((tmp_path / "rover1.crt").read_bytes())  # what the front asks of rover 1
+    client.verify_directly_issued_by(ca)
+    assert client.public_key().public_numbers() == pub.public_numbers()
+    assert client.subject.rfc4514_string() == "CN=rover1"
 
 
 @pytest.mark.slow

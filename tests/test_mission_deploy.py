@@ -261,8 +261,9 @@ def test_a_mission_base_refuses_an_unregistered_key_and_a_wrong_ca(tmp_path):
         while not status.is_file() and time.monotonic() < t_end:
             time.sleep(0.2)
 
-        def rover(key, ca, name):
-            return subprocess.run([sys.executable, "-m", "fedmap", "rover", "--mission", "--partition-id", "0",
+        def rover(key, ca, name):  # each as its key's own number (a key given as another rover's is refused at once)
+            return subprocess.run([sys.executable, "-m", "fedmap", "rover", "--mission", "--partition-id",
+                                   key.name.removeprefix("rover"),
                                    "--superlink", f"127.0.0.1:{port}", "--root-cert", str(ca), "--auth-key", str(key),
                                    "--max-wait", "30", "--log", str(tmp_path / f"{name}.log")],
                                   capture_output=True, text=True, timeout=180, env=flower_env(tmp_path / f"home-{name}"))
