@@ -278,3 +278,56 @@ def test_a_mission_base_refuses_an_unregistered_key_and_a_wrong_ca(tmp_path):
     for r in (bad_key, wrong_ca):
         err = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
         assert len(err) == 1 and "Traceback" not in r.stderr
+
+
+@pytest.mark.xdist_group("loopback-b")  # a long loopback run: see addopts in pyproject.toml
+def test_a_rover_restarted_across_machines_with_the_documented_command_rejoins(tmp_path):
+    """``--deploy base`` on loopback with TLS and registered keys, its two rovers started as
+    docs/processes.md shows (both with ``--state`` on one folder); rover 1 is killed
+    (SIGKILL) mid-mission and started again with the very same command, no ``--rejoin``. The
+    mission finishes and equals the mission in process; each rover kept its own state file."""
+    from fedmap.flower.launch import flower_env, free_port, make_certs
+
+    certs, state = tmp_path / "certs", tmp_path / "state"
+    make_certs(certs, hosts=["127.0.0.1"], rovers=2)
+    port, out = free_port(), tmp_path / "out"
+    base = subprocess.Popen([sys.executable, "-m", "fedmap", "mission", "--set", "mission.rovers=2", "--set",
+                             "mission.steps=40", "--strategies", "raw", "--deploy", "base", "--listen",
+                             f"127.0.0.1:{port}", "--certs", str(certs), "--auth-keys", str(certs), "--no-animation",
+                             "-o", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=flower_env(tmp_path / "home-base"), start_new_session=True)
+
+    def rover(k: int) -> subprocess.Popen:  # docs/processes.md's line
+        return subprocess.Popen([sys.executable, "-m", "fedmap", "rover", "--mission", "--partition-id", str(k),
+                                 "--superlink", f"127.0.0.1:{port}", "--root-cert", str(certs / "ca.crt"),
+                                 "--auth-key", str(certs / f"rover{k}"), "--state", str(state), "--poll", "0.5"],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                env=flower_env(tmp_path / f"home-{k}"), start_new_session=True)
+    rovers, files = {}, set()
+    try:
+        rovers = {0: rover(0), 1: rover(1)}
+        status, t_end, killed = out.with_name("out.run") / "status.json", time.monotonic() + 600, False
+        while base.poll() is None and time.monotonic() < t_end:
+            try:
+                st = json.loads(status.read_text())
+            except (OSError, ValueError):
+                st = {}
+            files |= {p.name for p in state.glob("*.pickle")}
+            if not killed and st.get("step", 0) >= 16:
+                os.killpg(rovers[1].pid, signal.SIGKILL)
+                rovers[1].wait(timeout=30)
+                rovers[1] = rover(1)  # the same command, as the docs give it
+                killed = True
+            time.sleep(0.2)
+        text, _ = base.communicate(timeout=60)
+        codes = {k: p.wait(timeout=120) for k, p in rovers.items()}
+    finally:
+        for p in (base, *rovers.values()):
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+    assert killed and base.returncode == 0, text[-3000:]
+    assert codes == {0: 0, 1: 0}, {k: p.stdout.read()[-1500:] for k, p in rovers.items()}
+    assert files == {f"{m}-raw-rover{k}.pickle" for m in {f.split("-raw-")[0] for f in files} for k in (0, 1)}
+    deployed = json.loads((out / "metrics.json").read_text())
+    here = _in_process(out / "mission.toml")
+    assert without_timings(deployed["strategies"]) == without_timings(metrics(here)["strategies"])

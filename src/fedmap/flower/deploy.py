@@ -43,7 +43,7 @@ from fedmap.flower.launch import (
     submit_run,
     wait_for_result,
 )
-from fedmap.flower.mission_task import MissionRun, read_result, result_path
+from fedmap.flower.mission_task import MissionRun, base_log, read_result, result_path
 from fedmap.flower.rover import WarmChild
 from fedmap.flower.task import rover_nodes_text, run_status_path, write_status
 from fedmap.flower.warm import ROVER
@@ -184,6 +184,8 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
                     restarted.append({"strategy": st.get("strategy", ""), "rover": k,
                                       "fault": f"rover process exited (code {code}) near step {st.get('step', 0)}; "
                                                "started again"})
+                    # the same record in the base's log as in metrics.json
+                    base_log(out, "WARNING", f"{restarted[-1]['strategy']} rover {k}: {restarted[-1]['fault']}")
                     start_rover(name, [*argvs[name], "--rejoin"])
 
             budget = connect_timeout + 600 + max(len(strategies), 1) * rounds * deadline

@@ -30,8 +30,7 @@ from flwr.serverapp import Grid, ServerApp
 from flwr.supercore import log
 
 from fedmap.errors import FedmapError
-from fedmap.flower.checkpoint import run_dir
-from fedmap.flower.mission_task import BaseJournal, MissionRun, mission_from_text, strategies_of, write_result
+from fedmap.flower.mission_task import BaseJournal, MissionRun, base_log, mission_from_text, strategies_of, write_result
 from fedmap.flower.polling import exchange, quick_pulls
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.task import KEY_ROVER, parse_rover_nodes, write_status, wrong_key
@@ -45,8 +44,7 @@ quick_pulls()  # a round is a message per rover: Flower's 1 s first retry would 
 def say(out: Path, level: int, line: str) -> None:
     """One line in Flower's log and in the base station's own, ``<out>.run/base.log``."""
     log(level, "fedmap: %s", line)
-    with open(run_dir(out) / "base.log", "a") as fh:
-        fh.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} {logging.getLevelName(level)} {line}\n")
+    base_log(out, logging.getLevelName(level), line)
 
 #: Times an order is sent again after a damaged order or report before the run fails.
 RESENDS = 3
@@ -153,14 +151,18 @@ class _Team:
                 restarted.update(back)
                 return {i for i in ids if sent.get(i) in back}
 
+            t_sent = time.monotonic()
+
             def resent(copies: list[Message]) -> None:  # the rover answers a copy with the same report
                 rover_of = {n: r for r, n in self.node_of.items()}
                 for c in copies:
                     r = rover_of.get(c.metadata.dst_node_id)
                     if r is not None:
                         sent[c.object_id] = r
-                        self._fault(strategy, r, "its order went unanswered far longer than the others' took "
-                                                 "(lost on the link?); sent again, the first report to either taken")
+                        # what the base saw, no more: the order, its pull or the rover's process may be what was lost
+                        self._fault(strategy, r, f"its order went unanswered for {time.monotonic() - t_sent:.0f} s, "
+                                                 "far longer than the others' took; sent again, the first report "
+                                                 "to either taken")
 
             for reply in exchange(self.grid, msgs, wait, overdue=overdue, resend=True, on_resend=resent,
                                   most=ORDER_COPIES):

@@ -16,6 +16,7 @@ import json
 import os
 import pickle
 import shutil
+import time
 import tomllib
 import uuid
 from dataclasses import dataclass, replace
@@ -99,6 +100,12 @@ def strategies_of(run: MissionRun, mission: Mission) -> tuple[str, ...]:
 
 
 # -- a rover between messages ----------------------------------------------------------------
+
+
+def base_log(out: Path, level: str, line: str) -> None:
+    """One line in the base station's own log, ``<out>.run/base.log`` (``level``: INFO, WARNING)."""
+    with open(run_dir(out) / "base.log", "a") as fh:
+        fh.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} {level} {line}\n")
 
 
 def state_file(state_dir: Path, order: Order, k: int) -> Path:

@@ -39,6 +39,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.flower import HEARTBEAT_ENV, HEARTBEAT_RANGE, POLL_ENV, SUPEREXEC_POLL_ENV
 from fedmap.flower import warm as warm_server
@@ -333,6 +334,10 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
     with owned_temp_dir("fedmap-rover-flwr-") as tmp, \
             socket_dir("fedmap-rover-", "clientapp.sock") as socks, Processes() as procs, sigterm_as_interrupt():
         done, refused = Path(tmp) / "done", Path(tmp) / "refused"
+        joined = None  # in a state folder of the user's: this rover's key was accepted before
+        if node_config.get("mission") and node_config.get("state-dir"):
+            joined = Path(str(node_config["state-dir"])) / f"rover{pid}.joined"
+            rejoin = rejoin or joined.exists()  # restarted as documented: its old node may still be listed
         if node_config.get("mission") and not node_config.get("state-dir"):  # kept only while this rover runs
             node_config = {**node_config, "state-dir": str(Path(tmp) / "state")}
         if node_config.get("mission"):  # released when this rover process (and all it forked) ends
@@ -368,9 +373,15 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
                 return procs.adopt("supernode", child, log=log)
             return procs.start("supernode", argv, env=env, log=log, new_session=True, die_with_parent=True)
         try:
-            return _supervise(procs, pid, superlink, argv_for, start, port=port, done=done, log=log,
+            def reached() -> None:
+                if joined is not None:
+                    atomic_write_bytes(joined, f"{superlink}\n".encode())
+            code = _supervise(procs, pid, superlink, argv_for, start, port=port, done=done, log=log,
                               tls=link_cert is not None, max_wait=max_wait, self_registered=auth_key is None,
-                              rejoin=rejoin, probe=link, refused=refused)
+                              rejoin=rejoin, probe=link, refused=refused, on_reach=reached)
+            if joined is not None:  # the mission is over for this rover: the next start is a new one
+                joined.unlink(missing_ok=True)
+            return code
         finally:
             if server is not None:
                 _reap(server)
@@ -477,14 +488,14 @@ def _reap(pid: int) -> None:
 def _supervise(procs: Processes, pid, superlink: str, argv_for: Callable[[int], list[str]],
                start: Callable[[list[str]], Proc], *, port: int, log: Path, done: Path, tls: bool, max_wait: float,
                self_registered: bool, rejoin: bool = False, probe: str | None = None,
-               refused: Path | None = None) -> int:
+               refused: Path | None = None, on_reach: Callable[[], None] | None = None) -> int:
     """Run SuperNodes until the run ends for this rover (0) or a one-line failure.
 
     ``argv_for(p)``: a SuperNode's command with its local API on port ``p``: ``port``, or
     (``port`` 0) a free one, picked again for the next SuperNode when this one's was taken.
     ``start(argv)``: starts it, as ``procs``' ``"supernode"``, logging to ``log``."""
     watch = _Watch(probe or superlink, tls=tls, max_wait=max_wait, self_registered=self_registered)
-    watch.ever_reached = rejoin
+    watch.ever_reached, watch.on_reach = rejoin, on_reach
     restarts = 0  # in a row, without the SuperNode reaching its SuperLink in between
     local = port or free_port()
     for total in range(1, ROVER_RESTARTS_TOTAL + 2):
@@ -518,6 +529,7 @@ class _Watch:
         self.contact = time.monotonic()  # last time the SuperLink answered (the rover's start counts)
         self.reached = False  # whether the current SuperNode reached its SuperLink
         self.ever_reached = False  # ... or any of this rover's SuperNodes
+        self.on_reach: Callable[[], None] | None = None  # called when a SuperNode first reaches the SuperLink
 
     def run(self, procs: Processes, starter: Callable[[list[str]], Proc], argv: list[str], *, log: Path,
             done: Path, refused: Path | None = None) -> str:
@@ -549,6 +561,8 @@ class _Watch:
             # a SuperLink too busy to answer the probe within its timeout is still there
             if (seen := _count_marks(text, CONTACT)) > contacts:
                 contacts, self.contact = seen, now
+                if not self.reached and self.on_reach is not None:
+                    self.on_reach()
                 self.reached = self.ever_reached = True
             if ended_at is None and _marks(text, ENDED):
                 ended_at = now  # Flower's SuperNode can hang after this line: give it END_GRACE s
@@ -650,7 +664,8 @@ def rover_failure(pid, superlink: str, log: str, *, max_wait: float, code: int |
     if _refused(low):
         return (f"rover {pid}: the SuperLink at {superlink} refused this rover's key (not registered with "
                 f"--auth-keys on the base station, no --auth-key given, or this rover's previous SuperNode "
-                f"stopped less than a minute ago and is still listed online: start it again in a minute)")
+                f"stopped less than a minute ago and is still listed online: start it again with --rejoin, which "
+                f"retries for that minute)")
     if "unexpected_eof" in low or "401 unauthorized" in low or "already in use" in low or code == 0:
         return f"rover {pid}: the link to {superlink} dropped or its SuperLink restarted"
     if "giving up reconnection" in low or "could not establish a connection" in low:
