@@ -7,6 +7,7 @@ NaN update, a rover with an unregistered key and one with the wrong CA; and a se
 """
 
 import json
+import shutil
 import socket
 import subprocess
 import sys

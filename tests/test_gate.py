@@ -219,3 +219,15 @@ def test_certificates_are_private_where_they_hold_a_key(tmp_path):
     sans = x509.load_pem_x509_certificate((tmp_path / "server.pem").read_bytes()).extensions.get_extension_for_class(
         x509.SubjectAlternativeName).value
     assert {"base.example", "localhost"} <= set(sans.get_values_for_type(x509.DNSName))
+
+
+def test_a_rover_whose_certificate_the_front_refuses_is_told_so_and_not_retried():
+    from fedmap.flower import rover
+
+    log = "relay: base:9092: [SSL: TLSV1_ALERT_UNKNOWN_CA] tlsv1 alert unknown ca (_ssl.c:2580)"
+    why = rover.rover_failure(2, "base:9092", log, max_wait=30, code=1)
+    assert why.startswith("rover 2: the base station at base:9092 refused this rover's TLS certificate")
+    watch = rover._Watch("127.0.0.1:1", tls=True, max_wait=30)
+    watch.ever_reached = True
+    assert not watch.retry(log)
+    assert watch.retry("Connection attempt failed, retrying in 2 s")

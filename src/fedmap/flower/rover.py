@@ -511,7 +511,8 @@ def _supervise(procs: Processes, pid, superlink: str, argv_for: Callable[[int], 
             local = free_port()
         why = rover_failure(pid, superlink, text, max_wait=max_wait, code=procs.procs["supernode"].returncode)
         if not watch.retry(text):
-            raise FedmapError(_gave_up(pid, superlink, max_wait) if watch.silent() else why)
+            tls_problem = _tls_refused(text.lower())
+            raise FedmapError(_gave_up(pid, superlink, max_wait) if watch.silent() and not tls_problem else why)
         restarts = 1 if watch.reached else restarts + 1
         if restarts > ROVER_RESTARTS or total > ROVER_RESTARTS_TOTAL:
             raise FedmapError(f"{why} (after {total - 1} new SuperNodes, {restarts - 1} in a row)")
@@ -564,6 +565,8 @@ class _Watch:
                 if not self.reached and self.on_reach is not None:
                     self.on_reach()
                 self.reached = self.ever_reached = True
+            if _tls_refused(text.lower()):  # the relay's TLS to the base: no retry fixes it
+                break
             if ended_at is None and _marks(text, ENDED):
                 ended_at = now  # Flower's SuperNode can hang after this line: give it END_GRACE s
             if ended_at is not None and now - ended_at > END_GRACE:
@@ -594,7 +597,7 @@ class _Watch:
         before, the SuperNode registered its own key (no ``--auth-key``), or its activation
         was sent twice (the first answer lost to the link)."""
         low = text.lower()
-        if "certificate verify failed" in low:
+        if _tls_refused(low):
             return False
         if _refused(low) and not (self.ever_reached or self.self_registered or "connection attempt failed" in low):
             return False
@@ -637,6 +640,16 @@ def _read_from(log: Path, start: int) -> str:
         return ""
 
 
+#: A relay's TLS handshake with the base's front that no retry fixes: the rover does not trust
+#: the base's certificate, or the front does not accept the rover's (OpenSSL's alerts).
+CLIENT_CERT_REFUSED = ("alert unknown ca", "alert certificate required", "alert bad certificate",
+                       "alert certificate unknown", "alert certificate expired")
+
+
+def _tls_refused(low: str) -> bool:
+    return "certificate verify failed" in low or any(m in low for m in CLIENT_CERT_REFUSED)
+
+
 def _refused(low: str) -> bool:
     # Flower 1.41 answers an unregistered key with "[code: 2004] Failed to activate SuperNode."
     # ("[code: 23] Public key already in use" is not a refusal: a self-registering SuperNode
@@ -657,6 +670,9 @@ def rover_failure(pid, superlink: str, log: str, *, max_wait: float, code: int |
     if port_taken(log):
         return f"rover {pid}: another process took the port of its SuperNode's local API"
     lines = [_clean(ln) for ln in log.splitlines() if ln.strip()]
+    if any(m in low for m in CLIENT_CERT_REFUSED):
+        return (f"rover {pid}: the base station at {superlink} refused this rover's TLS certificate (not made by its "
+                f"CA, or expired: give the rover the roverK.crt made with the base's certificates)")
     if "certificate verify failed" in low or "wrong version number" in low:
         why = next((ln for ln in lines if "certificate verify failed" in ln.lower()
                     or "wrong version number" in ln.lower()), "TLS handshake failed")
