@@ -30,7 +30,6 @@ from fedmap.flower.launch import (  # noqa: E402
     flower_env,
     free_port,
     make_certs,
-    register_keys,
     start_superlink,
     write_connection,
 )
@@ -141,10 +140,9 @@ def test_the_attack_on_the_control_api_fails_from_another_address_and_a_rover_st
     attacker.mkdir()
     (attacker / "ca.crt").write_bytes((certs / "ca.crt").read_bytes())
     with Processes() as procs:
-        address = start_superlink(procs, host="127.0.0.3", port=port, tls=Tls.from_dir(certs), auth=True, env=env,
-                                  work=work)
-        assert address == f"127.0.0.3:{port}"
-        nodes = register_keys(sorted(certs.glob("*.pub")), env=env)  # the launcher's own control calls work
+        address, nodes = start_superlink(procs, host="127.0.0.3", port=port, tls=Tls.from_dir(certs), auth=True,
+                                         env=env, work=work, keys=sorted(certs.glob("*.pub")))
+        assert address == f"127.0.0.3:{port}"  # the launcher's own control calls (registering the keys) work
         assert sorted(nodes.values()) == [0, 1] and parse_rover_nodes(rover_nodes_text(nodes)) == nodes
         write_connection(attacker / "home", address=address, root_cert=attacker / "ca.crt")
         for args in (["ls", CONNECTION], ["run", str(evil), CONNECTION], ["stop", "1234", CONNECTION]):

@@ -35,7 +35,6 @@ from fedmap.flower.launch import (
     free_port,
     make_certs,
     read_status,
-    register_keys,
     require_executables,
     sigterm_as_interrupt,
     socket_dir,
@@ -147,9 +146,9 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
             stack.enter_context(sigterm_as_interrupt())
             # the rovers are forked from it; it imports while the SuperLink starts
             rover_host = RoverHost(procs, socks, env=env, log=work / f"{ROVER_HOST}.log") if socks is not None else None
-            address = start_superlink(procs, host=host, port=port, tls=tls, auth=auth_keys is not None, env=env,
-                                      work=work)
-            run_config["rover-nodes"] = rover_nodes_text(register_keys(keys, env=env))
+            address, nodes = start_superlink(procs, host=host, port=port, tls=tls, auth=auth_keys is not None,
+                                             env=env, work=work, keys=keys)
+            run_config["rover-nodes"] = rover_nodes_text(nodes)
             rovers: list[str] = []
             argvs: dict[str, list[str]] = {}
             restarted: list[dict] = []

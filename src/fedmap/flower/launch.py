@@ -23,7 +23,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -414,17 +414,22 @@ def new_secret(path: Path) -> Path:
 
 
 def start_superlink(procs: Processes, *, host: str, port: int, tls: Tls | None, auth: bool, env: dict, work: Path,
-                    database: Path | None = None) -> str:
+                    keys: Sequence[Path] = (), database: Path | None = None) -> tuple[str, dict[int, int]]:
     """The base station's SuperLink (on loopback, Control API closed) and its front on
     ``host:port`` (the Fleet API only; mutual TLS with ``tls``), both under ``procs`` and
     listening when this returns; ``env`` gets the control secret's file
     (:data:`fedmap.flower.control.SECRET_ENV`) and ``$FLWR_HOME`` a connection to the
-    SuperLink. Returns the address the rovers reach (``local:port``)."""
+    SuperLink. The rover ``keys`` are registered before the front opens, so no rover can
+    knock before its key is known (:func:`register_keys`). Returns the address the rovers
+    reach (``local:port``) and ``{node id: rover}`` of the keys."""
     secret = new_secret(Path(env["FLWR_HOME"]) / "control.secret")
     env[CONTROL_SECRET_ENV] = str(secret)
     inner = free_port("127.0.0.1")
     procs.start("superlink", superlink_argv(port=inner, tls=tls, auth=auth, secret_file=secret, database=database),
                 env=env, log=work / "superlink.log", die_with_parent=True)
+    wait_for_port("127.0.0.1", inner, timeout=60, alive=lambda: procs.check_alive("superlink"))
+    write_connection(Path(env["FLWR_HOME"]), address=f"127.0.0.1:{inner}", root_cert=tls.ca if tls else None)
+    nodes = register_keys(list(keys), env=env)
     procs.start("front", front_argv(host=host, port=port, upstream_port=inner, tls=tls), env=env,
                 log=work / "front.log", die_with_parent=True)
 
@@ -432,10 +437,8 @@ def start_superlink(procs: Processes, *, host: str, port: int, tls: Tls | None, 
         procs.check_alive("superlink")
         procs.check_alive("front")
     local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
-    wait_for_port("127.0.0.1", inner, timeout=60, alive=alive)
     wait_for_port(local, port, timeout=60, alive=alive)
-    write_connection(Path(env["FLWR_HOME"]), address=f"127.0.0.1:{inner}", root_cert=tls.ca if tls else None)
-    return f"{local}:{port}"
+    return f"{local}:{port}", nodes
 
 
 def write_connection(flwr_home: Path, *, address: str, root_cert: Path | None) -> None:
@@ -719,8 +722,7 @@ def _serve(procs: Processes, settings: RunSettings, run_config: dict, *, host: s
     """The base station's processes: SuperLink up, rover keys registered, run submitted, waited for."""
     work = run_dir(settings.out)
     flwr_home = Path(env["FLWR_HOME"])
-    start_superlink(procs, host=host, port=port, tls=tls, auth=auth, env=env, work=work)
-    nodes = register_keys(keys, env=env)
+    _, nodes = start_superlink(procs, host=host, port=port, tls=tls, auth=auth, env=env, work=work, keys=keys)
     run_config = {**run_config, "rover-nodes": rover_nodes_text(nodes)}
     since = time.time() - 1
     submit_run(flwr_home, run_config, env=env)
