@@ -298,11 +298,12 @@ def test_a_rover_restarted_across_machines_with_the_documented_command_rejoins(t
                             env=flower_env(tmp_path / "home-base"), start_new_session=True)
 
     def rover(k: int) -> subprocess.Popen:  # docs/processes.md's line
-        return subprocess.Popen([sys.executable, "-m", "fedmap", "rover", "--mission", "--partition-id", str(k),
-                                 "--superlink", f"127.0.0.1:{port}", "--root-cert", str(certs / "ca.crt"),
-                                 "--auth-key", str(certs / f"rover{k}"), "--state", str(state), "--poll", "0.5"],
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                env=flower_env(tmp_path / f"home-{k}"), start_new_session=True)
+        with open(tmp_path / f"rover{k}.txt", "a") as fh:
+            return subprocess.Popen([sys.executable, "-m", "fedmap", "rover", "--mission", "--partition-id", str(k),
+                                     "--superlink", f"127.0.0.1:{port}", "--root-cert", str(certs / "ca.crt"),
+                                     "--auth-key", str(certs / f"rover{k}"), "--state", str(state), "--poll", "0.5"],
+                                    stdout=fh, stderr=subprocess.STDOUT, env=flower_env(tmp_path / f"home-{k}"),
+                                    start_new_session=True)
     rovers, files = {}, set()
     try:
         rovers = {0: rover(0), 1: rover(1)}
@@ -326,7 +327,7 @@ def test_a_rover_restarted_across_machines_with_the_documented_command_rejoins(t
             if p.poll() is None:
                 os.killpg(p.pid, signal.SIGKILL)
     assert killed and base.returncode == 0, text[-3000:]
-    assert codes == {0: 0, 1: 0}, {k: p.stdout.read()[-1500:] for k, p in rovers.items()}
+    assert codes == {0: 0, 1: 0}, {k: (tmp_path / f"rover{k}.txt").read_text()[-1500:] for k in rovers}
     assert files == {f"{m}-raw-rover{k}.pickle" for m in {f.split("-raw-")[0] for f in files} for k in (0, 1)}
     deployed = json.loads((out / "metrics.json").read_text())
     here = _in_process(out / "mission.toml")
