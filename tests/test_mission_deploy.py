@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -70,6 +71,11 @@ def test_the_default_mission_on_processes_equals_the_mission_in_process(tmp_path
     assert {"superlink.log", "rover-host.log", *(f"rover{k}.log" for k in range(4)),
             *(f"rover{k}.supernode.log" for k in range(4))} <= logs
     assert "TLS" not in r.stderr and "insecure" not in (out / "logs" / "rover0.log").read_text().lower()
+    # no private key outlives the run: no CA key ever written, the run's server and rover keys and the
+    # control secret gone (certificates may stay: they are public)
+    left = [p for d in (out, out.with_name("out.run")) for p in d.rglob("*")
+            if p.suffix in (".key", ".secret", ".pem") and p.name != "server.pem" or re.fullmatch(r"rover\d+", p.name)]
+    assert left == []
 
 
 @pytest.mark.xdist_group("loopback-b")
