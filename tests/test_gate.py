@@ -96,19 +96,39 @@ def test_the_control_guard_lets_through_only_the_secret_or_the_open_routes():
         gate.ControlGuard(inner, b"short")
 
 
-def test_the_front_forwards_nothing_but_the_fleet_api_and_bounds_bodies():
-    front = gate.FleetFront("http://127.0.0.1:9", max_body=1000)  # nothing listens upstream: 502 when forwarded
+def test_the_front_passes_nothing_but_the_fleet_api_and_bounds_bodies():
+    seen = []
+
+    async def inner(scope, receive, send):
+        body = b""
+        while True:
+            event = await receive()
+            body += event.get("body", b"")
+            if not event.get("more_body"):
+                break
+        seen.append((scope["path"], len(body), dict(scope["headers"]).get(gate.CONTROL_HEADER.encode())))
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"ok"})
+    front = gate.FleetOnly(inner, max_body=1000)
     assert _asgi(front, "POST", "/v1/control/start-run") == 404
-    assert _asgi(front, "POST", "/v1/control/list-runs") == 404
+    assert _asgi(front, "POST", "/v1/control/list-runs", {gate.CONTROL_HEADER: "guess"}) == 404
     assert _asgi(front, "GET", "/v1/fleet/pull-messages") == 404
     assert _asgi(front, "POST", "/v1/runtime/create-task") == 404
-    assert _asgi(front, "POST", "/v1/fleet/pull-messages") == 502  # the only kind it forwards
+    assert _asgi(front, "POST", "/docs") == 404
+    assert seen == []
+    assert _asgi(front, "POST", "/v1/fleet/pull-messages", {gate.CONTROL_HEADER: "x"}) == 200  # the only kind it passes
+    assert seen == [("/v1/fleet/pull-messages", 0, None)]  # without the header
     assert _asgi(front, "POST", "/v1/fleet/pull-messages", {"content-length": str(1 << 30)}) == 413
 
-    async def big() -> int:
+    async def big(chunked: bool) -> int:
+        async def parts():
+            for _ in range(11):
+                yield b"x" * 100
         async with httpx.AsyncClient(transport=httpx.ASGITransport(app=front), base_url="http://base") as c:
-            return (await c.post("/v1/fleet/push-object", content=b"x" * 1001)).status_code
-    assert asyncio.run(big()) == 413
+            body = parts() if chunked else b"x" * 1001
+            return (await c.post("/v1/fleet/push-object", content=body)).status_code
+    assert asyncio.run(big(False)) == 413
+    assert asyncio.run(big(True)) == 413
 
 
 def _flwr(home: Path, *args: str) -> subprocess.CompletedProcess:
@@ -150,6 +170,7 @@ def test_the_attack_on_the_control_api_fails_from_another_address_and_a_rover_st
             assert r.returncode != 0, (args, r.stdout[-500:], r.stderr[-500:])
         # the attacker's flwr on the base machine itself, straight at the SuperLink (no secret)
         inner = Path(env["FLWR_HOME"], "config.toml").read_text().split('address = "')[1].split('"')[0]
+        assert len([p for p in procs.procs if p == "superlink"]) == 1  # one process serves both
         assert inner.startswith("127.0.0.1:") and inner != address
         write_connection(attacker / "local", address=inner, root_cert=certs / "ca.crt")
         for args in (["ls", CONNECTION], ["run", str(evil), CONNECTION]):

@@ -172,7 +172,6 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
 
             def alive() -> None:
                 procs.check_alive("superlink")
-                procs.check_alive("front")
                 for k, name in enumerate(rovers):
                     code = procs.procs[name].poll()
                     if code in (None, 0):

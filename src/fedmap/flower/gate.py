@@ -9,17 +9,19 @@ So fedmap never lets anyone reach that port but its own processes:
   Control API answers only requests that carry the launcher's secret (:data:`CONTROL_HEADER`;
   :class:`ControlGuard`): other local users cannot submit or stop a run either. fedmap's own
   control calls go through :mod:`fedmap.flower.control`, which adds the header;
-- **the front** (:func:`serve_front`, ``python -m fedmap.flower.gate front ...``) is what
-  listens where the rovers reach the base. It forwards only the Fleet API's routes
-  (:data:`FLEET_ROUTES`, POST) to the SuperLink and answers everything else 404. With
-  certificates it is TLS with *mutual* authentication: a client must present a certificate
-  signed by the base's CA (``roverK.crt``, made by ``fedmap certs``) before any HTTP is read;
+- **the front** is what listens where the rovers reach the base: the same SuperLink's app,
+  served by the same process on a second address behind :class:`FleetOnly`, which lets
+  through only the Fleet API's routes (:data:`FLEET_ROUTES`, POST) and answers everything
+  else 404. With certificates it is TLS with *mutual* authentication: a client must present
+  a certificate signed by the base's CA (``roverK.crt``, made by ``fedmap certs``) before any
+  HTTP is read. (A separate front process that forwarded each request over loopback was
+  tried first: 3-4 ms more per request, a mission's sync round 20-50 % longer);
 - **a rover's relay** (:func:`serve_relay`, ``python -m fedmap.flower.gate relay ...``) is what
   presents that certificate: Flower's SuperNode cannot, so it speaks to a relay on its own
   machine's loopback, which carries its bytes to the front over mutual TLS.
 
-Bodies are bounded (:data:`MAX_BODY`) on the way in and out. Uses uvicorn (the ASGI server
-Flower's SuperLink runs on) and httpx (Flower's HTTP client); nothing here imports ``flwr``.
+Request bodies through the front are bounded (:data:`MAX_BODY`). The front is uvicorn (the
+ASGI server Flower's SuperLink runs on); nothing here imports ``flwr``.
 """
 
 from __future__ import annotations
@@ -32,7 +34,6 @@ import ssl
 import sys
 from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import Any
 
 #: The header that carries the launcher's secret to the SuperLink's Control API.
 CONTROL_HEADER = "x-fedmap-control"
@@ -49,10 +50,6 @@ FLEET_ROUTES = frozenset(f"/v1/fleet/{r}" for r in (
 #: sends into objects (a message's arrays, chunked); the paper's network, the largest fedmap
 #: sends, is 0.8 MB in all.
 MAX_BODY = 64 << 20
-#: Headers that belong to one hop, not to the request or response the front forwards.
-HOP_HEADERS = frozenset({b"connection", b"keep-alive", b"proxy-authenticate", b"proxy-authorization", b"te",
-                         b"trailer", b"transfer-encoding", b"upgrade", b"host", b"content-length",
-                         CONTROL_HEADER.encode()})
 
 Send = Callable[[dict], Awaitable[None]]
 Receive = Callable[[], Awaitable[dict]]
@@ -84,89 +81,40 @@ class ControlGuard:
         await self.app(scope, receive, send)
 
 
-class FleetFront:
-    """ASGI app: POST to a :data:`FLEET_ROUTES` route is forwarded to ``upstream``
-    (``https://127.0.0.1:PORT`` or ``http://...``, verified against ``upstream_ca``); anything
-    else is 404. A body over :data:`MAX_BODY` (announced or read) is 413, an upstream that
-    does not answer 502."""
+class FleetOnly:
+    """ASGI middleware for the front: POST to a :data:`FLEET_ROUTES` route goes to ``app``
+    (its body at most :data:`MAX_BODY` bytes, announced or read: else 413); anything else is
+    404 and never reaches it."""
 
-    def __init__(self, upstream: str, *, upstream_ca: str | None = None, max_body: int = MAX_BODY) -> None:
-        self.upstream, self.upstream_ca, self.max_body = upstream.rstrip("/"), upstream_ca, max_body
-        self.client: Any = None  # an httpx.AsyncClient, made in the server's event loop
-
-    def _client(self):
-        import httpx
-
-        if self.client is None:
-            verify: ssl.SSLContext | bool = False
-            if self.upstream.startswith("https:"):
-                verify = ssl.create_default_context(cafile=self.upstream_ca)
-                verify.check_hostname = False  # our own SuperLink on loopback, its certificate made for the rovers' name
-            self.client = httpx.AsyncClient(verify=verify, timeout=httpx.Timeout(120.0, connect=10.0))
-        return self.client
+    def __init__(self, app, max_body: int = MAX_BODY) -> None:
+        self.app, self.max_body = app, max_body
 
     async def __call__(self, scope: dict, receive: Receive, send: Send) -> None:
-        if scope["type"] == "lifespan":
-            while True:
-                event = await receive()
-                if event["type"] == "lifespan.startup":
-                    await send({"type": "lifespan.startup.complete"})
-                elif event["type"] == "lifespan.shutdown":
-                    if self.client is not None:
-                        await self.client.aclose()
-                    await send({"type": "lifespan.shutdown.complete"})
-                    return
         if scope["type"] != "http":
-            return
+            return  # no lifespan (the loopback listener runs the app's) and no websockets
         if scope["method"] != "POST" or scope["path"] not in FLEET_ROUTES:
             await _answer(send, 404, "fedmap: only the Fleet API is served here")
             return
-        headers = [(k, v) for k, v in scope["headers"] if k.lower() not in HOP_HEADERS]
         announced = next((v for k, v in scope["headers"] if k.lower() == b"content-length"), None)
         if announced is not None and (not announced.isdigit() or int(announced) > self.max_body):
             await _answer(send, 413, f"fedmap: a request body over {self.max_body} bytes")
             return
-        parts, size, more = [], 0, True
-        while more:
-            event = await receive()
-            if event["type"] == "http.disconnect":
-                return
-            chunk = event.get("body", b"")
-            size += len(chunk)
-            if size > self.max_body:
-                await _answer(send, 413, f"fedmap: a request body over {self.max_body} bytes")
-                return
-            parts.append(chunk)
-            more = event.get("more_body", False)
-        import httpx
+        scope = {**scope, "headers": [(k, v) for k, v in scope["headers"] if k.lower() != CONTROL_HEADER.encode()]}
+        size = 0
 
-        client = self._client()
-        url = self.upstream + scope["path"] + (("?" + scope["query_string"].decode()) if scope["query_string"] else "")
+        async def bounded() -> dict:
+            nonlocal size
+            event = await receive()
+            size += len(event.get("body", b""))
+            if size > self.max_body:  # a body that says nothing of its length and goes on
+                raise ValueError(f"a request body over {self.max_body} bytes")
+            return event
         try:
-            r = await client.send(client.build_request("POST", url, headers=headers, content=b"".join(parts)),
-                                  stream=True)
-        except httpx.HTTPError:
-            await _answer(send, 502, "fedmap: the SuperLink behind this front does not answer")
-            return
-        try:
-            out, size = [], 0
-            async for chunk in r.aiter_raw():
-                size += len(chunk)
-                if size > self.max_body:
-                    await _answer(send, 502, f"fedmap: the SuperLink's answer is over {self.max_body} bytes")
-                    return
-                out.append(chunk)
-        except httpx.HTTPError:
-            await _answer(send, 502, "fedmap: the SuperLink's answer broke off")
-            return
-        finally:
-            await r.aclose()
-        body = b"".join(out)
-        back = [(k.encode() if isinstance(k, str) else k, v.encode() if isinstance(v, str) else v)
-                for k, v in r.headers.raw if k.lower() not in HOP_HEADERS]
-        await send({"type": "http.response.start", "status": r.status_code,
-                    "headers": [*back, (b"content-length", str(len(body)).encode())]})
-        await send({"type": "http.response.body", "body": body})
+            await self.app(scope, bounded, send)
+        except ValueError as e:
+            if "request body over" not in str(e):
+                raise
+            await _answer(send, 413, f"fedmap: {e}")
 
 
 def front_tls(certs: Path) -> dict:
@@ -175,17 +123,6 @@ def front_tls(certs: Path) -> dict:
     certs = Path(certs)
     return {"ssl_certfile": str(certs / "server.pem"), "ssl_keyfile": str(certs / "server.key"),
             "ssl_ca_certs": str(certs / "ca.crt"), "ssl_cert_reqs": ssl.CERT_REQUIRED}
-
-
-def serve_front(*, host: str, port: int, upstream: str, certs: Path | None) -> None:
-    """The front (:class:`FleetFront`) on ``host:port`` until it is stopped; with ``certs``,
-    mutual TLS (:func:`front_tls`) and the SuperLink behind it is reached over TLS too."""
-    import uvicorn
-
-    tls = front_tls(certs) if certs is not None else {}
-    app = FleetFront(upstream, upstream_ca=str(Path(certs) / "ca.crt") if certs is not None else None)
-    uvicorn.run(app, host=host.strip("[]"), port=port, log_level="warning", access_log=False, lifespan="on",
-                timeout_keep_alive=30, **tls)
 
 
 def client_context(root_cert: Path, cert: Path, key_pem: Path) -> ssl.SSLContext:
@@ -277,11 +214,6 @@ def local_certificate(folder: Path) -> tuple[Path, Path]:
 def main(argv: list[str] | None = None) -> int:  # pragma: no cover - a process of its own
     p = argparse.ArgumentParser(prog="python -m fedmap.flower.gate")
     sub = p.add_subparsers(dest="what", required=True)
-    f = sub.add_parser("front")
-    f.add_argument("--host", required=True)
-    f.add_argument("--port", type=int, required=True)
-    f.add_argument("--upstream", required=True)
-    f.add_argument("--certs", type=Path)
     r = sub.add_parser("relay")
     r.add_argument("--port", type=int, required=True)
     r.add_argument("--target", required=True)
@@ -292,9 +224,7 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - a process 
     r.add_argument("--local-key", type=Path)
     a = p.parse_args(argv)
     try:
-        if a.what == "front":
-            serve_front(host=a.host, port=a.port, upstream=a.upstream, certs=a.certs)
-        else:
+        if a.what == "relay":
             serve_relay(listen_port=a.port, target=a.target, root_cert=a.root_cert, cert=a.cert, key_pem=a.key,
                         local_cert=a.local_cert, local_key=a.local_key)
     except KeyboardInterrupt:

@@ -373,31 +373,23 @@ class Tls:
         return t
 
 
-def superlink_argv(*, port: int, tls: Tls | None, auth: bool, secret_file: Path,
-                   database: Path | None = None) -> list[str]:
-    """The SuperLink on 127.0.0.1:``port`` only, its Control API closed to requests without the
-    secret in ``secret_file`` (:mod:`fedmap.flower.superlink`); the rovers reach its Fleet API
-    through the front (:func:`front_argv`)."""
-    argv = [sys.executable, "-m", SUPERLINK_MODULE, str(secret_file), "--host", "127.0.0.1", "--port", str(port),
-            "--disable-runtime-dependency-installation"]
+def superlink_argv(*, port: int, tls: Tls | None, auth: bool, secret_file: Path, front: str | None = None,
+                   ready: Path | None = None, database: Path | None = None) -> list[str]:
+    """The SuperLink on 127.0.0.1:``port``, its Control API closed to requests without the
+    secret in ``secret_file``, and (``front``, ``HOST:PORT``) the same SuperLink's Fleet API
+    alone where the rovers reach it, over mutual TLS with ``tls``, opened once ``ready``
+    exists (:mod:`fedmap.flower.superlink`)."""
+    argv = [sys.executable, "-m", SUPERLINK_MODULE, str(secret_file)]
+    if front is not None:
+        argv += ["--front", front] + (["--front-certs", str(tls.ca.parent)] if tls else [])
+        argv += ["--ready", str(ready)] if ready is not None else []
+    argv += ["--", "--host", "127.0.0.1", "--port", str(port), "--disable-runtime-dependency-installation"]
     argv += (["--ssl-ca-certfile", str(tls.ca), "--ssl-certfile", str(tls.cert), "--ssl-keyfile", str(tls.key)]
              if tls else ["--insecure"])
     if auth:
         argv.append("--enable-supernode-auth")
     if database is not None:
         argv += ["--database", str(database)]
-    return argv
-
-
-def front_argv(*, host: str, port: int, upstream_port: int, tls: Tls | None) -> list[str]:
-    """The front on ``host:port`` that forwards only the Fleet API to the SuperLink on
-    127.0.0.1:``upstream_port`` (:mod:`fedmap.flower.gate`); with ``tls``, mutual TLS: a
-    client must present a certificate of the base's CA (``roverK.crt``)."""
-    scheme = "https" if tls else "http"
-    argv = [sys.executable, "-m", GATE_MODULE, "front", "--host", host, "--port", str(port),
-            "--upstream", f"{scheme}://127.0.0.1:{upstream_port}"]
-    if tls:
-        argv += ["--certs", str(tls.ca.parent)]
     return argv
 
 
@@ -424,19 +416,19 @@ def start_superlink(procs: Processes, *, host: str, port: int, tls: Tls | None, 
     reach (``local:port``) and ``{node id: rover}`` of the keys."""
     secret = new_secret(Path(env["FLWR_HOME"]) / "control.secret")
     env[CONTROL_SECRET_ENV] = str(secret)
+    ready = Path(env["FLWR_HOME"]) / "front.ready"
+    ready.unlink(missing_ok=True)
     inner = free_port("127.0.0.1")
-    procs.start("superlink", superlink_argv(port=inner, tls=tls, auth=auth, secret_file=secret, database=database),
+    local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
+    front = f"[{host}]:{port}" if ":" in host.strip("[]") else f"{host.strip('[]')}:{port}"
+    procs.start("superlink", superlink_argv(port=inner, tls=tls, auth=auth, secret_file=secret, front=front,
+                                            ready=ready, database=database),
                 env=env, log=work / "superlink.log", die_with_parent=True)
-    wait_for_port("127.0.0.1", inner, timeout=60, alive=lambda: procs.check_alive("superlink"))
+    alive = lambda: procs.check_alive("superlink")  # noqa: E731
+    wait_for_port("127.0.0.1", inner, timeout=60, alive=alive)
     write_connection(Path(env["FLWR_HOME"]), address=f"127.0.0.1:{inner}", root_cert=tls.ca if tls else None)
     nodes = register_keys(list(keys), env=env)
-    procs.start("front", front_argv(host=host, port=port, upstream_port=inner, tls=tls), env=env,
-                log=work / "front.log", die_with_parent=True)
-
-    def alive() -> None:
-        procs.check_alive("superlink")
-        procs.check_alive("front")
-    local = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
+    ready.touch()  # the front opens now
     wait_for_port(local, port, timeout=60, alive=alive)
     return f"{local}:{port}", nodes
 
@@ -729,9 +721,7 @@ def _serve(procs: Processes, settings: RunSettings, run_config: dict, *, host: s
     if on_ready is not None:
         on_ready()
 
-    def alive() -> None:
-        procs.check_alive("superlink")
-        procs.check_alive("front")
+    alive = lambda: procs.check_alive("superlink")  # noqa: E731
     b = settings.base
     budget = b.connect_timeout + settings.federation.rounds * (b.deadline + b.connect_timeout) + 600
     return wait_for_result(settings.out, since=since, timeout=budget, alive=alive, on_status=on_status)

@@ -102,7 +102,6 @@ def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_con
 
             def alive() -> None:
                 procs.check_alive("superlink")
-                procs.check_alive("front")
                 for k in range(len(files)):
                     procs.check_alive(f"site{k}")
                     procs.check_alive(f"site{k}-clientapps")
