@@ -58,8 +58,7 @@ def _kind(pid: int) -> str | None:
         cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
     except OSError:
         return None
-    for key, kind in (("fedmap.flower.superlink", "SuperLink"), ("fedmap.flower.gate front", "front (Fleet API only)"),
-                      ("fedmap.flower.gate relay", "rover's relay (mutual TLS)"),
+    for key, kind in (("fedmap.flower.superlink", "SuperLink (and its front)"),
                       ("flower-superlink", "SuperLink"), ("flwr-serverapp", "ServerApp (base station)"),
                       ("fedmap.flower.supernode", "SuperNode"), ("flower-superexec", "SuperExec"),
                       ("flwr-clientapp", "ClientApp stand-in"), ("fedmap rover", "rover (and its warm ClientApps)"),

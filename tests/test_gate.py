@@ -184,7 +184,8 @@ def test_the_attack_on_the_control_api_fails_from_another_address_and_a_rover_st
         private = serialization.load_ssh_private_key((certs / "rover0").read_bytes(), password=None)
         key.write_bytes(private.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                                               serialization.NoEncryption()))
-        ctx = gate.client_context(certs / "ca.crt", certs / "rover0.crt", key)
+        ctx = ssl.create_default_context(cafile=str(certs / "ca.crt"))
+        ctx.load_cert_chain(str(certs / "rover0.crt"), str(key))
         with httpx.Client(verify=ctx, timeout=30) as c:
             assert c.post(f"https://{address}/v1/control/list-runs", content=b"").status_code == 404
             assert c.post(f"https://{address}/v1/control/start-run", content=b"").status_code == 404
@@ -243,7 +244,7 @@ def test_certificates_are_private_where_they_hold_a_key(tmp_path):
 def test_a_rover_whose_certificate_the_front_refuses_is_told_so_and_not_retried():
     from fedmap.flower import rover
 
-    log = "relay: base:9092: [SSL: TLSV1_ALERT_UNKNOWN_CA] tlsv1 alert unknown ca (_ssl.c:2580)"
+    log = "ERROR: [SSL: TLSV1_ALERT_UNKNOWN_CA] tlsv1 alert unknown ca (_ssl.c:2580)"
     why = rover.rover_failure(2, "base:9092", log, max_wait=30, code=1)
     assert why.startswith("rover 2: the base station at base:9092 refused this rover's TLS certificate")
     watch = rover._Watch("127.0.0.1:1", tls=True, max_wait=30)

@@ -35,6 +35,9 @@ POLL_ENV = "FEDMAP_SUPERNODE_POLL"
 HEARTBEAT_ENV = "FEDMAP_SUPERNODE_HEARTBEAT"
 #: The heartbeat intervals Flower 1.41's SuperLink accepts (``flwr.common.constant``), in seconds.
 HEARTBEAT_RANGE = (10.0, 1800.0)
+#: Environment variables of fedmap's SuperNode: the TLS client certificate it presents to the base's
+#: front, and its private key, both PEM files (``fedmap rover`` sets them from ``--auth-key``).
+CLIENT_CERT_ENV, CLIENT_KEY_ENV = "FEDMAP_SUPERNODE_CLIENT_CERT", "FEDMAP_SUPERNODE_CLIENT_KEY"
 #: Flower's SuperExec: seconds between its polls for a task (a ClientApp to start; Flower's own: 1 s).
 SUPEREXEC_POLL_ENV = "FLWR_SUPEREXEC_TASK_POLL_INTERVAL"
 

@@ -35,9 +35,9 @@ from fedmap.flower.settings import RunSettings
 from fedmap.flower.task import rover_nodes_text, run_dir, run_status_path, truth_shape, write_status
 
 CONNECTION = "fedmap"  # the connection name written to $FLWR_HOME/config.toml
-#: The modules the launcher runs as processes: the SuperLink (Control API closed), the front and
-#: a rover's relay (:mod:`fedmap.flower.gate`), and fedmap's Control API calls.
-SUPERLINK_MODULE, GATE_MODULE, CONTROL_MODULE = "fedmap.flower.superlink", "fedmap.flower.gate", "fedmap.flower.control"
+#: The modules the launcher runs as processes: the SuperLink with its front (Control API closed,
+#: :mod:`fedmap.flower.gate`), and fedmap's Control API calls.
+SUPERLINK_MODULE, CONTROL_MODULE = "fedmap.flower.superlink", "fedmap.flower.control"
 #: Environment variable naming the launcher's control secret file (:mod:`fedmap.flower.control`).
 CONTROL_SECRET_ENV = "FEDMAP_CONTROL_SECRET_FILE"
 

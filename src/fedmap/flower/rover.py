@@ -41,12 +41,10 @@ from pathlib import Path
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
-from fedmap.flower import HEARTBEAT_ENV, HEARTBEAT_RANGE, POLL_ENV, SUPEREXEC_POLL_ENV
+from fedmap.flower import CLIENT_CERT_ENV, CLIENT_KEY_ENV, HEARTBEAT_ENV, HEARTBEAT_RANGE, POLL_ENV, SUPEREXEC_POLL_ENV
 from fedmap.flower import warm as warm_server
 from fedmap.flower.faults import parse_fault
-from fedmap.flower.gate import local_certificate
 from fedmap.flower.launch import (
-    GATE_MODULE,
     SUPERNODE_EXES,
     Proc,
     Processes,
@@ -59,7 +57,6 @@ from fedmap.flower.launch import (
     set_death_signal,
     sigterm_as_interrupt,
     socket_dir,
-    wait_for_port,
 )
 from fedmap.flower.mission_task import hold_state, node_feed, parse_mission_fault
 from fedmap.flower.task import load_local_map
@@ -262,10 +259,12 @@ class WarmChild:
                 pass
 
 
-def superlink_answers(address: str, *, tls: bool, timeout: float = PROBE_TIMEOUT) -> bool:
+def superlink_answers(address: str, *, tls: bool, timeout: float = PROBE_TIMEOUT,
+                      client: tuple[Path, Path] | None = None) -> bool:
     """Whether an HTTP(S) server answers at ``HOST:PORT`` right now: what Flower's Fleet API
     is. A port that accepts connections and closes them (a relay whose far end is gone)
-    does not count. The certificate is not checked here: the SuperNode checks it."""
+    does not count. The certificate is not checked here: the SuperNode checks it. ``client``:
+    the rover's certificate and PEM key, which the base's front asks of every client."""
     host, _, port = address.rpartition(":")
     host = host.strip("[]")
     try:
@@ -274,6 +273,8 @@ def superlink_answers(address: str, *, tls: bool, timeout: float = PROBE_TIMEOUT
             if tls:
                 ctx = ssl.create_default_context()
                 ctx.check_hostname, ctx.verify_mode = False, ssl.CERT_NONE
+                if client is not None:
+                    ctx.load_cert_chain(str(client[0]), str(client[1]))
                 conn = ctx.wrap_socket(raw, server_hostname=host)
             conn.sendall(f"HEAD / HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n".encode())
             return conn.recv(5) == b"HTTP/"
@@ -347,14 +348,14 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
         cfg = {**node_config, "done-file": str(done), "refused-file": str(refused)}
         log = Path(log) if log is not None else Path(tmp) / "supernode.log"
         env = flower_env(Path(flwr_home) if flwr_home else Path(tmp) / "flwr-home")
-        link, link_cert = superlink, root_cert  # where the SuperNode connects, and how
-        if client_cert is not None:  # through the relay, which presents the rover's certificate
-            assert auth_key is not None and root_cert is not None
-            link, link_cert = start_relay(procs, superlink, root_cert=root_cert, cert=client_cert, key=auth_key,
-                                          folder=Path(tmp), env=env, log=log)
+        client = None
+        if client_cert is not None:  # the SuperNode presents the rover's certificate to the base's front
+            assert auth_key is not None
+            client = (client_cert, pem_key(auth_key, Path(tmp) / "tls.key"))
+            env[CLIENT_CERT_ENV], env[CLIENT_KEY_ENV] = str(client[0]), str(client[1])
 
         def argv_for(local: int) -> list[str]:
-            return supernode_argv(superlink=link, port=local, node_config=cfg, root_cert=link_cert,
+            return supernode_argv(superlink=superlink, port=local, node_config=cfg, root_cert=root_cert,
                                   auth_key=auth_key, max_wait=max_wait)
         if poll is not None:  # how often the SuperNode asks for a message, and its SuperExec for a task
             env[POLL_ENV] = env[SUPEREXEC_POLL_ENV] = str(poll)
@@ -377,8 +378,8 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
                 if joined is not None:
                     atomic_write_bytes(joined, f"{superlink}\n".encode())
             code = _supervise(procs, pid, superlink, argv_for, start, port=port, done=done, log=log,
-                              tls=link_cert is not None, max_wait=max_wait, self_registered=auth_key is None,
-                              rejoin=rejoin, probe=link, refused=refused, on_reach=reached)
+                              tls=root_cert is not None, max_wait=max_wait, self_registered=auth_key is None,
+                              rejoin=rejoin, client=client, refused=refused, on_reach=reached)
             if joined is not None:  # the mission is over for this rover: the next start is a new one
                 joined.unlink(missing_ok=True)
             return code
@@ -409,34 +410,20 @@ def rover_certificate(auth_key: Path, pid) -> Path:
     return cert
 
 
-def start_relay(procs: Processes, superlink: str, *, root_cert: Path, cert: Path, key: Path, folder: Path, env: dict,
-                log: Path) -> tuple[str, Path]:
-    """The rover's relay (:func:`fedmap.flower.gate.serve_relay`) under ``procs``: it listens on
-    127.0.0.1 and carries the SuperNode's connections to ``superlink`` over mutual TLS, with
-    ``cert`` and the private key ``key`` (OpenSSH, as Flower's SuperNode reads it; written
-    as PEM into ``folder``, readable by its owner only). The SuperNode reaches the relay over
-    TLS too (Flower authenticates a SuperNode only over TLS), with a throw-away certificate
-    (:func:`~fedmap.flower.gate.local_certificate`). Returns the relay's address and that
-    certificate (the SuperNode's root certificate)."""
+def pem_key(key: Path, out: Path) -> Path:
+    """The rover's private key ``key`` (OpenSSH, as Flower's SuperNode reads it) as PEM in
+    ``out``, readable by its owner only: what TLS takes for the rover's client certificate."""
     from cryptography.hazmat.primitives import serialization
 
     try:
         private = serialization.load_ssh_private_key(Path(key).read_bytes(), password=None)
     except (ValueError, TypeError) as e:
         raise FedmapError(f"no usable private key in {key} ({e})") from None
-    pem = folder / "tls.key"
-    fd = os.open(pem, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "wb") as fh:
         fh.write(private.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                                        serialization.NoEncryption()))
-    local_cert, local_key = local_certificate(folder)
-    port = free_port()
-    procs.start("relay", [sys.executable, "-m", GATE_MODULE, "relay", "--port", str(port), "--target", superlink,
-                          "--root-cert", str(root_cert), "--cert", str(cert), "--key", str(pem),
-                          "--local-cert", str(local_cert), "--local-key", str(local_key)],
-                env=env, log=log, die_with_parent=True)
-    wait_for_port("127.0.0.1", port, timeout=30, alive=lambda: procs.check_alive("relay"))
-    return f"127.0.0.1:{port}", local_cert
+    return out
 
 
 def fork_warm_server(sock: str, node_config: dict, *, env: dict, log: Path) -> int:
@@ -487,14 +474,14 @@ def _reap(pid: int) -> None:
 
 def _supervise(procs: Processes, pid, superlink: str, argv_for: Callable[[int], list[str]],
                start: Callable[[list[str]], Proc], *, port: int, log: Path, done: Path, tls: bool, max_wait: float,
-               self_registered: bool, rejoin: bool = False, probe: str | None = None,
+               self_registered: bool, rejoin: bool = False, client: tuple[Path, Path] | None = None,
                refused: Path | None = None, on_reach: Callable[[], None] | None = None) -> int:
     """Run SuperNodes until the run ends for this rover (0) or a one-line failure.
 
     ``argv_for(p)``: a SuperNode's command with its local API on port ``p``: ``port``, or
     (``port`` 0) a free one, picked again for the next SuperNode when this one's was taken.
     ``start(argv)``: starts it, as ``procs``' ``"supernode"``, logging to ``log``."""
-    watch = _Watch(probe or superlink, tls=tls, max_wait=max_wait, self_registered=self_registered)
+    watch = _Watch(superlink, tls=tls, max_wait=max_wait, self_registered=self_registered, client=client)
     watch.ever_reached, watch.on_reach = rejoin, on_reach
     restarts = 0  # in a row, without the SuperNode reaching its SuperLink in between
     local = port or free_port()
@@ -524,8 +511,9 @@ def _supervise(procs: Processes, pid, superlink: str, argv_for: Callable[[int], 
 class _Watch:
     """One SuperNode at a time: started, watched until it stops (or says it has), then judged."""
 
-    def __init__(self, superlink: str, *, tls: bool, max_wait: float, self_registered: bool = False) -> None:
-        self.superlink, self.tls, self.max_wait = superlink, tls, max_wait
+    def __init__(self, superlink: str, *, tls: bool, max_wait: float, self_registered: bool = False,
+                 client: tuple[Path, Path] | None = None) -> None:
+        self.superlink, self.tls, self.max_wait, self.client = superlink, tls, max_wait, client
         self.self_registered = self_registered  # no --auth-key: each SuperNode registers a key of its own
         self.contact = time.monotonic()  # last time the SuperLink answered (the rover's start counts)
         self.reached = False  # whether the current SuperNode reached its SuperLink
@@ -565,7 +553,7 @@ class _Watch:
                 if not self.reached and self.on_reach is not None:
                     self.on_reach()
                 self.reached = self.ever_reached = True
-            if _tls_refused(text.lower()):  # the relay's TLS to the base: no retry fixes it
+            if _tls_refused(text.lower()):  # TLS with the base's front: no retry fixes it
                 break
             if ended_at is None and _marks(text, ENDED):
                 ended_at = now  # Flower's SuperNode can hang after this line: give it END_GRACE s
@@ -573,7 +561,7 @@ class _Watch:
                 break
             if now - probed > PROBE_EVERY:
                 probed = now
-                if superlink_answers(self.superlink, tls=self.tls):
+                if superlink_answers(self.superlink, tls=self.tls, client=self.client):
                     self.contact = now
             if now - self.contact > self.max_wait:
                 break  # retry() says no: the SuperLink has been silent for max_wait
@@ -640,7 +628,7 @@ def _read_from(log: Path, start: int) -> str:
         return ""
 
 
-#: A relay's TLS handshake with the base's front that no retry fixes: the rover does not trust
+#: A TLS handshake with the base's front that no retry fixes: the rover does not trust
 #: the base's certificate, or the front does not accept the rover's (OpenSSL's alerts).
 CLIENT_CERT_REFUSED = ("alert unknown ca", "alert certificate required", "alert bad certificate",
                        "alert certificate unknown", "alert certificate expired")

@@ -30,7 +30,7 @@ import flwr.supernode.fleet_http_connection as fleet
 from flwr.supercore.retry import RetryInvoker, make_simple_http_retry_invoker
 from flwr.supernode.cli import flower_supernode
 
-from fedmap.flower import HEARTBEAT_ENV, POLL_ENV
+from fedmap.flower import CLIENT_CERT_ENV, CLIENT_KEY_ENV, HEARTBEAT_ENV, POLL_ENV
 from fedmap.flower.polling import quick_pulls
 
 #: Substrings of an SSL error raised by a link that went away mid-handshake (not a TLS problem).
@@ -80,8 +80,33 @@ def set_heartbeat(seconds: float) -> None:
         module.HEARTBEAT_DEFAULT_INTERVAL = seconds  # type: ignore[attr-defined]
 
 
+def present_certificate(cert: str, key: str) -> None:
+    """Every HTTPS client this process makes from now on presents ``cert`` (PEM) with its
+    private key ``key`` (PEM): the base station's front admits only clients with a
+    certificate of its CA (:mod:`fedmap.flower.gate`), and Flower 1.41's SuperNode has no
+    option for one. Its verification of the server (``--root-certificates``) is unchanged."""
+    import ssl
+
+    import httpx
+
+    base = httpx.Client
+
+    class Client(base):  # type: ignore[misc, valid-type]
+        def __init__(self, *args, verify=True, **kwargs) -> None:
+            if verify is not False:
+                ctx = verify if isinstance(verify, ssl.SSLContext) else ssl.create_default_context(
+                    cafile=verify if isinstance(verify, str) else None)
+                ctx.load_cert_chain(cert, key)
+                verify = ctx
+            super().__init__(*args, verify=verify, **kwargs)
+
+    httpx.Client = Client  # type: ignore[misc]
+
+
 def main(argv: list[str]) -> int:
     fleet.make_simple_http_retry_invoker = retry_invoker  # the SuperNode's connection to its SuperLink
+    if os.environ.get(CLIENT_CERT_ENV):  # the rover's TLS client certificate (fedmap rover --auth-key K: K.crt)
+        present_certificate(os.environ[CLIENT_CERT_ENV], os.environ[CLIENT_KEY_ENV])
     beat = os.environ.get(HEARTBEAT_ENV)
     if beat:
         set_heartbeat(float(beat))
