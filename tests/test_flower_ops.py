@@ -861,7 +861,7 @@ def test_certs_forced_over_an_old_ca_leave_no_rover_key_of_it(tmp_path):
 
 
 def test_rover_keys_are_registered_in_one_process_and_a_bad_one_is_named_in_one_line(tmp_path):
-    """All of a mission's keys go through one Flower CLI process (fedmap.flower.register); a
+    """All of a mission's keys go through one Flower CLI process (fedmap.flower.control); a
     key that is not one is a one-line error naming it."""
     env = flower_env(tmp_path / "home")
     launch.write_connection(tmp_path / "home", address=f"127.0.0.1:{free_port()}", root_cert=None)
