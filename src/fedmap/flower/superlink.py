@@ -65,7 +65,9 @@ def served(secret: bytes, *, front: tuple[str, int] | None, certs: Path | None, 
             finally:
                 outer.should_exit = True
                 await asyncio.wait_for(task, 30)
-        asyncio.run(both())
+        from uvicorn._compat import asyncio_run  # uvicorn's own way: its event loop (uvloop where installed)
+
+        asyncio_run(both(), loop_factory=main.config.get_loop_factory())
     return run
 
 
