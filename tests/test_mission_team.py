@@ -167,3 +167,27 @@ def test_a_node_whose_key_is_another_rovers_is_refused_by_the_base(tmp_path):
     assert log.count("node 7 holds rover 1's registered key but says it is rover 0: refused") == 1
     team = mission_server._Team(OneRoverGrid(), dataclasses.replace(run, rover_nodes="7=0"), 1)  # its own key
     assert team.node_of == {0: 7}
+
+
+def test_what_a_strategy_can_do_is_said_by_its_spec_alone():
+    """Which strategies run on processes, and which with [frames], come from the registry's
+    specs: the lists the CLI, the deployment and the frames check use are the same."""
+    from fedmap.errors import FedmapError
+    from fedmap.mission import load_mission
+    from fedmap.mission.frames import check_frames
+    from fedmap.mission.registry import REGISTRY, names_that
+    from fedmap.mission.remote import check_deployable
+
+    deployable, framed = names_that("deployable"), names_that("framed")
+    assert "central" not in deployable and {"raw", "predictive", "fedmap", "paper"} <= set(deployable)
+    assert set(framed) <= set(deployable) and "fedmap" not in framed
+    config, _, _ = load_mission(overrides=[{"mission": {"strategies": list(deployable)}}])
+    check_deployable(config, deployable)
+    for name in set(REGISTRY) - set(deployable):
+        with pytest.raises(FedmapError, match=f"strategy {name} cannot run on processes.*these can: "
+                                              + ", ".join(deployable)):
+            check_deployable(config, [name])
+    config, _, _ = load_mission(overrides=[{"mission": {"strategies": ["raw", "fedmap"]},
+                                            "frames": {"start_offset": 1.0}}])
+    with pytest.raises(FedmapError, match=r"\[frames\] .* runs none, raw, predictive only, not fedmap"):
+        check_frames(config)

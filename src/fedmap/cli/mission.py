@@ -23,7 +23,8 @@ from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.bag import SyncMaps
 from fedmap.mission.maps_out import MAPS_DIR
 from fedmap.mission.recording import Recorder
-from fedmap.mission.remote import DEPLOYABLE, check_deployable
+from fedmap.mission.registry import names_that
+from fedmap.mission.remote import check_deployable
 from fedmap.mission.repeats import run_repeats, what_varies
 from fedmap.mission.report import global_meaning, has_peers, repeat_rows, table_rows, verdict, write_mission
 from fedmap.mission.results import movement_warnings
@@ -187,11 +188,12 @@ def _deploy_plan(cfg, mode: str, listen: str) -> tuple[tuple[str, ...], list[str
     out, and ``--listen``'s host and port."""
     if mode not in DEPLOY_MODES:
         raise FedmapError(f"unknown --deploy {mode!r}: choose one of {', '.join(DEPLOY_MODES)}")
-    names = tuple(n for n in cfg.strategies if n in DEPLOYABLE)
-    left = [n for n in cfg.strategies if n not in DEPLOYABLE]
+    deployable = names_that("deployable")
+    names = tuple(n for n in cfg.strategies if n in deployable)
+    left = [n for n in cfg.strategies if n not in deployable]
     if not names:
         raise FedmapError(f"none of the strategies {', '.join(cfg.strategies)} runs on processes; these do: "
-                          f"{', '.join(DEPLOYABLE)}")
+                          f"{', '.join(deployable)}")
     check_deployable(cfg, names)  # the topology and latency, before any process starts
     host, _, port = listen.rpartition(":")
     if mode == "base" and not (host and port.isdigit()):

@@ -28,8 +28,8 @@ from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
 from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.feed import MapFeed
+from fedmap.mission.registry import REGISTRY
 from fedmap.mission.remote import (
-    DEPLOYABLE,
     CorruptMessage,
     LostState,
     Order,
@@ -96,7 +96,7 @@ def mission_from_text(text: str, *, frames: int = 60) -> Mission:
 
 def strategies_of(run: MissionRun, mission: Mission) -> tuple[str, ...]:
     """The strategies the run deploys: the run config's, else the mission's own that can run on processes."""
-    return run.strategies or tuple(s for s in mission.config.strategies if s in DEPLOYABLE)
+    return run.strategies or tuple(s for s in mission.config.strategies if REGISTRY[s].deployable)
 
 
 # -- a rover between messages ----------------------------------------------------------------

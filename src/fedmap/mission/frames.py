@@ -86,14 +86,12 @@ from fedmap.mission.link import BASE
 from fedmap.mission.predictive import PredictiveBase, PredictiveOptions, PredictiveRover
 from fedmap.mission.protocol import BaseEnd, Outgoing, PeerEnd, RoverEnd, pack_down, unpack_down, unpack_up
 from fedmap.mission.raw import RawBase, RawPeer, RawRover
-from fedmap.mission.registry import Setup, Sharing
+from fedmap.mission.registry import Setup, Sharing, names_that
 from fedmap.mission.registry import build as build_known
 from fedmap.mission.sensing import disk_offsets, footprint
 from fedmap.mission.world import World
 
 Cell = tuple[int, int]
-#: The strategies a mission with unknown poses runs.
-FRAMED_STRATEGIES: tuple[str, ...] = ("none", "raw", "predictive")
 #: How far past its sensor's range a rover in its own frame writes what it senses (cells): it
 #: looks up, for every cell of its frame near its estimate, the true cell it shows.
 SENSED_BEYOND = 1.5
@@ -112,10 +110,10 @@ def check_frames(config: Any) -> None:
     """One-line error when a mission with ``[frames]`` asks for what it does not support."""
     if not config.frames.enabled:
         return
-    bad = [s for s in config.strategies if s not in FRAMED_STRATEGIES]
+    framed = names_that("framed")
+    bad = [s for s in config.strategies if s not in framed]
     if bad:
-        raise FedmapError(f"[frames] (unknown poses, drift) runs {', '.join(FRAMED_STRATEGIES)} only, not "
-                          f"{', '.join(bad)}")
+        raise FedmapError(f"[frames] (unknown poses, drift) runs {', '.join(framed)} only, not {', '.join(bad)}")
     if config.link.topology not in ("star", "mesh"):
         raise FedmapError(f"[frames] (unknown poses, drift) runs on the star or the mesh, not {config.link.topology!r}")
     if config.link.topology == "mesh" and not config.link.lander_agent:
@@ -874,6 +872,6 @@ def build(name: str, setup: Setup) -> Sharing:
     return Sharing(name, setup.team, rovers, base, journal=setup.journal)
 
 
-__all__ = ["FRAMED_STRATEGIES", "SENSED_BEYOND", "TRANSFORM_BYTES", "FramedPredictiveBase", "FramedPredictiveRover",
+__all__ = ["SENSED_BEYOND", "TRANSFORM_BYTES", "FramedPredictiveBase", "FramedPredictiveRover",
            "FramedRawBase", "FramedRawPeer", "FramedRawRover", "FramedWorld", "Placing", "Pose", "build", "chain",
            "check_frames", "pack_transform", "registrations", "track", "unpack_transform"]

@@ -123,6 +123,11 @@ class StrategySpec:
     #: the bytes every uplink and every downlink of it carries at the least (its headers): a
     #: star budget below them can never carry a message (the mission config refuses it)
     least: tuple[int, int] = (UP_HEADER, DOWN_HEADER)
+    #: its rover ends hold only their own rover, so each can run in a process of its own
+    #: (``central`` pools every rover's observations at once: a reference, not a protocol)
+    deployable: bool = False
+    #: it runs with ``[frames]`` (rovers that do not know their poses; :func:`fedmap.mission.frames.build`)
+    framed: bool = False
 
     def factory(self, topology: Any) -> Factory | None:
         """Its factory on ``topology`` (:class:`~fedmap.mission.topology.Topology`): the
@@ -221,24 +226,31 @@ def _gossip(cls: type[GossipPeer]) -> Factory:
 #: Every sharing strategy, from the lower bound to the upper bound.
 REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
     StrategySpec("none", "nothing is sent: a rover's belief is its own observations", star=_none, peer=_none,
-                 on_link=False, default=True, peer_default=True),
+                 on_link=False, default=True, peer_default=True, deployable=True, framed=True),
     StrategySpec("raw", "observed cells, lossless (context codec): merged at the base on the star, gossiped on "
-                 "peers", star=_raw_star, peer=_raw_peer, default=True, peer_default=True),
+                 "peers", star=_raw_star, peer=_raw_peer, default=True, peer_default=True, deployable=True,
+                 framed=True),
     StrategySpec("predictive", "new cells, lossless, with a learned probability model both ends keep",
                  star=_predictive, options=PredictiveOptions, default=True,
-                 least=(LEAST_BYTES, LEAST_BYTES)),
+                 least=(LEAST_BYTES, LEAST_BYTES), deployable=True, framed=True),
     StrategySpec("rosgrid", "what a ROS 2 team sends: every rover's whole map as a nav_msgs/OccupancyGrid (CDR), "
-                 "merged as map_merge does, the whole merged grid back", star=_rosgrid(None)),
+                 "merged as map_merge does, the whole merged grid back", star=_rosgrid(None), deployable=True),
     StrategySpec("rosgrid-zlib", f"rosgrid with every serialised grid compressed by zlib (level {ZLIB_LEVEL})",
-                 star=_rosgrid(ZLIB_LEVEL)),
-    StrategySpec("paper", "the source paper's Fourier MLP, FedAvg", star=_model, trains=True),
-    StrategySpec("fedmap", "fedmap's feature grids, coverage-aware FedAvg", star=_model, trains=True, default=True),
+                 star=_rosgrid(ZLIB_LEVEL), deployable=True),
+    StrategySpec("paper", "the source paper's Fourier MLP, FedAvg", star=_model, trains=True, deployable=True),
+    StrategySpec("fedmap", "fedmap's feature grids, coverage-aware FedAvg", star=_model, trains=True, default=True,
+                 deployable=True),
     StrategySpec("gossip", "fedmap's network averaged peer to peer (Metropolis weights)", peer=_gossip(GossipPeer),
                  trains=True, peer_default=True),
     StrategySpec("admm", "fedmap's network by DiNNO's decentralised C-ADMM", peer=_gossip(AdmmPeer), trains=True),
     StrategySpec("central", "every observation pooled at once, free (a reference, not a bound)", star=_central,
                  peer=_central, on_link=False, default=True, peer_default=True),
 )}
+
+
+def names_that(capability: str) -> tuple[str, ...]:
+    """The strategies whose spec has ``capability`` (``"deployable"``, ``"framed"``, ``"trains"``), in registry order."""
+    return tuple(n for n, s in REGISTRY.items() if getattr(s, capability))
 
 
 def build(name: str, setup: Setup) -> Sharing:
@@ -251,4 +263,4 @@ def build(name: str, setup: Setup) -> Sharing:
     return sharing
 
 
-__all__ = ["REGISTRY", "Setup", "Sharing", "StrategySpec", "build"]
+__all__ = ["REGISTRY", "Setup", "Sharing", "StrategySpec", "build", "names_that"]

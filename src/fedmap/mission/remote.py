@@ -29,7 +29,7 @@ then answers the order. That replay is the rover's keyframe: it is sent whenever
 cannot know what the rover holds, and its bytes are a line of the run's faults.
 
 Limits: the star topology with ``latency = 0`` (on real processes the link's own delay is
-the latency), and strategies whose rover ends hold only their own rover (:data:`DEPLOYABLE`).
+the latency), and strategies whose rover ends hold only their own rover (their spec's ``deployable``).
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ from fedmap.maps.planning import astar
 from fedmap.mission.feed import FeedWorld, MapFeed
 from fedmap.mission.frontiers import choose_target, travel_costs
 from fedmap.mission.protocol import DroppedUpdate, Outgoing
-from fedmap.mission.registry import Setup, Sharing, build
+from fedmap.mission.registry import Setup, Sharing, build, names_that
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.sim import Mission, StrategyRun, TeamState
 from fedmap.mission.topology import make_topology
@@ -61,9 +61,6 @@ Cell = tuple[int, int]
 WIRE_VERSION = 1
 _HEAD = struct.Struct("<BII")  # version, crc32 of what follows, header length
 _BLOB = struct.Struct("<I")
-#: Strategies a mission on processes runs: their rover ends hold only their own rover (``central``
-#: pools every rover's observations at once: a reference, not a protocol).
-DEPLOYABLE = ("none", "raw", "predictive", "rosgrid", "rosgrid-zlib", "paper", "fedmap")
 
 
 #: The largest map side a report's maps may claim, and the most bytes they may decode to (a
@@ -284,10 +281,11 @@ def check_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) 
     if c.link.latency != 0:
         raise FedmapError(f"a mission on processes needs [link] latency = 0 (got {c.link.latency}): the real "
                           "link's delay is its latency")
-    bad = [s for s in strategies if s not in DEPLOYABLE]
+    deployable = names_that("deployable")
+    bad = [s for s in strategies if s not in deployable]
     if bad:
         raise FedmapError(f"strategy {', '.join(bad)} cannot run on processes (its ends are not one per machine); "
-                          f"these can: {', '.join(DEPLOYABLE)}")
+                          f"these can: {', '.join(deployable)}")
 
 
 class RoverNode:
@@ -585,6 +583,6 @@ def loopback(mission: Mission, name: str, *, feeds: dict[int, MapFeed] | None = 
     return send
 
 
-__all__ = ["DEPLOYABLE", "WIRE_VERSION", "BaseNode", "CorruptMessage", "LostState", "Order", "Report", "RoverNode",
+__all__ = ["WIRE_VERSION", "BaseNode", "CorruptMessage", "LostState", "Order", "Report", "RoverNode",
            "StepState", "check_deployable", "loopback", "pack_frame", "pack_history", "rounds", "unpack_frame",
            "unpack_history", "warm_up"]
