@@ -25,7 +25,7 @@ import numpy as np
 
 from fedmap.errors import FedmapError
 from fedmap.evaluation.metrics import prediction_scores
-from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
+from fedmap.maps.grid import FREE, IMPASSABLE, GridMap
 from fedmap.maps.orbital import orbital_prior
 from fedmap.maps.sources import TerrainSource, load_terrain, needs_dem
 from fedmap.maps.traversability import (
@@ -114,12 +114,10 @@ class _Run:
         belief in its own classes, computed once per step: what it plans on and is scored
         on), what it has observed, where it is and how far it has come."""
         s, w = self.sharing, self.world
-        beliefs = [s.belief(k) for k in range(len(self.team))]
-        if isinstance(w, FramedWorld):  # scored in the true frame, by the transforms the team estimated
-            beliefs = [w.in_true_frame(k, b, s.base) for k, b in enumerate(beliefs)]
+        # scored in the true frame (rovers that do not know their poses: by the transforms the team estimated)
+        beliefs = [w.in_true_frame(k, s.belief(k), s.base) for k in range(len(self.team))]
         return TeamState(beliefs=beliefs, views=[w.own_view(k, b) for k, b in enumerate(beliefs)],
-                         observed=w.observed() if isinstance(w, FramedWorld)
-                         else np.stack([r.local != UNKNOWN for r in self.team]), positions=w.positions(),
+                         observed=w.observed(), positions=w.positions(),
                          targets=[r.target for r in self.team], distances=[r.distance for r in self.team],
                          trail_len=[len(r.trail) for r in self.team])
 
@@ -153,7 +151,7 @@ class _Run:
             distance=tuple(team.distances), bytes_up=tuple(up), bytes_down=tuple(down),
             up_delivered=delivered[UP], up_dropped=dropped[UP],
             down_delivered=delivered[DOWN], down_dropped=dropped[DOWN]))
-        if t == self.config.steps and w.predictor is not None and not isinstance(w, FramedWorld):
+        if t == self.config.steps and w.predictor is not None:  # ([frames] refuses a predictor)
             nobody = n_seen == 0
             if nobody.any():
                 self.prediction = prediction_scores(
@@ -163,7 +161,7 @@ class _Run:
             g = self.scorer.scores(s.global_map())
             own = [self.own_scorer[k].path(v) for k, v in enumerate(views)]
             guessed: dict[str, tuple[float, ...]] = {}
-            if w.predictor is not None and not isinstance(w, FramedWorld):  # the belief each rover plans paths on
+            if w.predictor is not None:  # the belief each rover plans paths on
                 filled = [w.predicted(k, v).classes for k, v in enumerate(views)]
                 paths = [self.own_scorer[k].path(f) for k, f in enumerate(filled)]
                 guessed = {"predicted_f1": tuple(p.f1 for p in paths),

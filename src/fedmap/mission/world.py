@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -206,6 +207,14 @@ class World:
     def positions(self) -> list[Cell]:
         """Every member's cell now, in team order."""
         return [r.pos for r in self.team]
+
+    def observed(self) -> np.ndarray:
+        """``(members, h, w)``: the cells each member has observed (its own map's known cells)."""
+        return np.stack([r.local != UNKNOWN for r in self.team])
+
+    def in_true_frame(self, k: int, belief: np.ndarray, base: Any = None) -> np.ndarray:
+        """Member ``k``'s belief in the true frame, where it is scored: with known poses, as it is."""
+        return belief
 
     # -- sensing and driving
     def sense(self, k: int, t: int) -> None:
