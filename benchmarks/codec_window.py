@@ -48,8 +48,9 @@ def main() -> None:
         ref = truth.copy()
         ref[sl] = UNKNOWN
         for case, m, reference in (("new cells", new, None), ("vs ref", truth, ref)):
-            whole = _median(lambda: mapcodec._encode_body(m, reference), args.repeats)  # noqa: B023
-            whole_bytes = len(mapcodec._encode_body(m, reference)) + mapcodec._HEADER.size + 4
+            whole = _median(lambda: mapcodec.encode_map(m, reference=reference, window=False),  # noqa: B023
+                            args.repeats)
+            whole_bytes = len(mapcodec.encode_map(m, reference=reference, window=False))
             data = mapcodec.encode_map(m, reference=reference)
             enc = _median(lambda: mapcodec.encode_map(m, reference=reference), args.repeats)  # noqa: B023
             dec = _median(lambda: mapcodec.decode_map(data, reference=reference), args.repeats)  # noqa: B023

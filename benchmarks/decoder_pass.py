@@ -6,7 +6,7 @@
 1. The frozen decoder, the loss and the loss's gradient on the features, on ``--cells``
    cells of seeded features and targets: in torch (forward, loss and ``autograd.grad`` in
    chunks of 2²⁰ cells, the in-place decoder) and in one compiled pass
-   (``fedmap.nets.training._decoder_pass``). Prints the sorted times of ``--repeats`` runs
+   (``fedmap.nets.training.decoder_pass``). Prints the sorted times of ``--repeats`` runs
    of each, their ratio of medians, the cells whose gradients differ by more than 1e-4 of
    the largest gradient (a hidden unit at ReLU's edge, on one side in one order of
    rounding and on the other in the other), and the largest difference elsewhere.
@@ -26,14 +26,14 @@ import torch
 
 from fedmap.maps.grid import UNKNOWN, GridMap
 from fedmap.nets.model import build_model, grid_config
-from fedmap.nets.training import TrainConfig, _decoder_pass, _loss, fit, keep_freed_memory
+from fedmap.nets.training import TrainConfig, decoder_pass, fit, keep_freed_memory, map_loss
 
 
 def _torch_pass(net, feats, y, wt, total, chunk=1 << 20):
     grad, value = torch.empty_like(feats), 0.0
     for a in range(0, feats.shape[0], chunk):
         leaf = feats[a:a + chunk].detach().requires_grad_()
-        part = _loss(net.head(leaf), y[a:a + chunk], wt[a:a + chunk], total)
+        part = map_loss(net.head(leaf), y[a:a + chunk], wt[a:a + chunk], total)
         grad[a:a + leaf.shape[0]] = torch.autograd.grad(part, leaf)[0]
         value += part.item()
     return grad, value
@@ -64,11 +64,11 @@ def main() -> None:
     wt = torch.rand(a.cells, generator=g)
     total = wt.sum()
     want, _ = _torch_pass(net, feats, y, wt, total)
-    got, _ = _decoder_pass(net, feats, y, wt, float(total))
+    got, _ = decoder_pass(net, feats, y, wt, float(total))
     off = ((got - want).abs() > 1e-4 * want.abs().max()).any(dim=1)
     rel = float((got - want)[~off].abs().max() / want.abs().max())
     written = _times(lambda: _torch_pass(net, feats, y, wt, total), a.repeats)
-    compiled = _times(lambda: _decoder_pass(net, feats, y, wt, float(total)), a.repeats)
+    compiled = _times(lambda: decoder_pass(net, feats, y, wt, float(total)), a.repeats)
     print(f"decoder, loss and gradient on {a.cells:,} cells:")
     print(f"  torch    ms {[round(t) for t in written]}")
     print(f"  compiled ms {[round(t) for t in compiled]}")

@@ -305,6 +305,18 @@ def test_a_small_update_on_a_large_grid_codes_its_window():
     assert len(nothing) == HEAD + _window_fields(nothing) == HEAD + 4
 
 
+def test_the_whole_grid_ablation_decodes_to_the_same_map_for_more_bytes():
+    """``window=False`` (the ablation benchmarks/codec_window.py measures) codes every cell: the
+    same map decodes, the payload carries no window and costs more than the windowed one."""
+    truth = _blobs((256, 256), seed=3, block=8)
+    update = np.full(truth.shape, UNKNOWN, np.uint8)
+    update[100:140, 30:94] = truth[100:140, 30:94]
+    whole, windowed = encode_map(update, window=False), encode_map(update)
+    assert not whole[5] & mapcodec._F_WINDOW and windowed[5] & mapcodec._F_WINDOW
+    assert np.array_equal(decode_map(whole), update) and np.array_equal(decode_map(windowed), update)
+    assert len(whole) > len(windowed)
+
+
 #: Payloads of format version 1 (whole grid, no window), written by fedmap before windows:
 #: a 9x13 map, and the same map against a reference; both still decode.
 V1_PLAIN = bytes.fromhex("464d434d0100090000000d00000079babefc1350811615fe03a37ee2d65b0c724cd72fe9557299020a1ee29eb4de")

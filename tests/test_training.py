@@ -54,12 +54,12 @@ def test_masked_targets_ignore_unknown(tiny_net, blob_map):
 
 def test_masked_loss_gradient_zero_from_unknown_cells(tiny_net):
     # Gradient of the masked loss w.r.t. the network output is exactly 0 on UNKNOWN cells.
-    from fedmap.nets.training import _loss
+    from fedmap.nets.training import map_loss
 
     pred = torch.rand(6, 3, requires_grad=True)
     target = torch.rand(6, 3)
     weight = torch.tensor([1.0, 0, 1, 0, 0, 1])
-    _loss(pred, target, weight).backward()
+    map_loss(pred, target, weight).backward()
     assert torch.all(pred.grad[weight == 0] == 0) and torch.all(pred.grad[weight == 1] != 0)
 
 
@@ -171,7 +171,7 @@ def test_the_compiled_decoder_pass_is_the_decoder_loss_and_its_gradient(monkeypa
     results = []
     for threads in (1, 2):
         monkeypatch.setattr(torch, "get_num_threads", lambda threads=threads: threads)
-        results.append(training._decoder_pass(net, feats, y, wt, total))
+        results.append(training.decoder_pass(net, feats, y, wt, total))
     (grad, loss), (grad2, loss2) = results
     assert torch.equal(grad, grad2) and loss == loss2
     assert loss == pytest.approx(want.item(), rel=1e-5)

@@ -221,16 +221,18 @@ def _encode_body(m: np.ndarray, ref: np.ndarray | None) -> bytes:
     return enc.get_compressed().astype("<u4").tobytes()
 
 
-def encode_map(classes: np.ndarray, *, reference: np.ndarray | None = None) -> bytes:
+def encode_map(classes: np.ndarray, *, reference: np.ndarray | None = None, window: bool = True) -> bytes:
     """Code a class map losslessly; with ``reference`` (same shape) the decoder needs it too.
-    Only the window that differs from the background is coded (see the module's docstring)."""
+    Only the window that differs from the background is coded (see the module's docstring);
+    ``window=False`` codes the whole grid (the ablation ``benchmarks/codec_window.py`` measures:
+    the same map, decoded the same way)."""
     m = _check_classes(classes, "map")
     ref = None if reference is None else _check_classes(reference, "reference map")
     if ref is not None and ref.shape != m.shape:
         raise FedmapError(f"reference map is {ref.shape[0]}x{ref.shape[1]}, the map is {m.shape[0]}x{m.shape[1]}")
     h, w = m.shape
     flags = _F_REFERENCE if ref is not None else 0
-    top, left, wh, ww = changed_window(m, ref)
+    top, left, wh, ww = changed_window(m, ref) if window else (0, 0, h, w)
     window = b""
     if (wh, ww) != (h, w):  # a window: the rest of the grid is the background
         flags |= _F_WINDOW

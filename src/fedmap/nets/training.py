@@ -171,17 +171,17 @@ KNOWN_ONLY_CELLS = 1 << 16
 #: from :data:`DECODER_PASS_ABOVE` cells.
 STREAM_CELLS = 1 << 20
 #: A streamed GridNet step reads its grids at this many cells at a time, and runs its
-#: decoder on them in one compiled pass (:func:`_decoder_pass`: its activations stay in
+#: decoder on them in one compiled pass (:func:`decoder_pass`: its activations stay in
 #: cache): every backward of torch's ``grid_sample`` zeroes a gradient the size of the
 #: whole grid (84 M numbers at 4096²) and adds it to the last, so fewer, longer reads cost
 #: less. The reading's own memory is 16 numbers a cell.
 GRID_CHUNK = 1 << 22
-#: The compiled decoder pass (:func:`_decoder_pass`) splits its cells into parts of this
+#: The compiled decoder pass (:func:`decoder_pass`) splits its cells into parts of this
 #: many, run on torch's threads; each part's loss is its own sum, and the parts add up in
 #: order, so the loss does not depend on the number of threads.
 DECODER_PART = 1 << 18
 #: A full-batch GridNet step on more than this many cells is a streamed step
-#: (:func:`_streamed_step`), whose decoder runs in one compiled pass (:func:`_decoder_pass`).
+#: (:func:`_streamed_step`), whose decoder runs in one compiled pass (:func:`decoder_pass`).
 DECODER_PASS_ABOVE = 1 << 16
 #: Adam's default ``eps`` (torch's).
 ADAM_EPS = 1e-8
@@ -203,7 +203,7 @@ def map_targets(grid: GridMap, *, masked: bool) -> tuple[torch.Tensor, torch.Ten
     return coords, target, weight
 
 
-def _loss(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor,
+def map_loss(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor,
           total: torch.Tensor | None = None) -> torch.Tensor:
     """Weighted per-cell squared error, summed and divided by ``total`` (default: the
     batch's weight, at least 1; a chunk of a streamed step passes the whole batch's)."""
@@ -289,7 +289,7 @@ def fit(
                 continue
             with torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
                 pred = head(x)
-            loss = _loss(pred.float(), y, wt)
+            loss = map_loss(pred.float(), y, wt)
             if penalty is not None:
                 loss = loss + penalty()
             loss.backward()
@@ -344,7 +344,7 @@ def _streamed_step(head: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor
 
     ``grid_net``: a :class:`GridNet` (``head`` is its decoder). Its grids are read for
     :data:`GRID_CHUNK` cells at a time; the loss and its gradient on those features are
-    computed by :func:`_decoder_pass` in one compiled pass, and the gradient is sent back
+    computed by :func:`decoder_pass` in one compiled pass, and the gradient is sent back
     through the reading (the decoder is frozen: it has no gradient of its own)."""
     total = wt.sum().clamp_min(1.0)
     value = 0.0
@@ -352,13 +352,13 @@ def _streamed_step(head: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor
         for a in range(0, x.shape[0], STREAM_CELLS):
             with torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
                 pred = head(x[a:a + STREAM_CELLS])
-            part = _loss(pred.float(), y[a:a + STREAM_CELLS], wt[a:a + STREAM_CELLS], total)
+            part = map_loss(pred.float(), y[a:a + STREAM_CELLS], wt[a:a + STREAM_CELLS], total)
             part.backward()
             value += part.item()
     else:
         for a in range(0, x.shape[0], GRID_CHUNK):
             read = grid_net.features(x[a:a + GRID_CHUNK])
-            grad, chunk_loss = _decoder_pass(grid_net, read.detach(), y[a:a + GRID_CHUNK], wt[a:a + GRID_CHUNK],
+            grad, chunk_loss = decoder_pass(grid_net, read.detach(), y[a:a + GRID_CHUNK], wt[a:a + GRID_CHUNK],
                                              float(total))
             read.backward(grad)
             value += chunk_loss
@@ -370,10 +370,10 @@ def _streamed_step(head: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor
     return value
 
 
-def _decoder_pass(net: GridNet, feats: torch.Tensor, y: torch.Tensor, wt: torch.Tensor,
+def decoder_pass(net: GridNet, feats: torch.Tensor, y: torch.Tensor, wt: torch.Tensor,
                   total: float) -> tuple[torch.Tensor, float]:
     """``net``'s decoder on ``feats`` (``GridNet.head``), the loss of its output against
-    ``y`` with weights ``wt`` over ``total`` (:func:`_loss`), and the loss's gradient on
+    ``y`` with weights ``wt`` over ``total`` (:func:`map_loss`), and the loss's gradient on
     ``feats``: ``(gradient, loss)``.
 
     Written out in torch, the decoder's 32-wide activations go to memory and back several
@@ -424,7 +424,7 @@ def _decoder_rows(f: np.ndarray, y: np.ndarray, wt: np.ndarray, scale: float, w1
                   w2: np.ndarray, r1: np.ndarray, grad: np.ndarray, lo: int, hi: int, out: np.ndarray) -> None:
     """For cells ``[lo, hi)``: ``o = sigmoid(max(f w1ᵀ + c1, -r1) w2ᵀ)`` (``GridNet.head``), their weighted
     squared error ``Σ wt · Σ_k (o_k - y_k)²`` into ``out[0]``, and the gradient of
-    :func:`_loss` (that sum over 3, times ``scale`` = 1 / total) on ``f`` into ``grad``.
+    :func:`map_loss` (that sum over 3, times ``scale`` = 1 / total) on ``f`` into ``grad``.
     256 cells at a time, channel-major, so every inner loop runs along cells (SIMD)."""
     D = f.shape[1]
     H = w1.shape[0]
