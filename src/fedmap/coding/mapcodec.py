@@ -233,16 +233,16 @@ def encode_map(classes: np.ndarray, *, reference: np.ndarray | None = None, wind
     h, w = m.shape
     flags = _F_REFERENCE if ref is not None else 0
     top, left, wh, ww = changed_window(m, ref) if window else (0, 0, h, w)
-    window = b""
+    place = b""
     if (wh, ww) != (h, w):  # a window: the rest of the grid is the background
         flags |= _F_WINDOW
-        window = b"".join(varint(v) for v in (top, left, wh, ww))
+        place = b"".join(varint(v) for v in (top, left, wh, ww))
     if wh == 0:
         body = b""
     else:
         sl = np.s_[top:top + wh, left:left + ww]
         body = _encode_body(np.ascontiguousarray(m[sl]), None if ref is None else np.ascontiguousarray(ref[sl]))
-    head = _HEADER.pack(MAGIC, VERSION, flags, h, w, _map_crc(m)) + window
+    head = _HEADER.pack(MAGIC, VERSION, flags, h, w, _map_crc(m)) + place
     return head + body + struct.pack("<I", zlib.crc32(head + body))
 
 

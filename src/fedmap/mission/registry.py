@@ -128,6 +128,10 @@ class StrategySpec:
     deployable: bool = False
     #: it runs with ``[frames]`` (rovers that do not know their poses; :func:`fedmap.mission.frames.build`)
     framed: bool = False
+    #: what the report makes of it: ``"protocol"`` (a way of sharing, a candidate of the verdict),
+    #: ``"baseline"`` (sharing nothing: what the bytes of the others bought is measured above it)
+    #: or ``"reference"`` (an oracle shown beside the others, never a candidate)
+    role: str = "protocol"
 
     def factory(self, topology: Any) -> Factory | None:
         """Its factory on ``topology`` (:class:`~fedmap.mission.topology.Topology`): the
@@ -226,7 +230,7 @@ def _gossip(cls: type[GossipPeer]) -> Factory:
 #: Every sharing strategy, from the lower bound to the upper bound.
 REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
     StrategySpec("none", "nothing is sent: a rover's belief is its own observations", star=_none, peer=_none,
-                 on_link=False, default=True, peer_default=True, deployable=True, framed=True),
+                 on_link=False, default=True, peer_default=True, deployable=True, framed=True, role="baseline"),
     StrategySpec("raw", "observed cells, lossless (context codec): merged at the base on the star, gossiped on "
                  "peers", star=_raw_star, peer=_raw_peer, default=True, peer_default=True, deployable=True,
                  framed=True),
@@ -244,8 +248,14 @@ REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
                  trains=True, peer_default=True),
     StrategySpec("admm", "fedmap's network by DiNNO's decentralised C-ADMM", peer=_gossip(AdmmPeer), trains=True),
     StrategySpec("central", "every observation pooled at once, free (a reference, not a bound)", star=_central,
-                 peer=_central, on_link=False, default=True, peer_default=True),
+                 peer=_central, on_link=False, default=True, peer_default=True, role="reference"),
 )}
+
+
+def role_of(name: str) -> str:
+    """``name``'s :attr:`StrategySpec.role` (a name the registry does not hold is a protocol)."""
+    spec = REGISTRY.get(name)
+    return spec.role if spec is not None else "protocol"
 
 
 def names_that(capability: str) -> tuple[str, ...]:
@@ -263,4 +273,4 @@ def build(name: str, setup: Setup) -> Sharing:
     return sharing
 
 
-__all__ = ["REGISTRY", "Setup", "Sharing", "StrategySpec", "build", "names_that"]
+__all__ = ["REGISTRY", "Setup", "Sharing", "StrategySpec", "build", "names_that", "role_of"]

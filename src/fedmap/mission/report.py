@@ -33,6 +33,7 @@ from fedmap._util import AtomicDir, atomic_write_bytes
 from fedmap.maps.grid import PALETTE
 from fedmap.mission.link import BASE
 from fedmap.mission.maps_out import write_mission_maps
+from fedmap.mission.registry import role_of
 from fedmap.mission.repeats import Interval, interval, intervals, values_of, what_varies
 from fedmap.mission.results import READY_COVERAGE
 from fedmap.mission.sensing import disk_offsets
@@ -170,7 +171,7 @@ def plannable(results: Sequence[MissionResult]) -> str:
     parts = []
     for k in names:
         iv, b = steps[k], spent[k]
-        who = "central (every observation pooled at once, free)" if k == "central" else k
+        who = f"{k} (every observation pooled at once, free)" if role_of(k) == "reference" else k
         if iv is None:
             parts.append(f"{who} never")
             continue
@@ -182,7 +183,7 @@ def plannable(results: Sequence[MissionResult]) -> str:
     costs: dict[str, Interval] = {}
     for k in reached:
         iv, b = steps[k], spent[k]
-        if k != "central" and iv is not None and b is not None and not iv.missing:
+        if role_of(k) != "reference" and iv is not None and b is not None and not iv.missing:
             every[k], costs[k] = iv, b
     if not every:
         return line + " No strategy but the central oracle got there" + (" in every repeat." if n > 1 else ".")
@@ -201,12 +202,13 @@ def verdict(result: MissionResult, repeats: Sequence[MissionResult] | None = Non
     With ``repeats`` (more than one), every value is a mean with its 95 % interval and a
     winner is named only where the intervals separate ("no clear difference" otherwise)."""
     results = list(repeats) if repeats is not None and len(repeats) > 1 else [result]
-    others = {n: r for n, r in result.runs.items() if n != "central"}
+    others = {n: r for n, r in result.runs.items() if role_of(n) != "reference"}
     # a strategy that got nothing through the link holds its own observations over its
     # initial model's rendering: a score from the latter is a guess, so it is no candidate
-    silent = [n for n in others if n != "none" and all(
+    silent = [n for n in others if role_of(n) != "baseline" and all(
         r.runs[n].summary.bytes_up + r.runs[n].summary.bytes_down == 0 for r in results)]
     runs = [n for n in others if n not in silent]
+    low = next((n for n in runs if role_of(n) == "baseline"), None)  # sharing nothing, if it ran
     notes = "".join(f" {n} got nothing through the link (uplinks: {undelivered(others[n].summary, 'up')}): its "
                     f"{others[n].summary.final_belief_accuracy_mean:.3f} is what each rover observed itself (over "
                     f"its initial rendering, for a model strategy: {float(np.mean(others[n].series.accuracy[0])):.3f} "
@@ -228,18 +230,18 @@ def verdict(result: MissionResult, repeats: Sequence[MissionResult] | None = Non
             f"{n} ({_fmt_interval(acc[n], 3)})" for n in tied) + " (belief accuracy, 95 % intervals overlap).")
     else:
         line = f"Best map: **{best}** (belief accuracy {_fmt_interval(acc[best], 3)}"
-        if "none" in runs and best != "none":
-            line += f", against {_fmt_interval(acc['none'], 3)} sharing nothing"
+        if low is not None and best != low:
+            line += f", against {_fmt_interval(acc[low], 3)} sharing nothing"
         line += ")."
-    # what the bytes bought: the accuracy above sharing nothing (or, without `none`, above step 0)
+    # what the bytes bought: the accuracy above sharing nothing (or, without the baseline, above step 0)
     def base(r: MissionResult, n: str) -> float:
-        return r.runs["none"].summary.final_belief_accuracy_mean if "none" in runs else \
+        return r.runs[low].summary.final_belief_accuracy_mean if low is not None else \
             float(np.mean(r.runs[n].series.accuracy[0]))
 
     gains = {n: [(r.runs[n].summary.final_belief_accuracy_mean - base(r, n)) / b
                  for r, b in zip(results, spent[n])] for n in runs if min(spent[n]) > 0}
     gain = {n: interval(g) for n, g in gains.items() if np.mean(g) > 0}
-    than = "sharing nothing" if "none" in runs else "step 0"
+    than = "sharing nothing" if low is not None else "step 0"
     if gain:
         top, tied_g = _winner(gain, high=True)  # type: ignore[arg-type]
         if top is not None:  # the mean over the repeats (one run: its own figures)
