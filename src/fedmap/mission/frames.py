@@ -87,6 +87,7 @@ from fedmap.mission.predictive import PredictiveBase, PredictiveOptions, Predict
 from fedmap.mission.protocol import BaseEnd, Outgoing, PeerEnd, RoverEnd, pack_down, unpack_down, unpack_up
 from fedmap.mission.raw import RawBase, RawPeer, RawRover
 from fedmap.mission.registry import Setup, Sharing, names_that
+from fedmap.mission.registry import build as build_known
 from fedmap.mission.sensing import disk_offsets, footprint
 from fedmap.mission.world import World
 
@@ -833,53 +834,44 @@ def registrations(sharing: Sharing) -> tuple[dict, ...] | None:
                         key=lambda d: (d["round"], d["by"], d["rover"])))
 
 
-def _reference(setup: Setup) -> np.ndarray | None:
-    """What the lander imaged around itself at landing (``lander_view``), in the true frame, or None."""
-    f = setup.config.frames
-    if f.lander_view <= 0:
-        return None
-    h, w = setup.truth.shape
-    rows, cols = np.ogrid[:h, :w]
-    lander = setup.topology.base
-    near = np.hypot(rows - lander[0], cols - lander[1]) <= f.lander_view
-    return np.where(near, setup.truth.classes, UNKNOWN).astype(np.uint8)
-
-
-def framed_raw(setup: Setup) -> Sharing:
-    """``raw``'s ends for a mission with ``[frames]``: merged through registration at the base
-    on the star, placed by every agent on the mesh (:data:`fedmap.mission.registry.REGISTRY`)."""
+def build(name: str, setup: Setup) -> Sharing:
+    """The ends of ``name`` for a mission with ``[frames]``: ``raw`` and ``predictive`` on the
+    star merge through registration at the base, ``raw`` on the mesh at every agent; ``none``
+    is as ever (its rovers keep their own frames)."""
+    if name not in ("raw", "predictive") or not setup.config.frames.enabled:
+        return build_known(name, setup)
     lc, f = setup.config.link, setup.config.frames
-    reference, recent = _reference(setup), 2 * setup.config.sync_every
+    reference = None
+    if f.lander_view > 0:
+        h, w = setup.truth.shape
+        rows, cols = np.ogrid[:h, :w]
+        lander = setup.topology.base
+        near = np.hypot(rows - lander[0], cols - lander[1]) <= f.lander_view
+        reference = np.where(near, setup.truth.classes, UNKNOWN).astype(np.uint8)
+    recent = 2 * setup.config.sync_every
     if lc.topology == "mesh":  # raw gossip: every agent places what it receives
         agents = setup.topology.peer_agents(len(setup.team))
         peers: dict[int, PeerEnd] = {
             a: FramedRawPeer(a, None if a == BASE else setup.team[a], setup.truth.shape, setup.starts, agents=agents,
                              journal=setup.journal, frames=f, reference=reference) for a in agents}
-        return Sharing(setup.name, setup.team, [peers[k] for k in range(len(setup.team))], peers=peers,
+        return Sharing(name, setup.team, [peers[k] for k in range(len(setup.team))], peers=peers,
                        journal=setup.journal)
+    if name == "predictive":
+        # a rover writes what it senses around its estimated cell, up to SENSED_BEYOND past its sensor's range
+        radius, opts = setup.config.sensor_radius + SENSED_BEYOND, PredictiveOptions(**setup.options)
+        rovers: list[RoverEnd] = [FramedPredictiveRover(k, r, setup.starts, budget=lc.uplink_bytes, radius=radius,
+                                                        options=opts, recent=recent)
+                                  for k, r in enumerate(setup.team)]
+        base: BaseEnd = FramedPredictiveBase(setup.truth.shape, setup.starts, budget=lc.downlink_bytes,
+                                             radius=radius, frames=f, options=opts, reference=reference)
+        return Sharing(name, setup.team, rovers, base, journal=setup.journal)
     rovers = [FramedRawRover(k, r, setup.starts, budget=lc.uplink_bytes, recent=recent)
               for k, r in enumerate(setup.team)]
     base = FramedRawBase(setup.truth.shape, setup.starts, budget=lc.downlink_bytes, frames=f, journal=setup.journal,
                          reference=reference)
-    return Sharing(setup.name, setup.team, rovers, base, journal=setup.journal)
-
-
-def framed_predictive(setup: Setup) -> Sharing:
-    """``predictive``'s ends for a mission with ``[frames]`` on the star: a rover writes what it
-    senses around its estimated cell, up to :data:`SENSED_BEYOND` past its sensor's range; the
-    base places each rover's cells through registration. On the mesh it is ``raw``'s gossip."""
-    lc, f = setup.config.link, setup.config.frames
-    if lc.topology == "mesh":
-        return framed_raw(setup)
-    radius, opts = setup.config.sensor_radius + SENSED_BEYOND, PredictiveOptions(**setup.options)
-    rovers: list[RoverEnd] = [FramedPredictiveRover(k, r, setup.starts, budget=lc.uplink_bytes, radius=radius,
-                                                    options=opts, recent=2 * setup.config.sync_every)
-                              for k, r in enumerate(setup.team)]
-    base: BaseEnd = FramedPredictiveBase(setup.truth.shape, setup.starts, budget=lc.downlink_bytes,
-                                         radius=radius, frames=f, options=opts, reference=_reference(setup))
-    return Sharing(setup.name, setup.team, rovers, base, journal=setup.journal)
+    return Sharing(name, setup.team, rovers, base, journal=setup.journal)
 
 
 __all__ = ["SENSED_BEYOND", "TRANSFORM_BYTES", "FramedPredictiveBase", "FramedPredictiveRover",
-           "FramedRawBase", "FramedRawPeer", "FramedRawRover", "FramedWorld", "Placing", "Pose", "chain",
-           "check_frames", "framed_predictive", "framed_raw", "pack_transform", "registrations", "track", "unpack_transform"]
+           "FramedRawBase", "FramedRawPeer", "FramedRawRover", "FramedWorld", "Placing", "Pose", "build", "chain",
+           "check_frames", "pack_transform", "registrations", "track", "unpack_transform"]

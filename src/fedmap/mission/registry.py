@@ -126,10 +126,8 @@ class StrategySpec:
     #: its rover ends hold only their own rover, so each can run in a process of its own
     #: (``central`` pools every rover's observations at once: a reference, not a protocol)
     deployable: bool = False
-    #: it runs with ``[frames]`` (rovers that do not know their poses)
+    #: it runs with ``[frames]`` (rovers that do not know their poses; :func:`fedmap.mission.frames.build`)
     framed: bool = False
-    #: its ends with ``[frames]``, where they differ (:func:`fedmap.mission.frames.framed_raw`, ...)
-    framed_ends: Factory | None = None
     #: what the report makes of it: ``"protocol"`` (a way of sharing, a candidate of the verdict),
     #: ``"baseline"`` (sharing nothing: what the bytes of the others bought is measured above it)
     #: or ``"reference"`` (an oracle shown beside the others, never a candidate)
@@ -139,16 +137,6 @@ class StrategySpec:
         """Its factory on ``topology`` (:class:`~fedmap.mission.topology.Topology`): the
         star ends where there is a base station and it has them, else its peer ends."""
         return (self.star or self.peer) if topology.has_base else self.peer
-
-
-def _framed(which: str) -> Factory:
-    """``[frames]``'s ends of :mod:`fedmap.mission.frames` (``which``: its function), imported
-    when first built: that module builds on this one (:class:`Setup`, :class:`Sharing`)."""
-    def build(s: Setup) -> Sharing:
-        from fedmap.mission import frames
-
-        return getattr(frames, which)(s)
-    return build
 
 
 def _journal_with_updates() -> Journal:
@@ -245,11 +233,10 @@ REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
                  on_link=False, default=True, peer_default=True, deployable=True, framed=True, role="baseline"),
     StrategySpec("raw", "observed cells, lossless (context codec): merged at the base on the star, gossiped on "
                  "peers", star=_raw_star, peer=_raw_peer, default=True, peer_default=True, deployable=True,
-                 framed=True, framed_ends=_framed("framed_raw")),
+                 framed=True),
     StrategySpec("predictive", "new cells, lossless, with a learned probability model both ends keep",
                  star=_predictive, options=PredictiveOptions, default=True,
-                 least=(LEAST_BYTES, LEAST_BYTES), deployable=True, framed=True,
-                 framed_ends=_framed("framed_predictive")),
+                 least=(LEAST_BYTES, LEAST_BYTES), deployable=True, framed=True),
     StrategySpec("rosgrid", "what a ROS 2 team sends: every rover's whole map as a nav_msgs/OccupancyGrid (CDR), "
                  "merged as map_merge does, the whole merged grid back", star=_rosgrid(None), deployable=True),
     StrategySpec("rosgrid-zlib", f"rosgrid with every serialised grid compressed by zlib (level {ZLIB_LEVEL})",
@@ -280,8 +267,6 @@ def build(name: str, setup: Setup) -> Sharing:
     """The ends of strategy ``name`` for one run on ``setup``'s topology."""
     spec = REGISTRY[name]
     make = spec.factory(setup.topology)
-    if spec.framed_ends is not None and setup.config.frames.enabled:  # rovers that do not know their poses
-        make = spec.framed_ends
     assert make is not None, f"{name} does not run on this topology (the config check refuses it)"
     sharing = make(replace(setup, name=name))
     sharing.on_link = spec.on_link

@@ -35,6 +35,7 @@ from fedmap.maps.traversability import (
     rover_profile,
 )
 from fedmap.mission.frames import FramedWorld, check_frames, registrations
+from fedmap.mission.frames import build as frames_build
 from fedmap.mission.link import BASE, DOWN, UP, Link
 from fedmap.mission.registry import Setup, Sharing, build
 from fedmap.mission.results import (
@@ -90,7 +91,7 @@ class _Run:
         self.world = world = mission.world(self.topology)
         self.team = world.team
         self.link = Link(replace(config.link, seed=config.link_seed), self.topology)
-        self.sharing = (ends or build)(
+        self.sharing = (ends or (frames_build if config.frames.enabled else build))(
             name, Setup(config, truth, self.team, self.topology))
         world.ends = self.sharing.rovers
 
