@@ -204,8 +204,9 @@ def test_the_attack_on_the_control_api_fails_from_another_address_and_a_rover_st
             secret = Path(env["FEDMAP_CONTROL_SECRET_FILE"]).read_text().strip()
             ok = c.post(f"https://{inner}/v1/control/list-runs", content=b"", headers={gate.CONTROL_HEADER: secret})
             assert ok.status_code != 403
+        assert os.stat(Path(env["FEDMAP_CONTROL_SECRET_FILE"])).st_mode & 0o077 == 0
     assert not marker.exists()
-    assert os.stat(Path(env["FEDMAP_CONTROL_SECRET_FILE"])).st_mode & 0o077 == 0
+    assert not Path(env["FEDMAP_CONTROL_SECRET_FILE"]).exists()  # gone with the processes that needed it
 
 
 def test_a_rovers_key_is_its_number(tmp_path):

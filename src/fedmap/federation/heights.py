@@ -35,12 +35,13 @@ import zstandard
 
 from fedmap._util import inflate_zstd
 from fedmap.errors import FedmapError, RejectedUpdate
+from fedmap.maps.grid import MAX_WIRE_SIDE
 
 KINDS: tuple[str, ...] = ("lossless", "lerc", "jxl", "j2k")
 _HEAD = struct.Struct("<BHHdddI")
 _ZSTD = 19
-#: Largest map side a height payload may claim (the class-map codec's bound).
-MAX_SIDE = 8192
+#: Largest map side a height payload may claim.
+MAX_SIDE = MAX_WIRE_SIDE
 
 
 def _zstd(data: bytes) -> bytes:

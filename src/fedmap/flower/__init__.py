@@ -38,6 +38,9 @@ HEARTBEAT_RANGE = (10.0, 1800.0)
 #: Environment variables of fedmap's SuperNode: the TLS client certificate it presents to the base's
 #: front, and its private key, both PEM files (``fedmap rover`` sets them from ``--auth-key``).
 CLIENT_CERT_ENV, CLIENT_KEY_ENV = "FEDMAP_SUPERNODE_CLIENT_CERT", "FEDMAP_SUPERNODE_CLIENT_KEY"
+#: Environment variable naming the file that holds a base station's control secret, set by the
+#: launcher for its own Control API calls (:mod:`fedmap.flower.control`).
+CONTROL_SECRET_ENV = "FEDMAP_CONTROL_SECRET_FILE"
 #: Flower's SuperExec: seconds between its polls for a task (a ClientApp to start; Flower's own: 1 s).
 SUPEREXEC_POLL_ENV = "FLWR_SUPEREXEC_TASK_POLL_INTERVAL"
 

@@ -3,7 +3,7 @@ or ``python -m fedmap.flower.control run APP CONNECTION RUN_CONFIG``.
 
 The SuperLink fedmap starts answers its Control API only with the launcher's secret
 (:mod:`fedmap.flower.superlink`); this process reads it from the file named by
-:data:`SECRET_ENV` and adds it to every request Flower's CLI makes (its HTTP client is
+:data:`CONTROL_SECRET_ENV` and adds it to every request Flower's CLI makes (its HTTP client is
 httpx's). ``register``: ``flwr supernode register CONNECTION KEY`` for every key, in one
 process (each ``flwr`` process costs about a second of CPU, nearly all of it Flower's CLI
 starting up), printing one JSON line ``{"key": ..., "node-id": ...}`` per key. A key that
@@ -22,10 +22,8 @@ from pathlib import Path
 
 import httpx
 
+from fedmap.flower import CONTROL_SECRET_ENV
 from fedmap.flower.gate import CONTROL_HEADER
-
-#: Environment variable naming the file that holds the launcher's control secret.
-SECRET_ENV = "FEDMAP_CONTROL_SECRET_FILE"
 
 
 def with_secret(secret: str) -> None:
@@ -56,7 +54,7 @@ def _flwr(args: list[str]) -> tuple[int, str]:
 
 
 def main(argv: list[str]) -> int:
-    secret_file = os.environ.get(SECRET_ENV)
+    secret_file = os.environ.get(CONTROL_SECRET_ENV)
     if secret_file:
         with_secret(Path(secret_file).read_text().strip())
     what, *rest = argv

@@ -199,10 +199,9 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
         write_status(out, "interrupted", message="interrupted")
         raise FedmapError(f"mission interrupted ({st.get('strategy', 'before the first strategy')}, step "
                           f"{st.get('step', 0)}); its processes are stopped; logs in {work}") from None
-    finally:  # no private key outlives the run: the run's own certificates and the control secret
+    finally:  # no private key outlives the run: the run's own certificates (the control secret goes with procs)
         if mode == "local":
             shutil.rmtree(work / "certs", ignore_errors=True)
-        Path(env["FLWR_HOME"], "control.secret").unlink(missing_ok=True)
     result = read_result(out)
     return replace(result, faults=(*result.faults, *restarted))
 

@@ -42,9 +42,9 @@ OPEN_PATHS = ("/health",)
 FLEET_ROUTES = frozenset(f"/v1/fleet/{r}" for r in (
     "register-node", "activate-node", "deactivate-node", "unregister-node", "send-node-heartbeat", "pull-messages",
     "push-messages", "get-run", "get-fab", "push-object", "pull-object", "confirm-message-received"))
-#: The largest request or response body the front carries, in bytes. Flower splits what it
-#: sends into objects (a message's arrays, chunked); the paper's network, the largest fedmap
-#: sends, is 0.8 MB in all.
+#: The largest request body the front lets through, in bytes. Flower splits what it sends
+#: into objects (a message's arrays, chunked); the paper's network, the largest fedmap sends,
+#: is 0.8 MB in all.
 MAX_BODY = 64 << 20
 
 Send = Callable[[dict], Awaitable[None]]
@@ -77,6 +77,10 @@ class ControlGuard:
         await self.app(scope, receive, send)
 
 
+class _TooLarge(Exception):
+    """A request body that goes on past :data:`MAX_BODY` without saying its length."""
+
+
 class FleetOnly:
     """ASGI middleware for the front: POST to a :data:`FLEET_ROUTES` route goes to ``app``
     (its body at most :data:`MAX_BODY` bytes, announced or read: else 413); anything else is
@@ -103,14 +107,12 @@ class FleetOnly:
             event = await receive()
             size += len(event.get("body", b""))
             if size > self.max_body:  # a body that says nothing of its length and goes on
-                raise ValueError(f"a request body over {self.max_body} bytes")
+                raise _TooLarge
             return event
         try:
             await self.app(scope, bounded, send)
-        except ValueError as e:
-            if "request body over" not in str(e):
-                raise
-            await _answer(send, 413, f"fedmap: {e}")
+        except _TooLarge:
+            await _answer(send, 413, f"fedmap: a request body over {self.max_body} bytes")
 
 
 def front_tls(certs: Path) -> dict:

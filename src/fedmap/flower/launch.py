@@ -30,7 +30,7 @@ from typing import Protocol
 
 from fedmap._util import atomic_write_bytes, make_dir
 from fedmap.errors import FedmapError
-from fedmap.flower import require_flwr
+from fedmap.flower import CONTROL_SECRET_ENV, require_flwr
 from fedmap.flower.settings import RunSettings
 from fedmap.flower.task import rover_nodes_text, run_dir, run_status_path, truth_shape, write_status
 
@@ -38,8 +38,6 @@ CONNECTION = "fedmap"  # the connection name written to $FLWR_HOME/config.toml
 #: The modules the launcher runs as processes: the SuperLink with its front (Control API closed,
 #: :mod:`fedmap.flower.gate`), and fedmap's Control API calls.
 SUPERLINK_MODULE, CONTROL_MODULE = "fedmap.flower.superlink", "fedmap.flower.control"
-#: Environment variable naming the launcher's control secret file (:mod:`fedmap.flower.control`).
-CONTROL_SECRET_ENV = "FEDMAP_CONTROL_SECRET_FILE"
 
 
 def app_dir() -> Path:
@@ -288,6 +286,7 @@ class Processes:
     def __init__(self) -> None:
         self.procs: dict[str, Proc] = {}
         self.logs: dict[str, Path] = {}
+        self.transient: list[Path] = []  #: files only these processes need: removed when they are stopped
 
     def start(self, name: str, argv: list[str], *, env: dict, log: Path, new_session: bool = True,
               die_with_parent: bool = False) -> subprocess.Popen:
@@ -353,6 +352,8 @@ class Processes:
 
     def __exit__(self, *exc) -> None:
         self.stop_all()
+        for f in self.transient:
+            f.unlink(missing_ok=True)
 
 
 @dataclass(frozen=True)
@@ -397,11 +398,7 @@ def new_secret(path: Path) -> Path:
     """A fresh control secret in ``path``, readable by its owner only (made so, not chmod-ed after)."""
     import secrets
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.unlink(missing_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(secrets.token_urlsafe(32) + "\n")
+    atomic_write_bytes(path, (secrets.token_urlsafe(32) + "\n").encode(), mode=0o600)
     return path
 
 
@@ -410,11 +407,13 @@ def start_superlink(procs: Processes, *, host: str, port: int, tls: Tls | None, 
     """The base station's SuperLink (on loopback, Control API closed) and its front on
     ``host:port`` (the Fleet API only; mutual TLS with ``tls``), both under ``procs`` and
     listening when this returns; ``env`` gets the control secret's file
-    (:data:`fedmap.flower.control.SECRET_ENV`) and ``$FLWR_HOME`` a connection to the
+    (:data:`fedmap.flower.CONTROL_SECRET_ENV`) and ``$FLWR_HOME`` a connection to the
     SuperLink. The rover ``keys`` are registered before the front opens, so no rover can
     knock before its key is known (:func:`register_keys`). Returns the address the rovers
-    reach (``local:port``) and ``{node id: rover}`` of the keys."""
+    reach (``local:port``) and ``{node id: rover}`` of the keys. The secret goes when ``procs``
+    stop (:attr:`Processes.transient`)."""
     secret = new_secret(Path(env["FLWR_HOME"]) / "control.secret")
+    procs.transient.append(secret)
     env[CONTROL_SECRET_ENV] = str(secret)
     ready = Path(env["FLWR_HOME"]) / "front.ready"
     ready.unlink(missing_ok=True)
@@ -462,16 +461,10 @@ def register_keys(keys: list[Path], *, env: dict, timeout: float = 60.0) -> dict
     rover K and no other."""
     if not keys:
         return {}
-    argv = [sys.executable, "-m", CONTROL_MODULE, "register", CONNECTION, *map(str, keys)]
-    try:
-        r = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=timeout * len(keys),
-                           stdin=subprocess.DEVNULL)
-    except subprocess.TimeoutExpired:
-        raise FedmapError(f"flwr supernode register did not finish in {timeout * len(keys):g} s") from None
-    if r.returncode != 0:
-        raise FedmapError(f"flwr supernode register failed: {_one_line(r.stderr or r.stdout)}")
+    out = _control(["register", CONNECTION, *map(str, keys)], what="flwr supernode register", env=env,
+                   timeout=timeout * len(keys))
     nodes: dict[int, int] = {}
-    for line in r.stdout.splitlines():
+    for line in out.splitlines():
         if line.startswith("{"):
             got = json.loads(line)
             k = rover_of_key(Path(got["key"]))
@@ -486,6 +479,19 @@ def rover_of_key(key: Path) -> int | None:
     return int(m.group(1)) if m else None
 
 
+def _control(args: list[str], *, what: str, env: dict, timeout: float) -> str:
+    """``python -m fedmap.flower.control ARGS`` (Flower's CLI with the launcher's secret); its
+    output, or a one-line :class:`FedmapError` naming ``what`` failed or timed out."""
+    try:
+        r = subprocess.run([sys.executable, "-m", CONTROL_MODULE, *args], env=env, capture_output=True, text=True,
+                           timeout=timeout, stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        raise FedmapError(f"{what} did not finish in {timeout:g} s") from None
+    if r.returncode != 0:
+        raise FedmapError(f"{what} failed: {_one_line(r.stderr or r.stdout)}")
+    return r.stdout
+
+
 def _one_line(text: str) -> str:
     """Flower's boxed rich error as one line (the box drawing stripped)."""
     words = [ln.strip(" \u2502\u256d\u256e\u2570\u256f\u2500") for ln in text.splitlines()]
@@ -498,13 +504,7 @@ def submit_run(flwr_home: Path, run_config: dict, *, env: dict, timeout: float =
     the Flower App's folder; default :func:`app_dir`, the snapshot federation)."""
     overrides = flwr_home / "fedmap-run-config.toml"
     overrides.write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in run_config.items()))
-    argv = [sys.executable, "-m", CONTROL_MODULE, "run", str(app or app_dir()), CONNECTION, str(overrides)]
-    try:
-        r = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL)
-    except subprocess.TimeoutExpired:
-        raise FedmapError(f"flwr run did not finish in {timeout:g} s") from None
-    if r.returncode != 0:
-        raise FedmapError(f"flwr run failed: {_one_line(r.stderr + r.stdout)}")
+    _control(["run", str(app or app_dir()), CONNECTION, str(overrides)], what="flwr run", env=env, timeout=timeout)
 
 
 def read_status(out: Path) -> dict | None:

@@ -113,8 +113,6 @@ def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_con
         write_status(out, "interrupted", message="interrupted")
         raise FedmapError(f"federated fine-tuning interrupted (round {st.get('round', 0)}); its processes are "
                           f"stopped; logs in {work}") from None
-    finally:
-        Path(env["FLWR_HOME"], "control.secret").unlink(missing_ok=True)
     return read_rounds(out, rounds)
 
 

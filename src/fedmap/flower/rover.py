@@ -336,15 +336,16 @@ def run_rover(node_config: dict, *, superlink: str, root_cert: Path | None = Non
             socket_dir("fedmap-rover-", "clientapp.sock") as socks, Processes() as procs, sigterm_as_interrupt():
         done, refused = Path(tmp) / "done", Path(tmp) / "refused"
         joined = None  # in a state folder of the user's: this rover's key was accepted before
-        if node_config.get("mission") and node_config.get("state-dir"):
-            joined = Path(str(node_config["state-dir"])) / f"rover{pid}.joined"
-            rejoin = rejoin or joined.exists()  # restarted as documented: its old node may still be listed
-        if node_config.get("mission") and not node_config.get("state-dir"):  # kept only while this rover runs
-            node_config = {**node_config, "state-dir": str(Path(tmp) / "state")}
-        if node_config.get("mission"):  # released when this rover process (and all it forked) ends
-            hold_state(Path(str(node_config["state-dir"])), int(pid))
-        if node_config.get("mission"):  # this rover process, told apart from the one before a restart
-            node_config = {**node_config, "boot": f"{os.getpid()}-{time.time_ns()}"}
+        if node_config.get("mission"):
+            if node_config.get("state-dir"):
+                joined = Path(str(node_config["state-dir"])) / f"rover{pid}.joined"
+                rejoin = rejoin or joined.exists()  # restarted as documented: its old node may still be listed
+            # the state folder (a temporary one, kept only while this rover runs, unless the user gave
+            # one) is held until this rover process and all it forked end; ``boot`` tells this rover
+            # process apart from the one before a restart
+            state = str(node_config.get("state-dir") or Path(tmp) / "state")
+            hold_state(Path(state), int(pid))
+            node_config = {**node_config, "state-dir": state, "boot": f"{os.getpid()}-{time.time_ns()}"}
         cfg = {**node_config, "done-file": str(done), "refused-file": str(refused)}
         log = Path(log) if log is not None else Path(tmp) / "supernode.log"
         env = flower_env(Path(flwr_home) if flwr_home else Path(tmp) / "flwr-home")
@@ -419,10 +420,8 @@ def pem_key(key: Path, out: Path) -> Path:
         private = serialization.load_ssh_private_key(Path(key).read_bytes(), password=None)
     except (ValueError, TypeError) as e:
         raise FedmapError(f"no usable private key in {key} ({e})") from None
-    fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "wb") as fh:
-        fh.write(private.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
-                                       serialization.NoEncryption()))
+    atomic_write_bytes(out, private.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                                  serialization.NoEncryption()), mode=0o600)
     return out
 
 

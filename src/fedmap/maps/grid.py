@@ -26,6 +26,9 @@ from fedmap.errors import FedmapError
 FREE: int = 0
 IMPASSABLE: int = 1
 UNKNOWN: int = 2
+#: The largest map side a payload read from a link may claim (height payloads, a report's maps,
+#: a height network's map): checked before anything of that size is allocated.
+MAX_WIRE_SIDE = 8192
 CLASS_NAMES: tuple[str, ...] = ("free", "impassable", "unknown")
 
 #: RGB colour of each class, indexed by class value, in [0, 1].

@@ -46,7 +46,7 @@ import zstandard
 
 from fedmap._util import inflate_zstd
 from fedmap.errors import FedmapError
-from fedmap.maps.grid import FREE, UNKNOWN
+from fedmap.maps.grid import FREE, MAX_WIRE_SIDE, UNKNOWN
 from fedmap.maps.planning import astar
 from fedmap.mission.feed import FeedWorld, MapFeed
 from fedmap.mission.frontiers import choose_target, travel_costs
@@ -63,9 +63,8 @@ _HEAD = struct.Struct("<BII")  # version, crc32 of what follows, header length
 _BLOB = struct.Struct("<I")
 
 
-#: The largest map side a report's maps may claim, and the most bytes they may decode to (a
+#: The most bytes a report's maps may decode to (their sides: at most :data:`MAX_WIRE_SIDE`; a
 #: receiver that knows its mission's map checks the shape too).
-MAX_SIDE = 8192
 MAX_REPORT_MAPS = 256 << 20
 
 
@@ -234,7 +233,7 @@ def _pack_maps(states: list[StepState]) -> bytes:
 def _unpack_maps(raw: bytes, n: int, shape: tuple[int, int] | None = None) -> list[tuple[np.ndarray, np.ndarray,
                                                                                            np.ndarray]]:
     """The maps of :func:`_pack_maps`: ``n`` steps of ``shape`` (when the receiver knows its
-    mission's; else any side up to :data:`MAX_SIDE`), at most :data:`MAX_REPORT_MAPS` bytes,
+    mission's; else any side up to :data:`MAX_WIRE_SIDE`), at most :data:`MAX_REPORT_MAPS` bytes,
     checked before anything is decoded and while it is."""
     if n == 0:
         return []
@@ -245,9 +244,9 @@ def _unpack_maps(raw: bytes, n: int, shape: tuple[int, int] | None = None) -> li
     if shape is not None and (h, w) != tuple(shape):
         raise CorruptMessage(f"corrupted message: its maps are {h}x{w}, the mission's are {shape[0]}x{shape[1]}")
     size = n * 3 * h * w
-    if not (0 < h <= MAX_SIDE and 0 < w <= MAX_SIDE) or size > MAX_REPORT_MAPS:
+    if not (0 < h <= MAX_WIRE_SIDE and 0 < w <= MAX_WIRE_SIDE) or size > MAX_REPORT_MAPS:
         raise CorruptMessage(f"refused message: it announces {n} steps of {h}x{w} maps ({size} bytes), more than "
-                             f"a report may carry ({MAX_REPORT_MAPS} bytes, sides up to {MAX_SIDE})")
+                             f"a report may carry ({MAX_REPORT_MAPS} bytes, sides up to {MAX_WIRE_SIDE})")
     try:
         delta = np.frombuffer(inflate_zstd(raw[8:], size), dtype=np.uint8).reshape(n, 3, h, w)
     except ValueError as e:

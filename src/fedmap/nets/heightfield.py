@@ -24,13 +24,14 @@ from torch import nn
 
 from fedmap._util import inflate_zstd
 from fedmap.errors import FedmapError, RejectedUpdate
+from fedmap.maps.grid import MAX_WIRE_SIDE
 from fedmap.nets.model import FourierFeatures
 
 _LEN = struct.Struct("<I")
 
 
-#: The widest and deepest network, and the largest map side, a height-field payload may claim.
-_MAX_WIDTH, _MAX_LAYERS, _MAX_SIDE = 1024, 16, 8192
+#: The widest and deepest network a height-field payload may claim (its map: :data:`MAX_WIRE_SIDE`).
+_MAX_WIDTH, _MAX_LAYERS = 1024, 16
 
 
 @dataclass(frozen=True)
@@ -149,9 +150,9 @@ def decode_heightnet(payload: bytes) -> np.ndarray:
         raise RejectedUpdate(f"height-field payload: damaged ({type(exc).__name__})") from exc
     # what a payload claims is checked before anything of that size is made
     if max(config.mapping, config.hidden) > _MAX_WIDTH or config.layers > _MAX_LAYERS or not (
-            0 < h <= _MAX_SIDE and 0 < w <= _MAX_SIDE):
+            0 < h <= MAX_WIRE_SIDE and 0 < w <= MAX_WIRE_SIDE):
         raise RejectedUpdate(f"height-field payload: it claims a {config} network for a {h}x{w} map, beyond the "
-                             f"limits (width {_MAX_WIDTH}, {_MAX_LAYERS} layers, sides {_MAX_SIDE})")
+                             f"limits (width {_MAX_WIDTH}, {_MAX_LAYERS} layers, sides {MAX_WIRE_SIDE})")
     net = HeightNet(config)
     try:
         raw = inflate_zstd(payload[_LEN.size + n:], sum(4 + p.numel() for p in net.mlp.parameters()))
