@@ -18,7 +18,8 @@ import zstandard
 
 from fedmap._util import inflate_zlib, inflate_zstd
 from fedmap.errors import RejectedUpdate
-from fedmap.mission.remote import MAX_REPORT_MAPS, CorruptMessage, Report, pack_frame
+from fedmap.mission.nodelog import MAX_ENTRY_MAPS, RoverEntry
+from fedmap.mission.remote import CorruptMessage, Report, pack_frame
 
 
 def zstd_bomb(size: int, *, declare: bool = True) -> bytes:
@@ -32,12 +33,13 @@ def zstd_bomb(size: int, *, declare: bool = True) -> bytes:
     return b"".join(out)
 
 
-def hostile_report(n: int, h: int, w: int, maps: bytes) -> bytes:
-    state = [1, [0, 0], None, 0, 0.0]
-    header = {"kind": "report", "strategy": "raw", "rover": 0, "step": n, "pos": [0, 0], "target": None,
-              "reached": False, "uplink": None, "answers": [], "version": 0, "journal": 0,
-              "states": [state] * n, "trail": []}
-    return pack_frame(header, [b"", struct.pack("<II", h, w) + maps])
+def hostile_entry(n: int, h: int, w: int, maps: bytes) -> bytes:
+    """A rover's log entry (what ``fedmap score`` reads from a run folder) announcing ``n``
+    steps of ``h`` x ``w`` maps, its maps ``maps``."""
+    state = [1, [0, 0], None, 0.0, 0]
+    header = {"kind": "rover-log", "strategy": "raw", "rover": 0, "mission": "m", "step": n, "trail": [],
+              "states": [state] * n}
+    return pack_frame(header, [struct.pack("<II", h, w) + maps])
 
 
 def test_inflate_stops_at_the_limit_it_is_given():
@@ -53,24 +55,25 @@ def test_inflate_stops_at_the_limit_it_is_given():
         inflate_zlib(z, 4999)
 
 
-def test_a_report_that_announces_a_gigabyte_is_refused_in_one_line_with_little_memory(tmp_path):
+def test_a_log_that_announces_a_gigabyte_is_refused_in_one_line_with_little_memory(tmp_path):
     """A 1 GiB announcement (6 steps of 8192x8192 maps, a frame declaring 1 GiB) is refused
-    before decoding; a report whose maps decode beyond what it announces is refused as soon
-    as they do. A fresh process's peak RSS grows by less than 100 MB either way."""
-    announced = hostile_report(6, 8192, 8192, zstd_bomb(1 << 30))
+    before decoding; a log entry whose maps decode beyond what it announces is refused as
+    soon as they do. A fresh process's peak RSS grows by less than 100 MB either way."""
+    announced = hostile_entry(6, 8192, 8192, zstd_bomb(1 << 30))
     assert len(announced) < 100_000
-    lying = hostile_report(1, 2048, 2048, zstd_bomb(1 << 30))  # announces 12 MiB, decodes to 1 GiB
+    lying = hostile_entry(1, 2048, 2048, zstd_bomb(1 << 30))  # announces 12 MiB, decodes to 1 GiB
     for name, raw in (("announced", announced), ("lying", lying)):
         (tmp_path / name).write_bytes(raw)
     code = f"""
 import resource, sys
 from pathlib import Path
-from fedmap.mission.remote import Report, CorruptMessage
+from fedmap.mission.nodelog import RoverEntry
+from fedmap.mission.wire import CorruptMessage
 for name in ("announced", "lying"):
     raw = Path({str(tmp_path)!r}, name).read_bytes()
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     try:
-        Report.from_bytes(raw)
+        RoverEntry.from_bytes(raw)
         print(name, "ACCEPTED")
     except CorruptMessage as e:
         print(name, "refused:", e)
@@ -81,25 +84,30 @@ for name in ("announced", "lying"):
     lines = dict(line.split(" ", 1) for line in r.stdout.splitlines())
     out = r.stdout
     assert "ACCEPTED" not in out, out
-    assert "more than a report may carry" in out and "more than the 12582912 bytes announced" in out, out
+    assert "more than an entry may hold" in out and "more than the 12582912 bytes announced" in out, out
     for name in ("announced", "lying"):
         extra_kib = int([ln for ln in out.splitlines() if ln.startswith(f"{name} peak+")][0].split("+ ")[1])
         assert extra_kib < 100 * 1024, (name, extra_kib, lines)
 
 
-def test_a_report_of_another_maps_shape_is_refused_where_the_mission_is_known():
-    raw = hostile_report(1, 64, 64, zstandard.ZstdCompressor().compress(bytes(3 * 64 * 64)))
-    assert len(Report.from_bytes(raw).states) == 1
+def test_a_log_of_another_maps_shape_is_refused_where_the_mission_is_known():
+    raw = hostile_entry(1, 64, 64, zstandard.ZstdCompressor().compress(bytes(3 * 64 * 64)))
+    assert len(RoverEntry.from_bytes(raw).states) == 1
     with pytest.raises(CorruptMessage, match="64x64, the mission's are 128x128"):
-        Report.from_bytes(raw, shape=(128, 128))
-    assert 3 * 8192 * 8192 * 2 > MAX_REPORT_MAPS  # the limit is below what the largest sides allow
+        RoverEntry.from_bytes(raw, shape=(128, 128))
+    assert 3 * 8192 * 8192 * 2 > MAX_ENTRY_MAPS  # the limit is below what the largest sides allow
 
 
-@pytest.mark.parametrize("header", [{"kind": "report"}, {"kind": "report", "states": 5, "uplink": None},
-                                    {"kind": "report", "states": [[1]], "uplink": None}])
-def test_a_report_header_of_the_wrong_layout_is_a_corrupt_message_not_a_crash(header):
+@pytest.mark.parametrize("header", [{"kind": "report"}, {"kind": "report", "uplink": 5},
+                                    {"kind": "report", "pos": [1], "uplink": None}, {"kind": "rover-log"},
+                                    {"kind": "rover-log", "states": 5}, {"kind": "rover-log", "states": [[1]]},
+                                    {"kind": "base-log", "held": [0]}])
+def test_a_header_of_the_wrong_layout_is_a_corrupt_message_not_a_crash(header):
+    from fedmap.mission.nodelog import BaseRecord
+
+    kind = {"report": Report, "rover-log": RoverEntry, "base-log": BaseRecord}[header["kind"]]
     with pytest.raises(CorruptMessage):
-        Report.from_bytes(pack_frame(header, [b"", b""]))
+        kind.from_bytes(pack_frame(header, [b""] * (2 if kind is BaseRecord else 1)))
 
 
 def test_a_weights_payload_whose_zstd_frame_lies_about_its_size_is_rejected():

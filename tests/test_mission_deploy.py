@@ -337,6 +337,12 @@ def test_a_rover_restarted_across_machines_with_the_documented_command_rejoins(t
     assert killed and base.returncode == 0, text[-3000:]
     assert codes == {0: 0, 1: 0}, {k: (tmp_path / f"rover{k}.txt").read_text()[-1500:] for k in rovers}
     assert files == {f"{m}-raw-rover{k}.pickle" for m in {f.split("-raw-")[0] for f in files} for k in (0, 1)}
+    # the base scored nothing: the rovers' logs are on their machines; copied in, fedmap score scores the run
+    assert "fedmap score" in text and not out.exists(), text[-2000:]
+    shutil.copytree(state / "log", out.with_name("out.run") / "from-the-rovers")
+    scored = subprocess.run([sys.executable, "-m", "fedmap", "score", str(out.with_name("out.run")), "-o", str(out),
+                             "--no-animation"], capture_output=True, text=True, timeout=300)
+    assert scored.returncode == 0, scored.stderr[-2000:]
     deployed = json.loads((out / "metrics.json").read_text())
     here = _in_process(out / "mission.toml")
     assert without_timings(deployed["strategies"]) == without_timings(metrics(here)["strategies"])

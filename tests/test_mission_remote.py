@@ -6,6 +6,7 @@ message; a frame that was damaged on the way is refused by its check."""
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -16,6 +17,7 @@ from hypothesis import strategies as st
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN
 from fedmap.mission import load_mission, mission_terrain
+from fedmap.mission.nodelog import RoverEntry, read_base_records, read_rover_log, write_log
 from fedmap.mission.remote import (
     BaseNode,
     CorruptMessage,
@@ -32,6 +34,7 @@ from fedmap.mission.remote import (
 )
 from fedmap.mission.report import metrics, without_timings
 from fedmap.mission.results import MissionResult
+from fedmap.mission.scoring import score_strategy
 from fedmap.mission.sim import prepare_mission, run_mission
 
 
@@ -49,10 +52,10 @@ def _remote(config, truth, kw) -> MissionResult:
     m = prepare_mission(config, truth, **kw)
     runs = {}
     for name in config.strategies:
-        base = BaseNode(m, name)
-        steps = list(rounds(base, loopback(m, name)))
+        base, rovers = BaseNode(m, name), loopback(m, name)
+        steps = list(rounds(base, rovers))
         assert steps == [*config.sync_steps, config.steps][:len(steps)] and steps[-1] == config.steps
-        runs[name] = base.result(0.0)
+        runs[name] = replace(score_strategy(m, base.record(0.0), rovers.logs), sharing=base.run.sharing)
     return MissionResult(config, truth, m.starts, m.base, runs, 0.0)
 
 
@@ -90,14 +93,20 @@ def test_orders_and_reports_survive_bytes():
     node_order = Order("raw", 1, 1, config.sync_every)
     rep = node.handle(node_order)
     back = Report.from_bytes(rep.to_bytes())
-    assert [s.step for s in back.states] == list(range(config.sync_every))
-    for s0, s1 in zip(rep.states, back.states):
+    assert back == rep
+    assert back.uplink is not None and back.uplink.payload
+    # what an observer reads of the rover stays in its own log, and survives its bytes too
+    (entry,) = node.log
+    again = RoverEntry.from_bytes(entry.to_bytes(), shape=truth.shape)
+    assert [s.step for s in again.states] == list(range(config.sync_every))
+    for s0, s1 in zip(entry.states, again.states):
         np.testing.assert_array_equal(s0.belief, s1.belief)
         np.testing.assert_array_equal(s0.view, s1.view)
         np.testing.assert_array_equal(s0.observed, s1.observed)
         assert (s0.pos, s0.target, s0.distance, s0.trail_len) == (s1.pos, s1.target, s1.distance, s1.trail_len)
-    assert back.uplink is not None and rep.uplink is not None and back.uplink.payload == rep.uplink.payload
-    assert back.trail == rep.trail and back.pos == rep.pos
+    assert again.trail == entry.trail and entry.trail[0] == m.starts[1]
+    # the report is the strategy's uplink and a small header: nothing of the maps
+    assert len(rep.to_bytes()) < len(back.uplink.payload) + 300 < len(entry.to_bytes())
 
 
 @settings(max_examples=60, deadline=None)
@@ -111,6 +120,40 @@ def test_a_damaged_frame_is_refused_by_its_check(blob, data):
         unpack_frame(bytes(raw))
     with pytest.raises(CorruptMessage):
         unpack_frame(bytes(raw[: data.draw(st.integers(0, len(raw) - 1))]))
+
+
+_events = st.lists(st.one_of(st.tuples(st.just("ack"), st.integers(0, 2**32 - 1), st.booleans()),
+                             st.tuples(st.just("down"), st.integers(0, 2**32 - 1), st.binary(max_size=40))),
+                   max_size=5)
+
+
+@settings(max_examples=80, deadline=None)
+@given(_events, st.integers(0, 2**31), st.booleans(), st.binary(max_size=40), st.data())
+def test_orders_and_reports_are_small_binary_frames_a_damage_anywhere_refuses(events, step, finish, payload, data):
+    """An order and a report come back as they went; their framing is tens of bytes (the
+    strategy's payload aside); any byte flipped or any cut is refused as a corrupt message."""
+    from fedmap.mission.protocol import Outgoing
+    from fedmap.mission.wire import MESSAGE_OVERHEAD
+
+    order = Order("predictive", 3, 7, step, finish, events, "a1b2c3d4e5f6", max(step - 1, 0))
+    report = Report("predictive", 3, step, (120, 7), None if finish else (5, 9), not finish,
+                    Outgoing(payload, "cells"), [bool(e[2]) for e in events if e[0] == "ack"], None,
+                    {"losses": [{"round": 1, "rover": 3, "loss": 0.25}]} if finish else {})
+    for msg, kind in ((order, Order), (report, Report)):
+        raw = msg.to_bytes()
+        assert kind.from_bytes(raw) == msg
+        carried = sum(len(e[2]) for e in events if e[0] == "down") if kind is Order else len(payload)
+        framing = len(raw) - carried - MESSAGE_OVERHEAD
+        assert framing <= (40 + 10 * len(events) if kind is Order else 120), framing
+        bad = bytearray(raw)
+        i = data.draw(st.integers(0, len(raw) - 1))
+        bad[i] ^= data.draw(st.integers(1, 255))
+        with pytest.raises(CorruptMessage):
+            kind.from_bytes(bytes(bad))
+        with pytest.raises(CorruptMessage):
+            kind.from_bytes(raw[:data.draw(st.integers(0, len(raw) - 1))])
+    with pytest.raises(CorruptMessage, match="expected order, got a 'report'"):
+        Order.from_bytes(report.to_bytes())
 
 
 def test_what_cannot_run_on_processes_is_refused_in_one_line():
@@ -178,12 +221,12 @@ def test_a_rover_fed_by_its_own_maps_shares_every_cell_they_hold(tmp_path, kind)
     for (_, classes), got in zip(snaps, feed.maps):
         np.testing.assert_array_equal(classes, got)
     m = prepare_mission(config, truth, **kw)
-    base = BaseNode(m, "raw")
-    for _ in rounds(base, loopback(m, "raw", feeds={0: feed})):
+    base, rovers = BaseNode(m, "raw"), loopback(m, "raw", feeds={0: feed})
+    for _ in rounds(base, rovers):
         pass
-    run = base.result(0.0)
+    run = score_strategy(m, base.record(0.0), rovers.logs)
     fed = snaps[-1][1] != UNKNOWN
-    g = run.sharing.global_map()
+    g = base.run.sharing.global_map()
     np.testing.assert_array_equal(g[fed], truth.classes[fed])  # every cell the feed held reached the base
     assert run.trails[0] and all(truth.classes[c] == FREE for c in run.trails[0])
 
@@ -208,7 +251,7 @@ def test_a_bad_map_feed_is_refused_in_one_line(tmp_path):
         MapFeed.open(tmp_path / "nostep")
 
 
-def test_a_rover_that_lost_its_state_is_rebuilt_from_its_orders():
+def test_a_rover_that_lost_its_state_is_rebuilt_from_its_orders(tmp_path):
     """Rover 2 loses everything (its process came back without its state folder) at the
     order to step 25: it refuses the order, is rebuilt from every order it was sent
     before (sent again as one frame), and the mission records what the uninterrupted
@@ -216,8 +259,8 @@ def test_a_rover_that_lost_its_state_is_rebuilt_from_its_orders():
     name = "predictive"
     config, truth, kw = _mission([name], steps=40, loss=0.2)
     m = prepare_mission(config, truth, **kw)
-    here = BaseNode(m, name)
-    list(rounds(here, loopback(m, name)))
+    here, rovers = BaseNode(m, name), loopback(m, name)
+    list(rounds(here, rovers))
 
     nodes: dict[int, RoverNode] = {}
     history: dict[int, list[bytes]] = {}
@@ -238,17 +281,26 @@ def test_a_rover_that_lost_its_state_is_rebuilt_from_its_orders():
                 rebuilt.append(len(old))
                 out[k] = nodes[k].answer(raw)
             history.setdefault(k, []).append(raw)
+            for entry in nodes[k].log:  # each rover's own log, on its own disk (a rebuilt rover writes it again)
+                write_log(tmp_path / f"rover{k}", entry)
+            nodes[k].log = []
         return out
 
     apart = BaseNode(m, name)
     list(rounds(apart, send))
     assert rebuilt
-    a, b = here.result(0.0), apart.result(0.0)
+    logs = [read_rover_log(tmp_path, "", name, k, shape=truth.shape) for k in range(len(m.starts))]
+    record = apart.record(0.0)
+    write_log(tmp_path / "base", record)
+    (record_back,) = read_base_records(tmp_path, shape=truth.shape)
+    a, b = score_strategy(m, here.record(0.0), rovers.logs), score_strategy(m, record_back, logs)
+    assert json.dumps(without_timings(a.to_dict()), sort_keys=True) == json.dumps(without_timings(b.to_dict()),
+                                                                                 sort_keys=True)
     assert [(x.bytes, x.status) for x in a.ledger] == [(x.bytes, x.status) for x in b.ledger]
     assert a.trails == b.trails
     for va, vb in zip(a.views, b.views):
         np.testing.assert_array_equal(va, vb)
-    np.testing.assert_array_equal(a.sharing.global_map(), b.sharing.global_map())
+    np.testing.assert_array_equal(here.run.sharing.global_map(), apart.run.sharing.global_map())
 
 
 def test_a_rover_ahead_of_the_base_or_given_a_damaged_history_is_refused():
@@ -265,3 +317,55 @@ def test_a_rover_ahead_of_the_base_or_given_a_damaged_history_is_refused():
     raw[-3] ^= 0xFF
     with pytest.raises(CorruptMessage):
         unpack_history(bytes(raw))
+
+
+def _run_folder(folder, config, truth, kw, text):
+    """A run folder as nodes on their own machines leave it: every rover's log in a folder of
+    its own, the base's records, and what the run says of itself."""
+    from fedmap.mission.scoring import write_run
+
+    m = prepare_mission(config, truth, **kw)
+    for name in config.strategies:
+        base, rovers = BaseNode(m, name, mission_id="m1"), loopback(m, name)
+        list(rounds(base, rovers))
+        for k, log in enumerate(rovers.logs):
+            for entry in log:
+                write_log(folder / f"rover{k}-disk", entry)
+        write_log(folder / "base", base.record(1.5))
+    write_run(folder, text, config.strategies, 3.0)
+
+
+def test_fedmap_score_of_the_nodes_logs_gives_the_mission_in_process(tmp_path, capsys):
+    """``fedmap score RUN_FOLDER`` on what the nodes logged writes the ``metrics.json`` that
+    ``fedmap mission`` writes in process (timings aside), from logs alone."""
+    from fedmap.cli import main
+    from fedmap.mission.settings import mission_toml
+
+    over = {"mission": {"steps": 30, "strategies": ["none", "raw", "predictive"]}, "terrain": {"size": 64}}
+    config, source, resolved = load_mission(overrides=[over])
+    text = mission_toml(resolved)
+    (tmp_path / "mission.toml").write_text(text)
+    truth, elevation, prior, profiles = mission_terrain(config, source)
+    kw = dict(elevation=elevation, prior=prior, profiles=profiles, thresholds=source.thresholds, frames=1)
+    run = tmp_path / "run"
+    _run_folder(run, config, truth, kw, text)
+    assert main(["score", str(run), "-o", str(tmp_path / "scored"), "--no-animation"]) == 0
+    assert main(["mission", str(tmp_path / "mission.toml"), "-o", str(tmp_path / "here"), "--no-animation"]) == 0
+    a, b = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("here", "scored"))
+    assert without_timings(a["strategies"]) == without_timings(b["strategies"])
+    assert b["strategies"]["raw"]["seconds"] == 1.5
+
+    # a rover's log missing, or damaged: one line naming it, and the earlier outputs stay
+    capsys.readouterr()
+    entry = sorted((run / "rover2-disk").glob("*predictive-rover2-*.log"))[1]
+    raw = bytearray(entry.read_bytes())
+    raw[len(raw) // 2] ^= 0x40
+    entry.write_bytes(bytes(raw))
+    assert main(["score", str(run), "-o", str(tmp_path / "scored"), "--no-animation"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: {entry}: corrupted message: its check failed") and "\n" not in err, err
+    shutil.rmtree(run / "rover1-disk")
+    assert main(["score", str(run), "-o", str(tmp_path / "scored"), "--no-animation"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: none: no log of rover 1 in the run folder") and "\n" not in err, err
+    assert json.loads((tmp_path / "scored" / "metrics.json").read_text()) == b

@@ -15,7 +15,7 @@ from fedmap.flower.mission_task import MissionRun  # noqa: E402
 from fedmap.flower.records import to_record  # noqa: E402
 from fedmap.mission.remote import Report  # noqa: E402
 
-REPORT = Report("raw", 0, 5, (1, 1), None, True, None, [], None, {}, [], []).to_bytes()
+REPORT = Report("raw", 0, 5, (1, 1), None, True, None, [], None, {}).to_bytes()
 
 
 class OneRoverGrid:
@@ -114,7 +114,7 @@ class TwoRoverGrid:
             self.orders.append(node)
             if node == 8 and self.orders.count(8) == 1:
                 continue  # lost
-            report = Report("raw", node - 7, 5, (1, 1), None, True, None, [], None, {}, [], []).to_bytes()
+            report = Report("raw", node - 7, 5, (1, 1), None, True, None, [], None, {}).to_bytes()
             self.pending[m.object_id] = Message(RecordDict({"report": to_record(report),
                                                             "config": ConfigRecord({"boot": "pid"})}), reply_to=m)
         return ids

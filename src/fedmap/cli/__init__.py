@@ -65,6 +65,7 @@ app.command("meta-coder")(meta.meta_coder)
 app.command("meta-predictor")(meta.meta_predictor)
 app.command("federate-predictor")(predictorfed.federate_predictor)
 app.command()(mission.mission)
+app.command()(mission.score)
 
 
 _GLOBAL_FLAGS = ("--quiet", "-q", "--log-json")

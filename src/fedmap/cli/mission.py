@@ -4,6 +4,7 @@ ways of sharing side by side (:mod:`fedmap.mission`). This module only wires opt
 from __future__ import annotations
 
 import time
+import tomllib
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Optional
@@ -28,6 +29,7 @@ from fedmap.mission.remote import check_deployable
 from fedmap.mission.repeats import run_repeats, what_varies
 from fedmap.mission.report import global_meaning, has_peers, repeat_rows, table_rows, verdict, write_mission
 from fedmap.mission.results import movement_warnings
+from fedmap.mission.scoring import MISSION_FILE, MissingLog, score_folder
 from fedmap.mission.settings import MISSION_SECTIONS, mission_toml, parse_sets
 from fedmap.mission.sim import start_pocket_warning
 from fedmap.pipeline import PipelineConfig
@@ -122,8 +124,16 @@ def mission(
 
         if deploy is not None:
             assert plan is not None
-            results = [_deployed(cfg, resolved, deploy, plan, out=out, animation=animation, progress=progress,
-                                 certs=certs, auth_keys=auth_keys, insecure=insecure, resume=resume)]
+            try:
+                results = [_deployed(cfg, resolved, deploy, plan, out=out, animation=animation, progress=progress,
+                                     certs=certs, auth_keys=auth_keys, insecure=insecure, resume=resume)]
+            except MissingLog:  # --deploy base: the rovers keep their logs on their own machines
+                if deploy != "base":
+                    raise
+                run = f"{out}.run"
+                console.print(f"mission over. Each rover keeps its own log (log/ in its --state folder): copy them into "
+                              f"{run}/, then score the mission with: fedmap score {run} -o {out}", soft_wrap=True)
+                return
         else:
             with recorder if recorder is not None else nullcontext():  # stops the server, keeps the MCAP only on success
                 results = run_repeats(cfg, truth, repeats, on_repeat=on_repeat, elevation=elevation, prior=prior,
@@ -283,3 +293,39 @@ _CONSOLE = {"strategy": "strategy", "steps to 50 %": "50 %", "steps to 80 %": "8
 _CONSOLE_HEIGHTS = {"base height RMSE m": "z RMSE m"}
 #: Console columns of a mission with peer messages (mesh, leader, gossip).
 _CONSOLE_PEER = {"B/link/round": "B/link/rnd", "peer messages not delivered": "peer lost"}
+
+
+def score(
+    run_folder: Path = typer.Argument(..., help="A mission's run folder (<out>.run of fedmap mission --deploy): the base station's records, with every rover's log copied anywhere into it."),
+    out: Path = typer.Option(Path("fedmap-out/mission"), "--out", "-o", help="Output folder (replaced atomically)."),
+    animation: bool = typer.Option(True, "--animation/--no-animation", help="Write the GIF (and MP4 with ffmpeg) of each strategy."),
+) -> None:
+    """Score a mission from what its nodes logged (the rovers' logs and the base station's records) against the truth; write metrics.json, report.md, plots and maps as fedmap mission does."""
+    t0 = time.perf_counter()
+    check_output_dir(out)
+    try:
+        text = (Path(run_folder) / MISSION_FILE).read_text()
+    except FileNotFoundError:
+        raise FedmapError(f"{run_folder} is not a mission's run folder: no {MISSION_FILE}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise FedmapError(f"{Path(run_folder) / MISSION_FILE} is not valid TOML: {e}") from None
+    cfg, source, resolved = load_mission(None, overrides=[data])
+    with progress_bar() as progress:
+        tasks: dict[str, Any] = {}
+
+        def on_step(name: str, step: int, coverage: float) -> None:
+            if name not in tasks:
+                tasks[name] = progress.add_task(f"score: {name}", total=cfg.steps, loss="")
+            progress.update(tasks[name], completed=step, loss=f"coverage {coverage:.0%}")
+
+        result = score_folder(Path(run_folder), frames=60 if animation else 1, on_step=on_step)
+        task = progress.add_task("write outputs", total=None, loss="")
+        title = f"{source.label}, {result.truth.shape[0]}x{result.truth.shape[1]}"
+        write_mission(result, out, title=title, settings=resolved, animation=animation,
+                      extra={"mission.toml": text, "mission.json": to_json(resolved)})
+        progress.update(task, total=1, completed=1)
+    console.print(verdict(result).replace("**", ""), soft_wrap=True)
+    console.print(f"outputs: {out}/  (metrics.json, report.md, coverage.png, f1.png, accuracy_bytes.png, knowing.png)")
+    console.print(f"wall time: {time.perf_counter() - t0:.1f} s")

@@ -6,8 +6,9 @@ one rover process per member of the team (``fedmap rover --mission``: its SuperN
 connected), and the mission's ServerApp (:mod:`fedmap.flower.mission_server`), all on
 127.0.0.1. ``base``: only the base station, for rovers on other machines (``--certs`` and
 ``--auth-keys`` unless it listens on loopback or ``--insecure``). Either way the command
-returns the finished :class:`~fedmap.mission.results.MissionResult` and every process's log
-is in ``<out>.run/`` (kept beside the outputs as ``logs/``).
+returns the finished :class:`~fedmap.mission.results.MissionResult`, scored from the
+nodes' own logs (:func:`fedmap.mission.scoring.score_folder`), and every process's log is
+in ``<out>.run/`` (kept beside the outputs as ``logs/``).
 
 Nothing here imports ``flwr``.
 """
@@ -42,11 +43,12 @@ from fedmap.flower.launch import (
     submit_run,
     wait_for_result,
 )
-from fedmap.flower.mission_task import MissionRun, base_log, read_result, result_path
+from fedmap.flower.mission_task import MissionRun, base_dir, base_log
 from fedmap.flower.rover import WarmChild
 from fedmap.flower.task import rover_nodes_text, run_status_path, write_status
 from fedmap.flower.warm import ROVER
 from fedmap.mission.results import MissionResult
+from fedmap.mission.scoring import RUN_FILE, score_folder
 
 #: Seconds between a local rover's polls of its SuperLink, and its SuperExec's for a task. Polls
 #: are not free on two cores: with three loopback missions side by side (tests/, the suite's lanes)
@@ -137,7 +139,9 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
                   "connect-timeout": connect_timeout, "deadline": deadline, "resume": resume}
     MissionRun.from_run_config(run_config)  # a bad run config fails here, before any process starts
     run_status_path(out).unlink(missing_ok=True)
-    result_path(out).unlink(missing_ok=True)
+    (work / RUN_FILE).unlink(missing_ok=True)
+    if not resume:  # the base's records of an earlier run are not this run's
+        shutil.rmtree(base_dir(out), ignore_errors=True)
     port = port or free_port(host if host not in ("0.0.0.0", "::", "") else "127.0.0.1")
     try:
         with contextlib.ExitStack() as stack:
@@ -202,7 +206,7 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
     finally:  # no private key outlives the run: the run's own certificates (the control secret goes with procs)
         if mode == "local":
             shutil.rmtree(work / "certs", ignore_errors=True)
-    result = read_result(out)
+    result = score_folder(work, frames=frames)
     return replace(result, faults=(*result.faults, *restarted))
 
 

@@ -14,8 +14,9 @@ is taken). A rover that lost
 its state gets its order again with every order it was sent before, and rebuilds itself
 from them (:meth:`~fedmap.mission.remote.RoverNode.rebuild`). Each fault is a line of the
 run's ``faults`` and of the log. At the end every rover gets a
-``evaluate`` message (its SuperNode may stop) and the result goes to
-``<out>.run/result.pickle`` (:mod:`fedmap.flower.mission_task`).
+``evaluate`` message (its SuperNode may stop). The base logs what it held and sent in
+``<out>.run/base/``; the rovers' reports carry no scores (each rover logs its own side),
+and the run is scored from the logs (:func:`fedmap.mission.scoring.score_folder`).
 """
 
 from __future__ import annotations
@@ -30,12 +31,21 @@ from flwr.serverapp import Grid, ServerApp
 from flwr.supercore import log
 
 from fedmap.errors import FedmapError
-from fedmap.flower.mission_task import BaseJournal, MissionRun, base_log, mission_from_text, strategies_of, write_result
+from fedmap.flower.checkpoint import run_dir
+from fedmap.flower.mission_task import (
+    BaseJournal,
+    MissionRun,
+    base_dir,
+    base_log,
+    mission_from_text,
+    strategies_of,
+)
 from fedmap.flower.polling import exchange, quick_pulls
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.task import KEY_ROVER, parse_rover_nodes, write_status, wrong_key
+from fedmap.mission.nodelog import write_log
 from fedmap.mission.remote import BaseNode, CorruptMessage, Report, check_deployable, pack_history, rounds
-from fedmap.mission.results import MissionResult
+from fedmap.mission.scoring import write_run
 
 app = ServerApp()
 quick_pulls()  # a round is a message per rover: Flower's 1 s first retry would be most of it
@@ -59,8 +69,8 @@ ORDER_COPIES = 1
 class _Team:
     """The rovers' nodes on the grid, and the sending of orders to them."""
 
-    def __init__(self, grid: Grid, run: MissionRun, members: int, shape: tuple[int, int] | None = None) -> None:
-        self.grid, self.run, self.members, self.shape = grid, run, members, shape
+    def __init__(self, grid: Grid, run: MissionRun, members: int) -> None:
+        self.grid, self.run, self.members = grid, run, members
         self.faults: list[dict] = []
         self.boot_of: dict[int, str] = {}  # rover -> the rover process its node last said it runs
         self.key_rover = parse_rover_nodes(run.rover_nodes)  # node -> the rover its registered key is for
@@ -187,7 +197,7 @@ class _Team:
                     continue
                 raw = from_record(reply.content.array_records.get("report"))
                 try:
-                    Report.from_bytes(raw, shape=self.shape)
+                    Report.from_bytes(raw)
                 except CorruptMessage as e:
                     again[k] = todo[k]
                     damaged += 1
@@ -235,8 +245,9 @@ class _Team:
         exchange(self.grid, msgs, 60)
 
 
-def run_mission_base(grid: Grid, run: MissionRun) -> MissionResult:
-    """Every strategy's mission over the rovers on ``grid``; with ``run.resume``, the rounds in
+def run_mission_base(grid: Grid, run: MissionRun) -> None:
+    """Every strategy's mission over the rovers on ``grid``, each logged by the base in
+    ``<out>.run/base/`` (the rovers log their own side); with ``run.resume``, the rounds in
     the base's journal are replayed first (:class:`~fedmap.flower.mission_task.BaseJournal`)."""
     t0 = time.perf_counter()
     write_status(run.out, "running", message="loading the mission")
@@ -245,8 +256,7 @@ def run_mission_base(grid: Grid, run: MissionRun) -> MissionResult:
     check_deployable(mission.config, names)
     journal = BaseJournal(run.out, run.mission, resume=run.resume)
     c = mission.config
-    team = _Team(grid, run, c.rovers + c.helicopters, tuple(mission.truth.shape))  # type: ignore[arg-type]
-    runs = {}
+    team = _Team(grid, run, c.rovers + c.helicopters)
     for name in names:
         t1 = time.perf_counter()
         say(run.out, INFO, f"mission {name} on {team.members} rovers")
@@ -274,12 +284,9 @@ def run_mission_base(grid: Grid, run: MissionRun) -> MissionResult:
 
         for step in rounds(base, send):
             write_status(run.out, "running", strategy=name, step=step, steps=c.steps)
-        runs[name] = base.result(time.perf_counter() - t1)
+        write_log(base_dir(run.out), base.record(time.perf_counter() - t1))
     team.finish()
-    result = MissionResult(c, mission.truth, mission.starts, mission.base, runs, time.perf_counter() - t0,
-                           faults=tuple(team.faults))
-    write_result(run.out, result)
-    return result
+    write_run(run_dir(run.out), run.mission, names, time.perf_counter() - t0, team.faults)
 
 
 @app.main()

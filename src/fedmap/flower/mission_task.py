@@ -4,9 +4,10 @@ kept between messages, faults a test can inject, and the base station's result f
 A mission's run config carries the whole resolved mission as TOML text (``mission``: the
 ``mission.toml`` an in-process run writes), so the base station and every rover build the
 same mission (:func:`fedmap.mission.load_mission`, then the same terrain, starts and seeds).
-The base station writes the finished :class:`~fedmap.mission.results.MissionResult` to
-``<out>.run/result.pickle`` for the command that started it (its own process, on its own
-machine: a file of this run, read once), next to ``status.json``.
+Every node writes its own log: a rover in ``log/`` of its state folder, the base station in
+``<out>.run/base/``, beside the mission and what the run says of itself (``mission.toml``,
+``run.json``); the command that started the base scores the run from them
+(:func:`fedmap.mission.scoring.score_folder`, as ``fedmap score`` does).
 """
 
 from __future__ import annotations
@@ -17,17 +18,16 @@ import os
 import pickle
 import shutil
 import time
-import tomllib
 import uuid
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
-from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.feed import MapFeed
+from fedmap.mission.nodelog import write_log
 from fedmap.mission.registry import REGISTRY
 from fedmap.mission.remote import (
     CorruptMessage,
@@ -38,8 +38,8 @@ from fedmap.mission.remote import (
     unpack_frame,
     unpack_history,
 )
-from fedmap.mission.results import MissionResult
-from fedmap.mission.sim import Mission, prepare_mission
+from fedmap.mission.scoring import mission_from_text
+from fedmap.mission.sim import Mission
 
 #: The mission app's run-config keys and their defaults (``mission_app/pyproject.toml`` holds the same).
 MISSION_RUN_DEFAULTS: dict[str, Any] = {
@@ -82,18 +82,6 @@ class MissionRun:
                    float(c["deadline"]), float(c["rejoin"]), bool(c["resume"]), str(c["rover-nodes"]))
 
 
-def mission_from_text(text: str, *, frames: int = 60) -> Mission:
-    """The mission of a resolved mission TOML: its terrain loaded, starts placed."""
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
-        raise FedmapError(f"the mission run config is not valid TOML: {e}") from None
-    config, source, _ = load_mission(None, overrides=[data])
-    truth, elevation, prior, profiles = mission_terrain(config, source)
-    return prepare_mission(config, truth, elevation=elevation, prior=prior, profiles=profiles,
-                           thresholds=source.thresholds, frames=frames)
-
-
 def strategies_of(run: MissionRun, mission: Mission) -> tuple[str, ...]:
     """The strategies the run deploys: the run config's, else the mission's own that can run on processes."""
     return run.strategies or tuple(s for s in mission.config.strategies if REGISTRY[s].deployable)
@@ -106,6 +94,13 @@ def base_log(out: Path, level: str, line: str) -> None:
     """One line in the base station's own log, ``<out>.run/base.log`` (``level``: INFO, WARNING)."""
     with open(run_dir(out) / "base.log", "a") as fh:
         fh.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} {level} {line}\n")
+
+
+def log_dir(state_dir: Path) -> Path:
+    """Where a rover keeps its own log (:class:`~fedmap.mission.nodelog.RoverEntry` files):
+    ``log/`` in its state folder. It stays when the mission is over: the mission is scored
+    from it (``fedmap score``)."""
+    return Path(state_dir) / "log"
 
 
 def state_file(state_dir: Path, order: Order, k: int) -> Path:
@@ -161,6 +156,9 @@ def rover_answer(state_dir: Path, mission_text: str, k: int, raw: bytes, *, feed
     else:
         node = RoverNode(mission_from_text(mission_text, frames=1), order.strategy, k, feed=feed)
     report = node.answer(raw)
+    for entry in node.log:  # its own log, beside its state (written first: a state never runs ahead of its log)
+        write_log(log_dir(state_dir), entry)
+    node.log = []
     if order.finish:
         path.unlink(missing_ok=True)
     else:
@@ -239,32 +237,14 @@ class BaseJournal:
                                                                [reports[k] for k in ks]))
 
 
-# -- the base station's result ----------------------------------------------------------------
+# -- the base station's record ----------------------------------------------------------------
 
 
-def result_path(out: Path) -> Path:
-    return run_dir(out) / "result.pickle"
+def base_dir(out: Path) -> Path:
+    """Where the base station keeps its own log (:class:`~fedmap.mission.nodelog.BaseRecord` files)."""
+    return run_dir(out) / "base"
 
 
-def write_result(out: Path, result: MissionResult) -> None:
-    """The finished mission for the command that started the base station (ends dropped:
-    their state is not part of the outputs)."""
-    runs = {name: replace(run, sharing=None) for name, run in result.runs.items()}
-    atomic_write_bytes(result_path(out), pickle.dumps(replace(result, runs=runs), protocol=pickle.HIGHEST_PROTOCOL))
-
-
-def read_result(out: Path) -> MissionResult:
-    """The result the base station of this run wrote (:func:`write_result`)."""
-    p = result_path(out)
-    try:
-        result = pickle.loads(p.read_bytes())
-    except FileNotFoundError:
-        raise FedmapError(f"the base station wrote no result ({p})") from None
-    if not isinstance(result, MissionResult):
-        raise FedmapError(f"{p} is not a mission result")
-    return result
-
-
-__all__ = ["MISSION_RUN_DEFAULTS", "BaseJournal", "CorruptMessage", "LostState", "MissionRun", "damaged",
-           "mission_from_text", "node_feed", "parse_mission_fault", "read_result", "result_path", "rover_answer",
-           "state_file", "strategies_of", "write_result"]
+__all__ = ["MISSION_RUN_DEFAULTS", "BaseJournal", "CorruptMessage", "LostState", "MissionRun", "base_dir", "damaged",
+           "log_dir", "mission_from_text", "node_feed", "parse_mission_fault", "rover_answer", "state_file",
+           "strategies_of"]

@@ -7,17 +7,19 @@ The mission clock belongs to the base station. At every sync it sends each rover
 drive to. The rover (:class:`RoverNode`) applies the events, drives, senses and plans up to
 that step, runs its end's sync (``at_sync``, then ``uplink`` when it is in range) and
 answers with a **report** (:class:`Report`): its uplink (the strategy's own message, the
-bytes the ledger counts), whether it could use each downlink it was handed, and what an
-observer reads of it at every step since the last report (belief, view, cells observed,
-position, target, distance: what the simulator's record reads; not counted, a real
-rover's software need not send it). The base (:class:`BaseNode`) runs the same
-:class:`~fedmap.mission.topology.Exchange` and :class:`~fedmap.mission.link.Link` as the
-simulator over the rovers' reports, so with the same seed and config it records the same
-mission as :func:`~fedmap.mission.sim.run_mission`. After the last sync a final order
-(``finish``) delivers what is left and drives the rovers to the last step.
+bytes the ledger counts), whether it could use each downlink it was handed, and where it is
+(its cell and target: what the base's side of the link needs). What an observer reads of
+it at every step (belief, view, cells observed, distance) stays on the rover: it goes to
+the rover's own log (:class:`~fedmap.mission.nodelog.RoverEntry`, :attr:`RoverNode.log`).
+The base (:class:`BaseNode`) runs the same :class:`~fedmap.mission.topology.Exchange` and
+:class:`~fedmap.mission.link.Link` as the simulator over the rovers' reports and logs what
+it holds (:meth:`BaseNode.record`); the mission is scored from the logs afterwards
+(:func:`~fedmap.mission.scoring.score_strategy`), so with the same seed and config it
+records the same mission as :func:`~fedmap.mission.sim.run_mission`. After the last sync a
+final order (``finish``) delivers what is left and drives the rovers to the last step.
 
-Orders and reports are bytes (:func:`pack_frame`): a version byte, a CRC-32 check of the
-rest, a JSON header and length-prefixed blobs. A frame that fails its check is refused with
+Orders and reports are fedmap's frames (:mod:`fedmap.mission.wire`): a version byte, a
+CRC-32 check of the rest, a JSON header and length-prefixed blobs. A frame that fails its check is refused with
 one line (:class:`CorruptMessage`); the transport sends it again.
 
 A rover that lost its state (its process started again without its state folder) refuses
@@ -35,77 +37,43 @@ the latency), and strategies whose rover ends hold only their own rover (their s
 from __future__ import annotations
 
 import json
-import struct
-import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import zstandard
 
-from fedmap._util import inflate_zstd
 from fedmap.errors import FedmapError
-from fedmap.maps.grid import FREE, MAX_WIRE_SIDE, UNKNOWN
+from fedmap.maps.grid import FREE, UNKNOWN
 from fedmap.maps.planning import astar
 from fedmap.mission.feed import FeedWorld, MapFeed
+from fedmap.mission.frames import registrations
 from fedmap.mission.frontiers import choose_target, travel_costs
+from fedmap.mission.link import BASE
+from fedmap.mission.nodelog import BaseRecord, RoverEntry, StepState
 from fedmap.mission.protocol import DroppedUpdate, Outgoing
 from fedmap.mission.registry import Setup, Sharing, build, names_that
 from fedmap.mission.settings import MissionConfig
-from fedmap.mission.sim import Mission, StrategyRun, TeamState
+from fedmap.mission.sim import Mission
 from fedmap.mission.topology import make_topology
+from fedmap.mission.wire import (
+    HISTORY,
+    ORDER,
+    REPORT,
+    WIRE_VERSION,
+    CorruptMessage,
+    Head,
+    Writer,
+    pack_frame,
+    pack_message,
+    unpack_frame,
+    unpack_message,
+)
 
 Cell = tuple[int, int]
-#: The wire format's version (the first byte of every frame).
-WIRE_VERSION = 1
-_HEAD = struct.Struct("<BII")  # version, crc32 of what follows, header length
-_BLOB = struct.Struct("<I")
-
-
-#: The most bytes a report's maps may decode to (their sides: at most :data:`MAX_WIRE_SIDE`; a
-#: receiver that knows its mission's map checks the shape too).
-MAX_REPORT_MAPS = 256 << 20
-
-
-class CorruptMessage(FedmapError):
-    """A frame whose check failed or whose layout is wrong."""
-
-
+_ACK, _DOWN = 0, 1  # an order's events
 class LostState(FedmapError):
     """A rover asked to carry on from a step it holds no state for: it needs its orders again."""
-
-
-def pack_frame(header: dict, blobs: list[bytes] = ()) -> bytes:  # type: ignore[assignment]
-    """``header`` (JSON) and ``blobs`` as one checked frame."""
-    head = json.dumps(header, separators=(",", ":")).encode()
-    body = head + b"".join(_BLOB.pack(len(b)) + bytes(b) for b in blobs)
-    return _HEAD.pack(WIRE_VERSION, zlib.crc32(body), len(head)) + body
-
-
-def unpack_frame(raw: bytes) -> tuple[dict, list[bytes]]:
-    """The header and blobs of a frame; :class:`CorruptMessage` when its check or layout fails."""
-    if len(raw) < _HEAD.size:
-        raise CorruptMessage(f"corrupted message: {len(raw)} bytes, shorter than a header")
-    version, crc, n = _HEAD.unpack_from(raw)
-    if version != WIRE_VERSION:
-        raise CorruptMessage(f"message of wire version {version}, this end speaks {WIRE_VERSION}: update fedmap on "
-                             "both ends")
-    body = raw[_HEAD.size:]
-    if zlib.crc32(body) != crc:
-        raise CorruptMessage("corrupted message: its check failed")
-    try:
-        header = json.loads(body[:n])
-        blobs, off = [], n
-        while off < len(body):
-            (size,) = _BLOB.unpack_from(body, off)
-            blobs.append(body[off + _BLOB.size: off + _BLOB.size + size])
-            off += _BLOB.size + size
-    except (ValueError, struct.error) as e:
-        raise CorruptMessage(f"corrupted message: {e}") from None
-    if off != len(body):
-        raise CorruptMessage("corrupted message: its last blob is cut short")
-    return header, blobs
 
 
 # -- what crosses ---------------------------------------------------------------------------
@@ -127,49 +95,36 @@ class Order:
     since: int = 0  #: the step the base holds the rover at (the step of its last order)
 
     def to_bytes(self) -> bytes:
-        heads: list[list] = []
-        blobs: list[bytes] = []
+        w = Writer().put("hIB", self.rover, self.since, self.finish).text(self.mission).text(self.strategy)
+        w.put("H", len(self.events))
         for ev in self.events:
             if ev[0] == "down":
-                heads.append(["down", ev[1], len(blobs)])
-                blobs.append(ev[2])
+                w.put("BI", _DOWN, ev[1]).blob(ev[2])
             else:
-                heads.append(list(ev))
-        return pack_frame({"kind": "order", "strategy": self.strategy, "rover": self.rover, "round": self.round_no,
-                           "step": self.step, "finish": self.finish, "events": heads, "mission": self.mission,
-                           "since": self.since}, blobs)
+                w.put("BIB", _ACK, ev[1], bool(ev[2]))
+        return pack_message(Head(ORDER, BASE, self.round_no, self.step), w.done())
 
     @classmethod
     def from_bytes(cls, raw: bytes) -> Order:
-        h, blobs = unpack_frame(raw)
-        if h.get("kind") != "order":
-            raise CorruptMessage(f"expected an order, got a {h.get('kind')!r} message")
-        try:
-            events = [("down", e[1], blobs[e[2]]) if e[0] == "down" else ("ack", e[1], bool(e[2]))
-                      for e in h["events"]]
-            return cls(h["strategy"], h["rover"], h["round"], h["step"], h["finish"], events, h.get("mission", ""),
-                       h.get("since", 0))
-        except (KeyError, TypeError, IndexError, ValueError) as e:  # a header of the wrong layout
-            raise CorruptMessage(f"corrupted message: its header is not an order's ({type(e).__name__}: {e})") from None
-
-
-@dataclass
-class StepState:
-    """What an observer reads of one rover at one step (the simulator's record)."""
-
-    step: int
-    belief: np.ndarray
-    view: np.ndarray
-    observed: np.ndarray
-    pos: Cell
-    target: Cell | None
-    distance: float
-    trail_len: int
+        head, r = unpack_message(raw, ORDER)
+        rover, since, finish = r.get("hIB")
+        mission, strategy = r.text(), r.text()
+        events: list[tuple] = []
+        for _ in range(r.one("H")):
+            kind, round_no = r.get("BI")
+            if kind == _DOWN:
+                events.append(("down", round_no, r.blob()))
+            elif kind == _ACK:
+                events.append(("ack", round_no, bool(r.one("B"))))
+            else:
+                raise CorruptMessage(f"corrupted message: an order's event of kind {kind}")
+        r.end()
+        return cls(strategy, rover, head.round, head.step, bool(finish), events, mission, since)
 
 
 @dataclass
 class Report:
-    """A rover's answer to an order."""
+    """A rover's answer to an order: what the base's side of the link needs, no more."""
 
     strategy: str
     rover: int
@@ -181,90 +136,64 @@ class Report:
     answers: list[bool]  #: whether it could use each downlink of the order, in order
     version: str | None  #: the model version it holds before the sync (model strategies)
     journal: dict  #: its journal's new entries (dropped updates, losses, cells trained on)
-    states: list[StepState]  #: the observer's view of every step since its last report
-    trail: list[Cell]  #: the cells it entered since its last report
 
     def to_bytes(self) -> bytes:
         up = self.uplink
-        head = {"kind": "report", "strategy": self.strategy, "rover": self.rover, "step": self.step,
-                "pos": list(self.pos), "target": None if self.target is None else list(self.target),
-                "reached": self.reached, "uplink": None if up is None else (up.kind, up.payload is not None),
-                "answers": self.answers, "version": self.version, "journal": self.journal,
-                "trail": [list(c) for c in self.trail],
-                "states": [[s.step, list(s.pos), None if s.target is None else list(s.target), s.distance,
-                            s.trail_len] for s in self.states]}
-        payload = up.payload if up is not None and up.payload is not None else b""
-        return pack_frame(head, [payload, _pack_maps(self.states)])
+        flags = (self.reached | (up is not None) << 1 | (up is not None and up.payload is not None) << 2
+                 | (self.version is not None) << 3)
+        target = (-1, -1) if self.target is None else self.target
+        w = Writer().text(self.strategy).put("hhhhB", *self.pos, *target, flags)
+        if up is not None:
+            w.text(up.kind).blob(up.payload or b"")
+        w.put("H", len(self.answers)).put(f"{len(self.answers)}B", *self.answers)
+        if self.version is not None:
+            w.text(self.version)
+        journal = {k: v for k, v in self.journal.items() if v}  # what its end journaled (most rounds: nothing)
+        w.blob(json.dumps(journal, separators=(",", ":")).encode() if journal else b"")
+        return pack_message(Head(REPORT, self.rover, 0, self.step), w.done())
 
     @classmethod
-    def from_bytes(cls, raw: bytes, *, shape: tuple[int, int] | None = None) -> Report:
-        """The report in ``raw``; :class:`CorruptMessage` for anything that is not one, or
-        whose maps are not of ``shape`` (the mission's, where the receiver knows it)."""
-        h, blobs = unpack_frame(raw)
-        if h.get("kind") != "report" or len(blobs) != 2:
-            raise CorruptMessage(f"expected a report, got a {h.get('kind')!r} message")
+    def from_bytes(cls, raw: bytes) -> Report:
+        """The report in ``raw``; :class:`CorruptMessage` for anything that is not one."""
+        head, r = unpack_message(raw, REPORT)
+        strategy = r.text()
+        pr, pc, tr, tc, flags = r.get("hhhhB")
+        up = None
+        if flags & 2:
+            kind, payload = r.text(), r.blob()
+            up = Outgoing(payload if flags & 4 else None, kind)
+        answers = [bool(a) for a in r.get(f"{r.one('H')}B")]
+        version = r.text() if flags & 8 else None
+        text = r.blob()
+        r.end()
         try:
-            up = None if h["uplink"] is None else Outgoing(blobs[0] if h["uplink"][1] else None, h["uplink"][0])
-            maps = _unpack_maps(blobs[1], len(h["states"]), shape)
-            states = [StepState(s[0], b, v, o, _cell(s[1]), _cell(s[2]), s[3], s[4])  # type: ignore[arg-type]
-                      for s, (b, v, o) in zip(h["states"], maps)]
-            return cls(h["strategy"], h["rover"], h["step"], _cell(h["pos"]), _cell(h["target"]),  # type: ignore[arg-type]
-                       h["reached"], up, [bool(a) for a in h["answers"]], h["version"], h["journal"], states,
-                       [(int(c[0]), int(c[1])) for c in h["trail"]])
-        except (KeyError, TypeError, IndexError, ValueError) as e:  # a header of the wrong layout
-            raise CorruptMessage(f"corrupted message: its header is not a report's ({type(e).__name__}: {e})") from None
+            journal = json.loads(text) if text else {}
+            if not isinstance(journal, dict):
+                raise ValueError("not an object")
+        except ValueError as e:
+            raise CorruptMessage(f"corrupted message: a report's journal does not decode ({e})") from None
+        return cls(strategy, head.sender, head.step, (pr, pc), None if (tr, tc) == (-1, -1) else (tr, tc),
+                   bool(flags & 1), up, answers, version, journal)
 
 
 def _cell(c: list | None) -> Cell | None:
     return None if c is None else (int(c[0]), int(c[1]))
 
 
-def _pack_maps(states: list[StepState]) -> bytes:
-    """Every step's belief, view and observed cells: each step XOR the one before, zstd."""
-    if not states:
-        return b""
-    h, w = states[0].belief.shape
-    stack = np.stack([np.stack([s.belief, s.view, s.observed.astype(np.uint8)]) for s in states])
-    delta = stack.copy()
-    delta[1:] ^= stack[:-1]
-    return struct.pack("<II", h, w) + zstandard.ZstdCompressor(level=3).compress(delta.tobytes())
-
-
-def _unpack_maps(raw: bytes, n: int, shape: tuple[int, int] | None = None) -> list[tuple[np.ndarray, np.ndarray,
-                                                                                           np.ndarray]]:
-    """The maps of :func:`_pack_maps`: ``n`` steps of ``shape`` (when the receiver knows its
-    mission's; else any side up to :data:`MAX_WIRE_SIDE`), at most :data:`MAX_REPORT_MAPS` bytes,
-    checked before anything is decoded and while it is."""
-    if n == 0:
-        return []
-    try:
-        h, w = struct.unpack_from("<II", raw)
-    except struct.error as e:
-        raise CorruptMessage(f"corrupted message: its maps do not decode ({e})") from None
-    if shape is not None and (h, w) != tuple(shape):
-        raise CorruptMessage(f"corrupted message: its maps are {h}x{w}, the mission's are {shape[0]}x{shape[1]}")
-    size = n * 3 * h * w
-    if not (0 < h <= MAX_WIRE_SIDE and 0 < w <= MAX_WIRE_SIDE) or size > MAX_REPORT_MAPS:
-        raise CorruptMessage(f"refused message: it announces {n} steps of {h}x{w} maps ({size} bytes), more than "
-                             f"a report may carry ({MAX_REPORT_MAPS} bytes, sides up to {MAX_WIRE_SIDE})")
-    try:
-        delta = np.frombuffer(inflate_zstd(raw[8:], size), dtype=np.uint8).reshape(n, 3, h, w)
-    except ValueError as e:
-        raise CorruptMessage(f"corrupted message: its maps do not decode ({e})") from None
-    stack = np.bitwise_xor.accumulate(delta, axis=0)
-    return [(s[0], s[1], s[2].astype(bool)) for s in stack]
-
-
 def pack_history(orders: list[bytes]) -> bytes:
     """Every order a rover was sent, in order, as one frame (a rover that lost its state is rebuilt from it)."""
-    return pack_frame({"kind": "history", "orders": len(orders)}, orders)
+    w = Writer().put("I", len(orders))
+    for o in orders:
+        w.blob(o)
+    return pack_message(Head(HISTORY, BASE, 0, 0), w.done())
 
 
 def unpack_history(raw: bytes) -> list[bytes]:
-    h, blobs = unpack_frame(raw)
-    if h.get("kind") != "history" or h.get("orders") != len(blobs):
-        raise CorruptMessage(f"expected a rover's order history, got a {h.get('kind')!r} message")
-    return blobs
+    _, r = unpack_message(raw, HISTORY)
+    n = r.one("I")
+    orders = [r.blob() for _ in range(min(n, len(raw)))]  # (a count beyond its bytes is cut short on the way)
+    r.end()
+    return orders
 
 
 # -- the rover's side -----------------------------------------------------------------------
@@ -309,11 +238,14 @@ class RoverNode:
         self.end, self.journal = sharing.rovers[k], sharing.journal
         self.rover = world.team[k]
         self.step = 0
-        self._told = 0  # trail cells already reported
+        self._told = 0  # trail cells already logged
+        self.mission_id = ""  # the mission's id, from its first order
+        #: its own log: one entry per order answered (what it recorded; never sent), taken by its keeper
+        self.log: list[RoverEntry] = []
         self._last: tuple[bytes, bytes] | None = None  # the last order it answered, and its report
         self._seen = {"dropped": 0, "losses": 0, "trained_cells": 0}
         world.sense(k, 0)
-        self._states = [self._state(0)]  # recorded, not yet reported (the record of a step follows its deliveries)
+        self._states = [self._state(0)]  # recorded, not yet logged (the record of a step follows its deliveries)
 
     def _state(self, t: int) -> StepState:
         r, belief = self.rover, self.end.belief()
@@ -328,7 +260,8 @@ class RoverNode:
                 continue
             new = entries[seen:]
             self._seen[key] = len(entries)
-            out[key] = [e.to_dict() if isinstance(e, DroppedUpdate) else e for e in new]
+            if new:
+                out[key] = [e.to_dict() if isinstance(e, DroppedUpdate) else e for e in new]
         return out
 
     @classmethod
@@ -388,11 +321,12 @@ class RoverNode:
             if reached:
                 uplink = self.end.uplink(order.round_no)
         r = self.rover
-        trail = list(r.trail[self._told:])
+        self.mission_id = order.mission
+        self.log.append(RoverEntry(self.name, self.k, order.mission, order.step, states, list(r.trail[self._told:])))
         self._told = len(r.trail)
         self._states = []
         return Report(self.name, self.k, self.step, r.pos, r.target, reached, uplink, answers, version,
-                      self._journal(), states, trail)
+                      self._journal())
 
 
 # -- the base's side ------------------------------------------------------------------------
@@ -405,17 +339,12 @@ class RemoteRover:
     def __init__(self, k: int) -> None:
         self.k = k
         self.report: Report | None = None
-        self.state: StepState | None = None  #: the step being recorded
         self.events: list[tuple] = []
         self.journal: Any = None  # the run's journal (set by the base)
 
     @property
     def version(self) -> str | None:
         return None if self.report is None else self.report.version
-
-    def belief(self) -> np.ndarray:
-        assert self.state is not None
-        return self.state.belief
 
     def at_sync(self, round_no: int) -> None:
         """Run on the rover, before its uplink."""
@@ -442,27 +371,23 @@ class RemoteRover:
 
 class BaseNode:
     """The base station of strategy ``name``: its end, the radio (the simulator's link and
-    exchange) and the record. :meth:`first_orders` starts the mission; :meth:`take` takes
-    every rover's report and gives the next orders (none: the mission is over, :meth:`result`)."""
+    exchange) and its own log. :meth:`first_orders` starts the mission; :meth:`take` takes
+    every rover's report and gives the next orders (none: the mission is over, :meth:`record`)."""
 
-    def __init__(self, mission: Mission, name: str, *, on_step: Callable[[str, int, float], None] | None = None,
-                 on_snapshot: Callable | None = None, mission_id: str = "") -> None:
+    def __init__(self, mission: Mission, name: str, *, mission_id: str = "") -> None:
         check_deployable(mission.config, [name])
         self.name, self.config, self.mission_id = name, mission.config, mission_id
-        self.shape: tuple[int, int] = tuple(mission.truth.shape)  # type: ignore[assignment]  # the reports' maps
         self.stand_ins: list[RemoteRover] = []
-        self.trails: list[list[Cell]] = []  # every member's cells driven, as reported (its start first)
-        self.run = mission.new_run(name, ends=self._ends, on_snapshot=on_snapshot)
+        self.run = mission.new_run(name, ends=self._ends)
         self.syncs = {t: i + 1 for i, t in enumerate(self.config.sync_steps)}
         self.sync_at = sorted(self.syncs)
-        self.on_step = on_step
-        self.recorded = -1  # the last step recorded
+        #: the global map it held after each of its rounds, by step (its log)
+        self.held: dict[int, np.ndarray] = {0: self.run.sharing.global_map().copy()}
         self.done = False
 
     def _ends(self, name: str, setup: Setup) -> Sharing:
         sharing = build(name, setup)
         self.stand_ins = [RemoteRover(k) for k in range(len(setup.team))]
-        self.trails = [[] for _ in setup.team]
         for s in self.stand_ins:
             s.journal = sharing.journal
         sharing.rovers = self.stand_ins
@@ -496,8 +421,6 @@ class BaseNode:
                 raise FedmapError(f"rover {k}'s report is for {rep.strategy} step {rep.step}, its order was "
                                   f"{self.name} step {o.step}")
             self.run.exchange.answers(k, rep.answers)
-            self.trails[k].extend(rep.trail)
-        self._record(reports)
         step = next(iter(orders.values())).step
         if next(iter(orders.values())).finish:
             self.done = True
@@ -510,35 +433,22 @@ class BaseNode:
             r.pos, r.target = rep.pos, rep.target
         run.exchange.sync(step, self.syncs[step])
         run.exchange.deliver(step)
+        self.held[step] = run.sharing.global_map().copy()
         return self._orders(step)
 
-    def _record(self, reports: dict[int, Report]) -> None:
-        by_step: dict[int, list[StepState]] = {}
-        for k in range(self.n):
-            for st in reports[k].states:
-                by_step.setdefault(st.step, []).append(st)
-        run, c = self.run, self.config
-        for t in sorted(by_step):
-            states = by_step[t]
-            if t != self.recorded + 1 or len(states) != self.n:
-                raise FedmapError(f"step {t} reported by {len(states)} of {self.n} rovers after step {self.recorded}")
-            for s, st in zip(self.stand_ins, states):
-                s.state = st
-                r = run.team[s.k]
-                r.pos, r.target, r.distance = st.pos, st.target, st.distance
-            team = TeamState(beliefs=[st.belief for st in states], views=[st.view for st in states],
-                             observed=np.stack([st.observed for st in states]), positions=[st.pos for st in states],
-                             targets=[st.target for st in states], distances=[st.distance for st in states],
-                             trail_len=[st.trail_len for st in states])
-            run.record(t, evaluate=t == 0 or t in self.syncs or t == c.steps, team=team)
-            self.recorded = t
-            if self.on_step is not None:
-                self.on_step(self.name, t, run.rows[-1].coverage)
-
-    def result(self, seconds: float) -> StrategyRun:
+    def record(self, seconds: float) -> BaseRecord:
+        """What the base logged of its run (the mission is over): what it held after each
+        round, its ledger and its journal's models; scored with the rovers' logs by
+        :func:`~fedmap.mission.scoring.score_strategy`."""
         if not self.done:
-            raise FedmapError(f"{self.name}: the mission is not over (recorded to step {self.recorded})")
-        return self.run.result(seconds, self.trails)
+            raise FedmapError(f"{self.name}: the mission is not over")
+        s, journal = self.run.sharing, self.run.sharing.journal
+        regs = registrations(s)
+        return BaseRecord(self.name, self.mission_id, seconds, dict(self.held), self.run.link.ledger,
+                          self.run.link.slots, s.global_heights(),
+                          None if journal.dropped is None else list(journal.dropped),
+                          None if journal.lags is None else list(journal.lags),
+                          None if regs is None else list(regs))
 
 
 def warm_up() -> None:
@@ -561,29 +471,41 @@ def rounds(base: BaseNode, send: Transport) -> Iterator[int]:
     orders = base.first_orders()
     while orders:
         raw = send({k: o.to_bytes() for k, o in orders.items()})
-        reports = {k: Report.from_bytes(r, shape=base.shape) for k, r in raw.items()}
+        reports = {k: Report.from_bytes(r) for k, r in raw.items()}
         step = next(iter(orders.values())).step
         orders = base.take(reports, orders)
         yield step
 
 
-def loopback(mission: Mission, name: str, *, feeds: dict[int, MapFeed] | None = None) -> Transport:
+class Loopback:
     """Every rover of strategy ``name`` in this process, reached only through bytes (tests,
     and the reference a mission on processes is checked against); ``feeds``: rovers whose
-    observations come from a map feed."""
-    nodes: dict[int, RoverNode] = {}
+    observations come from a map feed. Call it with the orders; :attr:`logs` holds each
+    rover's own log."""
 
-    def send(orders: dict[int, bytes]) -> dict[int, bytes]:
+    def __init__(self, mission: Mission, name: str, *, feeds: dict[int, MapFeed] | None = None) -> None:
+        self.mission, self.name, self.feeds = mission, name, feeds or {}
+        self.nodes: dict[int, RoverNode] = {}
+
+    def __call__(self, orders: dict[int, bytes]) -> dict[int, bytes]:
         out = {}
         for k, raw in orders.items():
-            if k not in nodes:
-                nodes[k] = RoverNode(mission, name, k, feed=(feeds or {}).get(k))
-            out[k] = nodes[k].answer(raw)
+            if k not in self.nodes:
+                self.nodes[k] = RoverNode(self.mission, self.name, k, feed=self.feeds.get(k))
+            out[k] = self.nodes[k].answer(raw)
         return out
 
-    return send
+    @property
+    def logs(self) -> list[list[RoverEntry]]:
+        """Every rover's log, in team order."""
+        return [self.nodes[k].log for k in sorted(self.nodes)]
 
 
-__all__ = ["WIRE_VERSION", "BaseNode", "CorruptMessage", "LostState", "Order", "Report", "RoverNode",
+def loopback(mission: Mission, name: str, *, feeds: dict[int, MapFeed] | None = None) -> Loopback:
+    """:class:`Loopback`: every rover of ``name`` in this process, behind bytes."""
+    return Loopback(mission, name, feeds=feeds)
+
+
+__all__ = ["WIRE_VERSION", "BaseNode", "CorruptMessage", "Loopback", "LostState", "Order", "Report", "RoverNode",
            "StepState", "check_deployable", "loopback", "pack_frame", "pack_history", "rounds", "unpack_frame",
            "unpack_history", "warm_up"]

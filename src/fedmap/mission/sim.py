@@ -36,7 +36,7 @@ from fedmap.maps.traversability import (
 )
 from fedmap.mission.frames import FramedWorld, check_frames, registrations
 from fedmap.mission.frames import build as frames_build
-from fedmap.mission.link import BASE, DOWN, UP, Link
+from fedmap.mission.link import BASE, DOWN, UP, Link, Message
 from fedmap.mission.registry import Setup, Sharing, build
 from fedmap.mission.results import (
     COVERAGE_LEVELS,
@@ -78,28 +78,17 @@ class TeamState:
     trail_len: list[int]  #: cells in its trail so far
 
 
-class _Run:
-    """One strategy's mission, step by step: the world, the strategy's ends on the
-    topology's exchange, and the record."""
+class Scoring:
+    """The record of one strategy's run, scored against the truth: the same whether it is
+    taken live (:class:`_Run`, in process) or from what the nodes wrote to their own logs
+    afterwards (:func:`fedmap.mission.scoring.score_strategy`). ``world`` gives what the
+    scoring needs of the team (each member's kind, profile, planning map and predictor)."""
 
-    def __init__(self, name: str, mission: Mission, ends: Ends | None = None,
+    def __init__(self, name: str, mission: Mission, world: World,
                  on_snapshot: Callable[[Snapshot], None] | None = None) -> None:
         config, truth = mission.config, mission.truth
         self.name, self.config, self.truth, self.elevation = name, config, truth, mission.elevation
-        self.scorer, self.frame_every = mission.scorer, mission.frame_every
-        self.topology = make_topology(config.link, mission.base)
-        self.world = world = mission.world(self.topology)
-        self.team = world.team
-        self.link = Link(replace(config.link, seed=config.link_seed), self.topology)
-        self.sharing = (ends or (frames_build if config.frames.enabled else build))(
-            name, Setup(config, truth, self.team, self.topology))
-        world.ends = self.sharing.rovers
-
-        def replan(k: int | None) -> None:
-            for r in (self.team if k is None else [self.team[k]]):
-                r.replan = True
-
-        self.exchange = Exchange(self.topology, self.link, self.sharing, world.positions, replan)
+        self.scorer, self.frame_every, self.world = mission.scorer, mission.frame_every, world
         self.own_scorer = [self.scorer if p == "team" else mission.profile_scorers[p] for p in world.profiles]
         self.on_snapshot = on_snapshot
         self._seen = 0  # ledger entries already handed to on_snapshot
@@ -109,29 +98,21 @@ class _Run:
         self.evals: list[EvalRow] = []
         self.frames: list[Frame] = []
 
-    def observe(self) -> TeamState:
-        """What the record reads of the team now: every member's belief and view (its
-        belief in its own classes, computed once per step: what it plans on and is scored
-        on), what it has observed, where it is and how far it has come."""
-        s, w = self.sharing, self.world
-        # scored in the true frame (rovers that do not know their poses: by the transforms the team estimated)
-        beliefs = [w.in_true_frame(k, s.belief(k), s.base) for k in range(len(self.team))]
-        return TeamState(beliefs=beliefs, views=[w.own_view(k, b) for k, b in enumerate(beliefs)],
-                         observed=w.observed(), positions=w.positions(),
-                         targets=[r.target for r in self.team], distances=[r.distance for r in self.team],
-                         trail_len=[len(r.trail) for r in self.team])
-
-    def record(self, t: int, evaluate: bool, team: TeamState | None = None) -> None:
-        """Record step ``t`` (score it when ``evaluate``) from ``team`` (None: :meth:`observe`;
-        a mission on processes passes what its rovers reported)."""
-        s, w, truth = self.sharing, self.world, self.truth.classes
-        team = self.observe() if team is None else team
+    def record(self, t: int, evaluate: bool, team: TeamState, global_map: np.ndarray, ledger: list[Message], *,
+               global_heights: Callable[[], np.ndarray | None] = lambda: None,
+               links: tuple[tuple[int, int], ...] = (), leaders: tuple[int, ...] = ()) -> None:
+        """Record step ``t`` (score it when ``evaluate``) from ``team``, the ``global_map`` the
+        base (or lander) held then and the ``ledger`` (what was sent by step ``t`` counts)."""
+        w, truth = self.world, self.truth.classes
         n_seen = team.observed.sum(axis=0)
         beliefs = team.beliefs
-        n = len(self.team)
+        members = self.world.team
+        n = len(members)
         up, down = [0] * n, [0] * n
         delivered, dropped = {UP: 0, DOWN: 0}, {UP: 0, DOWN: 0}
-        for m in self.link.ledger:
+        for m in ledger:
+            if m.step > t:
+                continue  # sent after this step (a ledger read after the run)
             side = UP if m.sender != BASE else DOWN
             if m.rover_side != BASE:
                 (up if side == UP else down)[m.rover_side] += m.bytes
@@ -158,7 +139,7 @@ class _Run:
                     np.concatenate([w.predicted(k, b).p_impassable[nobody] for k, b in enumerate(beliefs)]),
                     np.tile(truth[nobody] == IMPASSABLE, len(beliefs)))
         if evaluate:
-            g = self.scorer.scores(s.global_map())
+            g = self.scorer.scores(global_map)
             own = [self.own_scorer[k].path(v) for k, v in enumerate(views)]
             guessed: dict[str, tuple[float, ...]] = {}
             if w.predictor is not None:  # the belief each rover plans paths on
@@ -176,20 +157,83 @@ class _Run:
             c = self.config
             self.on_snapshot(Snapshot(
                 strategy=self.name, step=t, truth=self.truth, beliefs=beliefs,
-                views=views, global_map=s.global_map(),
-                global_heights=s.global_heights(), positions=list(team.positions), targets=list(team.targets),
-                kinds=[r.kind for r in self.team],
+                views=views, global_map=global_map,
+                global_heights=global_heights(), positions=list(team.positions), targets=list(team.targets),
+                kinds=[r.kind for r in members],
                 sensor_radius=[c.helicopter.sensor_radius if r.kind == "helicopter" else c.sensor_radius
-                               for r in self.team],
-                base=w.base, links=self.exchange.links, leaders=self.exchange.leaders,
-                messages=self.link.ledger[self._seen:], row=self.rows[-1],
+                               for r in members],
+                base=w.base, links=links, leaders=leaders,
+                messages=ledger[self._seen:], row=self.rows[-1],
                 eval=self.evals[-1] if evaluate else None))
-            self._seen = len(self.link.ledger)
+            self._seen = len(ledger)
         if t % self.frame_every == 0 or t == self.config.steps:
-            x = self.exchange
-            self.frames.append(Frame(step=t, beliefs=beliefs, global_map=s.global_map().copy(),
+            self.frames.append(Frame(step=t, beliefs=beliefs, global_map=global_map.copy(),
                                      positions=list(team.positions), trail_len=list(team.trail_len),
-                                     links=x.links, leaders=x.leaders))
+                                     links=links, leaders=leaders))
+
+    def result(self, seconds: float, trails: list[list[Cell]], ledger: list[Message], slots: int, *,
+               final_heights: np.ndarray | None = None, dropped: list | None = None, lags: list | None = None,
+               registrations: tuple[dict, ...] | None = None, sharing: Sharing | None = None) -> StrategyRun:
+        """The run's record once its last step is recorded (``trails``: every member's cells
+        driven; the rest: what the base (or lander) held at the end)."""
+        c = self.config
+        series = series_of(self.rows, self.evals)
+        summary = summarise(series, ledger, c, slots)
+        z = final_heights
+        if z is not None and self.elevation is not None:
+            held = np.isfinite(z)
+            err = (z[held] - self.elevation[held]).astype(np.float64)
+            summary = replace(summary, final_height_rmse_m=float(np.sqrt(np.mean(err ** 2))) if held.any() else 0.0,
+                              final_height_coverage=float(held.mean()))
+        if self.prediction is not None:
+            summary = replace(summary, final_prediction=self.prediction)
+        return StrategyRun(self.name, series, summary, ledger, self.frames, trails, seconds,
+                           dropped_updates=None if dropped is None else tuple(dropped),
+                           model_lag=None if lags is None else tuple(lags),
+                           registrations=registrations, sharing=sharing,
+                           views=tuple(self.views))  # the last step's, recorded after its deliveries
+
+
+class _Run:
+    """One strategy's mission, step by step: the world, the strategy's ends on the
+    topology's exchange, and the record."""
+
+    def __init__(self, name: str, mission: Mission, ends: Ends | None = None,
+                 on_snapshot: Callable[[Snapshot], None] | None = None) -> None:
+        config, truth = mission.config, mission.truth
+        self.name, self.config = name, config
+        self.topology = make_topology(config.link, mission.base)
+        self.world = world = mission.world(self.topology)
+        self.team = world.team
+        self.link = Link(replace(config.link, seed=config.link_seed), self.topology)
+        self.sharing = (ends or (frames_build if config.frames.enabled else build))(
+            name, Setup(config, truth, self.team, self.topology))
+        world.ends = self.sharing.rovers
+
+        def replan(k: int | None) -> None:
+            for r in (self.team if k is None else [self.team[k]]):
+                r.replan = True
+
+        self.exchange = Exchange(self.topology, self.link, self.sharing, world.positions, replan)
+        self.scoring = Scoring(name, mission, world, on_snapshot)
+
+    def observe(self) -> TeamState:
+        """What the record reads of the team now: every member's belief and view (its belief
+        in its own classes, computed once per step: what it plans on and is scored on), what
+        it has observed, where it is and how far it has come."""
+        s, w = self.sharing, self.world
+        # scored in the true frame (rovers that do not know their poses: by the transforms the team estimated)
+        beliefs = [w.in_true_frame(k, s.belief(k), s.base) for k in range(len(self.team))]
+        return TeamState(beliefs=beliefs, views=[w.own_view(k, b) for k, b in enumerate(beliefs)],
+                         observed=w.observed(), positions=w.positions(),
+                         targets=[r.target for r in self.team], distances=[r.distance for r in self.team],
+                         trail_len=[len(r.trail) for r in self.team])
+
+    def record(self, t: int, evaluate: bool) -> None:
+        """Record step ``t`` (score it when ``evaluate``)."""
+        s, x = self.sharing, self.exchange
+        self.scoring.record(t, evaluate, self.observe(), s.global_map(), self.link.ledger,
+                            global_heights=s.global_heights, links=x.links, leaders=x.leaders)
 
     def run(self, on_step: Callable[[str, int, float], None] | None = None) -> StrategyRun:
         t0 = time.perf_counter()
@@ -206,29 +250,11 @@ class _Run:
             self.exchange.deliver(t)
             self.record(t, evaluate=t in syncs or t == c.steps)
             if on_step is not None:
-                on_step(self.name, t, self.rows[-1].coverage)
-        return self.result(time.perf_counter() - t0, [list(r.trail) for r in self.team])
-
-    def result(self, seconds: float, trails: list[list[Cell]]) -> StrategyRun:
-        """The run's record once its last step is recorded (``trails``: every member's cells driven)."""
-        c = self.config
-        series = series_of(self.rows, self.evals)
-        journal = self.sharing.journal
-        summary = summarise(series, self.link.ledger, c, self.link.slots)
-        z = self.sharing.global_heights()
-        if z is not None and self.elevation is not None:
-            held = np.isfinite(z)
-            err = (z[held] - self.elevation[held]).astype(np.float64)
-            summary = replace(summary, final_height_rmse_m=float(np.sqrt(np.mean(err ** 2))) if held.any() else 0.0,
-                              final_height_coverage=float(held.mean()))
-        if self.prediction is not None:
-            summary = replace(summary, final_prediction=self.prediction)
-        return StrategyRun(self.name, series, summary, self.link.ledger, self.frames, trails, seconds,
-                           dropped_updates=None if journal.dropped is None else tuple(journal.dropped),
-                           model_lag=None if journal.lags is None else tuple(journal.lags),
-                           registrations=registrations(self.sharing),
-                           sharing=self.sharing,
-                           views=tuple(self.views))  # the last step's, recorded after its deliveries
+                on_step(self.name, t, self.scoring.rows[-1].coverage)
+        s, journal = self.sharing, self.sharing.journal
+        return self.scoring.result(time.perf_counter() - t0, [list(r.trail) for r in self.team], self.link.ledger,
+                                   self.link.slots, final_heights=s.global_heights(), dropped=journal.dropped,
+                                   lags=journal.lags, registrations=registrations(s), sharing=s)
 
 
 def mission_terrain(config: MissionConfig, source: TerrainSource) -> tuple[GridMap, np.ndarray | None,
