@@ -74,6 +74,28 @@ NO_REPLY = "no reply before the round's deadline"
 NOT_CONNECTED = "not connected when the round began"
 
 
+def _take_uplink(pid: int, msg: Message, shape: tuple[int, int], team: tuple[int, int] | None, payloads: dict,
+                 counts: dict, losses: dict, dropped: dict, flower_up: dict) -> None:
+    """Rover ``pid``'s reply ``msg`` (its map of ``shape``; the team's is ``team``) into the
+    round: its uplink, cell count, loss and Flower's byte count, or why it was dropped."""
+    met = _metrics(msg)
+    if shape != team:
+        assert team is not None
+        dropped[pid] = f"rover {pid}: its map is {shape[0]}x{shape[1]}, the team's is {team[0]}x{team[1]}"
+        return
+    if "error" in msg.content.config_records:
+        error = msg.content["error"]
+        if error.get("fatal", False):  # a mistake, not a rejected update: the run stops
+            raise FedmapError(f"rover {pid}: {str(error['reason'])}")
+        dropped[pid] = str(error["reason"])
+        return
+    record = msg.content.array_records["uplink"]
+    payloads[pid] = from_record(record)
+    flower_up[pid] = check_flower_count(record, len(payloads[pid]))
+    counts[pid] = float(met["known-cells"])
+    losses[pid] = float(met["loss"]) if "loss" in met else None
+
+
 class FedmapStrategy(Strategy):
     """fedmap's rounds on Flower: payloads in, ``base_step`` aggregation, broadcast out.
 
@@ -188,7 +210,12 @@ class FedmapStrategy(Strategy):
     def aggregate_train(self, server_round: int, replies) -> tuple[ArrayRecord | None, MetricRecord | None]:
         s = self.settings
         server_round += self.offset
-        payloads, counts, losses, dropped, flower_up, node_errors = {}, {}, {}, {}, {}, {}
+        payloads: dict[int, bytes] = {}
+        counts: dict[int, float] = {}
+        losses: dict[int, float | None] = {}
+        dropped: dict[int, str] = {}
+        flower_up: dict[int, int] = {}
+        node_errors: dict[str, str] = {}
         missing_why: dict[int, str] = {}
         versions: dict[int, str] = {}
         good: list[tuple[int, int, Message]] = []
@@ -222,24 +249,9 @@ class FedmapStrategy(Strategy):
         shapes = {pid: (int(_metrics(m)["height"]), int(_metrics(m)["width"])) for _, pid, m in good}
         team = self._team_shape(shapes) if shapes else self.shape
         for node, pid, msg in good:
-            met = _metrics(msg)
-            if shapes[pid] != team:
-                assert team is not None
-                dropped[pid] = (f"rover {pid}: its map is {shapes[pid][0]}x{shapes[pid][1]}, "
-                                f"the team's is {team[0]}x{team[1]}")
-                continue
-            if "error" in msg.content.config_records:
-                error = msg.content["error"]
-                if error.get("fatal", False):  # a mistake, not a rejected update: the run stops
-                    raise FedmapError(f"rover {pid}: {error['reason']}")
-                dropped[pid] = str(error["reason"])
-                continue
-            record = msg.content.array_records["uplink"]
-            payloads[pid] = from_record(record)
-            flower_up[pid] = check_flower_count(record, len(payloads[pid]))
-            counts[pid] = float(met["known-cells"])
-            losses[pid] = float(met["loss"]) if "loss" in met else None
-            versions[pid] = self.node_version.get(node, "")
+            _take_uplink(pid, msg, shapes[pid], team, payloads, counts, losses, dropped, flower_up)
+            if pid in payloads:
+                versions[pid] = self.node_version.get(node, "")
         # a rover none of whose nodes was sent this round (every node sent is known, none is it)
         # was not connected when the round began: a restarted rover still starting, say
         sent = [self.node_partition.get(n) for n in self._sent.values()]

@@ -151,6 +151,8 @@ class BaseRecord:
     dropped: list[DroppedUpdate] | None = None  #: its journal's dropped model updates
     lags: list[dict] | None = None  #: its journal's model lags
     registrations: list[dict] | None = None
+    #: the frames its transport carried: ``orders``, ``reports`` (bytes) and ``messages`` (pairs)
+    wire: dict | None = None
 
     @property
     def name(self) -> str:
@@ -166,7 +168,8 @@ class BaseRecord:
                 "held": steps, "ledger": [m.to_dict() for m in self.ledger], "slots": self.slots,
                 "heights": self.final_heights is not None,
                 "dropped": None if self.dropped is None else [d.to_dict() for d in self.dropped],
-                "lags": self.lags, "registrations": self.registrations}
+                "lags": self.lags, "registrations": self.registrations,
+                "wire": self.wire}
         maps = np.stack([self.held[s][None] for s in steps]) if steps else np.zeros((0, 1, 0, 0), dtype=np.uint8)
         z = b"" if self.final_heights is None else zstandard.ZstdCompressor(level=3).compress(
             np.ascontiguousarray(self.final_heights, dtype="<f4").tobytes())
@@ -191,7 +194,7 @@ class BaseRecord:
             return cls(str(h["strategy"]), str(h["mission"]), float(h["seconds"]), held,
                        [Message(**m) for m in h["ledger"]], int(h["slots"]), heights,
                        None if h["dropped"] is None else [DroppedUpdate(**d) for d in h["dropped"]],
-                       h["lags"], h["registrations"])
+                       h["lags"], h["registrations"], h.get("wire"))
         except (KeyError, TypeError, IndexError, ValueError) as e:
             raise CorruptMessage(f"corrupted log: its header is not a base station's ({type(e).__name__}: {e})") \
                 from None

@@ -172,6 +172,93 @@ class _Out:
     sink: Any = None  # the MCAPWriter or WebSocketServer
 
 
+def _stamp(ns: int) -> Any:
+    return _fm().Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
+
+
+class Scene:
+    """What the 3D panel draws of a mission on a map of ``shape`` cells of ``pixel_size``
+    metres: every member's pose, and the scene of members, trails, targets, footprints,
+    base, links and leaders."""
+
+    def __init__(self, shape: tuple[int, int], pixel_size: float) -> None:
+        self.shape, self.pixel_size = shape, pixel_size
+        self._rings: dict[float, list[Any]] = {}
+
+    def poses(self, snap: Snapshot, ns: int) -> Any:
+        """Every member's pose in the ``map`` frame (metres; helicopters at :func:`_height`)."""
+        Pose, PosesInFrame = _fm().Pose, _fm().PosesInFrame
+        return PosesInFrame(timestamp=_stamp(ns), frame_id=MAP_FRAME, poses=[
+            Pose(position=_vec(*cell_xy(p, self.shape, self.pixel_size), self._height(kind)), orientation=_quat())
+            for p, kind in zip(snap.positions, snap.kinds)])
+
+    def _ring(self, r: float) -> list[Any]:
+        """The points of a circle of radius ``r`` metres around the origin (cached by radius)."""
+        if r not in self._rings:
+            a = np.linspace(0, 2 * np.pi, _FOOTPRINT_POINTS, endpoint=False)
+            self._rings[r] = [_pt(r * math.cos(t), r * math.sin(t), 0.0) for t in a]
+        return self._rings[r]
+
+    def _height(self, kind: str) -> float:
+        """A member's drawn height above the map: 0 for a rover, 3 cells for a helicopter."""
+        return 3.0 * self.pixel_size if kind == "helicopter" else 0.0
+
+    def scene(self, snap: Snapshot, trails: list[list[Any]], ns: int) -> Any:
+        """The ``/<s>/scene`` SceneUpdate: members, trails, targets, footprints, base, links, leaders."""
+        m = _fm()
+        CubePrimitive, LinePrimitive, LinePrimitiveLineType, Pose = m.CubePrimitive, m.LinePrimitive, \
+            m.LinePrimitiveLineType, m.Pose
+        SceneEntity, SceneUpdate, SpherePrimitive, TextPrimitive = m.SceneEntity, m.SceneUpdate, m.SpherePrimitive, \
+            m.TextPrimitive
+
+        ps, stamp = self.pixel_size, _stamp(ns)
+        xy = [cell_xy(p, self.shape, ps) for p in snap.positions]
+
+        def entity(name: str, **prims: Any) -> Any:
+            return SceneEntity(timestamp=stamp, frame_id=MAP_FRAME, id=name, frame_locked=True, **prims)
+
+        def at(x: float, y: float, z: float = 0.0) -> Any:
+            return Pose(position=_vec(x, y, z), orientation=_quat())
+
+        ents = []
+        for k, ((x, y), kind, target, radius) in enumerate(zip(xy, snap.kinds, snap.targets, snap.sensor_radius)):
+            tint = MEMBER_COLOURS[k % len(MEMBER_COLOURS)]
+            colour = _colour(*tint)
+            z = self._height(kind)
+            size = _vec(2 * ps, 2 * ps, 2 * ps if kind == "helicopter" else ps)
+            body = {"spheres": [SpherePrimitive(pose=at(x, y, z), size=size, color=colour)]} if kind == "helicopter" \
+                else {"cubes": [CubePrimitive(pose=at(x, y, z + ps / 2), size=size, color=colour)]}
+            ents.append(entity(f"member/{k}", **body, texts=[TextPrimitive(
+                pose=at(x, y, z + 3 * ps), billboard=True, font_size=12.0, scale_invariant=True,
+                color=_colour(1, 1, 1), text=f"{kind} {k}" + (" (leader)" if k in snap.leaders else ""))]))
+            ents.append(entity(f"trail/{k}", lines=[LinePrimitive(
+                type=LinePrimitiveLineType.LineStrip, thickness=2.0, scale_invariant=True, points=list(trails[k]),
+                color=_colour(*tint, a=0.8))]))
+            ents.append(entity(f"footprint/{k}", lines=[LinePrimitive(
+                type=LinePrimitiveLineType.LineLoop, pose=at(x, y, 0.05), thickness=1.5, scale_invariant=True,
+                points=self._ring(radius * ps), color=_colour(1, 1, 1, a=0.9))]))
+            if target is None:
+                ents.append(entity(f"target/{k}"))  # no primitives: nothing drawn
+            else:
+                tx, ty = cell_xy(target, self.shape, ps)
+                ents.append(entity(f"target/{k}", spheres=[SpherePrimitive(
+                    pose=at(tx, ty), size=_vec(ps, ps, ps), color=colour)], lines=[LinePrimitive(
+                        type=LinePrimitiveLineType.LineList, thickness=1.0, scale_invariant=True,
+                        points=[_pt(x, y, 0.1), _pt(tx, ty, 0.1)], color=_colour(*tint, a=0.5))]))
+        bx, by = cell_xy(snap.base, self.shape, ps)
+        ents.append(entity("base", cubes=[CubePrimitive(pose=at(bx, by, ps), size=_vec(3 * ps, 3 * ps, 2 * ps),
+                                                        color=_colour(0.1, 0.1, 0.1))]))
+        where = {**dict(enumerate(xy)), BASE: (bx, by)}
+        points = [_pt(*where[i], 0.2) for a, b in snap.links for i in (a, b) if a in where and b in where]
+        ents.append(entity("links", lines=[LinePrimitive(
+            type=LinePrimitiveLineType.LineList, thickness=2.0, scale_invariant=True, points=points,
+            color=_colour(1, 1, 1, a=0.8))] if points else None))
+        ents.append(entity("leaders", spheres=[SpherePrimitive(
+            pose=at(*where[a], 0.0), size=_vec(5 * ps, 5 * ps, 0.5 * ps), color=_colour(0, 0, 0, a=0.4))
+            for a in snap.leaders if a in where] or None))
+        return SceneUpdate(entities=ents)
+
+
 class Recorder:
     """Records a mission's snapshots as Foxglove messages (module docstring): pass it as
     ``run_mission(..., on_snapshot=recorder)`` (or to ``run_repeats``), then :meth:`close` it
@@ -230,7 +317,7 @@ class Recorder:
         self._started: set[str] = set()
         self._last: dict[str, np.ndarray] = {}  # topic -> the array last logged on it
         self._trails: dict[str, list[list[Any]]] = {}
-        self._rings: dict[float, list[Any]] = {}
+        self.drawing = Scene(self.shape, self.pixel_size)
         self._lut = np.concatenate([np.arange(3, dtype=np.uint8)[:, None],
                                     np.round(PALETTE * 255).astype(np.uint8),
                                     np.full((3, 1), 255, dtype=np.uint8)], axis=1)  # class -> classes, r, g, b, a
@@ -269,7 +356,7 @@ class Recorder:
 
     # --- messages -------------------------------------------------------------------------
     def _stamp(self, ns: int) -> Any:
-        return _fm().Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
+        return _stamp(ns)
 
     def grid(self, classes: np.ndarray, heights: np.ndarray | None, ns: int) -> Any:
         """The ``foxglove.Grid`` of a class map (and its heights) at message time ``ns``."""
@@ -336,8 +423,8 @@ class Recorder:
             trails[k].append(_pt(*cell_xy(p, self.shape, self.pixel_size), 0.0))
         for o in self.outs:
             ns = starts[id(o)] + t * _STEP_NS
-            o.channels[f"/{s}/scene"].log(self.scene(snap, trails, ns), log_time=ns)
-            o.channels[f"/{s}/poses"].log(self.poses(snap, ns), log_time=ns)
+            o.channels[f"/{s}/scene"].log(self.drawing.scene(snap, trails, ns), log_time=ns)
+            o.channels[f"/{s}/poses"].log(self.drawing.poses(snap, ns), log_time=ns)
             for m in snap.messages:
                 o.channels[f"/{s}/link"].log(_json({**m.to_dict(), "sender": m.sender}), log_time=ns)
             o.channels[f"/{s}/scores"].log(self.scores(snap), log_time=ns)
@@ -356,79 +443,6 @@ class Recorder:
                  accuracy_mean=float(np.mean(r.accuracy)) if r.accuracy else None,
                  false_free_mean=float(np.mean(r.false_free)) if r.false_free else None)
         return _json(d)
-
-    def poses(self, snap: Snapshot, ns: int) -> Any:
-        """Every member's pose in the ``map`` frame (metres; helicopters at :func:`_height`)."""
-        Pose, PosesInFrame = _fm().Pose, _fm().PosesInFrame
-        return PosesInFrame(timestamp=self._stamp(ns), frame_id=MAP_FRAME, poses=[
-            Pose(position=_vec(*cell_xy(p, self.shape, self.pixel_size), self._height(kind)), orientation=_quat())
-            for p, kind in zip(snap.positions, snap.kinds)])
-
-    def _ring(self, r: float) -> list[Any]:
-        """The points of a circle of radius ``r`` metres around the origin (cached by radius)."""
-        if r not in self._rings:
-            a = np.linspace(0, 2 * np.pi, _FOOTPRINT_POINTS, endpoint=False)
-            self._rings[r] = [_pt(r * math.cos(t), r * math.sin(t), 0.0) for t in a]
-        return self._rings[r]
-
-    def _height(self, kind: str) -> float:
-        """A member's drawn height above the map: 0 for a rover, 3 cells for a helicopter."""
-        return 3.0 * self.pixel_size if kind == "helicopter" else 0.0
-
-    def scene(self, snap: Snapshot, trails: list[list[Any]], ns: int) -> Any:
-        """The ``/<s>/scene`` SceneUpdate: members, trails, targets, footprints, base, links, leaders."""
-        m = _fm()
-        CubePrimitive, LinePrimitive, LinePrimitiveLineType, Pose = m.CubePrimitive, m.LinePrimitive, \
-            m.LinePrimitiveLineType, m.Pose
-        SceneEntity, SceneUpdate, SpherePrimitive, TextPrimitive = m.SceneEntity, m.SceneUpdate, m.SpherePrimitive, \
-            m.TextPrimitive
-
-        ps, stamp = self.pixel_size, self._stamp(ns)
-        xy = [cell_xy(p, self.shape, ps) for p in snap.positions]
-
-        def entity(name: str, **prims: Any) -> Any:
-            return SceneEntity(timestamp=stamp, frame_id=MAP_FRAME, id=name, frame_locked=True, **prims)
-
-        def at(x: float, y: float, z: float = 0.0) -> Any:
-            return Pose(position=_vec(x, y, z), orientation=_quat())
-
-        ents = []
-        for k, ((x, y), kind, target, radius) in enumerate(zip(xy, snap.kinds, snap.targets, snap.sensor_radius)):
-            tint = MEMBER_COLOURS[k % len(MEMBER_COLOURS)]
-            colour = _colour(*tint)
-            z = self._height(kind)
-            size = _vec(2 * ps, 2 * ps, 2 * ps if kind == "helicopter" else ps)
-            body = {"spheres": [SpherePrimitive(pose=at(x, y, z), size=size, color=colour)]} if kind == "helicopter" \
-                else {"cubes": [CubePrimitive(pose=at(x, y, z + ps / 2), size=size, color=colour)]}
-            ents.append(entity(f"member/{k}", **body, texts=[TextPrimitive(
-                pose=at(x, y, z + 3 * ps), billboard=True, font_size=12.0, scale_invariant=True,
-                color=_colour(1, 1, 1), text=f"{kind} {k}" + (" (leader)" if k in snap.leaders else ""))]))
-            ents.append(entity(f"trail/{k}", lines=[LinePrimitive(
-                type=LinePrimitiveLineType.LineStrip, thickness=2.0, scale_invariant=True, points=list(trails[k]),
-                color=_colour(*tint, a=0.8))]))
-            ents.append(entity(f"footprint/{k}", lines=[LinePrimitive(
-                type=LinePrimitiveLineType.LineLoop, pose=at(x, y, 0.05), thickness=1.5, scale_invariant=True,
-                points=self._ring(radius * ps), color=_colour(1, 1, 1, a=0.9))]))
-            if target is None:
-                ents.append(entity(f"target/{k}"))  # no primitives: nothing drawn
-            else:
-                tx, ty = cell_xy(target, self.shape, ps)
-                ents.append(entity(f"target/{k}", spheres=[SpherePrimitive(
-                    pose=at(tx, ty), size=_vec(ps, ps, ps), color=colour)], lines=[LinePrimitive(
-                        type=LinePrimitiveLineType.LineList, thickness=1.0, scale_invariant=True,
-                        points=[_pt(x, y, 0.1), _pt(tx, ty, 0.1)], color=_colour(*tint, a=0.5))]))
-        bx, by = cell_xy(snap.base, self.shape, ps)
-        ents.append(entity("base", cubes=[CubePrimitive(pose=at(bx, by, ps), size=_vec(3 * ps, 3 * ps, 2 * ps),
-                                                        color=_colour(0.1, 0.1, 0.1))]))
-        where = {**dict(enumerate(xy)), BASE: (bx, by)}
-        points = [_pt(*where[i], 0.2) for a, b in snap.links for i in (a, b) if a in where and b in where]
-        ents.append(entity("links", lines=[LinePrimitive(
-            type=LinePrimitiveLineType.LineList, thickness=2.0, scale_invariant=True, points=points,
-            color=_colour(1, 1, 1, a=0.8))] if points else None))
-        ents.append(entity("leaders", spheres=[SpherePrimitive(
-            pose=at(*where[a], 0.0), size=_vec(5 * ps, 5 * ps, 0.5 * ps), color=_colour(0, 0, 0, a=0.4))
-            for a in snap.leaders if a in where] or None))
-        return SceneUpdate(entities=ents)
 
     # --- closing --------------------------------------------------------------------------
     def close(self, *, keep: bool = True) -> None:

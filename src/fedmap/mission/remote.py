@@ -383,6 +383,8 @@ class BaseNode:
         self.sync_at = sorted(self.syncs)
         #: the global map it held after each of its rounds, by step (its log)
         self.held: dict[int, np.ndarray] = {0: self.run.sharing.global_map().copy()}
+        #: the frames it sent and took: orders and reports (bytes, framing included), and how many pairs
+        self.wire = {"orders": 0, "reports": 0, "messages": 0}
         self.done = False
 
     def _ends(self, name: str, setup: Setup) -> Sharing:
@@ -448,7 +450,7 @@ class BaseNode:
                           self.run.link.slots, s.global_heights(),
                           None if journal.dropped is None else list(journal.dropped),
                           None if journal.lags is None else list(journal.lags),
-                          None if regs is None else list(regs))
+                          None if regs is None else list(regs), dict(self.wire))
 
 
 def warm_up() -> None:
@@ -470,8 +472,12 @@ def rounds(base: BaseNode, send: Transport) -> Iterator[int]:
     bytes); yields each step an order drove to."""
     orders = base.first_orders()
     while orders:
-        raw = send({k: o.to_bytes() for k, o in orders.items()})
+        sent = {k: o.to_bytes() for k, o in orders.items()}
+        raw = send(sent)
         reports = {k: Report.from_bytes(r) for k, r in raw.items()}
+        base.wire["orders"] += sum(map(len, sent.values()))
+        base.wire["reports"] += sum(map(len, raw.values()))
+        base.wire["messages"] += len(sent)
         step = next(iter(orders.values())).step
         orders = base.take(reports, orders)
         yield step

@@ -74,6 +74,9 @@ def metrics(result: MissionResult, *, settings: dict | None = None) -> dict:
         "seconds": result.seconds,
         "strategies": {name: run.to_dict() for name, run in result.runs.items()},
         **({"faults": list(result.faults)} if result.faults else {}),
+        # on processes: what the transport carried, framing included, beside each ledger (not in process)
+        **({"wire": {name: run.wire for name, run in result.runs.items() if run.wire is not None}}
+           if any(run.wire is not None for run in result.runs.values()) else {}),
     }
 
 
@@ -387,6 +390,7 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
           else []),
         *_prediction_lines(result, repeated=repeats is not None and len(repeats) > 1),
         *_frames_lines(result),
+        *_wire_lines(result),
         side_by_side(result, repeats),
         verdict(result, repeats), "",
         f"Wall time: {result.seconds:.1f} s ("
@@ -395,6 +399,23 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         + (", ".join(f"`{name}`" for name in animations) if animations else "none (not asked for)") + ".", "",
     ]
     return "\n".join(lines)
+
+
+def _wire_lines(result: MissionResult) -> list[str]:
+    """On processes: what the transport carried (fedmap's frames, framing included) beside the ledger."""
+    runs = [(n, r) for n, r in result.runs.items() if r.wire is not None]
+    if not runs:
+        return []
+    parts = []
+    for n, r in runs:
+        w, counted = r.wire, sum(m.bytes for m in r.ledger)
+        assert w is not None
+        total = w["orders"] + w["reports"]
+        parts.append(f"{n} {total:,} B ({w['orders']:,} B of orders, {w['reports']:,} B of reports, "
+                     f"{w['messages']} of each) for {counted:,} B of the strategy's own")
+    return ["**On processes**: every rover and the base ran as processes of their own, exchanging only fedmap's "
+            "frames (the strategy's messages inside them); scores come from each node's own log, off the link "
+            "(`fedmap score`). Wire bytes, framing included: " + "; ".join(parts) + ".", ""]
 
 
 def _frames_lines(result: MissionResult) -> list[str]:

@@ -69,7 +69,8 @@ def score_strategy(mission: Mission, record: BaseRecord, logs: Sequence[Sequence
     trails = [[cell for e in log for cell in e.trail] for log in logs]
     return scoring.result(record.seconds, trails, record.ledger, record.slots, final_heights=record.final_heights,
                           dropped=record.dropped, lags=record.lags,
-                          registrations=None if record.registrations is None else tuple(record.registrations))
+                          registrations=None if record.registrations is None else tuple(record.registrations),
+                          wire=record.wire)
 
 
 def mission_from_text(text: str, *, frames: int = 60) -> Mission:

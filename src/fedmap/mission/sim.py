@@ -173,7 +173,8 @@ class Scoring:
 
     def result(self, seconds: float, trails: list[list[Cell]], ledger: list[Message], slots: int, *,
                final_heights: np.ndarray | None = None, dropped: list | None = None, lags: list | None = None,
-               registrations: tuple[dict, ...] | None = None, sharing: Sharing | None = None) -> StrategyRun:
+               registrations: tuple[dict, ...] | None = None, sharing: Sharing | None = None,
+               wire: dict | None = None) -> StrategyRun:
         """The run's record once its last step is recorded (``trails``: every member's cells
         driven; the rest: what the base (or lander) held at the end)."""
         c = self.config
@@ -191,7 +192,7 @@ class Scoring:
                            dropped_updates=None if dropped is None else tuple(dropped),
                            model_lag=None if lags is None else tuple(lags),
                            registrations=registrations, sharing=sharing,
-                           views=tuple(self.views))  # the last step's, recorded after its deliveries
+                           views=tuple(self.views), wire=wire)  # the last step's, recorded after its deliveries
 
 
 class _Run:

@@ -28,6 +28,7 @@ from fedmap.maps.dem import Dem
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.planning import path_is_valid
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, rover_profile
+from fedmap.mission.flight import fly
 from fedmap.mission.frontiers import cheapest_path, choose_target, plan_path
 from fedmap.mission.sensing import block_classes, coarse_footprint, disk_offsets, footprint
 from fedmap.mission.settings import MissionConfig
@@ -361,82 +362,10 @@ class World:
                 return
             r.excluded.add(target)
 
-    def fly(self, k: int, t: int) -> None:
-        """One step of a helicopter: see :class:`~fedmap.mission.settings.HelicopterConfig`.
-
-        Its rule keeps ``flight + ceil(d / speed) <= flight_budget`` at every step, ``d``
-        the Chebyshev distance to its nearest landing site: a step that would break it is
-        flown towards that site instead (8-connected moves shorten it by one cell each), and
-        it lands on arriving there. The loop checks the budget and the site and stops with
-        an error if the rule ever broke."""
-        r, hc = self.team[k], self.config.helicopter
-        r.airborne.append(False)
-        if r.charging > 0:
-            r.charging -= 1
-            return
-        sites = r.local == FREE
-        sites[self.base] = True
-        dist = ndimage.distance_transform_cdt(~sites, metric="chessboard")
-        budget, speed = hc.flight_budget, hc.speed
-
-        def after(goal: Cell) -> Cell:
-            dr, dc = goal[0] - r.pos[0], goal[1] - r.pos[1]
-            n = min(speed, max(abs(dr), abs(dc)))
-            return (r.pos[0] + int(np.clip(dr, -n, n)), r.pos[1] + int(np.clip(dc, -n, n)))
-
-        def affordable(cell: Cell) -> bool:
-            return r.flight + 1 + -(-int(dist[cell]) // speed) <= budget
-
-        if not r.returning:
-            belief = self.ends[k].belief()
-            if r.target is None or self._target_done(r, belief) or r.pos == r.target:
-                flyer = np.where(belief == UNKNOWN, UNKNOWN, FREE).astype(np.uint8)
-                reach = dist * 2 <= speed * (budget - 2)
-                r.target = choose_target(flyer, r.pos, radius=hc.sensor_radius, unknown_cost=1.0,
-                                         others=self.ends[k].others(), allowed=reach)
-            if r.target is None or not affordable(after(r.target)):
-                r.returning = True
-                r.target = None
-        if r.returning and dist[r.pos] == 0:  # on a site: land (or stay landed) this step
-            if r.flight > 0:
-                self._land(k, t)
-            r.returning = False
-            return
-        if r.returning:
-            near = np.argwhere(sites)
-            d = np.maximum(np.abs(near[:, 0] - r.pos[0]), np.abs(near[:, 1] - r.pos[1]))
-            i = int(np.lexsort((near[:, 1], near[:, 0], d))[0])
-            goal = (int(near[i, 0]), int(near[i, 1]))
-        else:
-            assert r.target is not None
-            goal = r.target
-        for _ in range(speed):
-            if r.pos == goal:
-                break
-            nxt = (r.pos[0] + int(np.sign(goal[0] - r.pos[0])), r.pos[1] + int(np.sign(goal[1] - r.pos[1])))
-            r.distance += math.hypot(nxt[0] - r.pos[0], nxt[1] - r.pos[1])
-            r.pos = nxt
-            r.trail.append(nxt)
-            self.sense(k, t)
-        r.flight += 1
-        r.airborne[-1] = True
-        if r.flight > budget:
-            raise RuntimeError(f"helicopter {k} flew {r.flight} steps, over its budget of {budget}")
-        if r.returning and r.pos == goal:
-            self._land(k, t)
-
-    def _land(self, k: int, t: int) -> None:
-        r = self.team[k]
-        site = "lander" if r.pos == self.base else "observed free"
-        if site != "lander" and r.local[r.pos] != FREE:
-            raise RuntimeError(f"helicopter {k} landed on {r.pos}, which is not a landing site")
-        r.landings.append((t, r.pos, r.flight, site))
-        r.flight, r.charging, r.returning = 0, self.config.helicopter.recharge, False
-
     def drive(self, k: int, t: int) -> None:
         r = self.team[k]
         if r.kind == "helicopter":
-            self.fly(k, t)
+            fly(self, k, t)
             return
         for _ in range(self.config.speed):
             belief = self.ends[k].belief()
