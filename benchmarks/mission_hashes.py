@@ -61,6 +61,7 @@ def main_(argv: list[str] | None = None) -> int:
                 print(f"{name}: fedmap mission failed (exit {code})", file=sys.stderr)
                 return code
             m = without_timings(json.loads((folder / "metrics.json").read_text()))
+            m.pop("wire", None)  # newer than the hashes: what the transport carried, beside the ledger
             per = {s: digest(r, 12) for s, r in m["strategies"].items()}
             print(f"{name:18s} {digest(m, 16)}  " + "  ".join(f"{s} {h}" for s, h in per.items()), flush=True)
     return 0

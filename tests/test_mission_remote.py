@@ -369,3 +369,26 @@ def test_fedmap_score_of_the_nodes_logs_gives_the_mission_in_process(tmp_path, c
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: none: no log of rover 1 in the run folder") and "\n" not in err, err
     assert json.loads((tmp_path / "scored" / "metrics.json").read_text()) == b
+
+
+@pytest.mark.parametrize("topology,strategies", [("star", ("raw", "predictive")), ("leader", ("raw", "gossip"))])
+def test_every_message_in_process_crosses_as_a_frame_and_its_wire_bytes_are_counted(topology, strategies):
+    """In process too, every strategy message (uplink, downlink, peer message, each relay hop)
+    crosses the transport as a message frame; its wire bytes are the ledger's bytes plus each
+    frame's framing, hop by hop (a hand count from the ledger and the layout), and a strategy
+    that sends nothing has none."""
+    from fedmap.mission.wire import MESSAGE_OVERHEAD
+
+    link = {"topology": topology, "loss": 0.2}
+    if topology != "star":
+        link["peer_range"] = 40.0
+    config, truth, kw = _mission(("none", *strategies), steps=30, **link)
+    result = run_mission(config, truth, **kw)
+    assert result.runs["none"].wire is None
+    for name in strategies:
+        run = result.runs[name]
+        spent = [m for m in run.ledger if m.bytes]
+        framing = sum(MESSAGE_OVERHEAD + 2 + 1 + len(m.kind) + 4 for m in spent)
+        assert run.wire == {"frames": len(spent), "bytes": sum(m.bytes for m in spent) + framing}
+        assert any(m.status == "lost" for m in spent)  # lost frames spent their bytes too
+    assert metrics(result)["wire"]["raw"] == result.runs["raw"].wire

@@ -383,8 +383,8 @@ class BaseNode:
         self.sync_at = sorted(self.syncs)
         #: the global map it held after each of its rounds, by step (its log)
         self.held: dict[int, np.ndarray] = {0: self.run.sharing.global_map().copy()}
-        #: the frames it sent and took: orders and reports (bytes, framing included), and how many pairs
-        self.wire = {"orders": 0, "reports": 0, "messages": 0}
+        #: the frames it sent and took: how many, their bytes (framing included), and of them the orders' and reports'
+        self.wire = {"frames": 0, "bytes": 0, "orders": 0, "reports": 0}
         self.done = False
 
     def _ends(self, name: str, setup: Setup) -> Sharing:
@@ -475,9 +475,11 @@ def rounds(base: BaseNode, send: Transport) -> Iterator[int]:
         sent = {k: o.to_bytes() for k, o in orders.items()}
         raw = send(sent)
         reports = {k: Report.from_bytes(r) for k, r in raw.items()}
-        base.wire["orders"] += sum(map(len, sent.values()))
-        base.wire["reports"] += sum(map(len, raw.values()))
-        base.wire["messages"] += len(sent)
+        w = base.wire
+        w["orders"] += sum(map(len, sent.values()))
+        w["reports"] += sum(map(len, raw.values()))
+        w["frames"] += len(sent) + len(raw)
+        w["bytes"] = w["orders"] + w["reports"]
         step = next(iter(orders.values())).step
         orders = base.take(reports, orders)
         yield step

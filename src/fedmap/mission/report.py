@@ -74,7 +74,7 @@ def metrics(result: MissionResult, *, settings: dict | None = None) -> dict:
         "seconds": result.seconds,
         "strategies": {name: run.to_dict() for name, run in result.runs.items()},
         **({"faults": list(result.faults)} if result.faults else {}),
-        # on processes: what the transport carried, framing included, beside each ledger (not in process)
+        # what the transport carried, framing included, beside each ledger
         **({"wire": {name: run.wire for name, run in result.runs.items() if run.wire is not None}}
            if any(run.wire is not None for run in result.runs.values()) else {}),
     }
@@ -402,7 +402,7 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
 
 
 def _wire_lines(result: MissionResult) -> list[str]:
-    """On processes: what the transport carried (fedmap's frames, framing included) beside the ledger."""
+    """What the transport carried (fedmap's frames, framing included) beside the ledger."""
     runs = [(n, r) for n, r in result.runs.items() if r.wire is not None]
     if not runs:
         return []
@@ -410,12 +410,14 @@ def _wire_lines(result: MissionResult) -> list[str]:
     for n, r in runs:
         w, counted = r.wire, sum(m.bytes for m in r.ledger)
         assert w is not None
-        total = w["orders"] + w["reports"]
-        parts.append(f"{n} {total:,} B ({w['orders']:,} B of orders, {w['reports']:,} B of reports, "
-                     f"{w['messages']} of each) for {counted:,} B of the strategy's own")
-    return ["**On processes**: every rover and the base ran as processes of their own, exchanging only fedmap's "
-            "frames (the strategy's messages inside them); scores come from each node's own log, off the link "
-            "(`fedmap score`). Wire bytes, framing included: " + "; ".join(parts) + ".", ""]
+        how = f" ({w['orders']:,} B of orders, {w['reports']:,} B of reports)" if "orders" in w else ""
+        parts.append(f"{n} {w['bytes']:,} B in {w['frames']:,} frames{how} for {counted:,} B of the strategy's own")
+    deployed = any("orders" in (r.wire or {}) for _, r in runs)
+    return [("**On processes**: every rover and the base ran as processes of their own, exchanging only fedmap's "
+             "frames (the strategy's messages inside orders and reports); scores come from each node's own log, off "
+             "the link (`fedmap score`). " if deployed else "")
+            + "*Wire bytes*, every frame the transport carried with its framing (the table's bytes are the "
+            "strategy's own, as the ledger counts them): " + "; ".join(parts) + ".", ""]
 
 
 def _frames_lines(result: MissionResult) -> list[str]:

@@ -244,8 +244,9 @@ class StrategyRun:
     sharing: Any = None  #: the ends' final state (:class:`~fedmap.mission.registry.Sharing`; not written)
     #: every member's final view: its belief in its own classes, what it plans on and is scored on
     views: tuple[np.ndarray, ...] = ()
-    #: on processes: the frames the transport carried (``orders``, ``reports``: bytes, framing
-    #: included; ``messages``: order and report pairs), beside the ledger's strategy bytes; None in process
+    #: what its transport carried, beside the ledger's strategy bytes: ``frames`` and their
+    #: ``bytes``, framing included (on processes also ``orders`` and ``reports``, bytes each);
+    #: None for a strategy that sends nothing
     wire: dict | None = None
 
     def to_dict(self) -> dict[str, Any]:

@@ -255,7 +255,8 @@ class _Run:
         s, journal = self.sharing, self.sharing.journal
         return self.scoring.result(time.perf_counter() - t0, [list(r.trail) for r in self.team], self.link.ledger,
                                    self.link.slots, final_heights=s.global_heights(), dropped=journal.dropped,
-                                   lags=journal.lags, registrations=registrations(s), sharing=s)
+                                   lags=journal.lags, registrations=registrations(s), sharing=s,
+                                   wire=dict(self.exchange.wire) if s.on_link else None)
 
 
 def mission_terrain(config: MissionConfig, source: TerrainSource) -> tuple[GridMap, np.ndarray | None,

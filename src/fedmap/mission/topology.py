@@ -34,7 +34,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from fedmap.mission.link import BASE, DOWN, UP, Link, Message
-from fedmap.mission.protocol import side_by_side
+from fedmap.mission.protocol import Outgoing, side_by_side
+from fedmap.mission.wire import pack_payload, unpack_payload
 
 Cell = tuple[int, int]
 #: Slack on ``max_range`` (cells), so a rover exactly at the range is in range despite rounding.
@@ -63,6 +64,19 @@ class Exchange:
         self.leaders: tuple[int, ...] = ()  #: leader topology: the agents leading at the last sync
         #: star: per rover, the downlinks it was handed but has not answered yet (round, ledger entry)
         self.pending: dict[int, list[tuple[int, Message]]] = {}
+        #: what the transport carried: every message as a frame (:func:`~fedmap.mission.wire.pack_payload`),
+        #: its bytes counted once per hop the link spent bytes on (the ledger counts the payload's)
+        self.wire = {"frames": 0, "bytes": 0}
+
+    def carry(self, sender: int, to: int, round_no: int, step: int, out: Outgoing, sent: int) -> bytes:
+        """The frame that carries ``out`` from ``sender`` to ``to``, counted as wire bytes for
+        every ledger entry from ``sent`` on that spent bytes (one per hop; none: nothing was
+        sent, e.g. nothing fit the budget, and nothing is counted)."""
+        raw = pack_payload(sender, to, round_no, step, out.kind, out.payload or b"")
+        hops = sum(1 for m in self.link.ledger[sent:] if m.bytes)
+        self.wire["frames"] += hops
+        self.wire["bytes"] += hops * len(raw)
+        return raw
 
     def at(self, due: int, event: Callable[[int], None]) -> None:
         """Run ``event(due)`` when the clock reaches ``due``."""
@@ -94,29 +108,36 @@ class Exchange:
             if out is None:
                 link.ledger.append(Message(round_no, t, k, UP, "update", 0, "rejected"))
                 continue
+            sent = len(link.ledger)
             msg = link.send(out.payload, round_no=round_no, step=t, rover=k, direction=UP, kind=out.kind,
                             positions=positions, budget=self.topology.budget(k, BASE, UP))
+            raw = self.carry(k, BASE, round_no, t, out, sent)
             if msg.arrival is None:
                 rover.delivered(round_no, False)
                 continue
-            self.at(msg.arrival, _call(self._up, k, out.payload, round_no))
+            self.at(msg.arrival, _call(self._up, k, raw))
         self.at(t + self.latency, lambda due: self._base(due, round_no))
 
-    def _up(self, k: int, payload: bytes, round_no: int) -> None:
-        ok = self.sharing.base.receive(k, payload, round_no)
-        self.sharing.rovers[k].delivered(round_no, ok)
+    def _up(self, k: int, raw: bytes) -> None:
+        head, _, _, payload = unpack_payload(raw)
+        ok = self.sharing.base.receive(k, payload, head.round)
+        self.sharing.rovers[k].delivered(head.round, ok)
 
     def _base(self, due: int, round_no: int) -> None:
         base = self.sharing.base
         for k, out in base.downlinks(round_no).items():
+            sent = len(self.link.ledger)
             msg = self.link.send(out.payload, round_no=round_no, step=due, rover=k, direction=DOWN, kind=out.kind,
                                  positions=self.positions(), budget=self.topology.budget(BASE, k, DOWN))
+            raw = self.carry(BASE, k, round_no, due, out, sent)
             if msg.arrival is None:
                 base.delivered(k, round_no, False)
                 continue
-            self.at(msg.arrival, _call(self._down, k, out.payload, round_no, msg))
+            self.at(msg.arrival, _call(self._down, k, raw, msg))
 
-    def _down(self, k: int, payload: bytes, round_no: int, msg: Message) -> None:
+    def _down(self, k: int, raw: bytes, msg: Message) -> None:
+        head, _, _, payload = unpack_payload(raw)
+        round_no = head.round
         ok = self.sharing.rovers[k].receive(payload)
         if ok is None:  # a rover on another machine: its answer comes with its next report
             self.pending.setdefault(k, []).append((round_no, msg))
@@ -157,14 +178,18 @@ class Exchange:
         budget = self.topology.budget(a, b, role)
         sender = self.sharing.peers[a]
         out = sender.message(b, round_no, t, budget)
+        sent = len(self.link.ledger)
         msg = self.link.send_route(out.payload, path, round_no=round_no, step=t, kind=out.kind, budget=budget)
+        raw = self.carry(a, b, round_no, t, out, sent)
         if msg.arrival is not None and msg.to == b:
-            self.at(msg.arrival, lambda due: self._peer(a, b, out.payload, round_no, due, msg))
+            self.at(msg.arrival, lambda due: self._peer(raw, due, msg))
             return msg.arrival
         sender.delivered(b, round_no, False)
         return t
 
-    def _peer(self, a: int, b: int, payload: bytes, round_no: int, due: int, msg: Message) -> None:
+    def _peer(self, raw: bytes, due: int, msg: Message) -> None:
+        head, b, _, payload = unpack_payload(raw)
+        a, round_no = head.sender, head.round
         ok = self.sharing.peers[b].receive(a, payload, round_no, due)
         self.sharing.peers[a].delivered(b, round_no, ok)
         if not ok:

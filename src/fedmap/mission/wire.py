@@ -30,9 +30,10 @@ from fedmap.errors import FedmapError
 WIRE_VERSION = 2
 #: The record frame's version (the first byte of every record a node writes to its disk).
 RECORD_VERSION = 1
-#: Message kinds: the base's order to a rover, a rover's report, every order a rover was sent.
-ORDER, REPORT, HISTORY = 1, 2, 3
-KINDS = {ORDER: "order", REPORT: "report", HISTORY: "history"}
+#: Message kinds: the base's order to a rover, a rover's report, every order a rover was sent,
+#: and a strategy's message from one node to another (an uplink, a downlink, a peer message).
+ORDER, REPORT, HISTORY, PAYLOAD = 1, 2, 3, 4
+KINDS = {ORDER: "order", REPORT: "report", HISTORY: "history", PAYLOAD: "strategy message"}
 _MSG = struct.Struct("<BBhII")  # version, kind, sender, round, step
 _CRC = struct.Struct("<I")
 #: Bytes a message frame adds to its body: its head and its check.
@@ -142,6 +143,20 @@ def unpack_message(raw: bytes, kind: int | None = None) -> tuple[Head, Reader]:
     return Head(k, sender, round_no, step), Reader(raw[_MSG.size:-_CRC.size], KINDS.get(k, "message"))
 
 
+def pack_payload(sender: int, to: int, round_no: int, step: int, kind: str, payload: bytes) -> bytes:
+    """A strategy's message from node ``sender`` to node ``to`` (-1: the base station or the
+    lander) as a message frame: its kind (the strategy's name for it) and its payload."""
+    return pack_message(Head(PAYLOAD, sender, round_no, step), Writer().put("h", to).text(kind).blob(payload).done())
+
+
+def unpack_payload(raw: bytes) -> tuple[Head, int, str, bytes]:
+    """The head, receiver, kind and payload of :func:`pack_payload`'s frame."""
+    head, r = unpack_message(raw, PAYLOAD)
+    to, kind, payload = r.one("h"), r.text(), r.blob()
+    r.end()
+    return head, to, kind, payload
+
+
 def pack_frame(header: dict, blobs: list[bytes] = ()) -> bytes:  # type: ignore[assignment]
     """``header`` (JSON) and ``blobs`` as one checked frame."""
     head = json.dumps(header, separators=(",", ":")).encode()
@@ -176,4 +191,5 @@ def unpack_frame(raw: bytes) -> tuple[dict, list[bytes]]:
 
 
 __all__ = ["HISTORY", "KINDS", "MESSAGE_OVERHEAD", "ORDER", "RECORD_VERSION", "REPORT", "WIRE_VERSION", "CorruptMessage",
-           "Head", "Reader", "Writer", "pack_frame", "pack_message", "unpack_frame", "unpack_message"]
+           "Head", "PAYLOAD", "Reader", "Writer", "pack_frame", "pack_message", "pack_payload", "unpack_frame",
+           "unpack_message", "unpack_payload"]
