@@ -45,54 +45,30 @@ VARIANTS = ("none", "mix", "bins")
 
 
 class _CellBits:
-    """Counts the ideal bits of the cell symbols the coder encodes (a wrapper around
-    ``streamcodec._Io.sym`` while ``_cells`` runs; both ends code the same symbols, so only
+    """Counts the ideal bits of the cell symbols the coder encodes
+    (:func:`fedmap.coding.streamcodec.observe_cells`; both ends code the same symbols, so only
     encoders are counted), split by uplink (one anchor) and downlink."""
 
     def __init__(self) -> None:
         self.bits = {"up": 0.0, "down": 0.0}
-        self._dir: str | None = None
-        #: uplink cells coded through ``_mixed`` (mix runs): (level, count model's probs, guess, symbol)
+        #: uplink cells coded with a guess mixed in (mix runs): (level, count model's probs, guess, symbol)
         self.mixed: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
-        self._pending: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._observing = streamcodec.observe_cells(self._seen)
+
+    def _seen(self, c: streamcodec.CellSymbols) -> None:
+        if not c.encoding:
+            return
+        side = "up" if c.anchors == 1 else "down"
+        self.bits[side] += c.bits()
+        if side == "up" and c.counts is not None and c.guess is not None:
+            self.mixed.append((c.level, c.counts, c.guess, c.symbols.copy()))
 
     def __enter__(self) -> _CellBits:
-        self._walk, self._cells, self._sym = streamcodec._walk, streamcodec._cells, streamcodec._Io.sym
-        self._mixed = streamcodec._mixed
-        me = self
-
-        def mixed(probs, guess, table):
-            me._pending = ((table - 1) % streamcodec.LEVELS, probs, guess)
-            return me._mixed(probs, guess, table)
-
-        def walk(io, content, **kw):
-            me._dir = ("up" if len(kw["anchors"]) == 1 else "down") if io.enc is not None else None
-            return me._walk(io, content, **kw)
-
-        def cells(io, *a, **kw):
-            io.counting = True
-            try:
-                return me._cells(io, *a, **kw)
-            finally:
-                io.counting = False
-
-        def sym(io, values, probs):
-            out = me._sym(io, values, probs)
-            if getattr(io, "counting", False) and me._dir is not None:
-                p = np.asarray(probs, dtype=np.float64)
-                me.bits[me._dir] += float(-np.log2(p[np.arange(out.size), out]).sum())
-                if me._pending is not None and me._dir == "up":
-                    me.mixed.append((*me._pending, out.copy()))
-            me._pending = None
-            return out
-
-        streamcodec._walk, streamcodec._cells, streamcodec._Io.sym = walk, cells, sym  # type: ignore[method-assign]
-        streamcodec._mixed = mixed
+        self._observing.__enter__()
         return self
 
     def __exit__(self, *exc) -> None:
-        streamcodec._walk, streamcodec._cells, streamcodec._Io.sym = self._walk, self._cells, self._sym
-        streamcodec._mixed = self._mixed
+        self._observing.__exit__(*exc)
 
 
 def _logit(p: np.ndarray) -> np.ndarray:

@@ -231,3 +231,32 @@ def test_predictive_fits_a_tight_budget_by_sending_a_prefix_of_the_trail():
     again = run_mission(replace(config, link=replace(config.link, uplink_bytes=None, downlink_bytes=None)),
                         _maze(seed=6), frames=1).runs["predictive"]
     assert sum(m.bytes for m in again.ledger) > sum(m.bytes for m in run.ledger)
+
+
+def test_an_observer_sees_every_cell_both_ends_code_and_nothing_changes():
+    """``observe_cells`` tells an observer of every cell coded: the encoder's and the
+    decoder's symbols are the message's cells in the same order (counted against the fold,
+    which the coder keeps itself), their bits are the ideal code length of the probabilities
+    they were coded with (recomputed here), and the payload is the one coded unobserved."""
+    content, kw = _message()
+    plain, _ = sc.encode(content, state=sc.blank_state(), **kw)
+    seen: list = []
+    with sc.observe_cells(seen.append):
+        payload, fold = sc.encode(content, state=sc.blank_state(), **kw)
+        sc.decode(payload, state=sc.blank_state(), **kw)
+    assert payload == plain
+    enc = [c for c in seen if c.encoding]
+    dec = [c for c in seen if not c.encoding]
+    assert enc and len(enc) == len(dec) and all(c.anchors == 1 for c in seen)
+    for a, b in zip(enc, dec):
+        np.testing.assert_array_equal(a.symbols, b.symbols)
+        np.testing.assert_allclose(a.probs, b.probs)
+    symbols = np.concatenate([c.symbols for c in enc])
+    assert np.bincount(symbols, minlength=3).tolist() == fold.cells.sum(axis=(0, 1)).tolist()
+    bits = sum(float(-np.log2(c.probs[np.arange(c.symbols.size), c.symbols]).sum()) for c in enc)
+    assert bits == pytest.approx(sum(c.bits() for c in enc)) and bits <= 8 * len(payload)
+    with sc.observe_cells(seen.append):
+        pass
+    n = len(seen)
+    sc.encode(content, state=sc.blank_state(), **kw)  # no observer left behind
+    assert len(seen) == n

@@ -59,7 +59,8 @@ decoded content, low byte) that catches a decode against the wrong state or map.
 from __future__ import annotations
 
 import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from importlib import resources
 
@@ -314,6 +315,48 @@ def _logit(p: np.ndarray) -> np.ndarray:
     return np.log(p) - np.log1p(-p)
 
 
+@dataclass(frozen=True)
+class CellSymbols:
+    """Cells a coder has just coded, as an observer sees them (:func:`observe_cells`)."""
+
+    encoding: bool  #: an encoder (else a decoder, which codes the same symbols)
+    anchors: int  #: the trails the message carries (1: a rover's uplink; more: a downlink)
+    level: int  #: the scale level of the cells' context table (0: s=1, 1: s=2, 2: s>=4)
+    probs: np.ndarray  #: ``(n, 3)`` the probabilities they were coded with
+    symbols: np.ndarray  #: ``(n,)`` their classes (or UNKNOWN's symbol)
+    #: with a guess mixed in: the count model's own probabilities before mixing, and the guess
+    counts: np.ndarray | None = None
+    guess: np.ndarray | None = None
+
+    def bits(self) -> float:
+        """The ideal bits of these symbols under ``probs``."""
+        p = np.asarray(self.probs, dtype=np.float64)
+        return float(-np.log2(p[np.arange(self.symbols.size), self.symbols]).sum())
+
+
+#: Who is told of every batch of cells coded (:func:`observe_cells`).
+_OBSERVERS: list[Callable[[CellSymbols], None]] = []
+
+
+@contextmanager
+def observe_cells(observer: Callable[[CellSymbols], None]) -> Iterator[None]:
+    """Tell ``observer`` of every batch of cells any coder of this process codes while the
+    ``with`` block runs (:class:`CellSymbols`): an ablation's or a benchmark's view of the
+    coder, without changing what it codes."""
+    _OBSERVERS.append(observer)
+    try:
+        yield
+    finally:
+        _OBSERVERS.remove(observer)
+
+
+def _tell(io: _Io, anchors: int, table: int, probs: np.ndarray, symbols: np.ndarray,
+          counts: np.ndarray | None = None, guess: np.ndarray | None = None) -> None:
+    seen = CellSymbols(io.enc is not None, anchors, (table - 1) % LEVELS, probs, symbols, counts, guess)
+    for observer in list(_OBSERVERS):
+        observer(seen)
+
+
 def _mixed(probs: np.ndarray, guess: np.ndarray, table: int) -> np.ndarray:
     """``probs`` (n, 3) with the carried cells' split mixed with ``guess`` (n,) (:data:`MIX`)."""
     a, b, c = MIX[(table - 1) % LEVELS]
@@ -328,7 +371,7 @@ def _mixed(probs: np.ndarray, guess: np.ndarray, table: int) -> np.ndarray:
 
 
 def _cells(io: _Io, cells: np.ndarray | None, known: np.ndarray, todo: np.ndarray, feature: int,
-           state: CoderState, fold: Fold, guess: np.ndarray | None = None) -> None:
+           state: CoderState, fold: Fold, guess: np.ndarray | None = None, anchors: int = 0) -> None:
     """Code the classes of the ``todo`` cells (a class or UNKNOWN each) into ``known`` in place;
     with a ``guess`` (P(IMPASSABLE) of every cell, float64) as the state says (mix or bins)."""
     h, w = known.shape
@@ -339,6 +382,8 @@ def _cells(io: _Io, cells: np.ndarray | None, known: np.ndarray, todo: np.ndarra
     if todo[0, 0]:
         p = _p(state.cells[0, feature * N_CTX] + fold.cells[0, feature * N_CTX])[None, :]
         v = int(io.sym(None if cells is None else np.array([cells[0, 0]]), p)[0])
+        if _OBSERVERS:
+            _tell(io, anchors, 0, p, np.array([v]))
         fold.cells[0, feature * N_CTX, v] += 1
         known[0, 0] = v
     for table, s, rows, cols in phases(h, w):
@@ -356,6 +401,8 @@ def _cells(io: _Io, cells: np.ndarray | None, known: np.ndarray, todo: np.ndarra
             for part in rounds:
                 probs = _p(state.cells[table, ctx[part]] + fold.cells[table, ctx[part]])
                 sym[part] = io.sym(None if truth is None else truth[part], probs)
+                if _OBSERVERS:
+                    _tell(io, anchors, table, probs, sym[part])
                 np.add.at(fold.cells[table], (ctx[part], sym[part]), 1)
         elif binned is not None and fold_binned is not None:
             # the same grouping by neighbour context (rounds), each cell's own bin
@@ -363,13 +410,18 @@ def _cells(io: _Io, cells: np.ndarray | None, known: np.ndarray, todo: np.ndarra
             for part in rounds:
                 probs = _p(binned[table, bctx[part]] + fold_binned[table, bctx[part]])
                 sym[part] = io.sym(None if truth is None else truth[part], probs)
+                if _OBSERVERS:
+                    _tell(io, anchors, table, probs, sym[part])
                 np.add.at(fold_binned[table], (bctx[part], sym[part]), 1)
                 np.add.at(fold.cells[table], (ctx[part], sym[part]), 1)
         else:
             g = guess[rr, cc]
             for part in rounds:
-                probs = _mixed(_p(state.cells[table, ctx[part]] + fold.cells[table, ctx[part]]), g[part], table)
+                counts = _p(state.cells[table, ctx[part]] + fold.cells[table, ctx[part]])
+                probs = _mixed(counts, g[part], table)
                 sym[part] = io.sym(None if truth is None else truth[part], probs)
+                if _OBSERVERS:
+                    _tell(io, anchors, table, probs, sym[part], counts, g[part])
                 np.add.at(fold.cells[table], (ctx[part], sym[part]), 1)
         known[rr, cc] = sym
 
@@ -402,10 +454,10 @@ def _walk(io: _Io, content: Content | None, *, anchors: Sequence[Cell], mark_ref
         carried = cells != UNKNOWN
         if (carried & (known != UNKNOWN)).any():
             raise FedmapError("a message would carry cells the receiver already holds")
-    _cells(io, cells, held, cand, 0, state, fold, guess)
+    _cells(io, cells, held, cand, 0, state, fold, guess, len(anchors))
     outside = None if cells is None else int((carried & ~cand).any())
     if io.uniform(outside, 2):
-        _cells(io, cells, held, (held == UNKNOWN) & ~cand, 1, state, fold, guess)
+        _cells(io, cells, held, (held == UNKNOWN) & ~cand, 1, state, fold, guess, len(anchors))
     out = np.where(known == UNKNOWN, held, UNKNOWN).astype(np.uint8)
     return Content(tracks, marks, out, fold)
 
