@@ -15,7 +15,8 @@ odometry error and the error of where the team placed it (its estimate through i
 and the team's frame), in cells. Writes
 ``benchmarks/results/mission_frames/mission_frames.json``.
 
-Two what-ifs (star only; not fedmap's behaviour, which no option of the library changes):
+Two what-ifs (star only; not fedmap's behaviour, which no setting changes; the library's
+hook :func:`fedmap.mission.frames.what_if`):
 ``--oracle`` gives the base each rover's *true* transform (its frame into the true frame, as
 the rover's pose is at that sync) wherever it would register the rover's cells: every sync
 placed exactly, also those with nothing to register on. ``--send-back`` sends a rover the
@@ -54,30 +55,6 @@ CONDITIONS: dict[str, dict | None] = {
     "unknown, drift, no lander image": {k: v for k, v in REALISTIC.items() if k != "lander_view"},
     "unknown start only": {"start_offset": 1.0, "start_heading": 1.0, "lander_view": 12.0},
 }
-
-
-def what_if(oracle: bool, send_back: bool) -> None:
-    """Patch the star's framed base for ``--oracle`` and ``--send-back`` (see the module)."""
-    if oracle:
-        poses: list = []
-        init = framed.FramedWorld.__init__
-
-        def remember(self, *a, **kw):
-            init(self, *a, **kw)
-            poses[:] = self.poses
-
-        def place_exactly(self, k: int, round_no: int) -> None:
-            if not self.pending[k].any():
-                return
-            t = poses[k].to_own().inverse()  # the rover's frame -> the true frame, now
-            self.log.append(framed.Placing(round_no, k, "oracle", 1.0, 0, (t.dy, t.dx, t.heading_deg)))
-            if self.transforms[k] is None:
-                self.first[k] = t
-            self._merge(k, t, round_no)
-        framed.FramedWorld.__init__ = remember
-        framed._Placer._place = place_exactly
-    if send_back:
-        framed._Placer.withheld = lambda self, k: None
 
 
 def one(frames: dict | None, seed: int, steps: int, strategies: list[str], topology: str = "star") -> dict:
@@ -132,7 +109,11 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if (args.oracle or args.send_back) and args.topology != "star":
         p.error("--oracle and --send-back are what-ifs of the star's base")
-    what_if(args.oracle, args.send_back)
+    with framed.what_if(framed.WhatIf(oracle=args.oracle, send_back=args.send_back)):
+        return _main(args, p)
+
+
+def _main(args, p) -> int:
     suffix = "".join(f"_{n}" for n, on in (("oracle", args.oracle), ("send_back", args.send_back)) if on)
     names = args.strategies.split(",")
     conditions = {c: CONDITIONS[c] for c in args.conditions.split(";")}

@@ -1,5 +1,5 @@
 """Federated fine-tuning of the map predictor across sites, leave one site out
-(fedmap.mission.predictorfed; issue 35, part 3).
+(fedmap.training.predictorfed; issue 35, part 3).
 
     python benchmarks/predictor_federated.py                       # leave-one-out over the four sites
     python benchmarks/predictor_federated.py --held-out hadley     # one fold
@@ -40,8 +40,8 @@ import numpy as np
 import torch
 
 from fedmap.mission import load_mission, mission_terrain
-from fedmap.mission.predictorfed import FineTuning, Site, compare, plot_rounds, predictor_weights, site_maps
 from fedmap.nets.predictor import shipped_predictor
+from fedmap.training.predictorfed import FineTuning, Site, compare, plot_rounds, predictor_weights, site_maps
 
 ROOT = Path(__file__).resolve().parents[1]
 

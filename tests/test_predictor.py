@@ -1,4 +1,4 @@
-"""The map predictor (fedmap.nets.predictor), its offline training (fedmap.mission.predictorprior)
+"""The map predictor (fedmap.nets.predictor), its offline training (fedmap.training.predictorprior)
 and its zero-byte uses in planning (fedmap.mission.frontiers, fedmap.mission.world)."""
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ from fedmap.mission.frontiers import (
     predicted_cost,
     travel_costs,
 )
-from fedmap.mission.predictorprior import exploration_samples
 from fedmap.mission.settings import MissionConfig, load_mission
 from fedmap.mission.sim import prepare_mission
 from fedmap.nets.predictor import (
@@ -37,6 +36,7 @@ from fedmap.nets.predictor import (
     shipped_predictor,
     train_predictor,
 )
+from fedmap.training.predictorprior import exploration_samples
 
 
 def test_parameter_count_by_hand_and_under_a_million():

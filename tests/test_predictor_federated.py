@@ -1,4 +1,4 @@
-"""The map predictor's federated fine-tuning across sites (fedmap.mission.predictorfed and
+"""The map predictor's federated fine-tuning across sites (fedmap.training.predictorfed and
 its Flower apps, fedmap.flower.predictor_*)."""
 
 import json
@@ -12,7 +12,9 @@ import pytest
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.maps.sources import TerrainSource, load_truth
-from fedmap.mission.predictorfed import (
+from fedmap.mission.settings import MissionConfig
+from fedmap.nets.predictor import MapPredictor, PredictorConfig, shipped_predictor
+from fedmap.training.predictorfed import (
     FineTuning,
     Site,
     alone,
@@ -29,8 +31,6 @@ from fedmap.mission.predictorfed import (
     scores,
     site_maps,
 )
-from fedmap.mission.settings import MissionConfig
-from fedmap.nets.predictor import MapPredictor, PredictorConfig, shipped_predictor
 
 TINY = PredictorConfig(stem=4, width=8, dilations=(1, 2))
 QUICK = FineTuning(steps=3, batch=2, crop=16, lr=1e-2, seed=0)

@@ -17,8 +17,8 @@ from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.meta.collections import MapCollection
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
-from fedmap.mission.coderprior import _scaled, learn_coder_prior, save_coder_prior
 from fedmap.mission.protocol import cover
+from fedmap.training.coderprior import _scaled, learn_coder_prior, save_coder_prior
 
 SHAPE = (40, 48)
 

@@ -22,10 +22,10 @@ from fedmap.meta.ablation import AblationConfig, make_inits, pick_maps, run_abla
 from fedmap.meta.collections import BUILTIN_CATEGORIES, LAYOUTS, MapCollection, earth_like, load_collection
 from fedmap.meta.reptile import MetaConfig
 from fedmap.meta.reptile import meta_train as run_meta_train
-from fedmap.mission.coderprior import learn_coder_prior, prior_path, save_coder_prior
-from fedmap.mission.predictorprior import check_every, exploration_samples, save_shipped_predictor
 from fedmap.nets.model import NetConfig, preset
 from fedmap.nets.predictor import SHIPPED_PREDICTOR, PredictorTraining, count_parameters, train_predictor
+from fedmap.training.coderprior import learn_coder_prior, prior_path, save_coder_prior
+from fedmap.training.predictorprior import check_every, exploration_samples, save_shipped_predictor
 
 
 def _collection(source: str, *, layout: str, size: int, per_category: int, categories: Optional[str],

@@ -1,5 +1,5 @@
 """``fedmap federate-predictor``: the map predictor fine-tuned across sites with FedAvg,
-measured on a site held out of training (:mod:`fedmap.mission.predictorfed`)."""
+measured on a site held out of training (:mod:`fedmap.training.predictorfed`)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ from fedmap._util import make_dir
 from fedmap.cli.ui import console
 from fedmap.errors import FedmapError
 from fedmap.mission import load_mission, mission_terrain
-from fedmap.mission.predictorfed import (
+from fedmap.nets.predictor import load_predictor, save_predictor, shipped_predictor
+from fedmap.training.predictorfed import (
     FineTuning,
     Site,
     SiteMaps,
@@ -26,7 +27,6 @@ from fedmap.mission.predictorfed import (
     save_site_samples,
     site_maps,
 )
-from fedmap.nets.predictor import load_predictor, save_predictor, shipped_predictor
 
 
 def _spec(spec: str) -> tuple[str, Path]:

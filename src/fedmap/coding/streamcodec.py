@@ -13,7 +13,7 @@ nothing: its counts, its headers, and the mask of *which* cells are new. Here:
   (:attr:`CoderState.seq`, one byte); a receiver holding another state rejects it.
 * **It starts learned.** :func:`initial_state` starts from counts learned offline on the
   Earth-like map collections of the meta-initialisation (never on a test site), shipped
-  in ``fedmap/weights/cell_prior.npz``; :func:`fedmap.mission.coderprior.learn_coder_prior`
+  in ``fedmap/weights/cell_prior.npz``; :func:`fedmap.training.coderprior.learn_coder_prior`
   retrains them (``fedmap meta-coder``).
 * **The mask is derived where it can be.** A message carries *tracks* (positions, each an
   8-neighbour step from the previous, coded as moves in context of the previous move),
@@ -189,7 +189,7 @@ def blank_state() -> CoderState:
 
 
 def initial_state() -> CoderState:
-    """The shipped learned initial state (:func:`fedmap.mission.coderprior.learn_coder_prior`), or a
+    """The shipped learned initial state (:func:`fedmap.training.coderprior.learn_coder_prior`), or a
     blank one without it."""
     path = resources.files("fedmap.weights").joinpath(PRIOR_FILE)
     if not path.is_file():

@@ -2,9 +2,9 @@
 the global weights on the site's own samples; its maps never leave it.
 
 Node config: ``partition-id`` (the site's index, which seeds its rounds) and ``samples``
-(its fine-tuning samples, :func:`fedmap.mission.predictorfed.save_site_samples`).
+(its fine-tuning samples, :func:`fedmap.training.predictorfed.save_site_samples`).
 ``query``: say which site it is. ``train``: decode the global weights, run
-:func:`~fedmap.mission.predictorfed.local_round` and reply with the new weights and the
+:func:`~fedmap.training.predictorfed.local_round` and reply with the new weights and the
 site's sample count. ``evaluate``: the run is over; with ``done-file=<path>`` in the node
 config it writes that file.
 """
@@ -22,7 +22,7 @@ from fedmap.federation.codecs import Encoder, decode
 from fedmap.flower.polling import quick_pulls
 from fedmap.flower.predictor_task import PredictorRun
 from fedmap.flower.records import from_record, to_record
-from fedmap.mission.predictorfed import load_site_samples, local_round
+from fedmap.training.predictorfed import load_site_samples, local_round
 
 app = ClientApp()
 quick_pulls()

@@ -4,8 +4,8 @@ FedAvg rounds over one SuperNode per site.
 It asks every connected node which site it is (a ``query``; node config ``partition-id``),
 then every round sends every site the global weights (a ``train`` message: a fedmap
 ``fp32`` payload, :mod:`fedmap.flower.records`) and averages the sites' replies in site
-order with :func:`fedmap.mission.predictorfed.fedavg_predictor`: the same weights as
-:func:`~fedmap.mission.predictorfed.federate`. A site that does not answer within
+order with :func:`fedmap.training.predictorfed.fedavg_predictor`: the same weights as
+:func:`~fedmap.training.predictorfed.federate`. A site that does not answer within
 ``deadline`` fails the run (FedAvg over the sites that answered would not be the
 comparison it is measured against). At the end every site gets an ``evaluate`` message
 (its SuperNode may stop). Files: :mod:`fedmap.flower.predictor_task`.
@@ -26,7 +26,7 @@ from fedmap.flower.polling import exchange, quick_pulls
 from fedmap.flower.predictor_task import PredictorRun, save_round, write_rounds_log
 from fedmap.flower.records import check_flower_count, from_record, to_record
 from fedmap.flower.task import write_status
-from fedmap.mission.predictorfed import fedavg_predictor
+from fedmap.training.predictorfed import fedavg_predictor
 
 app = ServerApp()
 quick_pulls()

@@ -1,9 +1,9 @@
 """What the predictor apps do, Flower-free: their run config, and the files a run leaves.
 
 The predictor's federated fine-tuning on Flower (:mod:`fedmap.flower.predictor_server`,
-:mod:`fedmap.flower.predictor_client`) is :func:`fedmap.mission.predictorfed.federate` on
+:mod:`fedmap.flower.predictor_client`) is :func:`fedmap.training.predictorfed.federate` on
 processes: one SuperNode per site, each holding its own samples (node config ``samples``:
-a file of :func:`~fedmap.mission.predictorfed.save_site_samples`; ``partition-id``: the
+a file of :func:`~fedmap.training.predictorfed.save_site_samples`; ``partition-id``: the
 site's index, which seeds its rounds). Weights cross as fedmap ``fp32`` payloads
 (:mod:`fedmap.federation.codecs`) in Flower records (:mod:`fedmap.flower.records`).
 
@@ -20,9 +20,9 @@ from pathlib import Path
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
-from fedmap.mission.predictorfed import FineTuning, predictor_from_weights, predictor_weights
 from fedmap.nets.model import Weights
 from fedmap.nets.predictor import load_predictor, save_predictor, shipped_predictor
+from fedmap.training.predictorfed import FineTuning, predictor_from_weights, predictor_weights
 
 #: The predictor app's run config and its defaults (``predictor_app/pyproject.toml``; a test checks they match).
 PREDICTOR_RUN_DEFAULTS: dict = {"sites": 2, "rounds": 1, "local-steps": 40, "batch": 8, "crop": 96, "lr": 5e-4,

@@ -18,7 +18,7 @@ sharing are compared on the same mission.
 * :mod:`~fedmap.mission.sim`: :func:`run_mission`, the step loop; its typed results
   (:class:`StrategyRun`: a :class:`TimeSeries` and a :class:`MissionSummary` per strategy)
   are in :mod:`~fedmap.mission.results`;
-* :mod:`~fedmap.mission.coderprior`: the predictive coder's learned initial state;
+* :mod:`~fedmap.mission.scoring`: a mission scored from what its nodes logged (``fedmap score``);
 * :mod:`~fedmap.mission.report`: ``metrics.json``, ``report.md``, plots and the animation;
 * :mod:`~fedmap.mission.maps_out`: the final global maps and beliefs as GridMaps and files
   (:func:`mission_maps`, :func:`write_mission_maps`).

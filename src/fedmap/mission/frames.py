@@ -67,6 +67,8 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -536,6 +538,32 @@ class Placing:
                 "overlap": self.overlap, "transform": self.transform, "reason": self.reason}
 
 
+@dataclass(frozen=True)
+class WhatIf:
+    """What-ifs of the framed star's base, for ablations (``benchmarks/mission_frames.py``);
+    never a mission's own behaviour, which no setting changes. ``oracle``: the base places
+    every rover's cells by its *true* transform (its frame into the true frame, as its pose
+    is at that sync) wherever it would register them, also with nothing to register on.
+    ``send_back``: a downlink sends a rover the global cells it gave too."""
+
+    oracle: bool = False
+    send_back: bool = False
+
+
+_WHAT_IF = WhatIf()
+
+
+@contextmanager
+def what_if(change: WhatIf) -> Iterator[None]:
+    """Every framed star base built while the ``with`` block runs follows ``change``."""
+    global _WHAT_IF
+    before, _WHAT_IF = _WHAT_IF, change
+    try:
+        yield
+    finally:
+        _WHAT_IF = before
+
+
 class _Placer:
     """What a base end adds when every rover maps in its own frame (see the module): each
     rover's cells kept in its frame, and merged into the global map (``base``, stamped by
@@ -558,10 +586,13 @@ class _Placer:
         self.owner = np.full(shape, -1, dtype=np.int64)  # the rover whose cell each global cell first was
         self.owner_round = np.full(shape, -1, dtype=np.int64)  # and the round it was merged
         self.log: list[Placing] = []
+        self.what_if = _WHAT_IF
+        #: :attr:`WhatIf.oracle`: every rover's true pose (set by :func:`build`; None: registration, as ever)
+        self.true_poses: list[Pose] | None = None
 
     def withheld(self, k: int) -> np.ndarray | None:
         """A downlink leaves out the global cells rover ``k`` gave: it holds them in its own frame."""
-        return self.owner == k
+        return None if self.what_if.send_back else self.owner == k
 
     def _take(self, k: int, cells: np.ndarray, round_no: int) -> None:
         """Rover ``k``'s cells (its frame) arrived: keep them, and place them if it can."""
@@ -574,6 +605,13 @@ class _Placer:
     def _place(self, k: int, round_no: int) -> None:
         f, sub, pend = self.frames, self.sub[k], self.pending[k]
         if not pend.any():
+            return
+        if self.true_poses is not None:  # the oracle's what-if: placed exactly
+            exact = self.true_poses[k].to_own().inverse()  # the rover's frame -> the true frame, now
+            self.log.append(Placing(round_no, k, "oracle", 1.0, 0, (exact.dy, exact.dx, exact.heading_deg)))
+            if self.transforms[k] is None:
+                self.first[k] = exact
+            self._merge(k, exact, round_no)
             return
         oldest = int(self.sub_round[k][pend].min())
         window = np.where((self.sub_round[k] > oldest - f.window) & (sub != UNKNOWN), sub, UNKNOWN).astype(np.uint8)
@@ -864,14 +902,21 @@ def build(name: str, setup: Setup) -> Sharing:
                                   for k, r in enumerate(setup.team)]
         base: BaseEnd = FramedPredictiveBase(setup.truth.shape, setup.starts, budget=lc.downlink_bytes,
                                              radius=radius, frames=f, options=opts, reference=reference)
-        return Sharing(name, setup.team, rovers, base, journal=setup.journal)
+        return _with_what_if(Sharing(name, setup.team, rovers, base, journal=setup.journal), setup)
     rovers = [FramedRawRover(k, r, setup.starts, budget=lc.uplink_bytes, recent=recent)
               for k, r in enumerate(setup.team)]
     base = FramedRawBase(setup.truth.shape, setup.starts, budget=lc.downlink_bytes, frames=f, journal=setup.journal,
                          reference=reference)
-    return Sharing(name, setup.team, rovers, base, journal=setup.journal)
+    return _with_what_if(Sharing(name, setup.team, rovers, base, journal=setup.journal), setup)
+
+
+def _with_what_if(sharing: Sharing, setup: Setup) -> Sharing:
+    """``sharing`` with the oracle's true poses given to its base under :class:`WhatIf`."""
+    if isinstance(sharing.base, _Placer) and sharing.base.what_if.oracle:
+        sharing.base.true_poses = [r.frame for r in setup.team]
+    return sharing
 
 
 __all__ = ["SENSED_BEYOND", "TRANSFORM_BYTES", "FramedPredictiveBase", "FramedPredictiveRover",
-           "FramedRawBase", "FramedRawPeer", "FramedRawRover", "FramedWorld", "Placing", "Pose", "build", "chain",
-           "check_frames", "pack_transform", "registrations", "track", "unpack_transform"]
+           "FramedRawBase", "FramedRawPeer", "FramedRawRover", "FramedWorld", "Placing", "Pose", "WhatIf", "build",
+           "chain", "check_frames", "pack_transform", "registrations", "track", "unpack_transform", "what_if"]

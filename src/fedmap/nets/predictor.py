@@ -9,7 +9,7 @@ observation.
 Every rover runs the same network on the map it holds, so rovers that hold the same map
 make the same guesses, and the guesses cost no link bytes. The shipped weights,
 ``fedmap/weights/predictor.safetensors``, are learned offline by ``fedmap meta-predictor``
-(:mod:`fedmap.mission.predictorprior`) on the built-in Earth-like collection, never on a
+(:mod:`fedmap.training.predictorprior`) on the built-in Earth-like collection, never on a
 test site.
 
 Architecture (about 68 k parameters, no normalisation layers, so nothing but the weights
