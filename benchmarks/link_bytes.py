@@ -4,7 +4,7 @@ reports (fedmap's frames) against the strategy's own bytes the ledger counts.
     python benchmarks/link_bytes.py                       # the default mission, predictive and raw
     python benchmarks/link_bytes.py --strategies fedmap
 
-Every rover runs behind bytes in this process (:func:`fedmap.mission.remote.loopback`, the
+Every rover runs behind bytes in this process (:func:`fedmap.mission.network.remote.loopback`, the
 reference a mission on processes is checked against), so what is measured is exactly what a
 transport carries, without Flower's own envelope. Prints, per strategy: the ledger's bytes
 (uplinks and downlinks), the bytes of every order and report, their ratio, and the bytes
@@ -20,7 +20,7 @@ import platform
 from pathlib import Path
 
 from fedmap.mission import load_mission, mission_terrain
-from fedmap.mission.remote import BaseNode, loopback, rounds
+from fedmap.mission.network.remote import BaseNode, loopback, rounds
 from fedmap.mission.sim import prepare_mission
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -22,7 +22,7 @@ import tempfile
 from pathlib import Path
 
 from fedmap.cli import main
-from fedmap.mission.report import without_timings
+from fedmap.mission.outputs.report import without_timings
 
 ROOT = Path(__file__).resolve().parent.parent
 #: name -> the ``fedmap mission`` arguments

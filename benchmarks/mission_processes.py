@@ -29,7 +29,7 @@ from pathlib import Path
 
 from fedmap.flower.deploy import LOCAL_POLL, deploy_mission
 from fedmap.mission import load_mission, mission_terrain, run_mission
-from fedmap.mission.report import metrics, without_timings
+from fedmap.mission.outputs.report import metrics, without_timings
 from fedmap.mission.settings import mission_toml
 
 OUT = Path(__file__).resolve().parent / "results" / "mission_processes.json"

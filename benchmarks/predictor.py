@@ -42,7 +42,7 @@ import torch
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.sim import prepare_mission
-from fedmap.mission.world import PredictedView
+from fedmap.mission.world.world import PredictedView
 from fedmap.nets.predictor import count_parameters, one_hot, predict, shipped_predictor
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -69,7 +69,7 @@ def mission_file(name: str) -> Path | None:
 
 def ablate(what: str) -> None:
     """Take one planning use of the predictor away in this process (see ``--ablation``)."""
-    from fedmap.mission import frontiers
+    from fedmap.mission.world import frontiers
 
     if what == "no-uncertainty":
         frontiers.entropy_bits = lambda p: np.ones(np.shape(p))  # type: ignore[assignment]
@@ -103,7 +103,7 @@ def run_one(job: tuple[str, int, str, int, str]) -> dict:
     from fedmap.mission import load_mission, mission_terrain
     from fedmap.mission.results import false_free
     from fedmap.mission.sim import prepare_mission
-    from fedmap.mission.world import PredictedView
+    from fedmap.mission.world.world import PredictedView
     from fedmap.nets.predictor import shipped_predictor
 
     path = mission_file(name)

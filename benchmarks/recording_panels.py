@@ -1,7 +1,7 @@
 """The Foxglove layout's panels drawn from a recording's own data (no viewer runs here).
 
 Records a mission (``fedmap mission --record``), reads the MCAP back with the project's
-reader (``fedmap.mission.recording.read_recording`` / ``decode`` / ``grid_arrays``: the
+reader (``fedmap.mission.outputs.recording.read_recording`` / ``decode`` / ``grid_arrays``: the
 ``mcap`` package and the Foxglove schemas stored in the file), and draws what the layout in
 ``docs/foxglove_layout.json`` shows at one step: the truth, one rover's belief and the
 global map with every rover's pose and trail (``/<s>/poses``), and the scores plot
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from fedmap.maps.grid import PALETTE
-from fedmap.mission.recording import decode, grid_arrays, read_recording
+from fedmap.mission.outputs.recording import decode, grid_arrays, read_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 

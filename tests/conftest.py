@@ -59,7 +59,7 @@ def pytest_configure(config):
         return
     compile_fedmap()
     from fedmap.evaluation.metrics import image_scores
-    from fedmap.mission.remote import warm_up
+    from fedmap.mission.network.remote import warm_up
 
     warm_up()  # the planners: target choice, travel costs, A*
     for side in (8, 160):  # SSIM from classes, in one thread and (maps of 134 cells and more) in two

@@ -14,10 +14,10 @@ from fedmap.flower.task import initial_weights as flower_initial_weights
 from fedmap.flower.task import load_local_map
 from fedmap.maps.grid import UNKNOWN
 from fedmap.maps.sources import load_truth
-from fedmap.mission.registry import Setup, build
+from fedmap.mission.ends.registry import Setup, build
+from fedmap.mission.network.topology import StarTopology
 from fedmap.mission.settings import MissionConfig
-from fedmap.mission.topology import StarTopology
-from fedmap.mission.world import Rover
+from fedmap.mission.world.world import Rover
 from fedmap.nets.init import load_init_weights
 from fedmap.nets.model import build_model, get_weights
 from fedmap.nets.training import native_bf16

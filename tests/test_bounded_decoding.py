@@ -18,8 +18,8 @@ import zstandard
 
 from fedmap._util import inflate_zlib, inflate_zstd
 from fedmap.errors import RejectedUpdate
-from fedmap.mission.nodelog import MAX_ENTRY_MAPS, RoverEntry
-from fedmap.mission.remote import CorruptMessage, Report, pack_frame
+from fedmap.mission.network.nodelog import MAX_ENTRY_MAPS, RoverEntry
+from fedmap.mission.network.remote import CorruptMessage, Report, pack_frame
 
 
 def zstd_bomb(size: int, *, declare: bool = True) -> bytes:
@@ -67,8 +67,8 @@ def test_a_log_that_announces_a_gigabyte_is_refused_in_one_line_with_little_memo
     code = f"""
 import resource, sys
 from pathlib import Path
-from fedmap.mission.nodelog import RoverEntry
-from fedmap.mission.wire import CorruptMessage
+from fedmap.mission.network.nodelog import RoverEntry
+from fedmap.mission.network.wire import CorruptMessage
 for name in ("announced", "lying"):
     raw = Path({str(tmp_path)!r}, name).read_bytes()
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -103,7 +103,7 @@ def test_a_log_of_another_maps_shape_is_refused_where_the_mission_is_known():
                                     {"kind": "rover-log", "states": 5}, {"kind": "rover-log", "states": [[1]]},
                                     {"kind": "base-log", "held": [0]}])
 def test_a_header_of_the_wrong_layout_is_a_corrupt_message_not_a_crash(header):
-    from fedmap.mission.nodelog import BaseRecord
+    from fedmap.mission.network.nodelog import BaseRecord
 
     kind = {"report": Report, "rover-log": RoverEntry, "base-log": BaseRecord}[header["kind"]]
     with pytest.raises(CorruptMessage):
@@ -131,7 +131,7 @@ def test_a_weights_payload_whose_zstd_frame_lies_about_its_size_is_rejected():
 
 
 def test_a_rosgrid_zlib_bomb_is_not_a_grid():
-    from fedmap.mission.rosgrid import GridCodec
+    from fedmap.mission.ends.rosgrid import GridCodec
 
     codec = GridCodec((32, 32), resolution=1.0, origin=(0.0, 0.0), sync_every=1, level=9)
     classes = np.zeros((32, 32), np.uint8)

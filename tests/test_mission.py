@@ -13,12 +13,12 @@ from fedmap.coding.mapcodec import decode_map
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
-from fedmap.mission.frontiers import DETOUR, choose_target, frontier_mask, gain_at, plan_path, travel_costs
-from fedmap.mission.link import Link
-from fedmap.mission.protocol import unpack_up
-from fedmap.mission.sensing import disk_offsets, footprint
+from fedmap.mission.ends.protocol import unpack_up
+from fedmap.mission.network.link import Link
+from fedmap.mission.network.topology import StarTopology
 from fedmap.mission.settings import load_mission
-from fedmap.mission.topology import StarTopology
+from fedmap.mission.world.frontiers import DETOUR, choose_target, frontier_mask, gain_at, plan_path, travel_costs
+from fedmap.mission.world.sensing import disk_offsets, footprint
 
 
 def _maze(n: int = 40, seed: int = 3) -> GridMap:
@@ -465,8 +465,8 @@ def test_fedmap_strategy_is_one_round_of_fedmap_run():
     base steps of `fedmap run`) on the rovers' local maps at that sync."""
     from fedmap.config import method_config
     from fedmap.federation.runner import run_federation
-    from fedmap.mission.model import COUNT_BYTES
-    from fedmap.mission.protocol import UP_HEADER, torch_threads
+    from fedmap.mission.ends.model import COUNT_BYTES
+    from fedmap.mission.ends.protocol import UP_HEADER, torch_threads
     from fedmap.pipeline import initial_weights
 
     truth = _maze(32)
@@ -595,7 +595,7 @@ def test_beliefs_are_scored_on_observed_and_unobserved_cells_apart():
 
 
 def test_a_downlink_over_the_budget_arrives_in_chunks_over_the_rounds(monkeypatch):
-    from fedmap.mission.model import ModelRover
+    from fedmap.mission.ends.model import ModelRover
     completed: list[tuple[int, str]] = []
     real = ModelRover._receive_chunk
 
@@ -643,7 +643,7 @@ def test_rate_control_sends_the_best_update_that_fits_rather_than_nothing():
 
 
 def test_training_on_what_changed_selects_the_new_cells_and_a_seeded_replay_sample():
-    from fedmap.mission.model import MIN_REPLAY
+    from fedmap.mission.ends.model import MIN_REPLAY
 
     truth = maze(40, seed=2)
     base = dict(rovers=2, steps=30, sync_every=10, speed=2, sensor_radius=4.0, eval_pairs=8,
@@ -679,7 +679,7 @@ def test_the_central_map_kept_between_writes_is_the_overlay_of_every_rover(kind,
     it equals the overlay built anew from every rover's map (team order, a later known cell
     over an earlier one), with rovers and with a helicopter (coarse cells); and it cannot
     be written through."""
-    from fedmap.mission.raw import CentralBase
+    from fedmap.mission.ends.raw import CentralBase
     from fedmap.mission.settings import HelicopterConfig
 
     kept = CentralBase.global_map
@@ -705,7 +705,8 @@ def test_rovers_training_side_by_side_send_what_they_send_one_after_another(monk
     """A sync's rovers train on threads side by side (``protocol.side_by_side``), each on one
     torch thread: the same losses, bytes on the link and models as training them in turn
     (one core), including a rejected update's place in the journal."""
-    from fedmap.mission import protocol, topology
+    from fedmap.mission.ends import protocol
+    from fedmap.mission.network import topology
 
     truth = _maze(32)
     cfg = _small(rovers=3, steps=12, sync_every=4, strategies=("fedmap",), link=LinkConfig(loss=0.2, seed=2),

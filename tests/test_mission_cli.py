@@ -13,7 +13,7 @@ from PIL import Image
 
 from fedmap.cli import main
 from fedmap.mission import load_mission
-from fedmap.mission.report import LABEL_BAND
+from fedmap.mission.outputs.report import LABEL_BAND
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 TINY = ["--size", "64", "--steps", "12", "--sync-every", "4", "--rovers", "2", "--sensor-radius", "4"]
@@ -115,7 +115,7 @@ def test_cadre_preset_and_examples_resolve():
 
 @pytest.mark.skipif(shutil.which("ffmpeg") is None, reason="ffmpeg is not on the PATH")
 def test_mp4_when_ffmpeg_is_present(tmp_path):
-    from fedmap.mission.report import mp4_bytes
+    from fedmap.mission.outputs.report import mp4_bytes
 
     frames = [np.full((16, 20, 3), 40 * i, dtype=np.uint8) for i in range(5)]
     data = mp4_bytes(frames)

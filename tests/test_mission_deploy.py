@@ -28,7 +28,7 @@ from fedmap.flower.launch import OWNER_FILE  # noqa: E402
 from fedmap.flower.mission_task import MISSION_RUN_DEFAULTS  # noqa: E402
 from fedmap.maps.grid import UNKNOWN  # noqa: E402
 from fedmap.mission import load_mission, mission_terrain, run_mission  # noqa: E402
-from fedmap.mission.report import metrics, without_timings  # noqa: E402
+from fedmap.mission.outputs.report import metrics, without_timings  # noqa: E402
 from fedmap.mission.settings import mission_toml  # noqa: E402
 
 pytestmark = pytest.mark.slow

@@ -1,4 +1,4 @@
-"""Missions with unknown poses and drift (fedmap.mission.frames): off is today's mission, the
+"""Missions with unknown poses and drift (fedmap.mission.world.frames): off is today's mission, the
 estimated transforms are what is scored, the gate keeps a map with no true overlap out,
 and the drift is seeded."""
 
@@ -14,7 +14,11 @@ from fedmap.errors import FedmapError
 from fedmap.maps.grid import IMPASSABLE, UNKNOWN
 from fedmap.maps.registration import RigidTransform
 from fedmap.mission import mission_terrain, run_mission
-from fedmap.mission.frames import (
+from fedmap.mission.ends.protocol import pack_down, pack_up, unpack_down
+from fedmap.mission.network.link import BASE
+from fedmap.mission.network.remote import check_deployable
+from fedmap.mission.settings import FramesConfig, load_mission
+from fedmap.mission.world.frames import (
     TRANSFORM_BYTES,
     FramedPredictiveBase,
     FramedPredictiveRover,
@@ -26,10 +30,6 @@ from fedmap.mission.frames import (
     track,
     unpack_transform,
 )
-from fedmap.mission.link import BASE
-from fedmap.mission.protocol import pack_down, pack_up, unpack_down
-from fedmap.mission.remote import check_deployable
-from fedmap.mission.settings import FramesConfig, load_mission
 
 MISSION = {"rovers": 2, "steps": 40, "sync_every": 8, "sensor_radius": 6.0, "eval_pairs": 8, "strategies": ["raw"]}
 DRIFT = {"start_offset": 1.0, "start_heading": 1.0, "drift": 0.03, "heading_drift": 0.01, "lander_view": 12.0}
@@ -278,7 +278,7 @@ def test_the_registrations_are_written_and_reported(known):
     and the report counts them per strategy."""
     from collections import Counter
 
-    from fedmap.mission.report import report_md
+    from fedmap.mission.outputs.report import report_md
 
     config, truth = _mission(DRIFT)
     result = run_mission(config, truth)

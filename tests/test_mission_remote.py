@@ -1,4 +1,4 @@
-"""A mission whose rovers run elsewhere (:mod:`fedmap.mission.remote`): every rover's world
+"""A mission whose rovers run elsewhere (:mod:`fedmap.mission.network.remote`): every rover's world
 and end behind bytes only, the base station's end and the radio on the other side. With
 the same seed and config it records the same mission as the simulator, message for
 message; a frame that was damaged on the way is refused by its check."""
@@ -17,8 +17,8 @@ from hypothesis import strategies as st
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN
 from fedmap.mission import load_mission, mission_terrain
-from fedmap.mission.nodelog import RoverEntry, read_base_records, read_rover_log, write_log
-from fedmap.mission.remote import (
+from fedmap.mission.network.nodelog import RoverEntry, read_base_records, read_rover_log, write_log
+from fedmap.mission.network.remote import (
     BaseNode,
     CorruptMessage,
     LostState,
@@ -32,7 +32,7 @@ from fedmap.mission.remote import (
     unpack_frame,
     unpack_history,
 )
-from fedmap.mission.report import metrics, without_timings
+from fedmap.mission.outputs.report import metrics, without_timings
 from fedmap.mission.results import MissionResult
 from fedmap.mission.scoring import score_strategy
 from fedmap.mission.sim import prepare_mission, run_mission
@@ -132,8 +132,8 @@ _events = st.lists(st.one_of(st.tuples(st.just("ack"), st.integers(0, 2**32 - 1)
 def test_orders_and_reports_are_small_binary_frames_a_damage_anywhere_refuses(events, step, finish, payload, data):
     """An order and a report come back as they went; their framing is tens of bytes (the
     strategy's payload aside); any byte flipped or any cut is refused as a corrupt message."""
-    from fedmap.mission.protocol import Outgoing
-    from fedmap.mission.wire import MESSAGE_OVERHEAD
+    from fedmap.mission.ends.protocol import Outgoing
+    from fedmap.mission.network.wire import MESSAGE_OVERHEAD
 
     order = Order("predictive", 3, 7, step, finish, events, "a1b2c3d4e5f6", max(step - 1, 0))
     report = Report("predictive", 3, step, (120, 7), None if finish else (5, 9), not finish,
@@ -206,7 +206,7 @@ def _snapshots(truth, steps, seed=0):
 def test_a_rover_fed_by_its_own_maps_shares_every_cell_they_hold(tmp_path, kind):
     from fedmap.maps.io import save_map
     from fedmap.maps.rosbag import write_bag
-    from fedmap.mission.feed import MapFeed
+    from fedmap.mission.world.feed import MapFeed
 
     config, truth, kw = _mission(("raw",), steps=40, loss=0.0)
     snaps = _snapshots(truth, [0, 10, 20, 30])
@@ -233,7 +233,7 @@ def test_a_rover_fed_by_its_own_maps_shares_every_cell_they_hold(tmp_path, kind)
 
 def test_a_bad_map_feed_is_refused_in_one_line(tmp_path):
     from fedmap.maps.io import save_map
-    from fedmap.mission.feed import MapFeed
+    from fedmap.mission.world.feed import MapFeed
 
     config, truth, kw = _mission(("raw",), steps=12)
     m = prepare_mission(config, truth, **kw)
@@ -377,7 +377,7 @@ def test_every_message_in_process_crosses_as_a_frame_and_its_wire_bytes_are_coun
     crosses the transport as a message frame; its wire bytes are the ledger's bytes plus each
     frame's framing, hop by hop (a hand count from the ledger and the layout), and a strategy
     that sends nothing has none."""
-    from fedmap.mission.wire import MESSAGE_OVERHEAD
+    from fedmap.mission.network.wire import MESSAGE_OVERHEAD
 
     link = {"topology": topology, "loss": 0.2}
     if topology != "star":

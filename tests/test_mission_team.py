@@ -13,7 +13,7 @@ from tests.test_flower import task_identity  # noqa: E402, F401
 from fedmap.flower import mission_server, polling  # noqa: E402
 from fedmap.flower.mission_task import MissionRun  # noqa: E402
 from fedmap.flower.records import to_record  # noqa: E402
-from fedmap.mission.remote import Report  # noqa: E402
+from fedmap.mission.network.remote import Report  # noqa: E402
 
 REPORT = Report("raw", 0, 5, (1, 1), None, True, None, [], None, {}).to_bytes()
 
@@ -174,9 +174,9 @@ def test_what_a_strategy_can_do_is_said_by_its_spec_alone():
     specs: the lists the CLI, the deployment and the frames check use are the same."""
     from fedmap.errors import FedmapError
     from fedmap.mission import load_mission
-    from fedmap.mission.frames import check_frames
-    from fedmap.mission.registry import REGISTRY, names_that
-    from fedmap.mission.remote import check_deployable
+    from fedmap.mission.ends.registry import REGISTRY, names_that
+    from fedmap.mission.network.remote import check_deployable
+    from fedmap.mission.world.frames import check_frames
 
     deployable, framed = names_that("deployable"), names_that("framed")
     assert "central" not in deployable and {"raw", "predictive", "fedmap", "paper"} <= set(deployable)

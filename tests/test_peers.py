@@ -16,11 +16,11 @@ from fedmap.errors import FedmapError
 from fedmap.federation.aggregate import metropolis_mix, metropolis_weight
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.mission import LinkConfig, MissionConfig
-from fedmap.mission.link import BASE, PEER, Link
-from fedmap.mission.sensing import block_classes, coarse_footprint
+from fedmap.mission.network.link import BASE, PEER, Link
+from fedmap.mission.network.topology import MeshTopology, components, elect_leaders, route
 from fedmap.mission.settings import HelicopterConfig
 from fedmap.mission.sim import run_mission
-from fedmap.mission.topology import MeshTopology, components, elect_leaders, route
+from fedmap.mission.world.sensing import block_classes, coarse_footprint
 
 
 def _random_graph(rng, n: int, p: float) -> list[tuple[int, int]]:
@@ -443,7 +443,7 @@ def test_height_noise_is_seeded_and_measured():
 
 
 def test_under_leaders_each_admm_agent_takes_one_primal_step_per_round():
-    from fedmap.mission.gossip import AdmmPeer
+    from fedmap.mission.ends.gossip import AdmmPeer
 
     calls: list[tuple[int, int]] = []
     original = AdmmPeer._primal

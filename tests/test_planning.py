@@ -733,7 +733,7 @@ def test_a_kernel_is_compiled_once_however_many_threads_ask_at_once():
     from fedmap._util import compiled_once
     from fedmap.evaluation import metrics
     from fedmap.maps import planning
-    from fedmap.mission import frontiers
+    from fedmap.mission.world import frontiers
     from fedmap.nets import training
 
     built: list[int] = []

@@ -1,5 +1,5 @@
 """The map predictor (fedmap.nets.predictor), its offline training (fedmap.training.predictorprior)
-and its zero-byte uses in planning (fedmap.mission.frontiers, fedmap.mission.world)."""
+and its zero-byte uses in planning (fedmap.mission.world.frontiers, fedmap.mission.world.world)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,9 @@ import pytest
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.meta.collections import earth_like
-from fedmap.mission.frontiers import (
+from fedmap.mission.settings import MissionConfig, load_mission
+from fedmap.mission.sim import prepare_mission
+from fedmap.mission.world.frontiers import (
     DETOUR,
     cheapest_path,
     choose_target,
@@ -20,8 +22,6 @@ from fedmap.mission.frontiers import (
     predicted_cost,
     travel_costs,
 )
-from fedmap.mission.settings import MissionConfig, load_mission
-from fedmap.mission.sim import prepare_mission
 from fedmap.nets.predictor import (
     SHIPPED_PREDICTOR,
     MapPredictor,
@@ -272,7 +272,7 @@ def test_the_report_tables_the_beliefs_with_the_guesses_even_when_nothing_was_le
     was left unobserved (no guesses to score at the end, but the beliefs were filled before)."""
     from dataclasses import replace as swap
 
-    from fedmap.mission.report import report_md
+    from fedmap.mission.outputs.report import report_md
     from fedmap.mission.sim import run_mission
 
     truth, mission = _small_mission("raw")

@@ -11,8 +11,8 @@ from fedmap.coding import streamcodec as sc
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.maps.grid import IMPASSABLE, UNKNOWN
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
-from fedmap.mission.predictive import PredictiveOptions
-from fedmap.mission.protocol import cover
+from fedmap.mission.ends.predictive import PredictiveOptions
+from fedmap.mission.ends.protocol import cover
 from fedmap.nets.predictor import predict, shipped_predictor
 
 N = 48

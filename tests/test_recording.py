@@ -1,4 +1,4 @@
-"""Missions as Foxglove messages (fedmap.mission.recording): an MCAP recording read back with the
+"""Missions as Foxglove messages (fedmap.mission.outputs.recording): an MCAP recording read back with the
 ``mcap`` reader and decoded with the schemas in the file, a live server spoken to by an
 independent WebSocket client, the layout in docs/, and ``fedmap mission --record``."""
 
@@ -21,7 +21,7 @@ from fedmap.maps.grid import GridMap
 from fedmap.maps.ros import lower_left_origin
 from fedmap.maps.sources import TerrainSource, load_truth
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
-from fedmap.mission.recording import (
+from fedmap.mission.outputs.recording import (
     STEP_SECONDS,
     Recorded,
     Recorder,

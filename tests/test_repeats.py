@@ -16,10 +16,10 @@ from conftest import maze
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, GridMap
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
+from fedmap.mission.outputs.report import plannable, verdict, write_mission
 from fedmap.mission.repeats import Interval, interval, intervals, repeat_configs, run_repeats
-from fedmap.mission.report import plannable, verdict, write_mission
 from fedmap.mission.results import F1_GOAL, READY_COVERAGE, movement_warnings
-from fedmap.mission.world import place_starts
+from fedmap.mission.world.world import place_starts
 from test_mission import _small
 
 
@@ -98,7 +98,7 @@ def test_a_tie_is_no_clear_difference_and_separated_intervals_name_a_winner(repe
     text = verdict(results[0], results)
     assert "Best map: no clear difference between raw" in text and "predictive" in text
     # constructed intervals: one wholly above the other is a winner, overlapping ones are not
-    from fedmap.mission.report import _winner
+    from fedmap.mission.outputs.report import _winner
 
     a, b, c = Interval(0.8, 0.75, 0.85, 5), Interval(0.6, 0.55, 0.65, 5), Interval(0.7, 0.62, 0.78, 5)
     assert _winner({"a": a, "b": b}, high=True) == ("a", [])

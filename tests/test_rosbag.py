@@ -1,4 +1,4 @@
-"""ROS 2 bags in and out (``fedmap.maps.rosbag``, ``fedmap.mission.bag``, ``fedmap export
+"""ROS 2 bags in and out (``fedmap.maps.rosbag``, ``fedmap.mission.outputs.bag``, ``fedmap export
 --format rosbag2``): bags written by rosbags' own Writer read as terrain, fedmap's bags read
 back with rosbags' AnyReader, and every bad input is one line."""
 
@@ -22,8 +22,8 @@ from fedmap.maps.ros import read_ros_map
 from fedmap.maps.rosbag import bag_map_feed, read_bag_map
 from fedmap.maps.sources import TerrainSource, load_truth
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
-from fedmap.mission.bag import write_mission_bag
-from fedmap.mission.maps_out import write_mission_maps
+from fedmap.mission.outputs.bag import write_mission_bag
+from fedmap.mission.outputs.maps_out import write_mission_maps
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
 OG = "nav_msgs/msg/OccupancyGrid"

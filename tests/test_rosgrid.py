@@ -1,6 +1,6 @@
 """``rosgrid``: every rover's whole map as a ROS 2 ``nav_msgs/msg/OccupancyGrid``, merged at the base.
 
-The expected messages are built here, independently of :mod:`fedmap.mission.rosgrid`, with
+The expected messages are built here, independently of :mod:`fedmap.mission.ends.rosgrid`, with
 rosbags' own message classes and CDR codec (map_server's values: 0 free, 100 occupied, -1
 unknown; rows from the bottom up, as map_server loads an image).
 """
@@ -17,8 +17,8 @@ from rosbags.typesys import Stores, get_typestore
 from conftest import maze
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
-from fedmap.mission.protocol import UP_HEADER, unpack_down, unpack_up
-from fedmap.mission.rosgrid import GridCodec, RosgridBase, RosgridRover
+from fedmap.mission.ends.protocol import UP_HEADER, unpack_down, unpack_up
+from fedmap.mission.ends.rosgrid import GridCodec, RosgridBase, RosgridRover
 from fedmap.mission.settings import DEFAULT_STRATEGIES
 
 TS = get_typestore(Stores.ROS2_HUMBLE)

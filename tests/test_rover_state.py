@@ -11,7 +11,7 @@ import pytest
 
 from fedmap.errors import FedmapError
 from fedmap.flower.mission_task import hold_state, state_file
-from fedmap.mission.remote import Order
+from fedmap.mission.network.remote import Order
 
 
 def test_two_rovers_on_one_state_folder_keep_their_own_files(tmp_path):

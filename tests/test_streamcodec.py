@@ -17,7 +17,7 @@ from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.meta.collections import MapCollection
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
-from fedmap.mission.protocol import cover
+from fedmap.mission.ends.protocol import cover
 from fedmap.training.coderprior import _scaled, learn_coder_prior, save_coder_prior
 
 SHAPE = (40, 48)

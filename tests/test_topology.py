@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from fedmap.mission import LinkConfig
-from fedmap.mission.link import BASE, UP, Link
-from fedmap.mission.topology import StarTopology, Topology
+from fedmap.mission.network.link import BASE, UP, Link
+from fedmap.mission.network.topology import StarTopology, Topology
 
 
 def _within(p, base, max_range) -> bool:

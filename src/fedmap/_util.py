@@ -47,7 +47,7 @@ def compiled_once(build: Callable[[], _T]) -> Callable[[], _T]:
 
     ``functools.cache`` alone runs a builder again in every thread that calls it before
     the first call has returned. A mission's rovers train side by side on threads
-    (:func:`fedmap.mission.protocol.side_by_side`), and scoring and planning split their work
+    (:func:`fedmap.mission.ends.protocol.side_by_side`), and scoring and planning split their work
     over threads, so two threads could compile the same kernel at once: twice the work, and
     two threads in numba's compiler at once (a prototype's two threads calling one
     uncompiled dispatcher never returned). Here the second waits for the first's kernel. A

@@ -1,7 +1,7 @@
 """``fedmap export``: a class map in another format (GeoTIFF, ROS map_server, PNG, .npy,
 ROS 2 bag), or every map of a mission folder's ``maps/``.
 
-The library does the work (:mod:`fedmap.maps.export`, :mod:`fedmap.mission.maps_out`);
+The library does the work (:mod:`fedmap.maps.export`, :mod:`fedmap.mission.outputs.maps_out`);
 this module wires the options.
 """
 
@@ -18,7 +18,7 @@ from fedmap.maps.export import EXPORT_FORMATS, check_formats, export_map
 from fedmap.maps.grid import GridMap
 from fedmap.maps.io import load_map
 from fedmap.maps.rosbag import is_bag
-from fedmap.mission.maps_out import reexport_mission_maps
+from fedmap.mission.outputs.maps_out import reexport_mission_maps
 
 
 def _line(grid: GridMap, written: list[Path], topic: str = "") -> None:

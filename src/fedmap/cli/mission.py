@@ -21,13 +21,13 @@ from fedmap.errors import FedmapError
 from fedmap.flower.deploy import DEPLOY_MODES, deploy_logs, deploy_mission
 from fedmap.maps.rosbag import check_bag_path
 from fedmap.mission import load_mission, mission_terrain
-from fedmap.mission.bag import SyncMaps
-from fedmap.mission.maps_out import MAPS_DIR
-from fedmap.mission.recording import Recorder
-from fedmap.mission.registry import names_that
-from fedmap.mission.remote import check_deployable
+from fedmap.mission.ends.registry import names_that
+from fedmap.mission.network.remote import check_deployable
+from fedmap.mission.outputs.bag import SyncMaps
+from fedmap.mission.outputs.maps_out import MAPS_DIR
+from fedmap.mission.outputs.recording import Recorder
+from fedmap.mission.outputs.report import global_meaning, has_peers, repeat_rows, table_rows, verdict, write_mission
 from fedmap.mission.repeats import run_repeats, what_varies
-from fedmap.mission.report import global_meaning, has_peers, repeat_rows, table_rows, verdict, write_mission
 from fedmap.mission.results import movement_warnings
 from fedmap.mission.scoring import MISSION_FILE, MissingLog, score_folder
 from fedmap.mission.settings import MISSION_SECTIONS, mission_toml, parse_sets

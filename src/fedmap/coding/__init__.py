@@ -11,6 +11,6 @@
   compute alike (the map predictor's P(impassable)) as one more context of every cell
   (:func:`~fedmap.coding.streamcodec.guessing_state`, ``docs/predictor.md``).
 
-The ends that speak them over a mission's link are in :mod:`fedmap.mission.raw` and
-:mod:`fedmap.mission.predictive`; the byte layouts are in ``docs/protocol.md``.
+The ends that speak them over a mission's link are in :mod:`fedmap.mission.ends.raw` and
+:mod:`fedmap.mission.ends.predictive`; the byte layouts are in ``docs/protocol.md``.
 """

@@ -37,8 +37,8 @@ from scipy.special import gammaln
 from fedmap.coding.mapcodec import ALPHA, decode_map
 from fedmap.experiments.bandwidth import pack_2bit
 from fedmap.maps.grid import UNKNOWN, GridMap
-from fedmap.mission.predictive import PredictiveRover
-from fedmap.mission.protocol import unpack_up
+from fedmap.mission.ends.predictive import PredictiveRover
+from fedmap.mission.ends.protocol import unpack_up
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.sim import run_mission
 

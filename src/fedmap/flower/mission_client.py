@@ -1,5 +1,5 @@
 """A rover of a mission on processes: a Flower ``ClientApp`` that keeps its rover's node
-(:class:`fedmap.mission.remote.RoverNode`: its world, its end, its clock) between messages.
+(:class:`fedmap.mission.network.remote.RoverNode`: its world, its end, its clock) between messages.
 
 ``query``: say which rover it is (node config ``partition-id``) and which rover process
 (node config ``boot``: a rover killed and started again with its registered key is the same
@@ -27,7 +27,7 @@ from fedmap.flower.mission_task import CorruptMessage, LostState, damaged, node_
 from fedmap.flower.polling import quick_pulls
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.task import KEY_ROVER, check_key
-from fedmap.mission.remote import Order
+from fedmap.mission.network.remote import Order
 
 app = ClientApp()
 quick_pulls()  # a round is a message per rover: Flower's 1 s first retry would be most of it

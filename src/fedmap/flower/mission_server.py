@@ -1,10 +1,10 @@
 """The base station of a mission on processes: a Flower ``ServerApp`` that runs the
-mission clock (:class:`fedmap.mission.remote.BaseNode`) over the rovers' SuperNodes.
+mission clock (:class:`fedmap.mission.network.remote.BaseNode`) over the rovers' SuperNodes.
 
 First it asks every connected node which rover it is (a ``query`` message; the SuperNode's
 node config ``partition-id``), then for each strategy it sends every rover its order of
 each sync round (a ``train`` message carrying the order's bytes) and takes its report.
-What crosses is fedmap's own frames (:mod:`fedmap.mission.remote`) as a ``uint8`` array
+What crosses is fedmap's own frames (:mod:`fedmap.mission.network.remote`) as a ``uint8`` array
 (:mod:`fedmap.flower.records`); the ledger counts the strategy's messages inside them, as
 the simulator does. A report or order damaged on the way fails its check and the order
 is sent again (the rover answers a repeated order with the same report), and so is an
@@ -12,7 +12,7 @@ order that goes unanswered far longer than the other rovers' took (lost on the l
 :func:`~fedmap.flower.polling.exchange` with ``resend``; the first report to either copy
 is taken). A rover that lost
 its state gets its order again with every order it was sent before, and rebuilds itself
-from them (:meth:`~fedmap.mission.remote.RoverNode.rebuild`). Each fault is a line of the
+from them (:meth:`~fedmap.mission.network.remote.RoverNode.rebuild`). Each fault is a line of the
 run's ``faults`` and of the log. At the end every rover gets a
 ``evaluate`` message (its SuperNode may stop). The base logs what it held and sent in
 ``<out>.run/base/``; the rovers' reports carry no scores (each rover logs its own side),
@@ -43,8 +43,8 @@ from fedmap.flower.mission_task import (
 from fedmap.flower.polling import exchange, quick_pulls
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.task import KEY_ROVER, parse_rover_nodes, write_status, wrong_key
-from fedmap.mission.nodelog import write_log
-from fedmap.mission.remote import BaseNode, CorruptMessage, Report, check_deployable, pack_history, rounds
+from fedmap.mission.network.nodelog import write_log
+from fedmap.mission.network.remote import BaseNode, CorruptMessage, Report, check_deployable, pack_history, rounds
 from fedmap.mission.scoring import write_run
 
 app = ServerApp()

@@ -26,10 +26,9 @@ from typing import Any
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
-from fedmap.mission.feed import MapFeed
-from fedmap.mission.nodelog import write_log
-from fedmap.mission.registry import REGISTRY
-from fedmap.mission.remote import (
+from fedmap.mission.ends.registry import REGISTRY
+from fedmap.mission.network.nodelog import write_log
+from fedmap.mission.network.remote import (
     CorruptMessage,
     LostState,
     Order,
@@ -40,6 +39,7 @@ from fedmap.mission.remote import (
 )
 from fedmap.mission.scoring import mission_from_text
 from fedmap.mission.sim import Mission
+from fedmap.mission.world.feed import MapFeed
 
 #: The mission app's run-config keys and their defaults (``mission_app/pyproject.toml`` holds the same).
 MISSION_RUN_DEFAULTS: dict[str, Any] = {
@@ -97,7 +97,7 @@ def base_log(out: Path, level: str, line: str) -> None:
 
 
 def log_dir(state_dir: Path) -> Path:
-    """Where a rover keeps its own log (:class:`~fedmap.mission.nodelog.RoverEntry` files):
+    """Where a rover keeps its own log (:class:`~fedmap.mission.network.nodelog.RoverEntry` files):
     ``log/`` in its state folder. It stays when the mission is over: the mission is scored
     from it (``fedmap score``)."""
     return Path(state_dir) / "log"
@@ -139,9 +139,9 @@ def rover_answer(state_dir: Path, mission_text: str, k: int, raw: bytes, *, feed
     report: a rover process killed and started again carries on where it was; the file goes
     when the mission's last order is answered). A rover whose state is gone refuses an order
     that carries on from a later step (:class:`LostState`); the base sends it again with
-    ``history``, every order it sent this rover before (:func:`~fedmap.mission.remote.pack_history`),
+    ``history``, every order it sent this rover before (:func:`~fedmap.mission.network.remote.pack_history`),
     and the node is rebuilt from them (:meth:`RoverNode.rebuild`). ``feed``: its observations
-    come from its own mapping software (:mod:`fedmap.mission.feed`). :class:`CorruptMessage`
+    come from its own mapping software (:mod:`fedmap.mission.world.feed`). :class:`CorruptMessage`
     for a damaged order."""
     order = Order.from_bytes(raw)
     path = state_file(state_dir, order, k)
@@ -241,7 +241,7 @@ class BaseJournal:
 
 
 def base_dir(out: Path) -> Path:
-    """Where the base station keeps its own log (:class:`~fedmap.mission.nodelog.BaseRecord` files)."""
+    """Where the base station keeps its own log (:class:`~fedmap.mission.network.nodelog.BaseRecord` files)."""
     return run_dir(out) / "base"
 
 

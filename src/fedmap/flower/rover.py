@@ -115,7 +115,7 @@ def rover_node_config(*, partition_id: int, map_path: Path | None, terrain: str 
     mission on processes, which builds its world from the mission the base sends (no map),
     and keeps its state in ``state`` (None: a temporary folder, gone when the rover exits);
     ``feed`` (``feed_topic``): its observations come from its own mapping software
-    (:mod:`fedmap.mission.feed`; checked by opening it once)."""
+    (:mod:`fedmap.mission.world.feed`; checked by opening it once)."""
     cfg: dict = {"partition-id": partition_id}
     if mission:
         if map_path is not None or terrain is not None or out is not None:

@@ -142,7 +142,7 @@ def preload(node_config: dict) -> None:
 
     if node_config.get("mission"):  # a mission rover: its world comes with the base's first order
         import fedmap.flower.mission_client  # noqa: F401
-        from fedmap.mission.remote import warm_up
+        from fedmap.mission.network.remote import warm_up
 
         warm_up()  # the compiled planners, loaded once: the children inherit them
     elif "samples" in node_config:  # a site of the predictor's fine-tuning (fedmap.flower.predictor_deploy)

@@ -17,8 +17,8 @@ import numpy as np
 from fedmap.evaluation.paths import PathScores, path_f1
 from fedmap.evaluation.scores import MapScores, score_map
 from fedmap.maps.grid import IMPASSABLE, GridMap
-from fedmap.mission.link import Message
-from fedmap.mission.protocol import DroppedUpdate
+from fedmap.mission.ends.protocol import DroppedUpdate
+from fedmap.mission.network.link import Message
 from fedmap.mission.settings import MissionConfig
 
 Cell = tuple[int, int]
@@ -234,14 +234,14 @@ class StrategyRun:
     frames: list[Frame]  #: what the animation draws, one per step
     trails: list[list[Cell]]  #: each rover's cells driven, in order
     seconds: float  #: wall time of this strategy's run, seconds
-    #: the journal's :attr:`~fedmap.mission.protocol.Journal.dropped` (None: it sends no model updates)
+    #: the journal's :attr:`~fedmap.mission.ends.protocol.Journal.dropped` (None: it sends no model updates)
     dropped_updates: tuple[DroppedUpdate, ...] | None = None
     #: model strategies: at every sync, before training, how many models behind the base each rover is
     #: (``{"round": r, "lag": [...]}``; None in ``lag``: it holds none the base still keeps)
     model_lag: tuple[dict, ...] | None = None
     #: with ``[frames]``: the base's registrations, one per rover and sync (``Placing.to_dict``; None: known poses)
     registrations: tuple[dict, ...] | None = None
-    sharing: Any = None  #: the ends' final state (:class:`~fedmap.mission.registry.Sharing`; not written)
+    sharing: Any = None  #: the ends' final state (:class:`~fedmap.mission.ends.registry.Sharing`; not written)
     #: every member's final view: its belief in its own classes, what it plans on and is scored on
     views: tuple[np.ndarray, ...] = ()
     #: what its transport carried, beside the ledger's strategy bytes: ``frames`` and their

@@ -1,8 +1,8 @@
 """Scoring off the link: a mission's record from what its nodes wrote to their own logs.
 
 Every rover node logs what an observer reads of it at every step
-(:class:`~fedmap.mission.nodelog.RoverEntry`), and the base station logs what it held and
-sent (:class:`~fedmap.mission.nodelog.BaseRecord`). :func:`score_strategy` merges them
+(:class:`~fedmap.mission.network.nodelog.RoverEntry`), and the base station logs what it held and
+sent (:class:`~fedmap.mission.network.nodelog.BaseRecord`). :func:`score_strategy` merges them
 against the truth, step by step, through the same :class:`~fedmap.mission.sim.Scoring` an
 in-process run records with: so a mission on processes is scored as the simulator scores
 it, and nothing of the scoring crossed the link. :func:`score_folder` scores a run folder
@@ -21,11 +21,11 @@ import numpy as np
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
-from fedmap.mission.nodelog import BaseRecord, RoverEntry, StepState, read_base_records, read_rover_log
+from fedmap.mission.network.nodelog import BaseRecord, RoverEntry, StepState, read_base_records, read_rover_log
+from fedmap.mission.network.topology import make_topology
 from fedmap.mission.results import MissionResult, StrategyRun
 from fedmap.mission.settings import load_mission
 from fedmap.mission.sim import Mission, Scoring, TeamState, mission_terrain, prepare_mission
-from fedmap.mission.topology import make_topology
 
 #: The file of a run folder that holds the mission its nodes ran (the resolved TOML).
 MISSION_FILE = "mission.toml"

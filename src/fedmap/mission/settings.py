@@ -10,7 +10,7 @@ TOML layout (every key optional)::
     [link]         # LinkConfig: uplink_bytes, downlink_bytes, loss, latency, max_range, seed
     [prior]        # PriorConfig: kind (none | orbital), factor
     [helicopter]   # HelicopterConfig: speed, sensor_radius, resolution, flight_budget, recharge
-    [frames]       # FramesConfig: unknown start poses and odometry drift (fedmap.mission.frames)
+    [frames]       # FramesConfig: unknown start poses and odometry drift (fedmap.mission.world.frames)
     [strategies.fedmap]   # method_config keywords for a model strategy, e.g. epochs = 30
     [strategies.paper]
     [strategies.predictive]  # the coder's parts (PREDICTIVE_OPTIONS), e.g. prior = "none"
@@ -47,10 +47,10 @@ from fedmap.errors import FedmapError
 from fedmap.maps.grid import LAYERS, check_layers
 from fedmap.maps.sources import TerrainSource, needs_dem
 from fedmap.maps.traversability import ROVER_NAMES
-from fedmap.mission.registry import REGISTRY
-from fedmap.mission.topology import TOPOLOGIES as TOPOLOGY_CLASSES
+from fedmap.mission.ends.registry import REGISTRY
+from fedmap.mission.network.topology import TOPOLOGIES as TOPOLOGY_CLASSES
 
-#: Every sharing strategy, from the lower bound to the upper bound (:data:`~fedmap.mission.registry.REGISTRY`).
+#: Every sharing strategy, from the lower bound to the upper bound (:data:`~fedmap.mission.ends.registry.REGISTRY`).
 STRATEGIES: tuple[str, ...] = tuple(REGISTRY)
 #: The strategies a mission runs unless told otherwise (``paper`` is slow: an option).
 DEFAULT_STRATEGIES: tuple[str, ...] = tuple(n for n, s in REGISTRY.items() if s.default)
@@ -61,7 +61,7 @@ PEER_STRATEGIES: tuple[str, ...] = tuple(n for n, s in REGISTRY.items() if s.pee
 PEER_DEFAULTS: tuple[str, ...] = tuple(n for n, s in REGISTRY.items() if s.peer_default)
 #: A rover's own traversability profile: the shared ``[thresholds]`` (``team``) or a named rover.
 PROFILES: tuple[str, ...] = ("team", *ROVER_NAMES)
-#: Who talks to whom (:mod:`fedmap.mission.topology`).
+#: Who talks to whom (:mod:`fedmap.mission.network.topology`).
 TOPOLOGIES: tuple[str, ...] = tuple(TOPOLOGY_CLASSES)
 MODES: tuple[str, ...] = ("frontier", "waypoints")
 #: What a model strategy's rover trains on at a sync (``[mission] train_on``).
@@ -112,10 +112,10 @@ class LinkConfig:
     ----------
     uplink_bytes, downlink_bytes : int or None
         Budget per rover per sync round (None: unlimited). A payload over budget is not
-        sent (see :mod:`fedmap.mission.registry` and each strategy's ends for what it does instead).
+        sent (see :mod:`fedmap.mission.ends.registry` and each strategy's ends for what it does instead).
     loss : float
         Probability that a message is lost, drawn independently per (round, rover,
-        direction) from ``seed`` (:meth:`fedmap.mission.link.Link.lost`).
+        direction) from ``seed`` (:meth:`fedmap.mission.network.link.Link.lost`).
     latency : int
         Steps between sending and arrival, both ways.
     max_range : float or None
@@ -239,7 +239,7 @@ class HelicopterConfig:
 
 @dataclass(frozen=True)
 class FramesConfig:
-    """Rovers that do not know their poses exactly (``[frames]``; :mod:`fedmap.mission.frames`).
+    """Rovers that do not know their poses exactly (``[frames]``; :mod:`fedmap.mission.world.frames`).
 
     Each rover's start pose is off by a seeded draw (an offset of ``start_offset`` cells std
     per axis, a heading of ``start_heading`` degrees std), and its odometry drifts as it
@@ -327,7 +327,7 @@ class MissionConfig:
         Cost of one unknown cell relative to a known free one when rating targets.
     predictor : str
         ``none``, or ``learned``: every rover runs the shipped map predictor on the map it
-        holds and plans with its guesses (:mod:`fedmap.mission.frontiers`); the guesses
+        holds and plans with its guesses (:mod:`fedmap.mission.world.frontiers`); the guesses
         cost no bytes and are never shared, scored or counted as observed.
     strategies : tuple of str
         Which of :data:`STRATEGIES` to run, on the same terrain, starts, seeds and link.

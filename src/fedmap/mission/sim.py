@@ -1,11 +1,11 @@
 """The mission loop: every strategy runs the same mission (terrain, starts, seeds, link).
 
-Every step each member of the team drives (or flies) and senses (:mod:`fedmap.mission.world`).
+Every step each member of the team drives (or flies) and senses (:mod:`fedmap.mission.world.world`).
 At every ``sync_every``-th step the topology runs a sync round over the strategy's ends
-(:mod:`fedmap.mission.topology`): on the star each rover offers its uplink to the link, the
+(:mod:`fedmap.mission.network.topology`): on the star each rover offers its uplink to the link, the
 base runs its round when the uplinks arrive (``latency`` steps later) and its downlinks
-arrive ``latency`` steps after that. The ends (:mod:`fedmap.mission.registry`) say what is
-sent; :mod:`fedmap.mission.link` decides each message's fate. The loop records every step
+arrive ``latency`` steps after that. The ends (:mod:`fedmap.mission.ends.registry`) say what is
+sent; :mod:`fedmap.mission.network.link` decides each message's fate. The loop records every step
 and scores every evaluation step (every sync and the last step) into the typed results of
 :mod:`fedmap.mission.results`.
 """
@@ -34,10 +34,9 @@ from fedmap.maps.traversability import (
     resolved_slope,
     rover_profile,
 )
-from fedmap.mission.frames import FramedWorld, check_frames, registrations
-from fedmap.mission.frames import build as frames_build
-from fedmap.mission.link import BASE, DOWN, UP, Link, Message
-from fedmap.mission.registry import Setup, Sharing, build
+from fedmap.mission.ends.registry import Setup, Sharing, build
+from fedmap.mission.network.link import BASE, DOWN, UP, Link, Message
+from fedmap.mission.network.topology import Exchange, make_topology
 from fedmap.mission.results import (
     COVERAGE_LEVELS,
     F1_GOAL,
@@ -57,8 +56,9 @@ from fedmap.mission.results import (
     summarise,
 )
 from fedmap.mission.settings import MissionConfig
-from fedmap.mission.topology import Exchange, make_topology
-from fedmap.mission.world import Rover, World, place_starts, plan_waypoints, start_pocket_warning
+from fedmap.mission.world.frames import FramedWorld, check_frames, registrations
+from fedmap.mission.world.frames import build as frames_build
+from fedmap.mission.world.world import Rover, World, place_starts, plan_waypoints, start_pocket_warning
 
 Cell = tuple[int, int]
 #: A strategy's ends for one run: ``ends(name, setup) -> Sharing``.
@@ -297,8 +297,8 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     ``on_strategy(name)`` announces each strategy and ``on_step(name, step, coverage)``
     follows it (progress bars); ``frames`` bounds the animation's frames per strategy.
     ``ends(name, setup)`` builds a strategy's ends (default: the registry's
-    :func:`~fedmap.mission.registry.build`, every end in this process; a mission whose
-    rovers run elsewhere is :mod:`fedmap.mission.remote`).
+    :func:`~fedmap.mission.ends.registry.build`, every end in this process; a mission whose
+    rovers run elsewhere is :mod:`fedmap.mission.network.remote`).
     ``on_snapshot(snapshot)`` gets every strategy's :class:`~fedmap.mission.results.Snapshot`
     at every step as it runs (a recording, a live view).
     ``workers`` > 1 runs the strategies side by side in that many forked processes (each

@@ -23,7 +23,7 @@ import numpy as np
 from fedmap._util import atomic_write_bytes
 from fedmap.coding.streamcodec import PARTS, PRIOR_FILE, CoderState, blank_state
 from fedmap.meta.collections import MapCollection, earth_like
-from fedmap.mission.predictive import PredictiveBase
+from fedmap.mission.ends.predictive import PredictiveBase
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.sim import run_mission
 

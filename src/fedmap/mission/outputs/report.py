@@ -31,14 +31,14 @@ from skimage.draw import line as draw_line
 
 from fedmap._util import AtomicDir, atomic_write_bytes
 from fedmap.maps.grid import PALETTE
-from fedmap.mission.link import BASE
-from fedmap.mission.maps_out import write_mission_maps
-from fedmap.mission.registry import role_of
+from fedmap.mission.ends.registry import role_of
+from fedmap.mission.network.link import BASE
+from fedmap.mission.network.topology import TOPOLOGIES
+from fedmap.mission.outputs.maps_out import write_mission_maps
 from fedmap.mission.repeats import Interval, interval, intervals, values_of, what_varies
 from fedmap.mission.results import READY_COVERAGE
-from fedmap.mission.sensing import disk_offsets
 from fedmap.mission.sim import COVERAGE_LEVELS, F1_GOAL, MissionResult, MissionSummary
-from fedmap.mission.topology import TOPOLOGIES
+from fedmap.mission.world.sensing import disk_offsets
 from fedmap.outputs import write_metrics
 
 
@@ -727,7 +727,7 @@ def write_mission(result: MissionResult, out_dir: str | Path, *, title: str, set
     adds ``repeats`` (:func:`repeats_metrics`), and the report and plots give means with
     95 % intervals. ``maps/`` holds each strategy's final global map (and with ``beliefs``
     every rover's final belief) as PNG, GeoTIFF in the truth's CRS and ROS map_server YAML + PGM
-    (:func:`~fedmap.mission.maps_out.write_mission_maps`)."""
+    (:func:`~fedmap.mission.outputs.maps_out.write_mission_maps`)."""
     out_dir = Path(out_dir)
     results = list(repeats) if repeats is not None and len(repeats) > 1 else [result]
     with AtomicDir(out_dir) as tmp:

@@ -16,8 +16,8 @@ disagree) and publishes the merged grid back to every rover, again whole.
   fedmap row) up, as map_server loads an image. ``header.stamp`` and
   ``info.map_load_time`` are the round's sync step in seconds (one step = 1 s): the
   mission has no clock of its own, and the stamp's 8 bytes are there whatever it says.
-* **Positions and targets** go in fedmap's mission headers (:func:`~fedmap.mission.protocol.pack_up`,
-  16 bytes up; :func:`~fedmap.mission.protocol.pack_down`, 10 + 9 per rover bytes down)
+* **Positions and targets** go in fedmap's mission headers (:func:`~fedmap.mission.ends.protocol.pack_up`,
+  16 bytes up; :func:`~fedmap.mission.ends.protocol.pack_down`, 10 + 9 per rover bytes down)
   in front of the grid, counted like every other strategy's. A ROS team would publish
   poses on topics of their own, which cost more (one ``geometry_msgs/msg/PoseStamped`` in
   frame ``map`` is 76 bytes of CDR).
@@ -42,7 +42,17 @@ from fedmap._util import inflate_zlib
 from fedmap.maps.grid import UNKNOWN
 from fedmap.maps.ros import classes_from_occupancy
 from fedmap.maps.rosbag import OCCUPANCY_GRID, OCCUPANCY_VALUES, occupancy_message
-from fedmap.mission.protocol import BaseEnd, Cell, Journal, Outgoing, RoverEnd, pack_down, pack_up, unpack_down, unpack_up
+from fedmap.mission.ends.protocol import (
+    BaseEnd,
+    Cell,
+    Journal,
+    Outgoing,
+    RoverEnd,
+    pack_down,
+    pack_up,
+    unpack_down,
+    unpack_up,
+)
 
 MSGTYPE = OCCUPANCY_GRID
 FRAME = "map"

@@ -36,7 +36,7 @@ from fedmap.coding.mapcodec import decode_map, encode_map
 from fedmap.errors import RejectedUpdate
 from fedmap.federation.heights import HeightCodec
 from fedmap.maps.grid import UNKNOWN
-from fedmap.mission.protocol import (
+from fedmap.mission.ends.protocol import (
     BaseEnd,
     Cell,
     Journal,

@@ -9,7 +9,7 @@ it against the truth and stops with an error if it ever would).
 
 With ``[mission] predictor = "learned"`` every rover also runs the shipped map predictor
 (:mod:`fedmap.nets.predictor`) on the map it holds (:meth:`World.predicted`) and plans
-with the guesses (:mod:`fedmap.mission.frontiers`). The guesses live only in this
+with the guesses (:mod:`fedmap.mission.world.frontiers`). The guesses live only in this
 planning view: they never enter a rover's observations, what it shares, or its belief.
 """
 
@@ -28,10 +28,10 @@ from fedmap.maps.dem import Dem
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, GridMap
 from fedmap.maps.planning import path_is_valid
 from fedmap.maps.traversability import TraversabilityThresholds, dem_to_traversability, rover_profile
-from fedmap.mission.flight import fly
-from fedmap.mission.frontiers import cheapest_path, choose_target, plan_path
-from fedmap.mission.sensing import block_classes, coarse_footprint, disk_offsets, footprint
 from fedmap.mission.settings import MissionConfig
+from fedmap.mission.world.flight import fly
+from fedmap.mission.world.frontiers import cheapest_path, choose_target, plan_path
+from fedmap.mission.world.sensing import block_classes, coarse_footprint, disk_offsets, footprint
 from fedmap.nets.predictor import MapPredictor, predict, shipped_predictor
 
 Cell = tuple[int, int]

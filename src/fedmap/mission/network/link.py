@@ -1,12 +1,12 @@
 """The seeded radio link between the agents, and its ledger (who talks to whom:
-:mod:`fedmap.mission.topology`).
+:mod:`fedmap.mission.network.topology`).
 
 Every message is a real payload (``bytes``); the ledger records its length. What happens
 to a message, in this order:
 
-1. **Range.** A rover the :class:`~fedmap.mission.topology.Topology` says cannot reach the base this step has no
+1. **Range.** A rover the :class:`~fedmap.mission.network.topology.Topology` says cannot reach the base this step has no
    link: nothing is sent (``out of range``, 0 bytes). The mission's topology is
-   :class:`~fedmap.mission.topology.StarTopology`: every rover talks to the base directly, within ``max_range``
+   :class:`~fedmap.mission.network.topology.StarTopology`: every rover talks to the base directly, within ``max_range``
    cells of it.
 2. **Budget.** A payload longer than its budget (the topology's: per direction and round) is not sent
    (``over budget``, 0 bytes); the strategy decides what to send instead, before asking.
@@ -22,7 +22,7 @@ acknowledgement, not counted in the bytes).
 
 **Peer topologies** (``[link] topology``). On ``mesh`` and ``leader`` every agent (the
 rovers, and the lander as an agent that never moves unless ``lander_agent = false``) can
-talk to every other agent within ``peer_range`` cells (:class:`~fedmap.mission.topology.MeshTopology`). A peer
+talk to every other agent within ``peer_range`` cells (:class:`~fedmap.mission.network.topology.MeshTopology`). A peer
 message's ledger entry has ``direction = "peer"``, its sender in ``rover`` (:data:`BASE`
 for the lander) and its receiver in ``to``; each hop of a relayed message is its own entry.
 
@@ -36,8 +36,8 @@ for the lander) and its receiver in ``to``; each hop of a relayed message is its
   ``SeedSequence([seed, round, a + 1, b + 1, 2])`` (directed: ``a`` is the sender).
 * **Leaders** (``leader``): at every sync the links that are up split the agents into
   connected groups; each group's leader is the lander when it is in the group, else its
-  lowest-numbered rover (:func:`~fedmap.mission.topology.elect_leaders`). Members reach their leader along the
-  shortest route of links that are up (:func:`~fedmap.mission.topology.route`, ties to the lower-numbered agent),
+  lowest-numbered rover (:func:`~fedmap.mission.network.topology.elect_leaders`). Members reach their leader along the
+  shortest route of links that are up (:func:`~fedmap.mission.network.topology.route`, ties to the lower-numbered agent),
   every hop relayed, costing its bytes, and drawn for loss on its own; latency is per hop.
 """
 
@@ -91,7 +91,7 @@ class Link:
     """The link of one strategy's run: decides each message's fate and keeps the ledger.
 
     ``config`` is the mission's :class:`~fedmap.mission.settings.LinkConfig`; ``topology``
-    (a :class:`~fedmap.mission.topology.Topology`) says who can reach the base.
+    (a :class:`~fedmap.mission.network.topology.Topology`) says who can reach the base.
     """
 
     def __init__(self, config: Any, topology: Any) -> None:

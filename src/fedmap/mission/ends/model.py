@@ -30,7 +30,7 @@ from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.federation.codecs import CodecSpec, Encoder
 from fedmap.federation.runner import Broadcaster, Downlink, apply_downlink, base_step, model_version, rover_step
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb
-from fedmap.mission.protocol import (
+from fedmap.mission.ends.protocol import (
     KINDS,
     BaseEnd,
     Cell,
@@ -133,7 +133,7 @@ class ModelRover(RoverEnd):
     def prepare(self, round_no: int) -> Callable[[], None]:
         """Its training for this round's uplink, as a call that touches this rover alone (its
         network, encoder and map), so the rovers of a sync can train side by side
-        (:meth:`~fedmap.mission.protocol.RoverEnd.prepare`); :meth:`uplink` then sends it."""
+        (:meth:`~fedmap.mission.ends.protocol.RoverEnd.prepare`); :meth:`uplink` then sends it."""
         r, k = self.rover, self.k
         local = self.truth.with_classes(r.local, f"rover {k}")
         before = self.enc.state()

@@ -8,7 +8,7 @@ with only ``peer`` runs as peers on the star too; one with only ``star`` needs t
 ``raw`` has both, so it is lossless merging at the base on the star and gossip of cells
 on a mesh: that is decided here, in :func:`build`, and nowhere else.
 
-Adding a strategy is writing its ends (:mod:`fedmap.mission.protocol`) and one entry of
+Adding a strategy is writing its ends (:mod:`fedmap.mission.ends.protocol`) and one entry of
 :data:`REGISTRY`.
 """
 
@@ -25,13 +25,13 @@ from fedmap.config import method_config
 from fedmap.federation.runner import init_held
 from fedmap.maps.grid import UNKNOWN, GridMap
 from fedmap.maps.ros import lower_left_origin
-from fedmap.mission.gossip import AdmmPeer, GossipPeer
-from fedmap.mission.link import BASE
-from fedmap.mission.model import MISSION_DEFAULTS, ModelBase, ModelRover, Training, model_lags
-from fedmap.mission.predictive import PredictiveBase, PredictiveOptions, PredictiveRover
-from fedmap.mission.protocol import DOWN_HEADER, UP_HEADER, BaseEnd, Cell, Journal, PeerEnd, RoverEnd
-from fedmap.mission.raw import CentralBase, CentralRover, RawBase, RawPeer, RawRover
-from fedmap.mission.rosgrid import ZLIB_LEVEL, GridCodec, RosgridBase, RosgridRover
+from fedmap.mission.ends.gossip import AdmmPeer, GossipPeer
+from fedmap.mission.ends.model import MISSION_DEFAULTS, ModelBase, ModelRover, Training, model_lags
+from fedmap.mission.ends.predictive import PredictiveBase, PredictiveOptions, PredictiveRover
+from fedmap.mission.ends.protocol import DOWN_HEADER, UP_HEADER, BaseEnd, Cell, Journal, PeerEnd, RoverEnd
+from fedmap.mission.ends.raw import CentralBase, CentralRover, RawBase, RawPeer, RawRover
+from fedmap.mission.ends.rosgrid import ZLIB_LEVEL, GridCodec, RosgridBase, RosgridRover
+from fedmap.mission.network.link import BASE
 from fedmap.pipeline import initial_weights
 
 
@@ -126,7 +126,7 @@ class StrategySpec:
     #: its rover ends hold only their own rover, so each can run in a process of its own
     #: (``central`` pools every rover's observations at once: a reference, not a protocol)
     deployable: bool = False
-    #: it runs with ``[frames]`` (rovers that do not know their poses; :func:`fedmap.mission.frames.build`)
+    #: it runs with ``[frames]`` (rovers that do not know their poses; :func:`fedmap.mission.world.frames.build`)
     framed: bool = False
     #: what the report makes of it: ``"protocol"`` (a way of sharing, a candidate of the verdict),
     #: ``"baseline"`` (sharing nothing: what the bytes of the others bought is measured above it)
@@ -134,7 +134,7 @@ class StrategySpec:
     role: str = "protocol"
 
     def factory(self, topology: Any) -> Factory | None:
-        """Its factory on ``topology`` (:class:`~fedmap.mission.topology.Topology`): the
+        """Its factory on ``topology`` (:class:`~fedmap.mission.network.topology.Topology`): the
         star ends where there is a base station and it has them, else its peer ends."""
         return (self.star or self.peer) if topology.has_base else self.peer
 

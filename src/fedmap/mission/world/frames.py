@@ -84,14 +84,14 @@ from fedmap.maps.registration import (
     agreement,
     combine,
 )
-from fedmap.mission.link import BASE
-from fedmap.mission.predictive import PredictiveBase, PredictiveOptions, PredictiveRover
-from fedmap.mission.protocol import BaseEnd, Outgoing, PeerEnd, RoverEnd, pack_down, unpack_down, unpack_up
-from fedmap.mission.raw import RawBase, RawPeer, RawRover
-from fedmap.mission.registry import Setup, Sharing, names_that
-from fedmap.mission.registry import build as build_known
-from fedmap.mission.sensing import disk_offsets, footprint
-from fedmap.mission.world import World
+from fedmap.mission.ends.predictive import PredictiveBase, PredictiveOptions, PredictiveRover
+from fedmap.mission.ends.protocol import BaseEnd, Outgoing, PeerEnd, RoverEnd, pack_down, unpack_down, unpack_up
+from fedmap.mission.ends.raw import RawBase, RawPeer, RawRover
+from fedmap.mission.ends.registry import Setup, Sharing, names_that
+from fedmap.mission.ends.registry import build as build_known
+from fedmap.mission.network.link import BASE
+from fedmap.mission.world.sensing import disk_offsets, footprint
+from fedmap.mission.world.world import World
 
 Cell = tuple[int, int]
 #: How far past its sensor's range a rover in its own frame writes what it senses (cells): it
@@ -176,7 +176,7 @@ class Pose:
 
 
 class FramedWorld(World):
-    """:class:`~fedmap.mission.world.World` whose rovers map and plan in their own frames
+    """:class:`~fedmap.mission.world.world.World` whose rovers map and plan in their own frames
     (see the module). ``Rover.pos`` is a rover's estimated cell (what it plans from and
     reports), ``Rover.trail`` its true cells; :attr:`poses` holds both."""
 

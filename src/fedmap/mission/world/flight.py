@@ -1,5 +1,5 @@
 """A helicopter's flight: its sorties over any terrain, bounded by its flight budget, and
-its landings (the lander, or a cell it observed free). :class:`~fedmap.mission.world.World`
+its landings (the lander, or a cell it observed free). :class:`~fedmap.mission.world.world.World`
 steps a helicopter with :func:`fly`."""
 
 from __future__ import annotations
@@ -11,13 +11,13 @@ import numpy as np
 from scipy import ndimage
 
 from fedmap.maps.grid import FREE, UNKNOWN
-from fedmap.mission.frontiers import choose_target
+from fedmap.mission.world.frontiers import choose_target
 
 Cell = tuple[int, int]
 
 
 def fly(world: Any, k: int, t: int) -> None:
-    """One step of helicopter ``k`` of ``world`` (a :class:`~fedmap.mission.world.World`):
+    """One step of helicopter ``k`` of ``world`` (a :class:`~fedmap.mission.world.world.World`):
     see :class:`~fedmap.mission.settings.HelicopterConfig`.
 
     Its rule keeps ``flight + ceil(d / speed) <= flight_budget`` at every step, ``d``

@@ -9,7 +9,7 @@ mission is scored from, off the link (:func:`fedmap.mission.scoring.score_strate
   after each of its rounds, its ledger (every message and its fate), what its journal
   says of the models, and its wall time.
 
-Each is one frame (:mod:`fedmap.mission.wire`), so a damaged or cut log is refused with one
+Each is one frame (:mod:`fedmap.mission.network.wire`), so a damaged or cut log is refused with one
 line naming the file, and every size in it is checked before anything is decoded (a log
 from another machine is input like any other).
 """
@@ -26,9 +26,9 @@ import zstandard
 from fedmap._util import atomic_write_bytes, inflate_zstd
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import MAX_WIRE_SIDE
-from fedmap.mission.link import Message
-from fedmap.mission.protocol import DroppedUpdate
-from fedmap.mission.wire import CorruptMessage, pack_frame, unpack_frame
+from fedmap.mission.ends.protocol import DroppedUpdate
+from fedmap.mission.network.link import Message
+from fedmap.mission.network.wire import CorruptMessage, pack_frame, unpack_frame
 
 Cell = tuple[int, int]
 #: The most bytes one log entry's maps may decode to (sides at most :data:`MAX_WIRE_SIDE`; a

@@ -1,7 +1,7 @@
 """A rover's world from its own mapping software: a **map feed**.
 
 By default a rover of a mission on processes simulates its own rover on the mission's
-terrain (:class:`~fedmap.mission.world.World`). With a feed, what it has observed comes
+terrain (:class:`~fedmap.mission.world.world.World`). With a feed, what it has observed comes
 from the maps its own software writes instead:
 
 - a **folder of map snapshots** (PNG with a world file, GeoTIFF, ``.npy``, ROS map YAML:
@@ -30,7 +30,7 @@ from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN, GridMap
 from fedmap.maps.io import load_map
 from fedmap.maps.rosbag import bag_map_feed, is_bag
-from fedmap.mission.world import World
+from fedmap.mission.world.world import World
 
 #: What a folder feed reads (the suffixes of map files).
 FEED_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".yaml", ".yml")

@@ -10,15 +10,15 @@ answers with a **report** (:class:`Report`): its uplink (the strategy's own mess
 bytes the ledger counts), whether it could use each downlink it was handed, and where it is
 (its cell and target: what the base's side of the link needs). What an observer reads of
 it at every step (belief, view, cells observed, distance) stays on the rover: it goes to
-the rover's own log (:class:`~fedmap.mission.nodelog.RoverEntry`, :attr:`RoverNode.log`).
-The base (:class:`BaseNode`) runs the same :class:`~fedmap.mission.topology.Exchange` and
-:class:`~fedmap.mission.link.Link` as the simulator over the rovers' reports and logs what
+the rover's own log (:class:`~fedmap.mission.network.nodelog.RoverEntry`, :attr:`RoverNode.log`).
+The base (:class:`BaseNode`) runs the same :class:`~fedmap.mission.network.topology.Exchange` and
+:class:`~fedmap.mission.network.link.Link` as the simulator over the rovers' reports and logs what
 it holds (:meth:`BaseNode.record`); the mission is scored from the logs afterwards
 (:func:`~fedmap.mission.scoring.score_strategy`), so with the same seed and config it
 records the same mission as :func:`~fedmap.mission.sim.run_mission`. After the last sync a
 final order (``finish``) delivers what is left and drives the rovers to the last step.
 
-Orders and reports are fedmap's frames (:mod:`fedmap.mission.wire`): a version byte, a
+Orders and reports are fedmap's frames (:mod:`fedmap.mission.network.wire`): a version byte, a
 CRC-32 check of the rest, a JSON header and length-prefixed blobs. A frame that fails its check is refused with
 one line (:class:`CorruptMessage`); the transport sends it again.
 
@@ -46,17 +46,12 @@ import numpy as np
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN
 from fedmap.maps.planning import astar
-from fedmap.mission.feed import FeedWorld, MapFeed
-from fedmap.mission.frames import registrations
-from fedmap.mission.frontiers import choose_target, travel_costs
-from fedmap.mission.link import BASE
-from fedmap.mission.nodelog import BaseRecord, RoverEntry, StepState
-from fedmap.mission.protocol import DroppedUpdate, Outgoing
-from fedmap.mission.registry import Setup, Sharing, build, names_that
-from fedmap.mission.settings import MissionConfig
-from fedmap.mission.sim import Mission
-from fedmap.mission.topology import make_topology
-from fedmap.mission.wire import (
+from fedmap.mission.ends.protocol import DroppedUpdate, Outgoing
+from fedmap.mission.ends.registry import Setup, Sharing, build, names_that
+from fedmap.mission.network.link import BASE
+from fedmap.mission.network.nodelog import BaseRecord, RoverEntry, StepState
+from fedmap.mission.network.topology import make_topology
+from fedmap.mission.network.wire import (
     HISTORY,
     ORDER,
     REPORT,
@@ -69,6 +64,11 @@ from fedmap.mission.wire import (
     unpack_frame,
     unpack_message,
 )
+from fedmap.mission.settings import MissionConfig
+from fedmap.mission.sim import Mission
+from fedmap.mission.world.feed import FeedWorld, MapFeed
+from fedmap.mission.world.frames import registrations
+from fedmap.mission.world.frontiers import choose_target, travel_costs
 
 Cell = tuple[int, int]
 _ACK, _DOWN = 0, 1  # an order's events
@@ -230,7 +230,7 @@ class RoverNode:
         world = mission.world(self.topology)
         if not 0 <= k < len(world.team):
             raise FedmapError(f"rover {k} is not in the team of {len(world.team)}")
-        if feed is not None:  # its observations come from its own mapping software (fedmap.mission.feed)
+        if feed is not None:  # its observations come from its own mapping software (fedmap.mission.world.feed)
             world = FeedWorld(world, k, feed)
         self.world = world
         sharing = build(name, Setup(mission.config, mission.truth, world.team, self.topology))

@@ -61,7 +61,7 @@ from fedmap.errors import FedmapError
 from fedmap.maps.georef import cell_centre, local_transform
 from fedmap.maps.grid import PALETTE, GridMap
 from fedmap.maps.ros import lower_left_origin
-from fedmap.mission.link import BASE
+from fedmap.mission.network.link import BASE
 from fedmap.mission.results import Snapshot
 from fedmap.mission.settings import MissionConfig
 
@@ -88,7 +88,8 @@ def _fm() -> Any:
 
 _LINK_SCHEMA: dict[str, Any] = {
     "title": "fedmap.LinkMessage", "type": "object",
-    "description": "One ledger entry of the link: who sent what, its bytes and its fate (fedmap.mission.link.Message).",
+    "description": ("One ledger entry of the link: who sent what, its bytes and its fate "
+                    "(fedmap.mission.network.link.Message)."),
     "properties": {
         "round": {"type": "integer"}, "step": {"type": "integer", "description": "when it was sent"},
         "rover": {"type": "integer"}, "direction": {"type": "string", "description": "up, down or peer"},

@@ -27,7 +27,7 @@ from fedmap.federation.aggregate import admm_consensus, metropolis_mix, metropol
 from fedmap.federation.codecs import Encoder, decode
 from fedmap.federation.runner import agent_seed, model_version
 from fedmap.maps.grid import GridMap, classes_from_rgb
-from fedmap.mission.protocol import Cell, Journal, Outgoing, PeerEnd, torch_threads
+from fedmap.mission.ends.protocol import Cell, Journal, Outgoing, PeerEnd, torch_threads
 from fedmap.nets.model import Weights, build_model, get_weights, render, set_weights
 from fedmap.nets.training import fit
 

@@ -1,7 +1,7 @@
 """What every strategy's ends share: the message headers, the three kinds of endpoint, and
 the journal the ends write what they did to.
 
-A strategy is a set of **endpoints** (:mod:`fedmap.mission.raw`, ``predictive``, ``model``,
+A strategy is a set of **endpoints** (:mod:`fedmap.mission.ends.raw`, ``predictive``, ``model``,
 ``gossip``): a :class:`RoverEnd` per rover and a :class:`BaseEnd` on the star, or a
 :class:`PeerEnd` per agent on a peer topology. Each holds only its own end's state and
 talks to the other ends only in bytes: a sender offers a payload (:class:`Outgoing`), the
@@ -31,7 +31,7 @@ import torch
 
 from fedmap._util import cpu_cores
 from fedmap.maps.grid import UNKNOWN
-from fedmap.mission.sensing import disk_offsets
+from fedmap.mission.world.sensing import disk_offsets
 
 Cell = tuple[int, int]
 Reports = dict[int, tuple[Cell, Cell | None]]
@@ -263,7 +263,7 @@ class BaseEnd:
 class PeerEnd:
     """An agent's end of a peer strategy (a rover, or the lander: ``rover`` None).
 
-    Agents are the rovers ``0..n-1`` and the lander (:data:`~fedmap.mission.link.BASE`).
+    Agents are the rovers ``0..n-1`` and the lander (:data:`~fedmap.mission.network.link.BASE`).
     """
 
     def __init__(self, agent: int, rover: Any, shape: tuple[int, int], starts: list[Cell]) -> None:

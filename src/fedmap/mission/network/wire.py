@@ -1,5 +1,5 @@
 """fedmap's frames: the layout of every message between nodes, and of every record a node
-writes to its own disk (:mod:`fedmap.mission.nodelog`).
+writes to its own disk (:mod:`fedmap.mission.network.nodelog`).
 
 A **message frame** (what a transport carries, :func:`pack_message`) is binary and small:
 ``<BBhII`` = version (:data:`WIRE_VERSION`), kind (:data:`ORDER`, :data:`REPORT`,

@@ -34,7 +34,7 @@ from fedmap._schema import setting
 from fedmap.coding import streamcodec
 from fedmap.errors import FedmapError, RejectedUpdate
 from fedmap.maps.grid import UNKNOWN
-from fedmap.mission.protocol import BaseEnd, Cell, Outgoing, RoverEnd, cover, largest_fitting
+from fedmap.mission.ends.protocol import BaseEnd, Cell, Outgoing, RoverEnd, cover, largest_fitting
 from fedmap.nets.predictor import MapPredictor, predict, shipped_predictor
 
 PRIORS, MASKS, STATES = ("learned", "none"), ("derived", "coded"), ("persistent", "per-message")

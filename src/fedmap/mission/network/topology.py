@@ -3,7 +3,7 @@
 A topology is a class with a complete protocol (:class:`Topology`): who reaches whom from
 the rovers' positions, the budget of each link, and :meth:`~Topology.sync`, which runs one
 sync round over the ends through an :class:`Exchange` (the in-process transport: the
-seeded :class:`~fedmap.mission.link.Link` and the messages in flight). :func:`make_topology`
+seeded :class:`~fedmap.mission.network.link.Link` and the messages in flight). :func:`make_topology`
 builds one from ``[link]``; :data:`TOPOLOGIES` is the registry of them.
 
 * :class:`StarTopology`: every rover talks only to the base station, within ``max_range``.
@@ -33,9 +33,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from fedmap.mission.link import BASE, DOWN, UP, Link, Message
-from fedmap.mission.protocol import Outgoing, side_by_side
-from fedmap.mission.wire import pack_payload, unpack_payload
+from fedmap.mission.ends.protocol import Outgoing, side_by_side
+from fedmap.mission.network.link import BASE, DOWN, UP, Link, Message
+from fedmap.mission.network.wire import pack_payload, unpack_payload
 
 Cell = tuple[int, int]
 #: Slack on ``max_range`` (cells), so a rover exactly at the range is in range despite rounding.
@@ -49,7 +49,7 @@ def _call(fn: Callable[..., None], *args: Any) -> Callable[[int], None]:
 
 class Exchange:
     """The in-process transport of one strategy's run: the link, the ends (a
-    :class:`~fedmap.mission.registry.Sharing`) and the queue of messages in flight.
+    :class:`~fedmap.mission.ends.registry.Sharing`) and the queue of messages in flight.
     ``positions()`` gives every rover's cell now; ``replan(k)`` tells rover ``k`` its belief
     changed."""
 
@@ -64,7 +64,7 @@ class Exchange:
         self.leaders: tuple[int, ...] = ()  #: leader topology: the agents leading at the last sync
         #: star: per rover, the downlinks it was handed but has not answered yet (round, ledger entry)
         self.pending: dict[int, list[tuple[int, Message]]] = {}
-        #: what the transport carried: every message as a frame (:func:`~fedmap.mission.wire.pack_payload`),
+        #: what the transport carried: every message as a frame (:func:`~fedmap.mission.network.wire.pack_payload`),
         #: its bytes counted once per hop the link spent bytes on (the ledger counts the payload's)
         self.wire = {"frames": 0, "bytes": 0}
 

@@ -46,7 +46,7 @@ from fedmap._util import compiled_once
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.maps.planning import astar
-from fedmap.mission.sensing import disk_offsets
+from fedmap.mission.world.sensing import disk_offsets
 
 
 def frontier_mask(belief: np.ndarray) -> np.ndarray:
