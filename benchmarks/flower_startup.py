@@ -35,7 +35,7 @@ from fedmap.pipeline import PipelineConfig
 
 IMPORTS = {
     "`fedmap rover` (the supervising CLI)": "fedmap.cli",
-    "one cold ClientApp (a warm server forks from the rover: ~0.1 s)": "fedmap.flower.client_app",
+    "one cold ClientApp (a warm server forks from the rover: ~0.1 s)": "fedmap.flower.snapshot.client",
     "SuperNode (fedmap.flower.supernode)": "fedmap.flower.supernode",
 }
 

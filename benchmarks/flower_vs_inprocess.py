@@ -68,13 +68,13 @@ def main() -> None:
 
     ref_rounds = [r.seconds for r in fed.history]
     t = time.perf_counter()
-    subprocess.run([sys.executable, "-c", "import fedmap.flower.client_app"], check=True)
+    subprocess.run([sys.executable, "-c", "import fedmap.flower.snapshot.client"], check=True)
     cold_import_s = time.perf_counter() - t
     print(f"4 rovers, {args.rounds} round(s), {args.net} net, mars {args.size}x{args.size}, {args.epochs} local epochs, "
           f"fp32 payloads")
     print(f"in process : {in_process_s:7.1f} s  (run_federation + render/refine/evaluate); rounds "
           + ", ".join(f"{x:.1f}" for x in ref_rounds) + " s")
-    print(f"cold ClientApp start (python -c 'import fedmap.flower.client_app'): {cold_import_s:.1f} s per message")
+    print(f"cold ClientApp start (python -c 'import fedmap.flower.snapshot.client'): {cold_import_s:.1f} s per message")
     for mode in args.modes:
         m, flower_s, startup_s = _flower(run, truth, maps, mode, args.size)
         rounds = [r["seconds"] for r in m["rounds"]]

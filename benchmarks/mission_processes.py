@@ -27,7 +27,7 @@ import threading
 import time
 from pathlib import Path
 
-from fedmap.flower.deploy import LOCAL_POLL, deploy_mission
+from fedmap.flower.mission.deploy import LOCAL_POLL, deploy_mission
 from fedmap.mission import load_mission, mission_terrain, run_mission
 from fedmap.mission.outputs.report import metrics, without_timings
 from fedmap.mission.settings import mission_toml

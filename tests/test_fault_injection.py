@@ -193,8 +193,8 @@ def test_every_fault_at_once_on_loopback(tmp_path, monkeypatch):
     pytest.importorskip("flwr")
     from tests.test_flower_e2e import _team  # the four rovers' maps and the ground truth, saved as files
 
-    from fedmap.flower.deploy import ROVER_HOST_SOCKET, RoverHost
     from fedmap.flower.launch import Processes, flower_env, free_port, make_certs, run_base_station, socket_dir
+    from fedmap.flower.mission.deploy import ROVER_HOST_SOCKET, RoverHost
 
     monkeypatch.setenv("FLWR_HOME", str(tmp_path / "flwr-home"))
     maps = _team(tmp_path)
@@ -290,9 +290,9 @@ def test_a_link_that_keeps_dropping(tmp_path, monkeypatch):
     pytest.importorskip("flwr")
     from tests.test_flower_e2e import _team
 
-    from fedmap.flower.deploy import ROVER_HOST_SOCKET, RoverHost
     from fedmap.flower.launch import Processes, flower_env, free_port, run_base_station, socket_dir
-    from fedmap.flower.server_app import LOST_REPLY, NO_REPLY, NOT_CONNECTED
+    from fedmap.flower.mission.deploy import ROVER_HOST_SOCKET, RoverHost
+    from fedmap.flower.snapshot.server import LOST_REPLY, NO_REPLY, NOT_CONNECTED
 
     monkeypatch.setenv("FLWR_HOME", str(tmp_path / "flwr-home"))
     maps = _team(tmp_path)

@@ -23,13 +23,13 @@ from fedmap.explore import explore  # noqa: E402
 from fedmap.federation.aggregate import weighted_average  # noqa: E402
 from fedmap.federation.codecs import Encoder  # noqa: E402
 from fedmap.federation.runner import agent_seed, run_federation  # noqa: E402
-from fedmap.flower import client_app  # noqa: E402
 from fedmap.flower.launch import key_values, make_certs  # noqa: E402
 from fedmap.flower.polling import REPLY_LOST  # noqa: E402
 from fedmap.flower.records import check_flower_count, flower_overhead, from_record, to_record  # noqa: E402
 from fedmap.flower.rover import rover_node_config  # noqa: E402
-from fedmap.flower.server_app import NO_REPLY, NOT_CONNECTED, FedmapStrategy  # noqa: E402
 from fedmap.flower.settings import RunSettings  # noqa: E402
+from fedmap.flower.snapshot import client as client_app  # noqa: E402
+from fedmap.flower.snapshot.server import NO_REPLY, NOT_CONNECTED, FedmapStrategy  # noqa: E402
 from fedmap.flower.task import load_local_map  # noqa: E402
 from fedmap.maps.io import save_map  # noqa: E402
 from fedmap.nets.model import build_model, get_weights, preset, set_weights  # noqa: E402
@@ -348,8 +348,8 @@ def test_app_pyproject_declares_every_run_config_key():
 
     app = tomllib.loads((app_dir() / "pyproject.toml").read_text())["tool"]["flwr"]["app"]
     assert app["config"] == RUN_DEFAULTS, "a setting changed: run `python -m fedmap.flower.settings` to regenerate it"
-    assert app["components"] == {"serverapp": "fedmap.flower.server_app:app",
-                                 "clientapp": "fedmap.flower.client_app:app"}
+    assert app["components"] == {"serverapp": "fedmap.flower.snapshot.server:app",
+                                 "clientapp": "fedmap.flower.snapshot.client:app"}
 
 
 @pytest.mark.parametrize("event", ["missed", "restarted"])
@@ -427,7 +427,7 @@ def test_the_first_round_waits_its_own_deadline_and_the_later_ones_the_deadline(
     """Flower's strategy takes one timeout for every round; the base station's grid gives the
     first exchange ``first-deadline`` (it also covers each rover's start-up) and every later
     one the timeout it is given. 0 (the default) is the deadline for every round."""
-    from fedmap.flower import server_app
+    from fedmap.flower.snapshot import server as server_app
 
     waits = []
     monkeypatch.setattr(server_app, "exchange", lambda grid, msgs, timeout, **kw: waits.append(timeout) or [])

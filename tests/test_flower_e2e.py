@@ -17,8 +17,8 @@ pytest.importorskip("flwr")
 from fedmap.explore import explore  # noqa: E402
 from fedmap.federation.codecs import Encoder  # noqa: E402
 from fedmap.federation.runner import run_federation  # noqa: E402
-from fedmap.flower.deploy import ROVER_HOST_SOCKET, RoverHost  # noqa: E402
 from fedmap.flower.launch import Processes, flower_env, free_port, run_base_station, socket_dir  # noqa: E402
+from fedmap.flower.mission.deploy import ROVER_HOST_SOCKET, RoverHost  # noqa: E402
 from fedmap.flower.settings import RunSettings  # noqa: E402
 from fedmap.maps.io import save_map  # noqa: E402
 from fedmap.maps.sources import TerrainSource, load_truth  # noqa: E402

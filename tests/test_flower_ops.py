@@ -724,7 +724,7 @@ def test_a_local_deploys_rovers_are_forked_by_one_host_and_watched_like_processe
     one-line error and exit code 2, in the rover's log), it runs in a process group of its own,
     its SuperNode and the rest are its own children as with a rover started cold, it ends with
     ``fedmap rover``'s own exit code, and it does not outlive the host."""
-    from fedmap.flower.deploy import ROVER_HOST_MODULE
+    from fedmap.flower.mission.deploy import ROVER_HOST_MODULE
     from fedmap.flower.warm import ROVER
 
     sock = str(tmp_path / "h.sock")

@@ -23,9 +23,9 @@ import pytest
 pytest.importorskip("flwr")
 
 from fedmap.errors import FedmapError  # noqa: E402
-from fedmap.flower.deploy import deploy_mission  # noqa: E402
 from fedmap.flower.launch import OWNER_FILE  # noqa: E402
-from fedmap.flower.mission_task import MISSION_RUN_DEFAULTS  # noqa: E402
+from fedmap.flower.mission.deploy import deploy_mission  # noqa: E402
+from fedmap.flower.mission.task import MISSION_RUN_DEFAULTS  # noqa: E402
 from fedmap.maps.grid import UNKNOWN  # noqa: E402
 from fedmap.mission import load_mission, mission_terrain, run_mission  # noqa: E402
 from fedmap.mission.outputs.report import metrics, without_timings  # noqa: E402
@@ -192,7 +192,7 @@ def test_a_base_station_killed_mid_mission_resumes_bit_for_bit(tmp_path):
 
 
 def test_resuming_without_a_journal_or_with_another_mission_is_refused(tmp_path):
-    from fedmap.flower.mission_task import BaseJournal
+    from fedmap.flower.mission.task import BaseJournal
 
     with pytest.raises(FedmapError, match="nothing to resume"):
         BaseJournal(tmp_path / "out", "[mission]\nsteps = 10\n", resume=True)
@@ -209,7 +209,7 @@ def test_the_mission_app_declares_every_run_config_key():
     import tomllib
     from pathlib import Path
 
-    from fedmap.flower.deploy import mission_app_dir
+    from fedmap.flower.mission.deploy import mission_app_dir
 
     app = tomllib.loads((Path(mission_app_dir()) / "pyproject.toml").read_text())
     assert app["tool"]["flwr"]["app"]["config"] == MISSION_RUN_DEFAULTS

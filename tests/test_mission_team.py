@@ -1,4 +1,4 @@
-"""The mission base station's sending of orders (:class:`fedmap.flower.mission_server._Team`)
+"""The mission base station's sending of orders (:class:`fedmap.flower.mission.server._Team`)
 against a stand-in grid: which faults it sees, and when it sends an order again."""
 
 from __future__ import annotations
@@ -10,8 +10,9 @@ pytest.importorskip("flwr")
 from flwr.app import ConfigRecord, Message, MessageType, RecordDict  # noqa: E402
 from tests.test_flower import task_identity  # noqa: E402, F401
 
-from fedmap.flower import mission_server, polling  # noqa: E402
-from fedmap.flower.mission_task import MissionRun  # noqa: E402
+from fedmap.flower import polling  # noqa: E402
+from fedmap.flower.mission import server as mission_server
+from fedmap.flower.mission.task import MissionRun  # noqa: E402
 from fedmap.flower.records import to_record  # noqa: E402
 from fedmap.mission.network.remote import Report  # noqa: E402
 

@@ -154,9 +154,9 @@ def test_site_maps_train_on_the_final_map_and_score_on_cells_nobody_observed(tmp
 
 
 def test_predictor_app_config_matches_the_run_defaults():
-    from fedmap.flower.predictor_task import PREDICTOR_RUN_DEFAULTS, PredictorRun
+    from fedmap.flower.predictor.task import PREDICTOR_RUN_DEFAULTS, PredictorRun
 
-    app = Path(__file__).resolve().parents[1] / "src/fedmap/flower/predictor_app/pyproject.toml"
+    app = Path(__file__).resolve().parents[1] / "src/fedmap/flower/predictor/app/pyproject.toml"
     config = tomllib.loads(app.read_text())["tool"]["flwr"]["app"]["config"]
     assert config == PREDICTOR_RUN_DEFAULTS
     run = PredictorRun.from_run_config(config)
@@ -171,7 +171,7 @@ def test_flower_sites_on_real_processes_give_the_in_process_weights(tmp_path):
     """A SuperLink and two SuperNodes (one per site, each with only its own samples file) on
     loopback, two rounds: the global weights of every round equal federate()'s, bit for bit."""
     pytest.importorskip("flwr")
-    from fedmap.flower.predictor_deploy import deploy_predictor
+    from fedmap.flower.predictor.deploy import deploy_predictor
 
     sites = _sites(2, size=32)
     files = [save_site_samples(tmp_path / f"{s.name}.npz", s.beliefs, s.targets) for s in sites]

@@ -30,8 +30,8 @@ from fedmap.flower.checkpoint import (  # noqa: E402
     write_checkpoint,
 )
 from fedmap.flower.records import to_record  # noqa: E402
-from fedmap.flower.server_app import FedmapStrategy  # noqa: E402
 from fedmap.flower.settings import RunSettings  # noqa: E402
+from fedmap.flower.snapshot.server import FedmapStrategy  # noqa: E402
 
 
 def _run(strategy, nodes, run, rounds, arrays=None):

@@ -18,7 +18,7 @@ from fedmap._util import check_output_dir, cpu_cores, to_json
 from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import console, fit, progress_bar, terrain_line
 from fedmap.errors import FedmapError
-from fedmap.flower.deploy import DEPLOY_MODES, deploy_logs, deploy_mission
+from fedmap.flower.mission.deploy import DEPLOY_MODES, deploy_logs, deploy_mission
 from fedmap.maps.rosbag import check_bag_path
 from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.ends.registry import names_that
@@ -232,7 +232,7 @@ def _check_outputs(out: Path, *, record: Path | None, rosbag: Path | None) -> No
 
 def _deployed(cfg, resolved: dict, mode: str, plan: tuple[tuple[str, ...], list[str], str, str], *, out: Path,
               animation: bool, progress, certs: Optional[Path], auth_keys: Optional[Path], insecure: bool, resume: bool):
-    """The mission on real processes (:func:`fedmap.flower.deploy.deploy_mission`) as
+    """The mission on real processes (:func:`fedmap.flower.mission.deploy.deploy_mission`) as
     :func:`_deploy_plan` planned it, with a progress bar per strategy from the base station's status."""
     names, left, host, port = plan
     if left:

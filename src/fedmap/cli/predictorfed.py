@@ -99,7 +99,7 @@ def federate_predictor(
         console.print("training: federated (in process)")
         federated = federate(init_weights, train, training, rounds)
     else:
-        from fedmap.flower.predictor_deploy import deploy_predictor
+        from fedmap.flower.predictor.deploy import deploy_predictor
 
         files = [save_site_samples(out / "sites" / f"{s.name}.npz", s.beliefs, s.targets) for s in train]
         run_config = {"local-steps": local_steps, "batch": batch, "crop": crop, "lr": lr, "seed": seed,
@@ -111,7 +111,7 @@ def federate_predictor(
                      on_progress=lambda what: console.print(f"training: {what}"))
     result.update(deploy=deploy or "in-process", mission_steps=steps, seconds=time.perf_counter() - t0)
     if deploy == "local":  # the rounds on Flower: seconds and bytes each way (fp32 payloads)
-        from fedmap.flower.predictor_task import read_rounds_log
+        from fedmap.flower.predictor.task import read_rounds_log
 
         result["flower"] = read_rounds_log(out / "flower")
     (out / "federated.json").write_text(json.dumps(result, indent=1))

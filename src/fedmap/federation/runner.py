@@ -104,7 +104,7 @@ _FLOWER_KEYS = ("missing_why", "node_errors", "flower_uplink_bytes", "flower_dow
 
 @dataclass(frozen=True)
 class FlowerRound:
-    """What the Flower base station (:mod:`fedmap.flower.server_app`) adds to a round's record.
+    """What the Flower base station (:mod:`fedmap.flower.snapshot.server`) adds to a round's record.
 
     ``missing_why``: missing rover -> why it delivered nothing; ``node_errors``: Flower node id
     (a string) -> its error, for nodes that never said which rover they are; ``uplink_bytes`` /

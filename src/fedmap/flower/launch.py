@@ -42,7 +42,7 @@ SUPERLINK_MODULE, CONTROL_MODULE = "fedmap.flower.superlink", "fedmap.flower.con
 
 def app_dir() -> Path:
     """The Flower App (its ``pyproject.toml``) that ``flwr run`` submits."""
-    return Path(__file__).resolve().parent / "app"
+    return Path(__file__).resolve().parent / "snapshot" / "app"
 
 
 def flower_executable(name: str) -> str:

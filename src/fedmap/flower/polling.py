@@ -61,7 +61,7 @@ def quick_pulls(first: float = FIRST_RETRY, cap: float = RETRY_CAP) -> None:
 
 #: Seconds between a base station's polls for replies (Flower's ``send_and_receive``: 3 s). Each
 #: poll costs the SuperLink and the ServerApp CPU: 0.02 s cost a loaded two-core machine more
-#: than it saved (fedmap.flower.deploy.LOCAL_POLL).
+#: than it saved (fedmap.flower.mission.deploy.LOCAL_POLL).
 POLL = 0.05
 #: Seconds the last look after a deadline gives each reply body still missing.
 LAST_LOOK = 2.0

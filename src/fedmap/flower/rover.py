@@ -58,7 +58,7 @@ from fedmap.flower.launch import (
     sigterm_as_interrupt,
     socket_dir,
 )
-from fedmap.flower.mission_task import hold_state, node_feed, parse_mission_fault
+from fedmap.flower.mission.task import hold_state, node_feed, parse_mission_fault
 from fedmap.flower.task import load_local_map
 
 #: Seconds a rover keeps trying to reach its SuperLink before it gives up (``fedmap rover --max-wait``).

@@ -184,4 +184,4 @@ def write_app_config(path: Path) -> None:
 
 
 if __name__ == "__main__":  # python -m fedmap.flower.settings: regenerate the app's run-config table
-    write_app_config(Path(__file__).resolve().parent / "app" / "pyproject.toml")
+    write_app_config(Path(__file__).resolve().parent / "snapshot" / "app" / "pyproject.toml")

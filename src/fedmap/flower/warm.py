@@ -66,7 +66,7 @@ FIRST_WAIT = 1.0
 
 def _run_task(program: str, argv: list[str]) -> None:  # pragma: no cover - runs in a forked child
     """Flower's own ``program`` entry point with ``argv``, in this process, forked by the server."""
-    from fedmap.flower.client_app import flower_superexec_main, flwr_clientapp_main
+    from fedmap.flower.snapshot.client import flower_superexec_main, flwr_clientapp_main
 
     def run() -> None:
         if program == SUPERNODE:  # a process group of its own, as the rover's Processes give
@@ -137,16 +137,16 @@ def preload(node_config: dict) -> None:
     # still no torch operation before the fork.
     import torch._dynamo  # noqa: F401
 
-    import fedmap.flower.client_app  # noqa: F401 - the imports the children no longer pay (Flower's runtime too)
+    import fedmap.flower.snapshot.client  # noqa: F401 - the imports the children no longer pay (Flower's runtime too)
     import fedmap.flower.supernode  # noqa: F401 - the SuperNode's (nothing more than the ClientApp's, measured)
 
     if node_config.get("mission"):  # a mission rover: its world comes with the base's first order
-        import fedmap.flower.mission_client  # noqa: F401
+        import fedmap.flower.mission.client  # noqa: F401
         from fedmap.mission.network.remote import warm_up
 
         warm_up()  # the compiled planners, loaded once: the children inherit them
-    elif "samples" in node_config:  # a site of the predictor's fine-tuning (fedmap.flower.predictor_deploy)
-        import fedmap.flower.predictor_client  # noqa: F401
+    elif "samples" in node_config:  # a site of the predictor's fine-tuning (fedmap.flower.predictor.deploy)
+        import fedmap.flower.predictor.client  # noqa: F401
     else:
         from fedmap.flower.task import load_local_map
 

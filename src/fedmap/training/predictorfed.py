@@ -22,8 +22,8 @@ implementation of aggregation). No map leaves its site: what crosses is weights.
   predictor's guesses on a held-out site's cells that nobody had observed.
 
 The Flower apps that run :func:`local_round` on one SuperNode per site and
-:func:`fedavg_predictor` on the server are in :mod:`fedmap.flower.predictor_server` and
-:mod:`fedmap.flower.predictor_client`; they give the same weights as :func:`federate`.
+:func:`fedavg_predictor` on the server are in :mod:`fedmap.flower.predictor.server` and
+:mod:`fedmap.flower.predictor.client`; they give the same weights as :func:`federate`.
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ node, and only this tells the base that the order its old process took will not 
 order of a sync round; the rover drives to its step, syncs and replies with its report. A
 damaged order is answered with ``error`` / ``corrupt`` (the base sends it again). The node
 lives in the rover's own folder between messages (node config ``state-dir``), one per
-mission and strategy (:func:`fedmap.flower.mission_task.rover_answer`), so a rover
+mission and strategy (:func:`fedmap.flower.mission.task.rover_answer`), so a rover
 process killed and started again carries on. A rover that lost that folder answers
 ``error`` / ``lost``; the base sends the order again with every order it sent before
 (``history``), and the rover rebuilds its node from them. ``evaluate``: the mission is over; with ``done-file=<path>`` in
@@ -23,7 +23,7 @@ from flwr.clientapp import ClientApp
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
-from fedmap.flower.mission_task import CorruptMessage, LostState, damaged, node_feed, parse_mission_fault, rover_answer
+from fedmap.flower.mission.task import CorruptMessage, LostState, damaged, node_feed, parse_mission_fault, rover_answer
 from fedmap.flower.polling import quick_pulls
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.task import KEY_ROVER, check_key

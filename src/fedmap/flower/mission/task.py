@@ -41,7 +41,7 @@ from fedmap.mission.scoring import mission_from_text
 from fedmap.mission.sim import Mission
 from fedmap.mission.world.feed import MapFeed
 
-#: The mission app's run-config keys and their defaults (``mission_app/pyproject.toml`` holds the same).
+#: The mission app's run-config keys and their defaults (``app/pyproject.toml`` holds the same).
 MISSION_RUN_DEFAULTS: dict[str, Any] = {
     "mission": "",  # the resolved mission, TOML text
     "strategies": "",  # comma-separated; "" = the mission's own

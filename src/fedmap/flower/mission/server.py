@@ -32,7 +32,7 @@ from flwr.supercore import log
 
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
-from fedmap.flower.mission_task import (
+from fedmap.flower.mission.task import (
     BaseJournal,
     MissionRun,
     base_dir,
@@ -248,7 +248,7 @@ class _Team:
 def run_mission_base(grid: Grid, run: MissionRun) -> None:
     """Every strategy's mission over the rovers on ``grid``, each logged by the base in
     ``<out>.run/base/`` (the rovers log their own side); with ``run.resume``, the rounds in
-    the base's journal are replayed first (:class:`~fedmap.flower.mission_task.BaseJournal`)."""
+    the base's journal are replayed first (:class:`~fedmap.flower.mission.task.BaseJournal`)."""
     t0 = time.perf_counter()
     write_status(run.out, "running", message="loading the mission")
     mission = mission_from_text(run.mission, frames=run.frames)

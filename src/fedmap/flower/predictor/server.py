@@ -8,7 +8,7 @@ order with :func:`fedmap.training.predictorfed.fedavg_predictor`: the same weigh
 :func:`~fedmap.training.predictorfed.federate`. A site that does not answer within
 ``deadline`` fails the run (FedAvg over the sites that answered would not be the
 comparison it is measured against). At the end every site gets an ``evaluate`` message
-(its SuperNode may stop). Files: :mod:`fedmap.flower.predictor_task`.
+(its SuperNode may stop). Files: :mod:`fedmap.flower.predictor.task`.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from flwr.supercore import log
 from fedmap.errors import FedmapError
 from fedmap.federation.codecs import Encoder, decode
 from fedmap.flower.polling import exchange, quick_pulls
-from fedmap.flower.predictor_task import PredictorRun, save_round, write_rounds_log
+from fedmap.flower.predictor.task import PredictorRun, save_round, write_rounds_log
 from fedmap.flower.records import check_flower_count, from_record, to_record
 from fedmap.flower.task import write_status
 from fedmap.training.predictorfed import fedavg_predictor

@@ -3,7 +3,7 @@
 ``local``: on this machine, a SuperLink with TLS and SuperNode authentication (a fresh CA,
 server certificate and one key pair per rover, :func:`~fedmap.flower.launch.make_certs`),
 one rover process per member of the team (``fedmap rover --mission``: its SuperNode, kept
-connected), and the mission's ServerApp (:mod:`fedmap.flower.mission_server`), all on
+connected), and the mission's ServerApp (:mod:`fedmap.flower.mission.server`), all on
 127.0.0.1. ``base``: only the base station, for rovers on other machines (``--certs`` and
 ``--auth-keys`` unless it listens on loopback or ``--insecure``). Either way the command
 returns the finished :class:`~fedmap.mission.results.MissionResult`, scored from the
@@ -43,7 +43,7 @@ from fedmap.flower.launch import (
     submit_run,
     wait_for_result,
 )
-from fedmap.flower.mission_task import MissionRun, base_dir, base_log
+from fedmap.flower.mission.task import MissionRun, base_dir, base_log
 from fedmap.flower.rover import WarmChild
 from fedmap.flower.task import rover_nodes_text, run_status_path, write_status
 from fedmap.flower.warm import ROVER
@@ -77,7 +77,7 @@ DEPLOY_MODES = ("local", "base")
 
 def mission_app_dir() -> Path:
     """The mission's Flower App (its ``pyproject.toml``) that ``flwr run`` submits."""
-    return Path(__file__).resolve().parent / "mission_app"
+    return Path(__file__).resolve().parent / "app"
 
 
 def rover_argv(k: int, *, superlink: str, root_cert: Path | None, auth_key: Path | None, log: Path, state: Path,
@@ -111,7 +111,7 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
     result) are in ``<out>.run/``. ``on_ready(address)`` is called once the SuperLink
     listens (``base``: start the rovers then). ``rounds``: the orders of one strategy's
     mission (its syncs and the last), which bound the wait with ``deadline``. ``faults``: per rover, a fault it injects
-    (tests only, :func:`fedmap.flower.mission_task.parse_mission_fault`).
+    (tests only, :func:`fedmap.flower.mission.task.parse_mission_fault`).
     """
     if mode not in DEPLOY_MODES:
         raise FedmapError(f"unknown --deploy {mode!r}: choose one of {', '.join(DEPLOY_MODES)}")

@@ -20,7 +20,7 @@ from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.federation.codecs import Encoder, decode
 from fedmap.flower.polling import quick_pulls
-from fedmap.flower.predictor_task import PredictorRun
+from fedmap.flower.predictor.task import PredictorRun
 from fedmap.flower.records import from_record, to_record
 from fedmap.training.predictorfed import load_site_samples, local_round
 

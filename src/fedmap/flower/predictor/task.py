@@ -1,7 +1,7 @@
 """What the predictor apps do, Flower-free: their run config, and the files a run leaves.
 
-The predictor's federated fine-tuning on Flower (:mod:`fedmap.flower.predictor_server`,
-:mod:`fedmap.flower.predictor_client`) is :func:`fedmap.training.predictorfed.federate` on
+The predictor's federated fine-tuning on Flower (:mod:`fedmap.flower.predictor.server`,
+:mod:`fedmap.flower.predictor.client`) is :func:`fedmap.training.predictorfed.federate` on
 processes: one SuperNode per site, each holding its own samples (node config ``samples``:
 a file of :func:`~fedmap.training.predictorfed.save_site_samples`; ``partition-id``: the
 site's index, which seeds its rounds). Weights cross as fedmap ``fp32`` payloads
@@ -24,7 +24,7 @@ from fedmap.nets.model import Weights
 from fedmap.nets.predictor import load_predictor, save_predictor, shipped_predictor
 from fedmap.training.predictorfed import FineTuning, predictor_from_weights, predictor_weights
 
-#: The predictor app's run config and its defaults (``predictor_app/pyproject.toml``; a test checks they match).
+#: The predictor app's run config and its defaults (``app/pyproject.toml``; a test checks they match).
 PREDICTOR_RUN_DEFAULTS: dict = {"sites": 2, "rounds": 1, "local-steps": 40, "batch": 8, "crop": 96, "lr": 5e-4,
                                 "seed": 0, "init": "", "out": "fedmap-out/predictor-federated",
                                 "connect-timeout": 120.0, "deadline": 600.0}

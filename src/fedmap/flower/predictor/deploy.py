@@ -3,7 +3,7 @@ processes, started and waited for.
 
 On this machine: a SuperLink on 127.0.0.1, one SuperNode per site (each given only its own
 samples file, node config ``samples``), and the predictor's ServerApp
-(:mod:`fedmap.flower.predictor_server`) submitted with ``flwr run``. The command returns the
+(:mod:`fedmap.flower.predictor.server`) submitted with ``flwr run``. The command returns the
 global weights of every round; every process's log is in ``<out>.run/``. Nothing here
 imports ``flwr``.
 
@@ -25,7 +25,6 @@ from pathlib import Path
 from fedmap.errors import FedmapError
 from fedmap.flower import POLL_ENV, SUPEREXEC_POLL_ENV
 from fedmap.flower.checkpoint import run_dir
-from fedmap.flower.deploy import LOCAL_POLL
 from fedmap.flower.launch import (
     SUPERLINK_EXES,
     SUPERNODE_EXES,
@@ -41,7 +40,8 @@ from fedmap.flower.launch import (
     submit_run,
     wait_for_result,
 )
-from fedmap.flower.predictor_task import PredictorRun, read_rounds
+from fedmap.flower.mission.deploy import LOCAL_POLL
+from fedmap.flower.predictor.task import PredictorRun, read_rounds
 from fedmap.flower.rover import WarmChild, supernode_argv, write_shim
 from fedmap.flower.task import run_status_path, write_status
 from fedmap.nets.model import Weights
@@ -54,14 +54,14 @@ def _server_alive(server: Proc) -> Callable[[], bool]:
 
 def predictor_app_dir() -> Path:
     """The predictor's Flower App (its ``pyproject.toml``) that ``flwr run`` submits."""
-    return Path(__file__).resolve().parent / "predictor_app"
+    return Path(__file__).resolve().parent / "app"
 
 
 def deploy_predictor(samples: Sequence[Path], *, out: Path, rounds: int, run_config: dict | None = None,
                      on_status: Callable[[dict], None] | None = None) -> list[Weights]:
     """Federated fine-tuning over one SuperNode per file of ``samples`` (site ``k`` reads
     ``samples[k]`` only) for ``rounds`` rounds; the global weights after every round.
-    ``run_config``: the other keys of :data:`~fedmap.flower.predictor_task.PREDICTOR_RUN_DEFAULTS`."""
+    ``run_config``: the other keys of :data:`~fedmap.flower.predictor.task.PREDICTOR_RUN_DEFAULTS`."""
     out = Path(out).resolve()
     config = {**(run_config or {}), "sites": len(samples), "rounds": rounds, "out": str(out)}
     run = PredictorRun.from_run_config(config)  # a bad run config fails here, before any process starts
