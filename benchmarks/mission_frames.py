@@ -16,7 +16,7 @@ and the team's frame), in cells. Writes
 ``benchmarks/results/mission_frames/mission_frames.json``.
 
 Two what-ifs (star only; not fedmap's behaviour, which no setting changes; the library's
-hook :func:`fedmap.mission.world.frames.what_if`):
+hook :func:`fedmap.mission.ends.framed.what_if`):
 ``--oracle`` gives the base each rover's *true* transform (its frame into the true frame, as
 the rover's pose is at that sync) wherever it would register the rover's cells: every sync
 placed exactly, also those with nothing to register on. ``--send-back`` sends a rover the
@@ -43,7 +43,7 @@ import numpy as np
 from fedmap.maps.grid import UNKNOWN
 from fedmap.maps.registration import RigidTransform
 from fedmap.mission import load_mission, mission_terrain, run_mission
-from fedmap.mission.world import frames as framed
+from fedmap.mission.ends import framed
 
 ROOT = Path(__file__).resolve().parent.parent
 #: A small rover's start and odometry errors (docs/frames.md); the lander imaged 12 m around itself.

@@ -14,22 +14,22 @@ from fedmap.errors import FedmapError
 from fedmap.maps.grid import IMPASSABLE, UNKNOWN
 from fedmap.maps.registration import RigidTransform
 from fedmap.mission import mission_terrain, run_mission
-from fedmap.mission.ends.protocol import pack_down, pack_up, unpack_down
-from fedmap.mission.network.link import BASE
-from fedmap.mission.network.remote import check_deployable
-from fedmap.mission.settings import FramesConfig, load_mission
-from fedmap.mission.world.frames import (
+from fedmap.mission.ends.framed import (
     TRANSFORM_BYTES,
     FramedPredictiveBase,
     FramedPredictiveRover,
     FramedRawBase,
     FramedRawPeer,
-    FramedWorld,
     chain,
     pack_transform,
     track,
     unpack_transform,
 )
+from fedmap.mission.ends.protocol import pack_down, pack_up, unpack_down
+from fedmap.mission.network.link import BASE
+from fedmap.mission.network.remote import check_deployable
+from fedmap.mission.settings import FramesConfig, load_mission
+from fedmap.mission.world.frames import FramedWorld
 
 MISSION = {"rovers": 2, "steps": 40, "sync_every": 8, "sensor_radius": 6.0, "eval_pairs": 8, "strategies": ["raw"]}
 DRIFT = {"start_offset": 1.0, "start_heading": 1.0, "drift": 0.03, "heading_drift": 0.01, "lander_view": 12.0}

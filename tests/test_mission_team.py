@@ -191,4 +191,4 @@ def test_what_a_strategy_can_do_is_said_by_its_spec_alone():
     config, _, _ = load_mission(overrides=[{"mission": {"strategies": ["raw", "fedmap"]},
                                             "frames": {"start_offset": 1.0}}])
     with pytest.raises(FedmapError, match=r"\[frames\] .* runs none, raw, predictive only, not fedmap"):
-        check_frames(config)
+        check_frames(config, framed)

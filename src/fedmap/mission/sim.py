@@ -34,7 +34,8 @@ from fedmap.maps.traversability import (
     resolved_slope,
     rover_profile,
 )
-from fedmap.mission.ends.registry import Setup, Sharing, build
+from fedmap.mission.ends.framed import registrations
+from fedmap.mission.ends.registry import Setup, Sharing, build, names_that
 from fedmap.mission.network.link import BASE, DOWN, UP, Link, Message
 from fedmap.mission.network.topology import Exchange, make_topology
 from fedmap.mission.results import (
@@ -56,8 +57,7 @@ from fedmap.mission.results import (
     summarise,
 )
 from fedmap.mission.settings import MissionConfig
-from fedmap.mission.world.frames import FramedWorld, check_frames, registrations
-from fedmap.mission.world.frames import build as frames_build
+from fedmap.mission.world.frames import FramedWorld, check_frames
 from fedmap.mission.world.world import Rover, World, place_starts, plan_waypoints, start_pocket_warning
 
 Cell = tuple[int, int]
@@ -207,7 +207,7 @@ class _Run:
         self.world = world = mission.world(self.topology)
         self.team = world.team
         self.link = Link(replace(config.link, seed=config.link_seed), self.topology)
-        self.sharing = (ends or (frames_build if config.frames.enabled else build))(
+        self.sharing = (ends or build)(
             name, Setup(config, truth, self.team, self.topology))
         world.ends = self.sharing.rovers
 
@@ -454,7 +454,7 @@ def prepare_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndar
             raise FedmapError(f"profile {name!r} classes {np.shape(classes)} do not match the map {truth.shape}")
     if thresholds is not None and "elevation" in config.layers:
         thresholds = resolved_slope(thresholds, truth)
-    check_frames(config)
+    check_frames(config, names_that("framed"))
     starts, base = place_starts(truth, config)
     waypoints = plan_waypoints(truth, config) if config.mode == "waypoints" else [[] for _ in starts]
     frame_every = max(1, math.ceil(config.steps / max(frames, 1)))

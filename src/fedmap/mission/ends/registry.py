@@ -15,96 +15,23 @@ Adding a strategy is writing its ends (:mod:`fedmap.mission.ends.protocol`) and 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
-
-import numpy as np
 
 from fedmap.coding.streamcodec import LEAST_BYTES
 from fedmap.config import method_config
 from fedmap.federation.runner import init_held
-from fedmap.maps.grid import UNKNOWN, GridMap
 from fedmap.maps.ros import lower_left_origin
+from fedmap.mission.ends.framed import framed_predictive, framed_raw
 from fedmap.mission.ends.gossip import AdmmPeer, GossipPeer
 from fedmap.mission.ends.model import MISSION_DEFAULTS, ModelBase, ModelRover, Training, model_lags
 from fedmap.mission.ends.predictive import PredictiveBase, PredictiveOptions, PredictiveRover
-from fedmap.mission.ends.protocol import DOWN_HEADER, UP_HEADER, BaseEnd, Cell, Journal, PeerEnd, RoverEnd
+from fedmap.mission.ends.protocol import DOWN_HEADER, UP_HEADER, BaseEnd, Journal, PeerEnd, RoverEnd
 from fedmap.mission.ends.raw import CentralBase, CentralRover, RawBase, RawPeer, RawRover
 from fedmap.mission.ends.rosgrid import ZLIB_LEVEL, GridCodec, RosgridBase, RosgridRover
+from fedmap.mission.ends.sharing import Factory, Setup, Sharing
 from fedmap.mission.network.link import BASE
 from fedmap.pipeline import initial_weights
-
-
-@dataclass
-class Setup:
-    """What a strategy's ends are built from: the mission (``config``, a
-    :class:`~fedmap.mission.settings.MissionConfig`), the truth's grid, the team (each
-    rover end gets its own rover), every start, and the topology's agents and budgets."""
-
-    config: Any
-    truth: GridMap
-    team: list
-    topology: Any
-    journal: Journal = field(default_factory=Journal)
-    name: str = ""  #: the strategy being built (:func:`build` sets it)
-
-    @property
-    def starts(self) -> list[Cell]:
-        return [r.pos for r in self.team]
-
-    @property
-    def options(self) -> dict:
-        """The ``[strategies.<name>]`` settings of the strategy being built."""
-        return dict(self.config.methods.get(self.name, {}))
-
-
-@dataclass
-class Sharing:
-    """One strategy's ends in one run, as the simulator holds them.
-
-    ``rovers`` are the ends the team's members plan with (rover ends, or the rovers' peer
-    ends), ``base`` the base station's end (None on peers), ``peers`` every agent's peer end
-    (None on the star), ``on_link`` whether it sends anything at all (``none`` and the
-    ``central`` oracle do not).
-    """
-
-    name: str
-    team: list
-    rovers: list
-    base: BaseEnd | None = None
-    peers: dict[int, PeerEnd] | None = None
-    on_link: bool = True
-    journal: Journal = field(default_factory=Journal)
-    #: called at every sync before the ends' own (a record the run keeps, e.g. model lags)
-    on_sync: Callable[[int], None] | None = None
-
-    def at_sync(self, round_no: int) -> None:
-        if self.on_sync is not None:
-            self.on_sync(round_no)
-        for end in (self.peers.values() if self.peers is not None else self.rovers):
-            end.at_sync(round_no)
-
-    def belief(self, k: int) -> np.ndarray:
-        return self.rovers[k].belief()
-
-    def global_map(self) -> np.ndarray:
-        """The base station's map; on peers the lander's, or without one the cells every
-        rover's belief holds with the same class."""
-        if self.base is not None:
-            return self.base.global_map()
-        assert self.peers is not None
-        if BASE in self.peers:
-            return self.peers[BASE].belief()
-        beliefs = [r.belief() for r in self.rovers]
-        agree = np.all([b == beliefs[0] for b in beliefs[1:]], axis=0) if len(beliefs) > 1 else \
-            np.ones(beliefs[0].shape, bool)
-        return np.where(agree, beliefs[0], UNKNOWN).astype(np.uint8)
-
-    def global_heights(self) -> np.ndarray | None:
-        return self.base.global_heights() if self.base is not None else None
-
-
-Factory = Callable[[Setup], Sharing]
 
 
 @dataclass(frozen=True)
@@ -126,8 +53,10 @@ class StrategySpec:
     #: its rover ends hold only their own rover, so each can run in a process of its own
     #: (``central`` pools every rover's observations at once: a reference, not a protocol)
     deployable: bool = False
-    #: it runs with ``[frames]`` (rovers that do not know their poses; :func:`fedmap.mission.world.frames.build`)
+    #: it runs with ``[frames]`` (rovers that do not know their poses, :mod:`fedmap.mission.world.frames`)
     framed: bool = False
+    #: its ends with ``[frames]`` (None: its own ends, each rover keeping its own frame)
+    framed_ends: Factory | None = None
     #: what the report makes of it: ``"protocol"`` (a way of sharing, a candidate of the verdict),
     #: ``"baseline"`` (sharing nothing: what the bytes of the others bought is measured above it)
     #: or ``"reference"`` (an oracle shown beside the others, never a candidate)
@@ -233,10 +162,10 @@ REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
                  on_link=False, default=True, peer_default=True, deployable=True, framed=True, role="baseline"),
     StrategySpec("raw", "observed cells, lossless (context codec): merged at the base on the star, gossiped on "
                  "peers", star=_raw_star, peer=_raw_peer, default=True, peer_default=True, deployable=True,
-                 framed=True),
+                 framed=True, framed_ends=framed_raw),
     StrategySpec("predictive", "new cells, lossless, with a learned probability model both ends keep",
                  star=_predictive, options=PredictiveOptions, default=True,
-                 least=(LEAST_BYTES, LEAST_BYTES), deployable=True, framed=True),
+                 least=(LEAST_BYTES, LEAST_BYTES), deployable=True, framed=True, framed_ends=framed_predictive),
     StrategySpec("rosgrid", "what a ROS 2 team sends: every rover's whole map as a nav_msgs/OccupancyGrid (CDR), "
                  "merged as map_merge does, the whole merged grid back", star=_rosgrid(None), deployable=True),
     StrategySpec("rosgrid-zlib", f"rosgrid with every serialised grid compressed by zlib (level {ZLIB_LEVEL})",
@@ -267,10 +196,12 @@ def build(name: str, setup: Setup) -> Sharing:
     """The ends of strategy ``name`` for one run on ``setup``'s topology."""
     spec = REGISTRY[name]
     make = spec.factory(setup.topology)
+    if setup.config.frames.enabled and spec.framed_ends is not None:
+        make = spec.framed_ends
     assert make is not None, f"{name} does not run on this topology (the config check refuses it)"
     sharing = make(replace(setup, name=name))
     sharing.on_link = spec.on_link
     return sharing
 
 
-__all__ = ["REGISTRY", "Setup", "Sharing", "StrategySpec", "build", "names_that", "role_of"]
+__all__ = ["REGISTRY", "Factory", "Setup", "Sharing", "StrategySpec", "build", "names_that", "role_of"]

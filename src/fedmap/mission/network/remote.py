@@ -46,6 +46,7 @@ import numpy as np
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN
 from fedmap.maps.planning import astar
+from fedmap.mission.ends.framed import registrations
 from fedmap.mission.ends.protocol import DroppedUpdate, Outgoing
 from fedmap.mission.ends.registry import Setup, Sharing, build, names_that
 from fedmap.mission.network.link import BASE
@@ -67,7 +68,6 @@ from fedmap.mission.network.wire import (
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.sim import Mission
 from fedmap.mission.world.feed import FeedWorld, MapFeed
-from fedmap.mission.world.frames import registrations
 from fedmap.mission.world.frontiers import choose_target, travel_costs
 
 Cell = tuple[int, int]
