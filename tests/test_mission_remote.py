@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import FREE, UNKNOWN
 from fedmap.mission import load_mission, mission_terrain
-from fedmap.mission.network.nodelog import RoverEntry, read_base_records, read_rover_log, write_log
+from fedmap.mission.network.nodelog import RoverEntry, read_base_record, read_rover_log, write_log
 from fedmap.mission.network.remote import (
     BaseNode,
     CorruptMessage,
@@ -292,7 +292,8 @@ def test_a_rover_that_lost_its_state_is_rebuilt_from_its_orders(tmp_path):
     logs = [read_rover_log(tmp_path, "", name, k, shape=truth.shape) for k in range(len(m.starts))]
     record = apart.record(0.0)
     write_log(tmp_path / "base", record)
-    (record_back,) = read_base_records(tmp_path, shape=truth.shape)
+    record_back = read_base_record(tmp_path, "", name, shape=truth.shape)
+    assert record_back is not None and read_base_record(tmp_path, "other", name) is None
     a, b = score_strategy(m, here.record(0.0), rovers.logs), score_strategy(m, record_back, logs)
     assert json.dumps(without_timings(a.to_dict()), sort_keys=True) == json.dumps(without_timings(b.to_dict()),
                                                                                  sort_keys=True)
@@ -332,7 +333,7 @@ def _run_folder(folder, config, truth, kw, text):
             for entry in log:
                 write_log(folder / f"rover{k}-disk", entry)
         write_log(folder / "base", base.record(1.5))
-    write_run(folder, text, config.strategies, 3.0)
+    write_run(folder, text, config.strategies, 3.0, mission_id="m1")
 
 
 def test_fedmap_score_of_the_nodes_logs_gives_the_mission_in_process(tmp_path, capsys):

@@ -18,6 +18,7 @@ from fedmap._util import check_output_dir, cpu_cores, to_json
 from fedmap.cli.options import SHORTCUT_FLAGS, parameters, with_settings
 from fedmap.cli.ui import console, fit, progress_bar, terrain_line
 from fedmap.errors import FedmapError
+from fedmap.flower.checkpoint import run_dir
 from fedmap.flower.mission.deploy import DEPLOY_MODES, deploy_logs, deploy_mission
 from fedmap.maps.rosbag import check_bag_path
 from fedmap.mission import load_mission, mission_terrain
@@ -130,7 +131,7 @@ def mission(
             except MissingLog:  # --deploy base: the rovers keep their logs on their own machines
                 if deploy != "base":
                     raise
-                run = f"{out}.run"
+                run = run_dir(out)
                 console.print(f"mission over. Each rover keeps its own log (log/ in its --state folder): copy them into "
                               f"{run}/, then score the mission with: fedmap score {run} -o {out}", soft_wrap=True)
                 return

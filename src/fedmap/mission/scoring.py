@@ -21,7 +21,7 @@ import numpy as np
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
-from fedmap.mission.network.nodelog import BaseRecord, RoverEntry, StepState, read_base_records, read_rover_log
+from fedmap.mission.network.nodelog import BaseRecord, RoverEntry, StepState, base_name, read_base_record, read_rover_log
 from fedmap.mission.network.topology import make_topology
 from fedmap.mission.results import MissionResult, StrategyRun
 from fedmap.mission.settings import load_mission
@@ -86,12 +86,14 @@ def mission_from_text(text: str, *, frames: int = 60) -> Mission:
 
 
 def write_run(folder: Path, mission_text: str, strategies: Sequence[str], seconds: float,
-              faults: Sequence[dict] = ()) -> None:
+              faults: Sequence[dict] = (), *, mission_id: str = "") -> None:
     """What a run says of itself, for :func:`score_folder`: the mission its nodes ran (the
-    resolved TOML), its strategies, its wall time and what went wrong on the way."""
+    resolved TOML) and its id (the nodes' logs are named by it), its strategies, its wall
+    time and what went wrong on the way."""
     atomic_write_bytes(Path(folder) / MISSION_FILE, mission_text.encode())
-    atomic_write_bytes(Path(folder) / RUN_FILE, json.dumps({"strategies": list(strategies), "seconds": seconds,
-                                                            "faults": list(faults)}, indent=1).encode())
+    atomic_write_bytes(Path(folder) / RUN_FILE, json.dumps({"mission": mission_id, "strategies": list(strategies),
+                                                            "seconds": seconds, "faults": list(faults)},
+                                                           indent=1).encode())
 
 
 def score_folder(folder: Path, *, frames: int = 60,
@@ -105,6 +107,7 @@ def score_folder(folder: Path, *, frames: int = 60,
     try:
         text = (folder / MISSION_FILE).read_text()
         meta = json.loads((folder / RUN_FILE).read_text())
+        mission_id = str(meta.get("mission", ""))
         seconds = float(meta.get("seconds", 0.0))
         strategies = [str(s) for s in meta["strategies"]]
         faults = tuple(dict(f) for f in meta.get("faults", ()))
@@ -114,15 +117,14 @@ def score_folder(folder: Path, *, frames: int = 60,
         raise FedmapError(f"{folder / RUN_FILE} is damaged ({type(e).__name__}: {e})") from None
     mission = mission_from_text(text, frames=frames)
     shape: tuple[int, int] = tuple(mission.truth.shape)  # type: ignore[assignment]
-    records = {r.strategy: r for r in read_base_records(folder, shape=shape)}
     n = mission.config.rovers + mission.config.helicopters
     runs = {}
     for name in strategies:
-        record = records.get(name)
+        record = read_base_record(folder, mission_id, name, shape=shape)
         if record is None:
-            raise FedmapError(f"{folder}: no base station record of {name} ({name}.base.log): the base did not finish "
-                              "it")
-        logs = [read_rover_log(folder, record.mission, name, k, shape=shape) for k in range(n)]
+            raise FedmapError(f"{folder}: no base station record of {name} ({base_name(mission_id, name)}): the base "
+                              "did not finish it")
+        logs = [read_rover_log(folder, mission_id, name, k, shape=shape) for k in range(n)]
         runs[name] = score_strategy(mission, record, logs, on_step=on_step)
     return MissionResult(mission.config, mission.truth, mission.starts, mission.base, runs, seconds,
                          faults=faults)

@@ -286,7 +286,8 @@ def run_mission_base(grid: Grid, run: MissionRun) -> None:
             write_status(run.out, "running", strategy=name, step=step, steps=c.steps)
         write_log(base_dir(run.out), base.record(time.perf_counter() - t1))
     team.finish()
-    write_run(run_dir(run.out), run.mission, names, time.perf_counter() - t0, team.faults)
+    write_run(run_dir(run.out), run.mission, names, time.perf_counter() - t0, team.faults,
+              mission_id=journal.mission_id)
 
 
 @app.main()

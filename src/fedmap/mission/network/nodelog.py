@@ -136,6 +136,10 @@ def entry_name(mission: str, strategy: str, rover: int, step: int) -> str:
     return f"{mission or 'mission'}-{strategy}-rover{rover}-{step:06d}.log"
 
 
+def base_name(mission: str, strategy: str) -> str:
+    return f"{mission or 'mission'}-{strategy}.base.log"
+
+
 @dataclass
 class BaseRecord:
     """What the base station of one strategy's run writes to its own log."""
@@ -156,7 +160,8 @@ class BaseRecord:
 
     @property
     def name(self) -> str:
-        return f"{self.mission or 'mission'}-{self.strategy}.base.log"
+        """Its file's name in a log folder."""
+        return base_name(self.mission, self.strategy)
 
     def held_at(self, t: int) -> np.ndarray:
         """The global map the base held at step ``t`` (after that step's deliveries)."""
@@ -228,10 +233,13 @@ def read_rover_log(folder: Path, mission: str, strategy: str, rover: int, *,
     return [_read(found[s], RoverEntry, shape) for s in sorted(found)]
 
 
-def read_base_records(folder: Path, *, shape: tuple[int, int] | None = None) -> list[BaseRecord]:
-    """Every base station record under ``folder`` (``*.base.log``), by file name."""
-    return [_read(p, BaseRecord, shape) for p in sorted(Path(folder).rglob("*.base.log"))]
+def read_base_record(folder: Path, mission: str, strategy: str, *,
+                     shape: tuple[int, int] | None = None) -> BaseRecord | None:
+    """The base station's record of ``strategy`` in mission ``mission``, found anywhere under
+    ``folder`` (None: there is none; another mission's records there are not read)."""
+    found = sorted(Path(folder).rglob(base_name(mission, strategy)))
+    return _read(found[0], BaseRecord, shape) if found else None
 
 
-__all__ = ["MAX_ENTRY_MAPS", "BaseRecord", "RoverEntry", "StepState", "entry_name", "pack_stack", "read_base_records",
-           "read_rover_log", "unpack_stack", "write_log"]
+__all__ = ["MAX_ENTRY_MAPS", "BaseRecord", "RoverEntry", "StepState", "base_name", "entry_name", "pack_stack",
+           "read_base_record", "read_rover_log", "unpack_stack", "write_log"]

@@ -148,8 +148,8 @@ class Report:
         w.put("H", len(self.answers)).put(f"{len(self.answers)}B", *self.answers)
         if self.version is not None:
             w.text(self.version)
-        journal = {k: v for k, v in self.journal.items() if v}  # what its end journaled (most rounds: nothing)
-        w.blob(json.dumps(journal, separators=(",", ":")).encode() if journal else b"")
+        # what its end journaled (most rounds: nothing, and no bytes)
+        w.blob(json.dumps(self.journal, separators=(",", ":")).encode() if self.journal else b"")
         return pack_message(Head(REPORT, self.rover, 0, self.step), w.done())
 
     @classmethod

@@ -356,9 +356,6 @@ class Recorder:
         return None if self.server is None else self.server.app_url()
 
     # --- messages -------------------------------------------------------------------------
-    def _stamp(self, ns: int) -> Any:
-        return _stamp(ns)
-
     def grid(self, classes: np.ndarray, heights: np.ndarray | None, ns: int) -> Any:
         """The ``foxglove.Grid`` of a class map (and its heights) at message time ``ns``."""
         m = _fm()
@@ -371,7 +368,7 @@ class Recorder:
             cells = np.concatenate([cells, z.view(np.uint8).reshape(*z.shape, 4)], axis=2)
             fields.append(m.PackedElementField(name="elevation", offset=5, type=f32))
         h, w, stride = cells.shape
-        return m.Grid(timestamp=self._stamp(ns), frame_id=MAP_FRAME, pose=m.Pose(position=_vec(0, 0, 0),
+        return m.Grid(timestamp=_stamp(ns), frame_id=MAP_FRAME, pose=m.Pose(position=_vec(0, 0, 0),
                                                                                    orientation=_quat()),
                       column_count=w, cell_size=m.Vector2(x=self.pixel_size, y=self.pixel_size), row_stride=w * stride,
                       cell_stride=stride, fields=fields, data=cells.tobytes())
@@ -380,7 +377,7 @@ class Recorder:
         FrameTransform, FrameTransforms = _fm().FrameTransform, _fm().FrameTransforms
         x0, y0 = lower_left_origin(self.truth)  # the map frame's origin in the crs frame
         out.channels["/tf"].log(FrameTransforms(transforms=[FrameTransform(
-            timestamp=self._stamp(ns), parent_frame_id=CRS_FRAME, child_frame_id=MAP_FRAME,
+            timestamp=_stamp(ns), parent_frame_id=CRS_FRAME, child_frame_id=MAP_FRAME,
             translation=_vec(x0, y0, 0.0), rotation=_quat())]), log_time=ns)
         out.channels["/truth"].log(self.grid(self.truth.classes, self.elevation, ns), log_time=ns)
 

@@ -45,7 +45,7 @@ def fly(world: Any, k: int, t: int) -> None:
 
     if not r.returning:
         belief = world.ends[k].belief()
-        if r.target is None or world._target_done(r, belief) or r.pos == r.target:
+        if r.target is None or world.target_done(r, belief) or r.pos == r.target:
             flyer = np.where(belief == UNKNOWN, UNKNOWN, FREE).astype(np.uint8)
             reach = dist * 2 <= speed * (budget - 2)
             r.target = choose_target(flyer, r.pos, radius=hc.sensor_radius, unknown_cost=1.0,

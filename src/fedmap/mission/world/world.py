@@ -247,7 +247,7 @@ class World:
                 z = z + rng.normal(0.0, c.elevation_noise_m, size=z.shape)
             r.heights[new] = z
 
-    def _target_done(self, r: Rover, belief: np.ndarray) -> bool:
+    def target_done(self, r: Rover, belief: np.ndarray) -> bool:
         if r.target is None or r.pos == r.target:
             return True
         if self.config.mode == "waypoints":
@@ -340,7 +340,7 @@ class World:
         r = self.team[k]
         on = self.planning_map(belief, k)
         passable = (on == FREE) | (on == UNKNOWN)
-        if (not r.replan and r.path and not self._target_done(r, belief)
+        if (not r.replan and r.path and not self.target_done(r, belief)
                 and path_is_valid(passable, [r.pos, *r.path])):
             return
         if self.config.mode == "waypoints" and r.target is not None and r.pos == r.target and r.waypoints:
