@@ -149,3 +149,30 @@ def test_a_height_network_payload_claiming_a_huge_network_or_map_is_rejected_bef
         head = json.dumps({"config": config, "mean": 0.0, "std": 1.0, "shape": shape}).encode()
         with pytest.raises(RejectedUpdate, match="beyond the limits"):
             decode_heightnet(struct.pack("<I", len(head)) + head + zstandard.ZstdCompressor().compress(b"\0" * 10))
+
+
+def test_an_update_whose_table_declares_a_huge_tensor_is_refused_before_it_is_made():
+    """A top-k update names the tensors it updates; one whose table declares a tensor of 13.7
+    billion entries (51 GiB of float32, found by the link fuzzer) is checked against the
+    model it updates and refused in one line, before anything of that size is allocated."""
+    import zlib
+
+    from fedmap.federation.codecs import Encoder, decode
+
+    def weights(seed):
+        return {"a.bias": np.random.default_rng(seed).normal(size=6).astype(np.float32)}
+
+    raw = Encoder("topk:0.5,values=int8").encode(weights(1), weights(0))
+    assert decode(raw, weights(0))["a.bias"].shape == (6,)
+    table = bytes([1, 0, 6]) + b"a.bias" + bytes([1, 6])  # one tensor "a.bias" of shape (6,), by hand
+    assert raw[7:7 + len(table)] == table
+    huge, n = bytearray(), 13_705_992_032
+    while True:  # the dimension as a LEB128 varint
+        huge.append((n & 0x7F) | (0x80 if n >> 7 else 0))
+        n >>= 7
+        if not n:
+            break
+    body = raw[:7] + table[:-1] + bytes(huge) + raw[7 + len(table):-4]
+    hostile = body + struct.pack("<I", zlib.crc32(body))
+    with pytest.raises(RejectedUpdate, match=r"'a.bias' has shape \(6,\), expected \(13705992032,\)"):
+        decode(hostile, weights(0))

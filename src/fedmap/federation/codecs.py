@@ -749,6 +749,14 @@ def _decode_content(kind: str, flags: int, content: memoryview, reference: Weigh
     layout = _decode_table(r)
     n = layout.total
     update = bool(flags & _F_UPDATE)
+    ref = None
+    if update:  # checked against the model it updates before anything of the table's size is made
+        if reference is None:
+            raise FedmapError(f"this payload is a {kind} update; decode needs the reference weights")
+        try:
+            ref = layout.flat(reference, np.float32, "reference weight")
+        except FedmapError as e:  # the update was made against another model: it does not fit here
+            raise RejectedUpdate(f"malformed payload: {e}") from None
     if kind == "topk" and not update:
         raise _Malformed("topk payload without the update flag")
     if kind == "topk":
@@ -817,14 +825,8 @@ def _decode_content(kind: str, flags: int, content: memoryview, reference: Weigh
                 raise _Malformed(f"{kind} value out of range")
             assert seg is not None  # int8 and int4 are in _QMAX
             delta = q.astype(np.float32) * np.repeat(scales, seg)
-    if not update:
+    if ref is None:
         return {k_: v.copy() for k_, v in layout.split(delta).items()}
-    if reference is None:
-        raise FedmapError(f"this payload is a {kind} update; decode needs the reference weights")
-    try:
-        ref = layout.flat(reference, np.float32, "reference weight")
-    except FedmapError as e:  # the update was made against another model: it does not fit here
-        raise RejectedUpdate(f"malformed payload: {e}") from None
     out = ref + delta
     return {k_: v.copy() for k_, v in layout.split(out).items()}
 
