@@ -20,14 +20,14 @@ import platform
 from pathlib import Path
 
 from fedmap.mission import load_mission, mission_terrain
-from fedmap.mission.network.remote import BaseNode, loopback, rounds
+from fedmap.mission.network.remote import ProcessBase, loopback, rounds
 from fedmap.mission.sim import prepare_mission
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def measure(name: str, mission) -> dict:
-    base, rovers = BaseNode(mission, name), loopback(mission, name)
+    base, rovers = ProcessBase(mission, name), loopback(mission, name)
     sizes = {"orders": 0, "reports": 0, "messages": 0}
 
     def send(orders: dict[int, bytes]) -> dict[int, bytes]:
@@ -38,7 +38,7 @@ def measure(name: str, mission) -> dict:
         return reports
 
     list(rounds(base, send))
-    ledger = base.run.link.ledger
+    ledger = base.link.ledger
     counted = sum(m.bytes for m in ledger)
     logs = getattr(rovers, "logs", None)  # each rover's own log (absent before scoring left the link)
     logged = sum(len(e.to_bytes()) for log in logs for e in log) if logs is not None else 0

@@ -19,12 +19,12 @@ from fedmap.maps.grid import FREE, UNKNOWN
 from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.network.nodelog import RoverEntry, read_base_record, read_rover_log, write_log
 from fedmap.mission.network.remote import (
-    BaseNode,
     CorruptMessage,
     LostState,
     Order,
+    ProcessBase,
+    ProcessRover,
     Report,
-    RoverNode,
     loopback,
     pack_frame,
     pack_history,
@@ -52,10 +52,10 @@ def _remote(config, truth, kw) -> MissionResult:
     m = prepare_mission(config, truth, **kw)
     runs = {}
     for name in config.strategies:
-        base, rovers = BaseNode(m, name), loopback(m, name)
+        base, rovers = ProcessBase(m, name), loopback(m, name)
         steps = list(rounds(base, rovers))
         assert steps == [*config.sync_steps, config.steps][:len(steps)] and steps[-1] == config.steps
-        runs[name] = replace(score_strategy(m, base.record(0.0), rovers.logs), sharing=base.run.sharing)
+        runs[name] = replace(score_strategy(m, base.record(0.0), rovers.logs), sharing=base.sharing)
     return MissionResult(config, truth, m.starts, m.base, runs, 0.0)
 
 
@@ -86,7 +86,7 @@ def test_a_mission_over_bytes_records_what_the_simulator_records(strategies, lin
 def test_orders_and_reports_survive_bytes():
     config, truth, kw = _mission(("raw",), steps=12)
     m = prepare_mission(config, truth, **kw)
-    node = RoverNode(m, "raw", 1)
+    node = ProcessRover(m, "raw", 1)
     order = Order("raw", 1, 1, config.sync_every, events=[("ack", 0, True), ("down", 0, b"\x00\xffabc")])
     again = Order.from_bytes(order.to_bytes())
     assert again == order
@@ -164,20 +164,20 @@ def test_what_cannot_run_on_processes_is_refused_in_one_line():
         truth, *_ = mission_terrain(config, source)
         m = prepare_mission(config, truth)
         with pytest.raises(FedmapError, match=words) as e:
-            BaseNode(m, names[0])
+            ProcessBase(m, names[0])
         assert "\n" not in str(e.value)
 
 
 def test_a_stale_or_misdirected_order_is_refused():
     config, truth, kw = _mission(("raw",), steps=12)
     m = prepare_mission(config, truth, **kw)
-    node = RoverNode(m, "raw", 0)
+    node = ProcessRover(m, "raw", 0)
     node.handle(Order("raw", 0, 1, config.sync_every))
     with pytest.raises(FedmapError, match="stale"):
         node.handle(Order("raw", 0, 1, config.sync_every))
     with pytest.raises(FedmapError, match="reached raw rover 0"):
         node.handle(Order("raw", 2, 2, 2 * config.sync_every))
-    fresh = RoverNode(m, "raw", 0)  # a rover that lost its state: the base holds it further on
+    fresh = ProcessRover(m, "raw", 0)  # a rover that lost its state: the base holds it further on
     with pytest.raises(FedmapError, match="lost its state"):
         fresh.handle(Order("raw", 0, 2, 2 * config.sync_every, since=config.sync_every))
     with pytest.raises(FedmapError, match="reached raw rover 0"):
@@ -221,12 +221,12 @@ def test_a_rover_fed_by_its_own_maps_shares_every_cell_they_hold(tmp_path, kind)
     for (_, classes), got in zip(snaps, feed.maps):
         np.testing.assert_array_equal(classes, got)
     m = prepare_mission(config, truth, **kw)
-    base, rovers = BaseNode(m, "raw"), loopback(m, "raw", feeds={0: feed})
+    base, rovers = ProcessBase(m, "raw"), loopback(m, "raw", feeds={0: feed})
     for _ in rounds(base, rovers):
         pass
     run = score_strategy(m, base.record(0.0), rovers.logs)
     fed = snaps[-1][1] != UNKNOWN
-    g = base.run.sharing.global_map()
+    g = base.sharing.global_map()
     np.testing.assert_array_equal(g[fed], truth.classes[fed])  # every cell the feed held reached the base
     assert run.trails[0] and all(truth.classes[c] == FREE for c in run.trails[0])
 
@@ -245,7 +245,7 @@ def test_a_bad_map_feed_is_refused_in_one_line(tmp_path):
     small = tmp_path / "small"
     save_map(truth.with_classes(truth.classes[:32, :32], "small"), small / "map_0005.png")
     with pytest.raises(FedmapError, match="the map of step 5 is 32x32, the mission's grid is 64x64"):
-        RoverNode(m, "raw", 0, feed=MapFeed.open(small))
+        ProcessRover(m, "raw", 0, feed=MapFeed.open(small))
     save_map(truth, tmp_path / "nostep" / "latest.png")
     with pytest.raises(FedmapError, match="no step number"):
         MapFeed.open(tmp_path / "nostep")
@@ -259,10 +259,10 @@ def test_a_rover_that_lost_its_state_is_rebuilt_from_its_orders(tmp_path):
     name = "predictive"
     config, truth, kw = _mission([name], steps=40, loss=0.2)
     m = prepare_mission(config, truth, **kw)
-    here, rovers = BaseNode(m, name), loopback(m, name)
+    here, rovers = ProcessBase(m, name), loopback(m, name)
     list(rounds(here, rovers))
 
-    nodes: dict[int, RoverNode] = {}
+    nodes: dict[int, ProcessRover] = {}
     history: dict[int, list[bytes]] = {}
     rebuilt = []
 
@@ -270,14 +270,14 @@ def test_a_rover_that_lost_its_state_is_rebuilt_from_its_orders(tmp_path):
         out = {}
         for k, raw in orders.items():
             if k not in nodes or (k == 2 and Order.from_bytes(raw).step >= 25 and not rebuilt):
-                nodes[k] = RoverNode(m, name, k)  # a new rover process with nothing saved
+                nodes[k] = ProcessRover(m, name, k)  # a new rover process with nothing saved
             try:
                 out[k] = nodes[k].answer(raw)
             except LostState:
                 assert k == 2 and not rebuilt
                 old = unpack_history(pack_history(history[k]))
                 assert old == history[k] and len(old) >= 2
-                nodes[k] = RoverNode.rebuild(m, name, k, old)
+                nodes[k] = ProcessRover.rebuild(m, name, k, old)
                 rebuilt.append(len(old))
                 out[k] = nodes[k].answer(raw)
             history.setdefault(k, []).append(raw)
@@ -286,7 +286,7 @@ def test_a_rover_that_lost_its_state_is_rebuilt_from_its_orders(tmp_path):
             nodes[k].log = []
         return out
 
-    apart = BaseNode(m, name)
+    apart = ProcessBase(m, name)
     list(rounds(apart, send))
     assert rebuilt
     logs = [read_rover_log(tmp_path, "", name, k, shape=truth.shape) for k in range(len(m.starts))]
@@ -301,15 +301,15 @@ def test_a_rover_that_lost_its_state_is_rebuilt_from_its_orders(tmp_path):
     assert a.trails == b.trails
     for va, vb in zip(a.views, b.views):
         np.testing.assert_array_equal(va, vb)
-    np.testing.assert_array_equal(here.run.sharing.global_map(), apart.run.sharing.global_map())
+    np.testing.assert_array_equal(here.sharing.global_map(), apart.sharing.global_map())
 
 
 def test_a_rover_ahead_of_the_base_or_given_a_damaged_history_is_refused():
     config, truth, kw = _mission(["raw"], steps=30)
     m = prepare_mission(config, truth, **kw)
-    base = BaseNode(m, "raw")
+    base = ProcessBase(m, "raw")
     first = base.first_orders()
-    node = RoverNode(m, "raw", 0)
+    node = ProcessRover(m, "raw", 0)
     node.answer(first[0].to_bytes())
     stale = replace(first[0], step=first[0].step + 5, since=0)  # the base holds it at step 0; it is further on
     with pytest.raises(FedmapError, match="ahead of the base"):
@@ -327,7 +327,7 @@ def _run_folder(folder, config, truth, kw, text):
 
     m = prepare_mission(config, truth, **kw)
     for name in config.strategies:
-        base, rovers = BaseNode(m, name, mission_id="m1"), loopback(m, name)
+        base, rovers = ProcessBase(m, name, mission_id="m1"), loopback(m, name)
         list(rounds(base, rovers))
         for k, log in enumerate(rovers.logs):
             for entry in log:
@@ -393,3 +393,76 @@ def test_every_message_in_process_crosses_as_a_frame_and_its_wire_bytes_are_coun
         assert run.wire == {"frames": len(spent), "bytes": sum(m.bytes for m in spent) + framing}
         assert any(m.status == "lost" for m in spent)  # lost frames spent their bytes too
     assert metrics(result)["wire"]["raw"] == result.runs["raw"].wire
+
+
+class _Clock:
+    """A clock in seconds that moves only when someone sleeps on it (the base and every rover read it)."""
+
+    def __init__(self) -> None:
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def sleep(self, d: float) -> None:
+        self.t += d
+
+
+def _own_clock(m, name, pace_ms, rates):
+    """Strategy ``name`` with every rover on its own clock, rover k's running ``rates[k]`` times as fast as the base's."""
+    clock = _Clock()
+    clocks = {k: (lambda r=r: clock() * r) for k, r in enumerate(rates)}
+    base, rovers = ProcessBase(m, name, pace=pace_ms), loopback(m, name, clocks=clocks)
+    steps = list(rounds(base, rovers, clock=clock, sleep=clock.sleep))
+    return base, rovers, steps
+
+
+def test_rovers_on_their_own_clock_in_step_with_the_base_record_the_lockstep_mission():
+    """A rover on its own clock drives as far as its clock says and syncs at its own sync
+    steps: when its clock reads the base's step at each of the base's orders, the mission is
+    the lockstep one (and the simulator's), message for message."""
+    config, truth, kw = _mission(("raw", "predictive"), loss=0.2)
+    m = prepare_mission(config, truth, **kw)
+    here = run_mission(config, truth, **kw)
+    for name in ("raw", "predictive"):
+        base, rovers, steps = _own_clock(m, name, 250, [1] * config.rovers)
+        assert steps == [*config.sync_steps, config.steps]
+        run = score_strategy(m, base.record(0.0), rovers.logs)
+        assert [(x.round, x.step, x.bytes, x.status) for x in run.ledger] == \
+            [(x.round, x.step, x.bytes, x.status) for x in here.runs[name].ledger]
+        np.testing.assert_array_equal(base.node.global_map(), here.runs[name].sharing.global_map())
+
+
+def test_rovers_ahead_of_the_base_sync_on_their_own_clock_and_the_base_holds_what_they_sent():
+    """Rovers whose clocks run fast (1.3 and 2.5 times the base's: the second passes two of
+    its sync steps between two of the base's orders) drive on their own: each report is at a
+    step of its own clock, its uplink the one of its last own sync (an earlier one that never
+    left is not delivered, and its cells go again). On a perfect link the base ends holding
+    every cell each rover had observed at its last sync, and the mission is scored from the logs."""
+    config, truth, kw = _mission(("raw",), loss=0.0, steps=60)
+    m = prepare_mission(config, truth, **kw)
+    base, rovers, steps = _own_clock(m, "raw", 100, [1.3, 2.5] + [1] * (config.rovers - 2))
+    assert steps[-1] == config.steps
+    run = score_strategy(m, base.record(0.0), rovers.logs)  # every rover logged every step of its own
+    ups = [x for x in run.ledger if x.direction == "up" and x.status == "delivered"]
+    assert {x.step for x in ups if x.rover == 0} <= {t for t in config.sync_steps}
+    last_sync = []
+    for k, log in enumerate(rovers.logs):
+        sent = [x.step for x in ups if x.rover == k]
+        assert sent, f"rover {k} sent nothing"
+        last_sync.append(max(sent))
+        states = {s.step: s for e in log for s in e.states}
+        assert sorted(states) == list(range(config.steps + 1))
+    # rover 2 (on time) synced once an order: every round went; rover 1 (2.5 times) passed two of
+    # its sync steps between two orders: the first uplink never left (and is in no ledger)
+    assert [x.round for x in ups if x.rover == 2] == list(range(1, len(config.sync_steps) + 1))
+    rounds1 = [x.round for x in ups if x.rover == 1]
+    assert rounds1 == sorted(set(rounds1)) and len(rounds1) < len(config.sync_steps) and rounds1[-1] == 6
+    assert all(x.step == config.sync_steps[x.round - 1] for x in ups)  # each made at its own sync step
+    held = base.node.global_map() != UNKNOWN
+    observed = np.zeros_like(held)
+    for k, log in enumerate(rovers.logs):
+        states = {s.step: s for e in log for s in e.states}
+        observed |= states[last_sync[k]].observed
+    np.testing.assert_array_equal(held, observed)
+    assert run.summary is not None

@@ -63,6 +63,7 @@ def mission(
     certs: Optional[Path] = typer.Option(None, "--certs", help="--deploy base: TLS folder from fedmap certs (ca.crt, server.pem, server.key)."),
     auth_keys: Optional[Path] = typer.Option(None, "--auth-keys", help="--deploy base: folder of the rovers' *.pub keys (SuperNode authentication)."),
     resume: bool = typer.Option(False, "--resume", help="--deploy: carry on from the base station's journal of an earlier run into the same --out that was killed (the rovers carry on from their state folders)."),
+    step_seconds: float = typer.Option(0.0, "--step-seconds", min=0.0, help="--deploy: every node on its own clock, a step every this many seconds (a rover drives on its own and syncs at its own sync steps; the base station runs its rounds on its clock). 0: lockstep, the base orders every step (the same mission as in process)."),
     insecure: bool = typer.Option(False, "--insecure", help="--deploy base: listen beyond this machine without TLS or authentication (a trusted network only)."),
     workers: int = typer.Option(0, "--workers", min=0, help="Run the strategies side by side in this many processes (0: one per CPU core this process may use); the results are the same. With --record, --live or --rosbag they run one after another."),
     settings: Optional[dict] = None,
@@ -76,7 +77,8 @@ def mission(
     plan = None
     if deploy is None:  # options of a mission on processes, given without one: a mistake, not ignored
         alone = [o for o, on in (("--listen", listen is not None), ("--resume", resume), ("--certs", certs is not None),
-                                 ("--auth-keys", auth_keys is not None), ("--insecure", insecure)) if on]
+                                 ("--auth-keys", auth_keys is not None), ("--insecure", insecure),
+                                 ("--step-seconds", step_seconds > 0)) if on]
         if alone:
             raise FedmapError(f"{', '.join(alone)} apply to a mission on processes only: add --deploy local or base")
     else:
@@ -127,7 +129,8 @@ def mission(
             assert plan is not None
             try:
                 results = [_deployed(cfg, resolved, deploy, plan, out=out, animation=animation, progress=progress,
-                                     certs=certs, auth_keys=auth_keys, insecure=insecure, resume=resume)]
+                                     certs=certs, auth_keys=auth_keys, insecure=insecure, resume=resume,
+                                     step_seconds=step_seconds)]
             except MissingLog:  # --deploy base: the rovers keep their logs on their own machines
                 if deploy != "base":
                     raise
@@ -232,7 +235,8 @@ def _check_outputs(out: Path, *, record: Path | None, rosbag: Path | None) -> No
 
 
 def _deployed(cfg, resolved: dict, mode: str, plan: tuple[tuple[str, ...], list[str], str, str], *, out: Path,
-              animation: bool, progress, certs: Optional[Path], auth_keys: Optional[Path], insecure: bool, resume: bool):
+              animation: bool, progress, certs: Optional[Path], auth_keys: Optional[Path], insecure: bool, resume: bool,
+              step_seconds: float = 0.0):
     """The mission on real processes (:func:`fedmap.flower.mission.deploy.deploy_mission`) as
     :func:`_deploy_plan` planned it, with a progress bar per strategy from the base station's status."""
     names, left, host, port = plan
@@ -262,7 +266,7 @@ def _deployed(cfg, resolved: dict, mode: str, plan: tuple[tuple[str, ...], list[
                           strategies=names, frames=60 if animation else 1,
                           host=host if mode == "base" else "127.0.0.1", port=int(port) if mode == "base" else 0,
                           certs=certs, auth_keys=auth_keys, insecure=insecure, rounds=len(cfg.sync_steps) + 1,
-                          resume=resume,
+                          resume=resume, step_seconds=step_seconds,
                           on_status=on_status, on_ready=on_ready)
 
 

@@ -37,7 +37,9 @@ from fedmap.maps.traversability import (
 from fedmap.mission.ends.framed import registrations
 from fedmap.mission.ends.registry import Setup, Sharing, build, names_that
 from fedmap.mission.network.link import BASE, DOWN, UP, Link, Message
-from fedmap.mission.network.topology import Exchange, make_topology
+from fedmap.mission.network.nodes import team_nodes
+from fedmap.mission.network.topology import make_topology
+from fedmap.mission.network.transport import Exchange
 from fedmap.mission.results import (
     COVERAGE_LEVELS,
     F1_GOAL,
@@ -196,8 +198,8 @@ class Scoring:
 
 
 class _Run:
-    """One strategy's mission, step by step: the world, the strategy's ends on the
-    topology's exchange, and the record."""
+    """One strategy's mission, step by step: the world, a node per agent (each owning one
+    of the strategy's ends) on the in-process transport, and the record."""
 
     def __init__(self, name: str, mission: Mission, ends: Ends | None = None,
                  on_snapshot: Callable[[Snapshot], None] | None = None) -> None:
@@ -215,7 +217,10 @@ class _Run:
             for r in (self.team if k is None else [self.team[k]]):
                 r.replan = True
 
-        self.exchange = Exchange(self.topology, self.link, self.sharing, world.positions, replan)
+        s = self.sharing
+        self.rovers, self.base, self.peers = team_nodes(s, world, self.topology)
+        self.exchange = Exchange(self.topology, self.link, rovers=self.rovers, base=self.base, peers=self.peers,
+                                 positions=world.positions, replan=replan, on_sync=s.on_sync, on_link=s.on_link)
         self.scoring = Scoring(name, mission, world, on_snapshot)
 
     def observe(self) -> TeamState:

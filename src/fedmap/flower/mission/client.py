@@ -1,5 +1,5 @@
 """A rover of a mission on processes: a Flower ``ClientApp`` that keeps its rover's node
-(:class:`fedmap.mission.network.remote.RoverNode`: its world, its end, its clock) between messages.
+(:class:`fedmap.mission.network.remote.ProcessRover`: its world, its end, its clock) between messages.
 
 ``query``: say which rover it is (node config ``partition-id``) and which rover process
 (node config ``boot``: a rover killed and started again with its registered key is the same

@@ -101,6 +101,7 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
                    frames: int = 60, host: str = "127.0.0.1", port: int = 0, certs: Path | None = None,
                    auth_keys: Path | None = None, insecure: bool = False, deadline: float = 600.0,
                    connect_timeout: float = 120.0, rounds: int = 1, resume: bool = False, poll: float = LOCAL_POLL,
+                   step_seconds: float = 0.0,
                    faults: dict[int, str] | None = None,
                    on_status: Callable[[dict], None] | None = None,
                    on_ready: Callable[[str], None] | None = None) -> MissionResult:
@@ -110,7 +111,8 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
     the outputs will go; the run's files (certificates, Flower's home, logs, status,
     result) are in ``<out>.run/``. ``on_ready(address)`` is called once the SuperLink
     listens (``base``: start the rovers then). ``rounds``: the orders of one strategy's
-    mission (its syncs and the last), which bound the wait with ``deadline``. ``faults``: per rover, a fault it injects
+    mission (its syncs and the last), which bound the wait with ``deadline``. ``step_seconds`` > 0:
+    every node runs on its own clock, a step every that many seconds (0: lockstep). ``faults``: per rover, a fault it injects
     (tests only, :func:`fedmap.flower.mission.task.parse_mission_fault`).
     """
     if mode not in DEPLOY_MODES:
@@ -136,7 +138,8 @@ def deploy_mission(mission_toml: str, *, members: int, out: Path, mode: str = "l
         raise FedmapError(f"no rover public keys (*.pub) in {auth_keys}; make them with: fedmap certs DIR --rovers N")
     env = flower_env(work / "flwr-home")
     run_config = {"mission": mission_toml, "strategies": ",".join(strategies), "out": str(out), "frames": frames,
-                  "connect-timeout": connect_timeout, "deadline": deadline, "resume": resume}
+                  "connect-timeout": connect_timeout, "deadline": deadline, "resume": resume,
+                  "step-seconds": step_seconds}
     MissionRun.from_run_config(run_config)  # a bad run config fails here, before any process starts
     run_status_path(out).unlink(missing_ok=True)
     (work / RUN_FILE).unlink(missing_ok=True)

@@ -1,5 +1,5 @@
 """The base station of a mission on processes: a Flower ``ServerApp`` that runs the
-mission clock (:class:`fedmap.mission.network.remote.BaseNode`) over the rovers' SuperNodes.
+mission clock (:class:`fedmap.mission.network.remote.ProcessBase`) over the rovers' SuperNodes.
 
 First it asks every connected node which rover it is (a ``query`` message; the SuperNode's
 node config ``partition-id``), then for each strategy it sends every rover its order of
@@ -12,7 +12,7 @@ order that goes unanswered far longer than the other rovers' took (lost on the l
 :func:`~fedmap.flower.polling.exchange` with ``resend``; the first report to either copy
 is taken). A rover that lost
 its state gets its order again with every order it was sent before, and rebuilds itself
-from them (:meth:`~fedmap.mission.network.remote.RoverNode.rebuild`). Each fault is a line of the
+from them (:meth:`~fedmap.mission.network.remote.ProcessRover.rebuild`). Each fault is a line of the
 run's ``faults`` and of the log. At the end every rover gets a
 ``evaluate`` message (its SuperNode may stop). The base logs what it held and sent in
 ``<out>.run/base/``; the rovers' reports carry no scores (each rover logs its own side),
@@ -44,7 +44,7 @@ from fedmap.flower.polling import exchange, quick_pulls
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.task import KEY_ROVER, parse_rover_nodes, write_status, wrong_key
 from fedmap.mission.network.nodelog import write_log
-from fedmap.mission.network.remote import BaseNode, CorruptMessage, Report, check_deployable, pack_history, rounds
+from fedmap.mission.network.remote import CorruptMessage, ProcessBase, Report, check_deployable, pack_history, rounds
 from fedmap.mission.scoring import write_run
 
 app = ServerApp()
@@ -260,7 +260,7 @@ def run_mission_base(grid: Grid, run: MissionRun) -> None:
     for name in names:
         t1 = time.perf_counter()
         say(run.out, INFO, f"mission {name} on {team.members} rovers")
-        base = BaseNode(mission, name, mission_id=journal.mission_id)
+        base = ProcessBase(mission, name, mission_id=journal.mission_id, pace=round(run.step_seconds * 1000))
         saved, done = journal.saved(name), 0
         history: dict[int, list[bytes]] = {}  # every order each rover was sent (to rebuild one that lost its state)
 

@@ -32,7 +32,7 @@ from fedmap.mission.network.remote import (
     CorruptMessage,
     LostState,
     Order,
-    RoverNode,
+    ProcessRover,
     pack_frame,
     unpack_frame,
     unpack_history,
@@ -51,6 +51,7 @@ MISSION_RUN_DEFAULTS: dict[str, Any] = {
     "deadline": 600.0,  # seconds a sync round may take
     "rejoin": 300.0,  # seconds a rover that stopped answering may take to come back
     "resume": False,  # carry on from the base station's journal (a base that was killed)
+    "step-seconds": 0.0,  # a step of every node's own clock (0: lockstep, the base orders every step)
     "rover-nodes": "",  # each registered key's node and its rover, "node=rover,..." (the launcher's)
 }
 
@@ -68,6 +69,7 @@ class MissionRun:
     rejoin: float
     resume: bool
     rover_nodes: str = ""
+    step_seconds: float = 0.0
 
     @classmethod
     def from_run_config(cls, cfg: dict) -> MissionRun:
@@ -79,7 +81,8 @@ class MissionRun:
             raise FedmapError("the mission run config has no mission (the resolved mission TOML)")
         names = tuple(s.strip() for s in str(c["strategies"]).split(",") if s.strip())
         return cls(str(c["mission"]), names, Path(str(c["out"])), int(c["frames"]), float(c["connect-timeout"]),
-                   float(c["deadline"]), float(c["rejoin"]), bool(c["resume"]), str(c["rover-nodes"]))
+                   float(c["deadline"]), float(c["rejoin"]), bool(c["resume"]), str(c["rover-nodes"]),
+                   float(c["step-seconds"]))
 
 
 def strategies_of(run: MissionRun, mission: Mission) -> tuple[str, ...]:
@@ -140,13 +143,13 @@ def rover_answer(state_dir: Path, mission_text: str, k: int, raw: bytes, *, feed
     when the mission's last order is answered). A rover whose state is gone refuses an order
     that carries on from a later step (:class:`LostState`); the base sends it again with
     ``history``, every order it sent this rover before (:func:`~fedmap.mission.network.remote.pack_history`),
-    and the node is rebuilt from them (:meth:`RoverNode.rebuild`). ``feed``: its observations
+    and the node is rebuilt from them (:meth:`ProcessRover.rebuild`). ``feed``: its observations
     come from its own mapping software (:mod:`fedmap.mission.world.feed`). :class:`CorruptMessage`
     for a damaged order."""
     order = Order.from_bytes(raw)
     path = state_file(state_dir, order, k)
     if history is not None:
-        node = RoverNode.rebuild(mission_from_text(mission_text, frames=1), order.strategy, k,
+        node = ProcessRover.rebuild(mission_from_text(mission_text, frames=1), order.strategy, k,
                                  unpack_history(history), feed=feed)
     elif path.is_file():
         try:
@@ -154,7 +157,7 @@ def rover_answer(state_dir: Path, mission_text: str, k: int, raw: bytes, *, feed
         except Exception:  # a state file cut short or damaged: as good as lost (the base rebuilds it)
             raise LostState(f"rover {k}'s state file {path} does not load") from None
     else:
-        node = RoverNode(mission_from_text(mission_text, frames=1), order.strategy, k, feed=feed)
+        node = ProcessRover(mission_from_text(mission_text, frames=1), order.strategy, k, feed=feed)
     report = node.answer(raw)
     for entry in node.log:  # its own log, beside its state (written first: a state never runs ahead of its log)
         write_log(log_dir(state_dir), entry)

@@ -55,14 +55,8 @@ class Sharing:
     peers: dict[int, PeerEnd] | None = None
     on_link: bool = True
     journal: Journal = field(default_factory=Journal)
-    #: called at every sync before the ends' own (a record the run keeps, e.g. model lags)
+    #: called at every sync before the nodes' own (a record the run keeps, e.g. model lags)
     on_sync: Callable[[int], None] | None = None
-
-    def at_sync(self, round_no: int) -> None:
-        if self.on_sync is not None:
-            self.on_sync(round_no)
-        for end in (self.peers.values() if self.peers is not None else self.rovers):
-            end.at_sync(round_no)
 
     def belief(self, k: int) -> np.ndarray:
         return self.rovers[k].belief()

@@ -65,7 +65,8 @@ class Message:
     direction: str  # "up" or "down"
     kind: str  # what the payload is (e.g. "cells", "update", "keyframe")
     bytes: int  # bytes spent on the link (0 when not sent)
-    status: str  # delivered | lost | over budget | out of range | link down | stale | rejected
+    status: str  # delivered | lost | over budget | out of range | link down | stale | rejected | no sync
+    # ("no sync": a rover on its own clock had not reached a sync step since its last report)
     arrival: int | None = None
     to: int | None = None  # peer messages: the receiver (rover index, or BASE); None on the star
 

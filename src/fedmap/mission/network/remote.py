@@ -37,9 +37,9 @@ the latency), and strategies whose rover ends hold only their own rover (their s
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -48,16 +48,19 @@ from fedmap.maps.grid import FREE, UNKNOWN
 from fedmap.maps.planning import astar
 from fedmap.mission.ends.framed import registrations
 from fedmap.mission.ends.protocol import DroppedUpdate, Outgoing
-from fedmap.mission.ends.registry import Setup, Sharing, build, names_that
-from fedmap.mission.network.link import BASE
+from fedmap.mission.ends.registry import Setup, build, names_that
+from fedmap.mission.network.link import BASE, Link
 from fedmap.mission.network.nodelog import BaseRecord, RoverEntry, StepState
+from fedmap.mission.network.nodes import BaseNode, RoverNode
 from fedmap.mission.network.topology import make_topology
+from fedmap.mission.network.transport import Exchange
 from fedmap.mission.network.wire import (
     HISTORY,
     ORDER,
     REPORT,
     WIRE_VERSION,
     CorruptMessage,
+    Frame,
     Head,
     Writer,
     pack_frame,
@@ -69,6 +72,7 @@ from fedmap.mission.settings import MissionConfig
 from fedmap.mission.sim import Mission
 from fedmap.mission.world.feed import FeedWorld, MapFeed
 from fedmap.mission.world.frontiers import choose_target, travel_costs
+from fedmap.mission.world.world import start_team
 
 Cell = tuple[int, int]
 _ACK, _DOWN = 0, 1  # an order's events
@@ -82,7 +86,9 @@ class LostState(FedmapError):
 @dataclass
 class Order:
     """The base's message to one rover at a sync: the events delivered to it since the last
-    order, then drive to ``step`` (``finish``: the last step, no sync there)."""
+    order, then drive to ``step`` (``finish``: the last step, no sync there). With ``pace``
+    (milliseconds a step, > 0) the rover runs on its own clock instead: it drives as far as
+    its clock says, syncing at its own sync steps on the way (:class:`ProcessRover`)."""
 
     strategy: str
     rover: int
@@ -92,10 +98,12 @@ class Order:
     #: ``("ack", round, ok)`` for its uplink of ``round``, ``("down", round, payload)`` for a downlink
     events: list[tuple] = field(default_factory=list)
     mission: str = ""  #: the mission's id (a rover keeps one state per mission and strategy)
-    since: int = 0  #: the step the base holds the rover at (the step of its last order)
+    since: int = 0  #: the step the base holds the rover at (the step of its last report)
+    pace: int = 0  #: milliseconds a step of the rover's own clock (0: lockstep, drive to ``step``)
 
     def to_bytes(self) -> bytes:
-        w = Writer().put("hIB", self.rover, self.since, self.finish).text(self.mission).text(self.strategy)
+        w = Writer().put("hIBI", self.rover, self.since, self.finish, self.pace).text(self.mission)
+        w.text(self.strategy)
         w.put("H", len(self.events))
         for ev in self.events:
             if ev[0] == "down":
@@ -107,7 +115,7 @@ class Order:
     @classmethod
     def from_bytes(cls, raw: bytes) -> Order:
         head, r = unpack_message(raw, ORDER)
-        rover, since, finish = r.get("hIB")
+        rover, since, finish, pace = r.get("hIBI")
         mission, strategy = r.text(), r.text()
         events: list[tuple] = []
         for _ in range(r.one("H")):
@@ -119,7 +127,7 @@ class Order:
             else:
                 raise CorruptMessage(f"corrupted message: an order's event of kind {kind}")
         r.end()
-        return cls(strategy, rover, head.round, head.step, bool(finish), events, mission, since)
+        return cls(strategy, rover, head.round, head.step, bool(finish), events, mission, since, pace)
 
 
 @dataclass
@@ -131,26 +139,29 @@ class Report:
     step: int  #: the step it drove to
     pos: Cell  #: where it is at ``step``
     target: Cell | None
-    reached: bool  #: it was in range of the base at the sync (it made an uplink, or tried)
+    reached: bool  #: it was in range of the base at its last sync (it made an uplink, or tried)
     uplink: Outgoing | None  #: its uplink (None: none, e.g. its update was rejected)
     answers: list[bool]  #: whether it could use each downlink of the order, in order
     version: str | None  #: the model version it holds before the sync (model strategies)
     journal: dict  #: its journal's new entries (dropped updates, losses, cells trained on)
+    round_no: int = 0  #: the round of its uplink (its own sync's)
+    sent: int = 0  #: the step it made its uplink at (its last sync)
+    synced: bool = True  #: it passed a sync step of its clock since its last report (always, in lockstep)
 
     def to_bytes(self) -> bytes:
         up = self.uplink
         flags = (self.reached | (up is not None) << 1 | (up is not None and up.payload is not None) << 2
-                 | (self.version is not None) << 3)
+                 | (self.version is not None) << 3 | (not self.synced) << 4)
         target = (-1, -1) if self.target is None else self.target
         w = Writer().text(self.strategy).put("hhhhB", *self.pos, *target, flags)
         if up is not None:
-            w.text(up.kind).blob(up.payload or b"")
+            w.put("I", self.sent).text(up.kind).blob(up.payload or b"")
         w.put("H", len(self.answers)).put(f"{len(self.answers)}B", *self.answers)
         if self.version is not None:
             w.text(self.version)
         # what its end journaled (most rounds: nothing, and no bytes)
         w.blob(json.dumps(self.journal, separators=(",", ":")).encode() if self.journal else b"")
-        return pack_message(Head(REPORT, self.rover, 0, self.step), w.done())
+        return pack_message(Head(REPORT, self.rover, self.round_no, self.step), w.done())
 
     @classmethod
     def from_bytes(cls, raw: bytes) -> Report:
@@ -158,9 +169,9 @@ class Report:
         head, r = unpack_message(raw, REPORT)
         strategy = r.text()
         pr, pc, tr, tc, flags = r.get("hhhhB")
-        up = None
+        up, sent = None, 0
         if flags & 2:
-            kind, payload = r.text(), r.blob()
+            sent, kind, payload = r.one("I"), r.text(), r.blob()
             up = Outgoing(payload if flags & 4 else None, kind)
         answers = [bool(a) for a in r.get(f"{r.one('H')}B")]
         version = r.text() if flags & 8 else None
@@ -173,7 +184,7 @@ class Report:
         except ValueError as e:
             raise CorruptMessage(f"corrupted message: a report's journal does not decode ({e})") from None
         return cls(strategy, head.sender, head.step, (pr, pc), None if (tr, tc) == (-1, -1) else (tr, tc),
-                   bool(flags & 1), up, answers, version, journal)
+                   bool(flags & 1), up, answers, version, journal, head.round, sent, not flags & 16)
 
 
 def _cell(c: list | None) -> Cell | None:
@@ -218,25 +229,27 @@ def check_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) 
                           f"these can: {', '.join(deployable)}")
 
 
-class RoverNode:
-    """One rover of strategy ``name``: its world (the mission's terrain, seeded as the
-    simulator's; or with ``feed`` the maps its own software writes), its end, and its
-    clock. :meth:`handle` takes an order, returns the report."""
+class ProcessRover:
+    """Rover ``k`` of strategy ``name`` on a machine of its own, in lockstep with the base:
+    its node (:class:`~fedmap.mission.network.nodes.RoverNode`: its end and its robot, the
+    mission's terrain seeded as the simulator's; or with ``feed`` the maps its own software
+    writes, :class:`~fedmap.mission.world.feed.FeedWorld`), its clock and its own log.
+    :meth:`answer` takes an order, returns the report: the order is its transport (the
+    frames that reached it, and the step to drive to), the report carries its frame back."""
 
     def __init__(self, mission: Mission, name: str, k: int, *, feed: MapFeed | None = None) -> None:
         check_deployable(mission.config, [name])
         self.name, self.k, self.config = name, k, mission.config
-        self.topology = make_topology(mission.config.link, mission.base)
-        world = mission.world(self.topology)
+        topology = make_topology(mission.config.link, mission.base)
+        world = mission.world(topology)
         if not 0 <= k < len(world.team):
             raise FedmapError(f"rover {k} is not in the team of {len(world.team)}")
         if feed is not None:  # its observations come from its own mapping software (fedmap.mission.world.feed)
             world = FeedWorld(world, k, feed)
-        self.world = world
-        sharing = build(name, Setup(mission.config, mission.truth, world.team, self.topology))
+        sharing = build(name, Setup(mission.config, mission.truth, world.team, topology))
         world.ends = sharing.rovers  # only its own end is ever asked
-        self.end, self.journal = sharing.rovers[k], sharing.journal
-        self.rover = world.team[k]
+        self.node = RoverNode(k, sharing.rovers[k], world, topology)
+        self.journal = sharing.journal
         self.step = 0
         self._told = 0  # trail cells already logged
         self.mission_id = ""  # the mission's id, from its first order
@@ -244,12 +257,19 @@ class RoverNode:
         self.log: list[RoverEntry] = []
         self._last: tuple[bytes, bytes] | None = None  # the last order it answered, and its report
         self._seen = {"dropped": 0, "losses": 0, "trained_cells": 0}
-        world.sense(k, 0)
+        self.syncs = {t: i + 1 for i, t in enumerate(self.config.sync_steps)}  #: its sync steps, and their rounds
+        self.unsent: Frame | None = None  # its last uplink, until the radio takes it (the next report)
+        self.reached = False  # in range of the base at its last sync of this order
+        self.synced = False  # it passed a sync step while answering this order
+        self.t0: float | None = None  # on its own clock: when its step 0 was (seconds, ``now``'s)
+        self.now = time.time
+        self.node.sense(0)
         self._states = [self._state(0)]  # recorded, not yet logged (the record of a step follows its deliveries)
 
     def _state(self, t: int) -> StepState:
-        r, belief = self.rover, self.end.belief()
-        return StepState(t, belief, self.world.own_view(self.k, belief), r.local != UNKNOWN, r.pos, r.target,
+        node = self.node
+        r, belief = node.rover, node.belief()
+        return StepState(t, belief, node.world.own_view(self.k, belief), r.local != UNKNOWN, r.pos, r.target,
                          r.distance, len(r.trail))
 
     def _journal(self) -> dict:
@@ -266,7 +286,7 @@ class RoverNode:
 
     @classmethod
     def rebuild(cls, mission: Mission, name: str, k: int, history: list[bytes], *,
-                feed: MapFeed | None = None) -> RoverNode:
+                feed: MapFeed | None = None) -> ProcessRover:
         """Rover ``k`` as it was after answering ``history`` (every order the base sent it, in
         order): a new node answers each of them again. Its world is seeded and its end is a
         function of what it was told, so it is the node that lost its state, bit for bit."""
@@ -286,10 +306,12 @@ class RoverNode:
         return report
 
     def handle(self, order: Order) -> Report:
-        """Apply the order's events, drive to its step, sync, and report."""
+        """Hand its node the order's frames, drive (to the order's step, or as far as its own
+        clock says), syncing at each of its sync steps on the way, and report."""
         if order.strategy != self.name or order.rover != self.k:
             raise FedmapError(f"an order for {order.strategy} rover {order.rover} reached {self.name} rover {self.k}")
-        if order.step < self.step or (order.step == self.step and not order.finish):
+        lockstep = order.pace == 0
+        if lockstep and (order.step < self.step or (order.step == self.step and not order.finish)):
             raise FedmapError(f"rover {self.k} is at step {self.step}: an order to drive to step {order.step} is stale")
         if order.since > self.step:
             raise LostState(f"rover {self.k} is at step {self.step}, the base holds it at step {order.since}: it lost "
@@ -297,116 +319,147 @@ class RoverNode:
         if order.since != self.step:
             raise FedmapError(f"rover {self.k} is at step {self.step}, ahead of the base's step {order.since}: the "
                               "base station's journal is older than this rover's state")
-        answers = []
+        node, answers = self.node, []
         for ev in order.events:
             if ev[0] == "ack":
-                self.end.delivered(ev[1], ev[2])
+                node.acked(Frame(self.k, BASE, ev[1], self.step, "", None), ev[2])
             else:
-                ok = bool(self.end.receive(ev[2]))
-                answers.append(ok)
-                if ok:
-                    self.rover.replan = True
+                answers.append(node.take(Frame(BASE, self.k, ev[1], self.step, "", ev[2]), self.step))
         states = self._states
         if not states or states[-1].step != self.step:
             states.append(self._state(self.step))  # the last step's record, now that its deliveries are in
-        for t in range(self.step + 1, order.step + 1):
-            self.world.drive(self.k, t)
+        version, self.reached, self.synced = getattr(node.end, "version", None), False, False
+        target = order.step if lockstep else self._clock(order)
+        for t in range(self.step + 1, target + 1):
+            node.drive(t)
             self.step = t
-            if t < order.step or order.finish:
+            if t in self.syncs and not order.finish:
+                self._sync(t)
+            if t < target or order.finish:
                 states.append(self._state(t))
-        version, reached, uplink = getattr(self.end, "version", None), False, None
-        if not order.finish:
-            self.end.at_sync(order.round_no)
-            reached = self.topology.reachable(self.world.positions())[self.k]
-            if reached:
-                uplink = self.end.uplink(order.round_no)
-        r = self.rover
+        r, up = node.rover, self.unsent
+        self.unsent = None  # handed to the radio
         self.mission_id = order.mission
-        self.log.append(RoverEntry(self.name, self.k, order.mission, order.step, states, list(r.trail[self._told:])))
+        self.log.append(RoverEntry(self.name, self.k, order.mission, self.step, states, list(r.trail[self._told:])))
         self._told = len(r.trail)
         self._states = []
-        return Report(self.name, self.k, self.step, r.pos, r.target, reached, uplink, answers, version,
-                      self._journal())
+        return Report(self.name, self.k, self.step, r.pos, r.target, self.reached,
+                      None if up is None else Outgoing(up.payload, up.kind), answers, version, self._journal(),
+                      0 if up is None else up.round, 0 if up is None else up.step, self.synced)
+
+    def _clock(self, order: Order) -> int:
+        """The step its own clock is at (``order.pace`` ms a step; the mission's last with
+        ``finish``), never behind the step it is at. Its clock starts at its first order, set
+        to the step that order was sent at (the mission started that long ago), and runs on
+        its own from then on."""
+        if order.finish:
+            return max(self.config.steps, self.step)
+        if self.t0 is None:
+            self.t0 = self.now() - order.step * order.pace / 1000
+        return max(self.step, min(self.config.steps, int((self.now() - self.t0) * 1000 / order.pace)))
+
+    def _sync(self, t: int) -> None:
+        """Its sync at step ``t`` of its clock: an uplink made earlier that never left (no
+        message came since) is not delivered, and the new one waits for the radio."""
+        node, round_no = self.node, self.syncs[t]
+        self.synced = True
+        if self.unsent is not None:
+            node.acked(self.unsent, False)
+            self.unsent = None
+        node.at_sync(round_no)
+        self.reached = node.in_range()
+        if self.reached:
+            self.unsent = node.uplink(round_no, t)
 
 
 # -- the base's side ------------------------------------------------------------------------
 
 
-class RemoteRover:
-    """The base's stand-in for a rover end elsewhere: what its last report said, and the
-    events the radio delivered to it, kept for its next order."""
+class FarRover:
+    """Rover ``k`` as the base station's transport reaches it on processes: what its last
+    report said (its uplink frame, where it is, the model it holds), and the frames and
+    acknowledgements the link delivered to it, kept for its next order. It holds no end:
+    its answers to downlinks come with its next report."""
 
     def __init__(self, k: int) -> None:
-        self.k = k
+        self.k = self.address = k
         self.report: Report | None = None
         self.events: list[tuple] = []
-        self.journal: Any = None  # the run's journal (set by the base)
 
     @property
     def version(self) -> str | None:
         return None if self.report is None else self.report.version
 
+    @property
+    def silence(self) -> str:
+        """Why it sent no uplink: its end made none, or (on its own clock) it had not reached a sync step."""
+        return "rejected" if self.report is None or self.report.synced else "no sync"
+
     def at_sync(self, round_no: int) -> None:
-        """Run on the rover, before its uplink."""
+        """Its sync ran on the rover, before its report."""
 
     def prepare(self, round_no: int) -> None:
         """Its training ran on the rover, before its report."""
         return None
 
-    def uplink(self, round_no: int) -> Outgoing | None:
-        assert self.report is not None
-        for key, entries in self.report.journal.items():  # what its end journaled making the uplink
-            held = getattr(self.journal, key)
-            if held is not None:
-                held.extend(DroppedUpdate(**e) if key == "dropped" else e for e in entries)
-        return self.report.uplink
+    def uplink(self, round_no: int, step: int) -> Frame | None:
+        rep = self.report
+        assert rep is not None
+        up = rep.uplink  # made at its own sync (lockstep: this round's, at this step)
+        return None if up is None else Frame(self.k, BASE, rep.round_no, rep.sent, up.kind, up.payload)
 
-    def delivered(self, round_no: int, ok: bool) -> None:
-        self.events.append(("ack", round_no, ok))
+    def acked(self, frame: Frame, ok: bool) -> None:
+        self.events.append(("ack", frame.round, ok))
 
-    def receive(self, payload: bytes) -> None:
-        self.events.append(("down", 0, payload))
+    def take(self, frame: Frame, due: int) -> None:
+        self.events.append(("down", frame.round, frame.payload or b""))
         return None  # its answer comes with its next report
 
 
-class BaseNode:
-    """The base station of strategy ``name``: its end, the radio (the simulator's link and
-    exchange) and its own log. :meth:`first_orders` starts the mission; :meth:`take` takes
-    every rover's report and gives the next orders (none: the mission is over, :meth:`record`)."""
+class ProcessBase:
+    """The base station of strategy ``name`` on processes, the mission's clock: its node
+    (:class:`~fedmap.mission.network.nodes.BaseNode`, its end alone: no world, no rover's
+    end), the link and the in-process transport's rounds over the rovers far away
+    (:class:`FarRover`), and its own log. :meth:`first_orders` starts the mission;
+    :meth:`take` takes every rover's report and gives the next orders (none: the mission is
+    over, :meth:`record`)."""
 
-    def __init__(self, mission: Mission, name: str, *, mission_id: str = "") -> None:
+    def __init__(self, mission: Mission, name: str, *, mission_id: str = "", pace: int = 0) -> None:
         check_deployable(mission.config, [name])
-        self.name, self.config, self.mission_id = name, mission.config, mission_id
-        self.stand_ins: list[RemoteRover] = []
-        self.run = mission.new_run(name, ends=self._ends)
-        self.syncs = {t: i + 1 for i, t in enumerate(self.config.sync_steps)}
+        c = mission.config
+        self.name, self.config, self.mission_id, self.pace = name, c, mission_id, pace
+        topology = make_topology(c.link, mission.base)
+        team = start_team(c, mission.truth.shape, mission.starts, mission.base, mission.waypoints)
+        self.sharing = sharing = build(name, Setup(c, mission.truth, team, topology))  # (it keeps the base's end)
+        assert sharing.base is not None, f"{name} has no base station's end"
+        self.node = BaseNode(sharing.base)
+        self.far = sharing.rovers = [FarRover(k) for k in range(len(team))]  # what the journal reads of the rovers
+        self.positions = [r.pos for r in team]  # every rover's cell, as its last report said
+        self.since = [0] * len(team)  # every rover's step, as its last report said
+        self.link = Link(replace(c.link, seed=c.link_seed), topology)
+        self.exchange = Exchange(topology, self.link, rovers=self.far, base=self.node,
+                                 positions=lambda: list(self.positions), replan=lambda k: None,
+                                 on_sync=sharing.on_sync, on_link=sharing.on_link)
+        self.syncs = {t: i + 1 for i, t in enumerate(c.sync_steps)}
         self.sync_at = sorted(self.syncs)
         #: the global map it held after each of its rounds, by step (its log)
-        self.held: dict[int, np.ndarray] = {0: self.run.sharing.global_map().copy()}
+        self.held: dict[int, np.ndarray] = {0: self.node.global_map().copy()}
         #: the frames it sent and took: how many, their bytes (framing included), and of them the orders' and reports'
         self.wire = {"frames": 0, "bytes": 0, "orders": 0, "reports": 0}
         self.done = False
 
-    def _ends(self, name: str, setup: Setup) -> Sharing:
-        sharing = build(name, setup)
-        self.stand_ins = [RemoteRover(k) for k in range(len(setup.team))]
-        for s in self.stand_ins:
-            s.journal = sharing.journal
-        sharing.rovers = self.stand_ins
-        return sharing
-
     @property
     def n(self) -> int:
-        return len(self.stand_ins)
+        return len(self.far)
 
     def _orders(self, after: int) -> dict[int, Order]:
         """Every rover's next order after step ``after``: to the next sync, or to the end."""
         nxt = [t for t in self.sync_at if t > after]
         step, finish = (nxt[0], False) if nxt else (self.config.steps, True)
         orders = {}
-        for s in self.stand_ins:
+        for s in self.far:
             orders[s.k] = Order(self.name, s.k, 0 if finish else self.syncs[step], step, finish, s.events,
-                                self.mission_id, after)
+                                self.mission_id, self.since[s.k], self.pace)
             s.events = []
         return orders
 
@@ -419,23 +472,27 @@ class BaseNode:
             raise FedmapError(f"reports from rovers {sorted(reports)}, expected 0..{self.n - 1}")
         for k, rep in reports.items():
             o = orders[k]
-            if (rep.strategy, rep.rover, rep.step) != (self.name, k, o.step):
+            step_ok = rep.step == o.step if not self.pace else (rep.step >= o.since or o.finish)
+            if (rep.strategy, rep.rover) != (self.name, k) or not step_ok:
                 raise FedmapError(f"rover {k}'s report is for {rep.strategy} step {rep.step}, its order was "
                                   f"{self.name} step {o.step}")
-            self.run.exchange.answers(k, rep.answers)
+            self.since[k] = rep.step
+            self.exchange.answers(k, rep.answers)
         step = next(iter(orders.values())).step
         if next(iter(orders.values())).finish:
             self.done = True
             return {}
-        run = self.run
-        for s in self.stand_ins:
-            rep = reports[s.k]
-            s.report = rep
-            r = run.team[s.k]
-            r.pos, r.target = rep.pos, rep.target
-        run.exchange.sync(step, self.syncs[step])
-        run.exchange.deliver(step)
-        self.held[step] = run.sharing.global_map().copy()
+        journal = self.sharing.journal
+        for s in self.far:
+            rep = s.report = reports[s.k]
+            self.positions[s.k] = rep.pos
+            for key, entries in rep.journal.items():  # what its end journaled making its uplink
+                held = getattr(journal, key)
+                if held is not None:
+                    held.extend(DroppedUpdate(**e) if key == "dropped" else e for e in entries)
+        self.exchange.sync(step, self.syncs[step])
+        self.exchange.deliver(step)
+        self.held[step] = self.node.global_map().copy()
         return self._orders(step)
 
     def record(self, seconds: float) -> BaseRecord:
@@ -444,10 +501,10 @@ class BaseNode:
         :func:`~fedmap.mission.scoring.score_strategy`."""
         if not self.done:
             raise FedmapError(f"{self.name}: the mission is not over")
-        s, journal = self.run.sharing, self.run.sharing.journal
+        s, journal = self.sharing, self.sharing.journal
         regs = registrations(s)
-        return BaseRecord(self.name, self.mission_id, seconds, dict(self.held), self.run.link.ledger,
-                          self.run.link.slots, s.global_heights(),
+        return BaseRecord(self.name, self.mission_id, seconds, dict(self.held), self.link.ledger,
+                          self.link.slots, self.node.global_heights(),
                           None if journal.dropped is None else list(journal.dropped),
                           None if journal.lags is None else list(journal.lags),
                           None if regs is None else list(regs), dict(self.wire))
@@ -464,14 +521,22 @@ def warm_up() -> None:
     astar(np.ones((4, 4), dtype=bool), (0, 0), (3, 3))
 
 
-Transport = Callable[[dict[int, bytes]], dict[int, bytes]]
+#: Flower's side of the lockstep seam: every rover's order as bytes -> its report as bytes.
+Exchanger = Callable[[dict[int, bytes]], dict[int, bytes]]
 
 
-def rounds(base: BaseNode, send: Transport) -> Iterator[int]:
+def rounds(base: ProcessBase, send: Exchanger, *, clock: Callable[[], float] = time.monotonic,
+           sleep: Callable[[float], None] = time.sleep) -> Iterator[int]:
     """Run ``base``'s mission over ``send`` (every rover's order as bytes -> its report as
-    bytes); yields each step an order drove to."""
+    bytes); yields each step an order drove to. On its own clock (``base.pace`` ms a step;
+    ``clock`` in seconds, ``sleep`` waits), the base sends the orders of step ``t`` when its
+    clock reaches ``t``."""
     orders = base.first_orders()
+    t0 = clock()
     while orders:
+        step = next(iter(orders.values())).step
+        if base.pace and not next(iter(orders.values())).finish:
+            sleep(max(0.0, t0 + step * base.pace / 1000 - clock()))
         sent = {k: o.to_bytes() for k, o in orders.items()}
         raw = send(sent)
         reports = {k: Report.from_bytes(r) for k, r in raw.items()}
@@ -480,7 +545,6 @@ def rounds(base: BaseNode, send: Transport) -> Iterator[int]:
         w["reports"] += sum(map(len, raw.values()))
         w["frames"] += len(sent) + len(raw)
         w["bytes"] = w["orders"] + w["reports"]
-        step = next(iter(orders.values())).step
         orders = base.take(reports, orders)
         yield step
 
@@ -491,15 +555,18 @@ class Loopback:
     observations come from a map feed. Call it with the orders; :attr:`logs` holds each
     rover's own log."""
 
-    def __init__(self, mission: Mission, name: str, *, feeds: dict[int, MapFeed] | None = None) -> None:
-        self.mission, self.name, self.feeds = mission, name, feeds or {}
-        self.nodes: dict[int, RoverNode] = {}
+    def __init__(self, mission: Mission, name: str, *, feeds: dict[int, MapFeed] | None = None,
+                 clocks: dict[int, Callable[[], float]] | None = None) -> None:
+        self.mission, self.name, self.feeds, self.clocks = mission, name, feeds or {}, clocks or {}
+        self.nodes: dict[int, ProcessRover] = {}
 
     def __call__(self, orders: dict[int, bytes]) -> dict[int, bytes]:
         out = {}
         for k, raw in orders.items():
             if k not in self.nodes:
-                self.nodes[k] = RoverNode(self.mission, self.name, k, feed=self.feeds.get(k))
+                self.nodes[k] = ProcessRover(self.mission, self.name, k, feed=self.feeds.get(k))
+                if k in self.clocks:  # its own clock (seconds), for a rover on its own clock
+                    self.nodes[k].now = self.clocks[k]
             out[k] = self.nodes[k].answer(raw)
         return out
 
@@ -509,11 +576,14 @@ class Loopback:
         return [self.nodes[k].log for k in sorted(self.nodes)]
 
 
-def loopback(mission: Mission, name: str, *, feeds: dict[int, MapFeed] | None = None) -> Loopback:
-    """:class:`Loopback`: every rover of ``name`` in this process, behind bytes."""
-    return Loopback(mission, name, feeds=feeds)
+def loopback(mission: Mission, name: str, *, feeds: dict[int, MapFeed] | None = None,
+             clocks: dict[int, Callable[[], float]] | None = None) -> Loopback:
+    """:class:`Loopback`: every rover of ``name`` in this process, behind bytes (``clocks``:
+    a rover's own clock, in seconds, instead of the machine's)."""
+    return Loopback(mission, name, feeds=feeds, clocks=clocks)
 
 
-__all__ = ["WIRE_VERSION", "BaseNode", "CorruptMessage", "Loopback", "LostState", "Order", "Report", "RoverNode",
+__all__ = ["WIRE_VERSION", "CorruptMessage", "FarRover", "ProcessBase", "ProcessRover", "Loopback", "LostState", "Order",
+           "Report",
            "StepState", "check_deployable", "loopback", "pack_frame", "pack_history", "rounds", "unpack_frame",
            "unpack_history", "warm_up"]

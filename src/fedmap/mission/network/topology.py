@@ -2,8 +2,9 @@
 
 A topology is a class with a complete protocol (:class:`Topology`): who reaches whom from
 the rovers' positions, the budget of each link, and :meth:`~Topology.sync`, which runs one
-sync round over the ends through an :class:`Exchange` (the in-process transport: the
-seeded :class:`~fedmap.mission.network.link.Link` and the messages in flight). :func:`make_topology`
+sync round over the team's nodes through an
+:class:`~fedmap.mission.network.transport.Exchange` (the in-process transport: the seeded
+:class:`~fedmap.mission.network.link.Link` and the messages in flight). :func:`make_topology`
 builds one from ``[link]``; :data:`TOPOLOGIES` is the registry of them.
 
 * :class:`StarTopology`: every rover talks only to the base station, within ``max_range``.
@@ -17,205 +18,26 @@ builds one from ``[link]``; :data:`TOPOLOGIES` is the registry of them.
   reach it over relays (:func:`route`), leaders close their round when their members'
   messages are in and answer, and members close theirs when the answers are.
 
-Every message goes sender end -> bytes -> receiver end; the receiver answers whether it
-could use it, and the sender's ``delivered`` hook gets that answer at arrival time (the
-link-level acknowledgement). A message that does not arrive is acknowledged as not
+Every message goes sender node -> frame -> receiver node; the receiver answers whether it
+could use it, and the sender gets that answer at arrival time (``acked``: the link-level
+acknowledgement). A message that does not arrive is acknowledged as not
 delivered when it is sent.
 """
 
 from __future__ import annotations
 
-import heapq
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 
-from fedmap.mission.ends.protocol import Outgoing, side_by_side
-from fedmap.mission.network.link import BASE, DOWN, UP, Link, Message
-from fedmap.mission.network.wire import pack_payload, unpack_payload
+from fedmap.mission.network.link import BASE, Link
 
 Cell = tuple[int, int]
 #: Slack on ``max_range`` (cells), so a rover exactly at the range is in range despite rounding.
 RANGE_SLACK = 1e-9
-
-
-def _call(fn: Callable[..., None], *args: Any) -> Callable[[int], None]:
-    """An event that calls ``fn(*args)`` whenever it is due (the arguments bound now)."""
-    return lambda due: fn(*args)
-
-
-class Exchange:
-    """The in-process transport of one strategy's run: the link, the ends (a
-    :class:`~fedmap.mission.ends.registry.Sharing`) and the queue of messages in flight.
-    ``positions()`` gives every rover's cell now; ``replan(k)`` tells rover ``k`` its belief
-    changed."""
-
-    def __init__(self, topology: Topology, link: Link, sharing: Any, positions: Callable[[], list[Cell]],
-                 replan: Callable[[int | None], None]) -> None:
-        self.topology, self.link, self.sharing = topology, link, sharing
-        self.positions, self.replan = positions, replan
-        self.latency = link.config.latency
-        self.queue: list = []
-        self.seq = 0
-        self.links: tuple[tuple[int, int], ...] = ()  #: peer topologies: the links up at the last sync
-        self.leaders: tuple[int, ...] = ()  #: leader topology: the agents leading at the last sync
-        #: star: per rover, the downlinks it was handed but has not answered yet (round, ledger entry)
-        self.pending: dict[int, list[tuple[int, Message]]] = {}
-        #: what the transport carried: every message as a frame (:func:`~fedmap.mission.network.wire.pack_payload`),
-        #: its bytes counted once per hop the link spent bytes on (the ledger counts the payload's)
-        self.wire = {"frames": 0, "bytes": 0}
-
-    def carry(self, sender: int, to: int, round_no: int, step: int, out: Outgoing, sent: int) -> bytes:
-        """The frame that carries ``out`` from ``sender`` to ``to``, counted as wire bytes for
-        every ledger entry from ``sent`` on that spent bytes (one per hop; none: nothing was
-        sent, e.g. nothing fit the budget, and nothing is counted)."""
-        raw = pack_payload(sender, to, round_no, step, out.kind, out.payload or b"")
-        hops = sum(1 for m in self.link.ledger[sent:] if m.bytes)
-        self.wire["frames"] += hops
-        self.wire["bytes"] += hops * len(raw)
-        return raw
-
-    def at(self, due: int, event: Callable[[int], None]) -> None:
-        """Run ``event(due)`` when the clock reaches ``due``."""
-        heapq.heappush(self.queue, (due, self.seq, event))
-        self.seq += 1
-
-    def sync(self, t: int, round_no: int) -> None:
-        if self.sharing.on_link:
-            self.sharing.at_sync(round_no)  # every topology: before any message of the round
-            self.topology.sync(self, t, round_no)
-
-    def deliver(self, t: int) -> None:
-        """Everything due by step ``t``, in order."""
-        while self.queue and self.queue[0][0] <= t:
-            due, _, event = heapq.heappop(self.queue)
-            event(due)
-
-    # -- the star's messages
-    def star_round(self, t: int, round_no: int) -> None:
-        s, link = self.sharing, self.link
-        positions = self.positions()
-        reachable = self.topology.reachable(positions)
-        side_by_side([c for k, rover in enumerate(s.rovers) if reachable[k] and (c := rover.prepare(round_no))])
-        for k, rover in enumerate(s.rovers):
-            if not reachable[k]:  # recorded as out of range
-                link.send(None, round_no=round_no, step=t, rover=k, direction=UP, kind="-", positions=positions)
-                continue
-            out = rover.uplink(round_no)
-            if out is None:
-                link.ledger.append(Message(round_no, t, k, UP, "update", 0, "rejected"))
-                continue
-            sent = len(link.ledger)
-            msg = link.send(out.payload, round_no=round_no, step=t, rover=k, direction=UP, kind=out.kind,
-                            positions=positions, budget=self.topology.budget(k, BASE, UP))
-            raw = self.carry(k, BASE, round_no, t, out, sent)
-            if msg.arrival is None:
-                rover.delivered(round_no, False)
-                continue
-            self.at(msg.arrival, _call(self._up, k, raw))
-        self.at(t + self.latency, lambda due: self._base(due, round_no))
-
-    def _up(self, k: int, raw: bytes) -> None:
-        head, _, _, payload = unpack_payload(raw)
-        ok = self.sharing.base.receive(k, payload, head.round)
-        self.sharing.rovers[k].delivered(head.round, ok)
-
-    def _base(self, due: int, round_no: int) -> None:
-        base = self.sharing.base
-        for k, out in base.downlinks(round_no).items():
-            sent = len(self.link.ledger)
-            msg = self.link.send(out.payload, round_no=round_no, step=due, rover=k, direction=DOWN, kind=out.kind,
-                                 positions=self.positions(), budget=self.topology.budget(BASE, k, DOWN))
-            raw = self.carry(BASE, k, round_no, due, out, sent)
-            if msg.arrival is None:
-                base.delivered(k, round_no, False)
-                continue
-            self.at(msg.arrival, _call(self._down, k, raw, msg))
-
-    def _down(self, k: int, raw: bytes, msg: Message) -> None:
-        head, _, _, payload = unpack_payload(raw)
-        round_no = head.round
-        ok = self.sharing.rovers[k].receive(payload)
-        if ok is None:  # a rover on another machine: its answer comes with its next report
-            self.pending.setdefault(k, []).append((round_no, msg))
-            return
-        self.answered(k, round_no, msg, ok)
-
-    def answered(self, k: int, round_no: int, msg: Message, ok: bool) -> None:
-        """Rover ``k``'s answer to the downlink ``msg`` of round ``round_no``: the base's
-        acknowledgement, and a stale downlink marked as such."""
-        self.sharing.base.delivered(k, round_no, ok)
-        if ok:
-            self.replan(k)
-        else:
-            msg.status = "stale"
-
-    def answers(self, k: int, oks: Sequence[bool]) -> None:
-        """Rover ``k``'s answers to its downlinks still pending, in the order they arrived."""
-        waiting = self.pending.get(k, [])
-        if len(oks) != len(waiting):
-            raise ValueError(f"rover {k} answered {len(oks)} downlink(s), {len(waiting)} were pending")
-        for (round_no, msg), ok in zip(waiting, oks):
-            self.answered(k, round_no, msg, ok)
-        self.pending[k] = []
-
-    # -- peer messages
-    def peer_links(self, round_no: int, pairs: Sequence[tuple[int, int]]) -> None:
-        """Tell every agent how many agents it exchanges with this round."""
-        degree: dict[int, int] = {}
-        for a, b in pairs:
-            degree[a] = degree.get(a, 0) + 1
-            degree[b] = degree.get(b, 0) + 1
-        for agent, end in self.sharing.peers.items():
-            end.links(round_no, degree.get(agent, 0))
-
-    def offer(self, path: list[int], t: int, round_no: int, role: str) -> int:
-        """Offer agent ``path[0]``'s message to ``path[-1]`` along ``path``; its arrival step (or t)."""
-        a, b = path[0], path[-1]
-        budget = self.topology.budget(a, b, role)
-        sender = self.sharing.peers[a]
-        out = sender.message(b, round_no, t, budget)
-        sent = len(self.link.ledger)
-        msg = self.link.send_route(out.payload, path, round_no=round_no, step=t, kind=out.kind, budget=budget)
-        raw = self.carry(a, b, round_no, t, out, sent)
-        if msg.arrival is not None and msg.to == b:
-            self.at(msg.arrival, lambda due: self._peer(raw, due, msg))
-            return msg.arrival
-        sender.delivered(b, round_no, False)
-        return t
-
-    def _peer(self, raw: bytes, due: int, msg: Message) -> None:
-        head, b, _, payload = unpack_payload(raw)
-        a, round_no = head.sender, head.round
-        ok = self.sharing.peers[b].receive(a, payload, round_no, due)
-        self.sharing.peers[a].delivered(b, round_no, ok)
-        if not ok:
-            msg.status = "stale"
-        elif b != BASE:
-            self.replan(b)
-
-    def close(self, round_no: int, agents: Sequence[int] | None) -> None:
-        """The ``agents`` (None: every agent) close round ``round_no``."""
-        for agent, end in self.sharing.peers.items():
-            if agents is None or agent in agents:
-                end.close_round(round_no)
-
-    def exchange_round(self, t: int, round_no: int, pairs: list[tuple[int, int]]) -> None:
-        """Every pair exchanges both ways; every agent closes its round ``latency`` steps later."""
-        self.links, self.leaders = tuple(pairs), ()
-        self.peer_links(round_no, pairs)
-        for a, b in pairs:
-            self.offer([a, b], t, round_no, "peer")
-            self.offer([b, a], t, round_no, "peer")
-
-        def closing(due: int) -> None:
-            self.close(round_no, None)
-            self.replan(None)
-
-        self.at(t + self.latency, closing)
 
 
 class Topology:
@@ -256,8 +78,9 @@ class Topology:
         """One sentence of ``report.md`` on who talks to whom under ``[link]`` ``lc``."""
         return "every rover talks to the base station"
 
-    def sync(self, x: Exchange, t: int, round_no: int) -> None:
-        """Round ``round_no`` at step ``t`` over the ends of ``x.sharing``."""
+    def sync(self, x: Any, t: int, round_no: int) -> None:
+        """Round ``round_no`` at step ``t`` over the nodes of ``x``
+        (an :class:`~fedmap.mission.network.transport.Exchange`)."""
         x.exchange_round(t, round_no, self.up_pairs(x.link, round_no, t, x.positions()))
 
 
@@ -306,8 +129,8 @@ class StarTopology(Topology):
     def budget(self, a: int, b: int, role: str) -> int | None:
         return self.uplink_bytes if b == BASE else self.downlink_bytes
 
-    def sync(self, x: Exchange, t: int, round_no: int) -> None:
-        if x.sharing.base is not None:
+    def sync(self, x: Any, t: int, round_no: int) -> None:
+        if x.base is not None:
             x.star_round(t, round_no)
         else:  # a peer strategy: the base station is an agent
             super().sync(x, t, round_no)
@@ -398,7 +221,7 @@ class LeaderTopology(MeshTopology):
         return (cls._within(lc) + "; at every sync each connected group elects a leader (the lander if in the group, "
                 "else its lowest-numbered rover) that plays the base for the group, members reaching it over relays")
 
-    def sync(self, x: Exchange, t: int, round_no: int) -> None:
+    def sync(self, x: Any, t: int, round_no: int) -> None:
         positions = x.positions()
         pairs = self.up_pairs(x.link, round_no, t, positions)
         x.links = tuple(pairs)
@@ -416,7 +239,7 @@ class LeaderTopology(MeshTopology):
             for r in routes.values():
                 assert r is not None
                 x.offer(r[::-1], due, round_no, "down")
-            members = tuple(a for a in x.sharing.peers if a not in leaders)
+            members = tuple(a for a in x.peers if a not in leaders)
 
             def members_close(due: int) -> None:
                 x.close(round_no, members)

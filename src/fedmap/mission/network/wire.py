@@ -157,6 +157,31 @@ def unpack_payload(raw: bytes) -> tuple[Head, int, str, bytes]:
     return head, to, kind, payload
 
 
+@dataclass(frozen=True)
+class Frame:
+    """A strategy's message from node ``sender`` to node ``to`` (:data:`BASE` = -1: the base
+    station or the lander), sent in round ``round`` at step ``step``: what nodes hand a
+    transport and take from it. ``payload`` None: the sender had something to say but
+    nothing fit its budget (the transport records it; nothing crosses)."""
+
+    sender: int
+    to: int
+    round: int
+    step: int
+    kind: str
+    payload: bytes | None
+
+    def pack(self) -> bytes:
+        """The frame on the wire (:func:`pack_payload`)."""
+        return pack_payload(self.sender, self.to, self.round, self.step, self.kind, self.payload or b"")
+
+    @classmethod
+    def unpack(cls, raw: bytes) -> Frame:
+        """The frame in ``raw``; :class:`CorruptMessage` for anything that is not one."""
+        head, to, kind, payload = unpack_payload(raw)
+        return cls(head.sender, to, head.round, head.step, kind, payload)
+
+
 def pack_frame(header: dict, blobs: list[bytes] = ()) -> bytes:  # type: ignore[assignment]
     """``header`` (JSON) and ``blobs`` as one checked frame."""
     head = json.dumps(header, separators=(",", ":")).encode()
@@ -191,5 +216,5 @@ def unpack_frame(raw: bytes) -> tuple[dict, list[bytes]]:
 
 
 __all__ = ["HISTORY", "KINDS", "MESSAGE_OVERHEAD", "ORDER", "RECORD_VERSION", "REPORT", "WIRE_VERSION", "CorruptMessage",
-           "Head", "PAYLOAD", "Reader", "Writer", "pack_frame", "pack_message", "pack_payload", "unpack_frame",
+           "Frame", "Head", "PAYLOAD", "Reader", "Writer", "pack_frame", "pack_message", "pack_payload", "unpack_frame",
            "unpack_message", "unpack_payload"]

@@ -129,7 +129,7 @@ COLUMNS: dict[str, tuple[Callable[[MissionSummary], Any], int]] = {
 }
 
 #: Ledger statuses of a message that did not arrive, in the order the report names them.
-UNDELIVERED = ("over budget", "lost", "stale", "out of range", "link down", "rejected")
+UNDELIVERED = ("over budget", "lost", "stale", "out of range", "link down", "rejected", "no sync")
 
 
 def undelivered(summary: MissionSummary, direction: str) -> str:

@@ -166,6 +166,22 @@ class PredictedView:
         return cls(classes, predicted, p_imp)
 
 
+def start_team(config: MissionConfig, shape: tuple[int, int], starts: list[Cell], base: Cell,
+               waypoints: list[list[Cell]]) -> list[Rover]:
+    """The team before its first step, knowing nothing: a rover at each start (its
+    ``waypoints`` in ``waypoints`` mode; with an elevation layer, no heights yet), then the
+    helicopters at the base."""
+    team = [Rover(s, np.full(shape, UNKNOWN, dtype=np.uint8), np.full(shape, -1, dtype=np.int64),
+                  trail=[s], waypoints=list(w) if config.mode == "waypoints" else [])
+            for s, w in zip(starts, waypoints)]
+    if "elevation" in config.layers:  # what each rover measures of the elevation layer
+        for r in team:
+            r.heights = np.full(shape, np.nan, dtype=np.float32)
+    team += [Rover(base, np.full(shape, UNKNOWN, dtype=np.uint8), np.full(shape, -1, dtype=np.int64),
+                   trail=[base], kind="helicopter") for _ in range(config.helicopters)]
+    return team
+
+
 class World:
     """Every member of the team on ``truth``: rovers from ``starts`` (their ``waypoints`` in
     ``waypoints`` mode), then the helicopters from the base. ``ends[k]`` is member ``k``'s
@@ -178,11 +194,7 @@ class World:
                  allowed: np.ndarray | None = None) -> None:
         self.config, self.truth, self.elevation, self.prior, self.base = config, truth, elevation, prior, base
         shape = truth.shape
-        self.team = [Rover(s, np.full(shape, UNKNOWN, dtype=np.uint8), np.full(shape, -1, dtype=np.int64),
-                           trail=[s], waypoints=list(w) if config.mode == "waypoints" else [])
-                     for s, w in zip(starts, waypoints)]
-        self.team += [Rover(base, np.full(shape, UNKNOWN, dtype=np.uint8), np.full(shape, -1, dtype=np.int64),
-                            trail=[base], kind="helicopter") for _ in range(config.helicopters)]
+        self.team = start_team(config, shape, starts, base, waypoints)
         f = config.helicopter.resolution
         self.coarse = np.repeat(np.repeat(block_classes(truth.classes, f, UNKNOWN), f, axis=0), f,
                                 axis=1)[:shape[0], :shape[1]] if config.helicopters else None
@@ -193,10 +205,7 @@ class World:
         self.own_truth = [None if p == "team" else (profiles or {})[p] for p in names]
         for r, t in zip(self.team, self.own_truth):
             r.own = None if t is None else np.full(shape, UNKNOWN, dtype=np.uint8)
-        # the elevation layer: what each rover measures, and the thresholds it derives its classes with
-        if "elevation" in config.layers:
-            for r in self.team[:config.rovers]:
-                r.heights = np.full(shape, np.nan, dtype=np.float32)
+        # the elevation layer's thresholds, with which each rover derives its classes
         self.own_thresholds = [thresholds if p == "team" else rover_profile(p) for p in names]
         self._derived: dict[int, tuple[tuple, np.ndarray]] = {}
         self.allowed = allowed
