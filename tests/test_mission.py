@@ -706,7 +706,7 @@ def test_rovers_training_side_by_side_send_what_they_send_one_after_another(monk
     torch thread: the same losses, bytes on the link and models as training them in turn
     (one core), including a rejected update's place in the journal."""
     from fedmap.mission.ends import protocol
-    from fedmap.mission.network import topology
+    from fedmap.mission.network import transport
 
     truth = _maze(32)
     cfg = _small(rovers=3, steps=12, sync_every=4, strategies=("fedmap",), link=LinkConfig(loss=0.2, seed=2),
@@ -722,7 +722,7 @@ def test_rovers_training_side_by_side_send_what_they_send_one_after_another(monk
     monkeypatch.setattr(protocol, "cpu_cores", lambda: 2)
     two = run_mission(cfg, truth).runs["fedmap"]
     assert pools and set(pools) == {2}  # 3 rovers per sync on 2 cores
-    monkeypatch.setattr(topology, "side_by_side", lambda calls: None)  # each rover trains in its uplink, in turn
+    monkeypatch.setattr(transport, "side_by_side", lambda calls: None)  # each rover trains in its uplink, in turn
     one = run_mission(cfg, truth).runs["fedmap"]
     assert len(pools) == 3  # one pool per sync, none since
     assert one.ledger == two.ledger and sum(m.bytes for m in one.ledger) > 0
