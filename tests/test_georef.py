@@ -137,7 +137,11 @@ def test_a_runs_png_maps_keep_their_place_on_the_body(tmp_path, capsys):
             assert src.crs.to_epsg() == 32612 and src.transform == dem.transform, name
     rc = main(["export", str(out / "truth.png"), "--format", "geotiff", "-o", str(tmp_path / "truth.tif")])
     assert rc == 0
-    assert "no georeferencing" not in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "no georeferencing" not in said and "georeferenced (transform and CRS)" in said
+    rc = main(["export", str(out / "truth.png"), "--format", "npy", "-o", str(tmp_path / "truth.npy")])
+    said = " ".join(capsys.readouterr().out.split())
+    assert rc == 0 and "not georeferenced: npy holds no georeferencing" in said and "georeferenced (" not in said
     with rasterio.open(tmp_path / "truth.tif") as src:
         assert src.crs.to_epsg() == 32612 and src.transform == dem.transform
         truth = load_map(out / "truth.png")

@@ -316,7 +316,7 @@ def test_moon_geotiff_degrees_to_metres_on_the_moon_radius(tmp_path):
     assert dem.meta["radius_m"] == pytest.approx(1_737_400.0)
     assert dem.pixel_size == pytest.approx(dx_m, rel=1e-9)  # 363.5 m: the finer (east-west) spacing
     # rows resampled so that cells are square; the slopes are right in metres
-    assert dem.shape == (round(h * dy_m / dx_m), w) and dem.meta["resampled"]["axis"] == "rows"
+    assert dem.shape == (round(h * dy_m / dx_m), w) and dem.meta["cells_resampled"]["axis"] == "rows"
     dz_dy, dz_dx = np.gradient(dem.elevation.astype(np.float64), dem.pixel_size)
     assert np.median(dz_dx) == pytest.approx(0.1, rel=0.01)
     assert np.median(-dz_dy) == pytest.approx(0.2, rel=0.01)
@@ -334,7 +334,9 @@ def test_mars_ellipsoid_radii_from_the_crs(tmp_path):
     dy = math.radians(deg) * b * b / a  # meridional radius at the equator is b^2 / a
     assert dem.pixel_size == pytest.approx(min(dx, dy), rel=1e-9)
     assert abs(dx - dy) / dy > 0.01  # 1.2%: more than the square-cell tolerance, so
-    assert dem.meta["resampled"]["axis"] == "columns"  # the coarser east-west axis is resampled
+    assert dem.meta["cells_resampled"]["axis"] == "columns"  # the coarser east-west axis is resampled
+    note = dem.meta["cells_note"]  # what the CLI prints: one line of words, not a dict
+    assert isinstance(note, str) and "\n" not in note and "columns were resampled to square cells" in note
 
 
 def test_isis3_cube_in_a_moon_crs(tmp_path):
@@ -392,6 +394,37 @@ def test_handwritten_ascii_grid_without_prj(tmp_path):
     dem = load_dem(tmp_path / "deg.asc", crs="EPSG:4326")
     assert dem.meta["crs_kind"] == "geographic" and 60 < dem.pixel_size < 75  # 3" east-west at 40 N
     assert load_dem(tmp_path / "deg.asc", pixel_size=5.0).pixel_size == 5.0
+
+
+@pytest.mark.parametrize("crs", [None, "EPSG:32613"])
+def test_a_geotiff_of_arc_minute_cells_is_taken_for_degrees_with_or_without_a_projected_crs(tmp_path, crs):
+    """2.5' cells (0.0417, a global DEM's clip) with no CRS were taken as 4 cm cells, and
+    labelled UTM the same: both are refused in one line, and the file loads with its real CRS."""
+    z = np.linspace(1500, 2500, 60 * 80, dtype=np.float32).reshape(60, 80)
+    t = Affine(0.0416667, 0, -106.0, 0, -0.0416667, 41.0)
+    path = write_raster(tmp_path / "arcmin.tif", z, transform=t, crs=crs)
+    with pytest.raises(FedmapError, match="looks like degrees") as exc:
+        load_dem(path)
+    assert_one_line(exc)
+    dem = load_dem(path, crs="EPSG:4326")
+    assert dem.meta["crs_kind"] == "geographic" and 3400 < dem.pixel_size < 3600  # 2.5' east-west at 40 N
+    metres = write_raster(tmp_path / "metres.tif", z, transform=Affine(0.5, 0, 0.0, 0, -0.5, 400.0), crs=crs)
+    assert load_dem(metres).pixel_size == 0.5  # half-metre cells off the lon/lat box stay metres
+
+
+def test_a_dem_of_non_square_cells_says_so_in_words_with_or_without_a_size(tmp_path):
+    """A geographic grid away from the equator has non-square cells: the user is told in one
+    line of words (it was a raw dict), and still told when --size resamples the map too."""
+    from fedmap.maps.sources import TerrainSource, load_terrain
+
+    deg = 1.0 / 1200  # 3" cells at 60 N: about 46 m east-west, 93 m north-south
+    z = np.random.default_rng(1).normal(0, 3, (120, 240)).cumsum(axis=1).astype(np.float32)
+    path = write_raster(tmp_path / "north.tif", z, transform=Affine(deg, 0, 10.0, 0, -deg, 60.05), crs="EPSG:4326")
+    for size in (None, 48):
+        truth, _ = load_terrain(TerrainSource(kind="dem", path=str(path), size=size))
+        note = truth.meta["cells_note"]
+        assert isinstance(note, str) and "\n" not in note and "north-south" in note
+        assert ("resampled" in truth.meta) == (size is not None)
 
 
 def test_south_up_grid_is_flipped_rotated_grid_refused(tmp_path):

@@ -754,3 +754,76 @@ def test_a_raw_downlink_over_its_budget_sends_the_newest_cells_that_fit():
     sent = {key: b for key, b in cut.items() if b > 0}
     assert sent, cut  # cut to the newest cells, not dropped
     assert all(b <= budget < free[key] for key, b in sent.items())
+
+
+@pytest.mark.parametrize("shape", [(1, 50), (50, 1), (7, 64)])
+def test_a_map_too_small_for_a_mission_says_so(shape):
+    """A 1x50 class map said "only 1 free start cells": the map's size is the problem."""
+    c = np.full(shape, FREE, dtype=np.uint8)
+    with pytest.raises(FedmapError, match=rf"the map is {shape[0]}x{shape[1]} cells, too small for a mission") as e:
+        run_mission(_small(), GridMap(c))
+    assert "\n" not in str(e.value)
+
+
+def _reach_by_hand(classes, starts, radius):
+    """Brute force: flood the free cells 8-connected from the starts, then every known cell within ``radius``."""
+    from collections import deque
+
+    h, w = classes.shape
+    seen = np.zeros((h, w), bool)
+    q = deque(s for s in starts if classes[s] == FREE)
+    for s in q:
+        seen[s] = True
+    while q:
+        r, c = q.popleft()
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                rr, cc = r + dr, c + dc
+                if 0 <= rr < h and 0 <= cc < w and not seen[rr, cc] and classes[rr, cc] == FREE:
+                    seen[rr, cc] = True
+                    q.append((rr, cc))
+    out = np.zeros((h, w), bool)
+    for r, c in zip(*np.nonzero(seen)):
+        for rr in range(h):
+            for cc in range(w):
+                if (rr - r) ** 2 + (cc - c) ** 2 <= radius ** 2:
+                    out[rr, cc] = True
+    return out & (classes != UNKNOWN)
+
+
+def test_the_cells_a_team_can_reach_match_a_flood_fill_by_hand():
+    from fedmap.mission.world.world import reachable_cells
+
+    rng = np.random.default_rng(4)
+    c = np.where(rng.random((30, 30)) < 0.35, IMPASSABLE, FREE).astype(np.uint8)
+    c[:, 14] = IMPASSABLE  # a wall with one gap
+    c[20, 14] = FREE
+    c[0:3, 0:3] = UNKNOWN
+    starts = [(5, 5), (25, 25)]
+    for s in starts:
+        c[s] = FREE
+    cfg = _small(sensor_radius=2.5)
+    np.testing.assert_array_equal(reachable_cells(GridMap(c), starts, cfg), _reach_by_hand(c, starts, 2.5))
+
+
+def test_a_walled_off_map_is_plannable_on_the_cells_the_team_can_reach():
+    """A mountain walls off 400 of 2,304 cells (more than the sensor radius from any free
+    cell): 95 % of the whole map is out of reach, so "plannable" counted over the whole map
+    never came. Over the cells the team can reach, raw's team gets there, and the verdict
+    names it and says what share of the map those cells are."""
+    from fedmap.mission.outputs.report import verdict
+
+    c = np.full((48, 48), FREE, np.uint8)
+    c[0:24, 0:24] = IMPASSABLE
+    cfg = _small(rovers=3, steps=120, sync_every=10, sensor_radius=4.0, strategies=("none", "raw"),
+                 link=LinkConfig(loss=0.0))
+    result = run_mission(cfg, GridMap(c))
+    raw = result.runs["raw"].summary
+    assert raw.reachable_share == pytest.approx((2304 - 400) / 2304)  # rows and columns 0..19 are out of reach
+    assert raw.final_coverage < 0.95 <= raw.final_coverage_reachable
+    assert raw.ready_step is not None and raw.coverage_reachable_steps[0.95] is not None
+    series = result.runs["raw"].series
+    assert len(series.coverage_reachable) == len(series.coverage)
+    assert all(a >= b - 1e-12 for a, b in zip(series.coverage_reachable, series.coverage))
+    line = verdict(result)
+    assert "95% coverage of the cells they can reach, 83% of the map" in line and "Soonest: **raw**" in line

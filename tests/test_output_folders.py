@@ -101,7 +101,12 @@ def test_a_recording_or_bag_inside_the_output_folder_or_a_bag_over_a_file_is_ref
     assert rc == 2 and "exists and is not a ROS 2 bag" in err and len(err.strip().splitlines()) == 1
     rc, _, err = _mission([*TINY, "-o", out, "--set", "seed=5", "--record", "/proc/x.mcap"], capsys)
     assert rc == 2 and "cannot record to /proc/x.mcap" in err and len(err.strip().splitlines()) == 1
+    notes = tmp_path / "notes.txt"  # a file of the user's own is never turned into a recording
+    notes.write_text("my notes")
+    rc, _, err = _mission([*TINY, "-o", out, "--set", "seed=5", "--record", notes], capsys)
+    assert rc == 2 and "exists and is not an MCAP recording" in err and len(err.strip().splitlines()) == 1
     assert _tree(out) == before and afile.read_text() == "not a bag"  # the earlier result is whole
+    assert notes.read_text() == "my notes"
 
 
 def test_atomic_dir_puts_the_old_folder_back_if_the_swap_fails(tmp_path, monkeypatch):
@@ -137,3 +142,16 @@ def test_an_output_of_an_earlier_fedmap_without_the_marker_is_still_replaced_and
     (mine / "metrics.json").write_text('{"accuracy": 0.9}')  # somebody else's metrics.json
     with pytest.raises(FedmapError, match="is not a fedmap output folder"):
         check_output_dir(mine)
+
+
+def test_a_recording_replaces_only_an_earlier_recording(tmp_path):
+    from fedmap.mission.outputs.recording import MCAP_MAGIC, check_recording_path
+
+    earlier = tmp_path / "run.mcap"
+    earlier.write_bytes(MCAP_MAGIC + b"\x00" * 8)
+    assert check_recording_path(earlier) == earlier  # an earlier recording: replaced at the end
+    assert check_recording_path(tmp_path / "new.mcap") == tmp_path / "new.mcap"
+    other = tmp_path / "data.mcap"
+    other.write_bytes(b"PK\x03\x04 a zip named .mcap")
+    with pytest.raises(FedmapError, match="exists and is not an MCAP recording"):
+        check_recording_path(other)

@@ -138,3 +138,32 @@ def test_log_json_keeps_stdout_pure_json_lines(tmp_path):
     assert r.returncode == 0, r.stderr
     assert all(__import__("json").loads(line) for line in r.stdout.splitlines() if line.strip())
     assert "64x64 moon" in r.stderr
+
+
+def test_stages_side_by_side_each_end_with_their_own_count():
+    """A mission's strategies run side by side: a new one must not end the others (it printed
+    "mission: raw done 89/300 (30%)" and "none done 0/300 (0%) in 0.0 s" for strategies that
+    ran every step); each ends when its own count is done, and the stage before them ends first."""
+    progress, clock, stream = _reporter()
+    with progress:
+        terrain = progress.add_task("load terrain", total=None, loss="")
+        clock.t += 1
+        a = progress.add_task("mission: none", total=300, loss="", alongside=True)
+        b = progress.add_task("mission: raw", total=300, loss="", alongside=True)
+        for step in range(1, 301):
+            clock.t += 0.01
+            progress.update(a, completed=step)
+            if step <= 150:
+                progress.update(b, completed=step)
+        c = progress.add_task("mission: central", total=300, loss="", alongside=True)
+        for step in range(151, 301):
+            progress.update(b, completed=step)
+            progress.update(c, completed=step)
+        progress.update(c, completed=300)
+        progress.add_task("write outputs", total=None, loss="")
+    lines = stream.getvalue().splitlines()
+    done = [x for x in lines if " done" in x]
+    assert "stage 'load terrain' done in 1.0 s" in done[0] and terrain == 0
+    for name in ("none", "raw", "central"):
+        assert any(f"stage 'mission: {name}' done 300/300 (100%)" in x for x in done), lines
+    assert not any(re.search(r"mission: \w+' done (?!300/300)", x) for x in lines), lines

@@ -226,7 +226,7 @@ def test_metrics_json_names_every_summary_value_as_python_does(repeated, tmp_pat
             value = getattr(run.summary, f.name)
             if f.name in ("final_prediction", "predicted_belief") and value is None:  # no predictor: not written
                 assert f.name not in got
-            elif f.name == "coverage_steps":
+            elif f.name in ("coverage_steps", "coverage_reachable_steps"):
                 assert got[f.name] == {f"{int(lv * 100)}%": t for lv, t in value.items()}
             elif isinstance(value, tuple):
                 assert got[f.name] == list(value)

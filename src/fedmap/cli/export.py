@@ -14,17 +14,23 @@ import typer
 
 from fedmap.cli.ui import console
 from fedmap.errors import FedmapError
-from fedmap.maps.export import EXPORT_FORMATS, check_formats, export_map
+from fedmap.maps.export import EXPORT_FORMATS, KEEPS_GEOREF, check_formats, export_map
 from fedmap.maps.grid import GridMap
 from fedmap.maps.io import load_map
 from fedmap.maps.rosbag import is_bag
 from fedmap.mission.outputs.maps_out import reexport_mission_maps
 
 
-def _line(grid: GridMap, written: list[Path], topic: str = "") -> None:
+def _line(grid: GridMap, written: list[Path], fmt: str, topic: str = "") -> None:
+    """One line per map written: its size and classes, and what the written file holds of its georeferencing."""
     f = grid.fractions()
-    georef = "no georeferencing (a local metric frame)" if grid.transform is None else (
-        "georeferenced" + ("" if grid.crs else ", no CRS"))
+    keeps = KEEPS_GEOREF[fmt]
+    if grid.transform is None:
+        georef = "no georeferencing (a local metric frame)"
+    elif keeps is None:
+        georef = f"not georeferenced: {fmt} holds no georeferencing (the map's is lost; geotiff keeps it)"
+    else:
+        georef = f"georeferenced ({keeps})" + ("" if grid.crs or "no CRS" in keeps else ", the map has no CRS")
     console.print(f"{', '.join(str(p) for p in written)}{topic}: {grid.shape[0]}x{grid.shape[1]} cells of {grid.pixel_size:.4g} m, "
                   f"{georef}; {f['free']:.1%} free, {f['impassable']:.1%} impassable, {f['unknown']:.1%} unknown",
                   soft_wrap=True)
@@ -49,10 +55,10 @@ def export(
     (fmt,) = check_formats([format_])
     if map_.is_dir() and not is_bag(map_):  # a mission folder: its maps/, each read from its GeoTIFF where there is one
         for grid, written in reexport_mission_maps(map_, fmt, out=out, pixel_size=pixel_size):
-            _line(grid, written, f" /{Path(grid.source).stem}" if fmt == "rosbag2" else "")
+            _line(grid, written, fmt, f" /{Path(grid.source).stem}" if fmt == "rosbag2" else "")
         return
     grid = load_map(map_, pixel_size=pixel_size)
     target = out if out is not None else map_.with_suffix(EXPORT_FORMATS[fmt])
     if target.resolve() == map_.resolve():
         raise FedmapError(f"exporting {map_} as {fmt} would overwrite it; pass -o")
-    _line(grid, export_map(grid, target, fmt), " /map" if fmt == "rosbag2" else "")
+    _line(grid, export_map(grid, target, fmt), fmt, " /map" if fmt == "rosbag2" else "")

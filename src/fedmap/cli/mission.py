@@ -26,7 +26,7 @@ from fedmap.mission.ends.registry import names_that
 from fedmap.mission.network.remote import check_deployable
 from fedmap.mission.outputs.bag import SyncMaps
 from fedmap.mission.outputs.maps_out import MAPS_DIR
-from fedmap.mission.outputs.recording import Recorder
+from fedmap.mission.outputs.recording import Recorder, check_recording_path
 from fedmap.mission.outputs.report import global_meaning, has_peers, repeat_rows, table_rows, verdict, write_mission
 from fedmap.mission.repeats import run_repeats, what_varies
 from fedmap.mission.results import movement_warnings
@@ -90,7 +90,8 @@ def mission(
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
         truth, elevation, prior, profiles = mission_terrain(cfg, source)
-        for warning in (truth.meta.get("squared"), truth.meta.get("resampled"), truth.meta.get("warning"), start_pocket_warning(truth, cfg)):
+        for warning in (truth.meta.get("cells_note"), truth.meta.get("squared"), truth.meta.get("resampled"),
+                        truth.meta.get("warning"), start_pocket_warning(truth, cfg)):
             if warning:
                 console.print(f"warning: {warning}", soft_wrap=True)  # one line, however wide
 
@@ -120,7 +121,7 @@ def mission(
         tasks: dict[str, Any] = {}  # strategy -> its bar (strategies may run side by side)
 
         def on_strategy(name: str) -> None:
-            tasks[name] = progress.add_task(f"{label}mission: {name}", total=cfg.steps, loss="")
+            tasks[name] = progress.add_task(f"{label}mission: {name}", total=cfg.steps, loss="", alongside=True)
 
         def on_step(name: str, step: int, coverage: float) -> None:
             progress.update(tasks[name], completed=step, loss=f"coverage {coverage:.0%}")
@@ -184,8 +185,11 @@ def mission(
         t.add_row(*(r[i] for i in keep))
     console.print(fit(t))
     console.print(terrain_line(source.label, truth, source.thresholds))
-    console.print("50/80/95 %: first step the team's coverage reached it; F1>=.9: first step a rover's belief gave "
-                  "strict A* path F1 >= 0.9; cov., acc.: coverage and mean belief accuracy at the end; f.free: share of the cells "
+    reach = next(iter(result.runs.values())).summary.reachable_share
+    console.print("50/80/95 %: first step the team had observed that share of the cells it can reach "
+                  f"({reach:.0%} of the map); F1>=.9: first step a rover's belief gave "
+                  "strict A* path F1 >= 0.9; cov., reach., acc.: coverage of the map and of the cells the team can "
+                  "reach, and mean belief accuracy at the end; f.free: share of the cells "
                   f"a rover plans on as free that are impassable; glob.F1: {global_meaning(result)}, strict; team "
                   "up/down B: bytes of the whole team over the mission (a rover's sends; the base's or lander's sends)"
                   + ("; B/link/rnd: mean bytes per message on a link that was up; peer lost: peer messages that did "
@@ -232,6 +236,8 @@ def _check_outputs(out: Path, *, record: Path | None, rosbag: Path | None) -> No
                               "write it elsewhere")
     if rosbag is not None:
         check_bag_path(rosbag)
+    if record is not None:
+        check_recording_path(record)
 
 
 def _deployed(cfg, resolved: dict, mode: str, plan: tuple[tuple[str, ...], list[str], str, str], *, out: Path,
@@ -291,7 +297,8 @@ def _print_repeats(results: list, title: str) -> None:
 
 #: Columns of the console table (report.md has them all) -> their short headers.
 _CONSOLE = {"strategy": "strategy", "steps to 50 %": "50 %", "steps to 80 %": "80 %", "steps to 95 %": "95 %",
-            "belief F1≥0.9 at": "F1>=.9", "coverage": "cov.", "belief acc.": "acc.", "false-free": "f.free",
+            "belief F1≥0.9 at": "F1>=.9", "coverage": "cov.", "reachable coverage": "reach.", "belief acc.": "acc.",
+            "false-free": "f.free",
             "global F1": "glob.F1",
             "team bytes up": "team up B", "team bytes down": "team down B", "uplinks not delivered": "up lost/over"}
 #: Console columns of a mission with an elevation layer.

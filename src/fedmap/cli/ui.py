@@ -113,6 +113,7 @@ class LogProgress:
         self.heartbeat = heartbeat and not quiet
         self._tasks: dict[int, dict[str, Any]] = {}
         self._current: int | None = None
+        self._alongside: list[int] = []  # tasks running side by side with the current one (not ended by it)
         self._last = clock()
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -128,21 +129,28 @@ class LogProgress:
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
-        if exc_type is None and self._current is not None:
-            self._end(self._current)
+        if exc_type is None:
+            for task_id in [*self._alongside, *([] if self._current is None else [self._current])]:
+                self._end(task_id)
 
     def _beat(self) -> None:
         while not self._stop.wait(min(1.0, self.interval)):
             self.tick()
 
     def add_task(self, description: str, start: bool = True, total: float | None = 100.0, completed: int = 0,
-                 visible: bool = True, **fields: Any) -> TaskID:
+                 visible: bool = True, alongside: bool = False, **fields: Any) -> TaskID:
+        """A new stage. It ends the running one, unless both are ``alongside``: stages that run
+        side by side (a mission's strategies on several cores) each end when their own count is done."""
         with self._lock:
-            if self._current is not None:
-                self._end(self._current)
+            if alongside and self._current is not None and self._tasks[self._current]["alongside"]:
+                self._alongside.append(self._current)
+            else:
+                for running in [*self._alongside, *([] if self._current is None else [self._current])]:
+                    self._end(running)
+                self._alongside = []
             task_id = len(self._tasks)
             self._tasks[task_id] = {"stage": description, "total": total, "done": completed, "counted": bool(total),
-                                    "start": self.clock(), "fields": fields, "ended": False}
+                                    "start": self.clock(), "fields": fields, "ended": False, "alongside": alongside}
             self._current = task_id
             self._emit(self._tasks[task_id], "start")
             return TaskID(task_id)
@@ -187,7 +195,9 @@ class LogProgress:
             t["ended"] = True
             self._emit(t, "end")
         if self._current == task_id:
-            self._current = None
+            self._current = self._alongside.pop() if self._alongside else None
+        elif task_id in self._alongside:
+            self._alongside.remove(task_id)
 
     def event(self, t: dict[str, Any], phase: str) -> dict[str, Any]:
         """The progress event of a stage: what a JSON line holds."""

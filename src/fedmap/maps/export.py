@@ -22,6 +22,11 @@ from fedmap.maps.rosbag import write_map_bag, write_maps_bag
 #: Export format -> file suffix (``ros`` also writes a ``.pgm`` beside the ``.yaml``; a
 #: ``rosbag2`` bag is a folder, named as given, without a suffix).
 EXPORT_FORMATS: dict[str, str] = {"geotiff": ".tif", "ros": ".yaml", "png": ".png", "npy": ".npy", "rosbag2": ""}
+#: What each format keeps of a map's georeferencing (None: nothing; a .png keeps it in its
+#: ``.aux.xml`` sidecar).
+KEEPS_GEOREF: dict[str, str | None] = {"geotiff": "transform and CRS", "ros": "origin only, no CRS",
+                                       "png": "transform and CRS in its .aux.xml sidecar", "npy": None,
+                                       "rosbag2": "origin only, no CRS"}
 #: The bag :func:`export_maps` writes a set of maps into (a folder in the output folder).
 BAG_NAME = "maps_bag"
 

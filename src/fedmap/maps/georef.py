@@ -108,6 +108,13 @@ def body_radii(crs, lat_deg: float) -> tuple[float, float]:
     return a * (1.0 - e2) / w**3, a / w
 
 
+def is_projected(crs) -> bool:
+    """Whether ``crs`` (anything :func:`crs_wkt` takes) is a projected CRS."""
+    from rasterio.crs import CRS
+
+    return bool(CRS.from_wkt(crs_wkt(crs) or "").is_projected)
+
+
 def cell_size_m(crs, transform: Affine, shape: tuple[int, int]) -> tuple[float, float, dict]:
     """Ground size (dx, dy) of a cell in metres and how it was found.
 

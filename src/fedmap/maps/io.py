@@ -47,7 +47,8 @@ not its suffix). GDAL's reading is honoured as it is:
   ellipsoid of *that body*, taken from the CRS, at the grid's centre latitude. When the
   ground spacing along x and y differs by more than 1% (a geographic grid away from the
   equator) the coarser axis is resampled by linear interpolation to the finer spacing, so
-  that slopes computed with one pixel size are right; ``meta["resampled"]`` records it.
+  that slopes computed with one pixel size are right; ``meta["cells_resampled"]`` records it
+  and ``meta["cells_note"]`` says it in one line.
   A grid with a transform but no CRS is taken to be in metres, unless its cell size and
   corner look like degrees, which is refused: pass ``crs`` (e.g. ``"EPSG:4326"``,
   ``"IAU_2015:30100"``) or ``pixel_size``. Without any georeferencing the pixel size is
@@ -100,7 +101,7 @@ from fedmap._util import one_line as _one_line
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
 from fedmap.maps.formats import HEIGHTMAP_OFFSET_M, _pil_errors, read_heightmap_png
-from fedmap.maps.georef import cell_size_m, crs_wkt, north_up
+from fedmap.maps.georef import cell_size_m, crs_wkt, is_projected, north_up
 from fedmap.maps.geotiff import read_class_geotiff, write_class_geotiff
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb, render_classes
 from fedmap.maps.regrid import centre_crop, crop_dem, resample_dem  # noqa: F401  (part of this API)
@@ -467,9 +468,20 @@ def _resample_axis(z: np.ndarray, axis: int, old_step: float, new_step: float) -
     return out.astype(np.float32)
 
 
+#: The largest cell (in the file's units) taken to be degrees when the whole grid lies within
+#: longitude/latitude bounds: 0.1 (about 11 km on Earth) covers every DEM of arc-seconds and
+#: arc-minutes (2.5' = 0.0417 was taken as 4 cm); a metre grid of cells that small that also
+#: sits within those bounds is refused too, and passing pixel_size says what was meant.
+DEGREE_CELL_MAX = 0.1
+
+
 def _looks_like_degrees(transform: Affine, shape: tuple[int, int]) -> bool:
-    x0, y0 = transform.c, transform.f + transform.e * shape[0]
-    return max(abs(transform.a), abs(transform.e)) < 0.01 and -180 <= x0 <= 360 and -90 <= y0 <= 90
+    """Whether a grid's cells and its whole extent look like longitude/latitude degrees."""
+    h, w = shape
+    xs = (transform.c, transform.c + transform.a * w)
+    ys = (transform.f, transform.f + transform.e * h)
+    return (max(abs(transform.a), abs(transform.e)) <= DEGREE_CELL_MAX
+            and -180 <= min(xs) and max(xs) <= 360 and -90 <= min(ys) and max(ys) <= 90)
 
 
 def load_dem(path, *, pixel_size: float | None = None, nodata: float | None = None, band: int = 1, crs=None,
@@ -554,6 +566,11 @@ def load_dem(path, *, pixel_size: float | None = None, nodata: float | None = No
         px, meta["pixel_size_from"] = 1.0, "default"
     else:
         if the_crs is not None:
+            if is_projected(the_crs) and _looks_like_degrees(transform, elev.shape):
+                raise FedmapError(
+                    f"DEM {path} has a projected CRS (metres) but cell size {abs(transform.a):g} with corner "
+                    f"({transform.c:g}, {transform.f:g}), which looks like degrees; pass its real crs (e.g. "
+                    "'EPSG:4326') or pixel_size")
             dx, dy, info = cell_size_m(the_crs, transform, elev.shape)
             meta.update(info)
             meta["pixel_size_from"] = "crs"
@@ -572,8 +589,12 @@ def load_dem(path, *, pixel_size: float | None = None, nodata: float | None = No
             before = elev.shape
             elev = _resample_axis(elev, axis, max(dx, dy), px)
             transform = transform @ Affine.scale(before[1] / elev.shape[1], before[0] / elev.shape[0])
-            meta["resampled"] = {"axis": "rows" if axis == 0 else "columns", "from_shape": [int(v) for v in before],
-                                 "to_shape": [int(v) for v in elev.shape], "reason": "non-square cells"}
+            meta["cells_resampled"] = {"axis": "rows" if axis == 0 else "columns",
+                                       "from_shape": [int(v) for v in before],
+                                       "to_shape": [int(v) for v in elev.shape], "reason": "non-square cells"}
+            meta["cells_note"] = (f"the DEM's cells are {dx:.4g} m east-west by {dy:.4g} m north-south: its "
+                                  f"{'rows' if axis == 0 else 'columns'} were resampled to square cells of {px:.4g} m "
+                                  f"({before[0]}x{before[1]} -> {elev.shape[0]}x{elev.shape[1]} cells)")
     meta["pixel_size"] = float(px)
     return Dem(elev.astype(np.float32), px, str(path), meta, transform=transform, crs=the_crs)
 

@@ -118,7 +118,7 @@ VALUES: dict[str, Callable[[MissionSummary], float | int | None]] = {
     "false-free": lambda s: s.final_false_free_mean,
     "global F1": lambda s: s.final_global_f1,
     "team bytes": lambda s: s.bytes_up + s.bytes_down,
-    "steps to 95 %": lambda s: s.coverage_steps[0.95],
+    "steps to 95 %": lambda s: s.coverage_reachable_steps[0.95],
     "team F1≥0.9 at": lambda s: s.team_f1_step,
     "plannable at": lambda s: s.ready_step,
     "bytes to plannable": lambda s: s.ready_bytes,

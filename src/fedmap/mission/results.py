@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -103,10 +103,13 @@ class TimeSeries:
     down_delivered: tuple[int, ...]  #: whole team: downlink messages delivered (arrived by this step)
     down_dropped: tuple[int, ...]  #: whole team: downlink messages not delivered
     eval: EvalSeries  #: the scores at every evaluation step
+    #: share of the cells the team can observe (:func:`~fedmap.mission.world.world.reachable_cells`) any rover has observed
+    coverage_reachable: tuple[float, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The ``series`` of ``metrics.json``."""
-        return {"step": list(self.step), "coverage": list(self.coverage), "redundant": list(self.redundant),
+        return {"step": list(self.step), "coverage": list(self.coverage),
+                "coverage_reachable": list(self.coverage_reachable), "redundant": list(self.redundant),
                 "accuracy": [list(a) for a in self.accuracy],
                 "accuracy_observed": [list(a) for a in self.accuracy_observed],
                 "accuracy_unobserved": [list(a) for a in self.accuracy_unobserved],
@@ -156,7 +159,7 @@ class MissionSummary:
     #: first evaluation step the rovers' belief F1 (their mean) reached the goal (None: never)
     team_f1_step: int | None = None
     #: first evaluation step the team had a plannable map: its mean belief F1 at the goal and
-    #: the coverage at :data:`READY_COVERAGE` (None: never)
+    #: its coverage of the cells it can reach at :data:`READY_COVERAGE` (None: never)
     ready_step: int | None = None
     ready_bytes: int | None = None  #: the team's bytes, both ways, spent up to :attr:`ready_step`
     #: with ``predictor = "learned"``: the predictor's guesses at the last step on the cells
@@ -169,6 +172,11 @@ class MissionSummary:
     #: over the rovers ``final_f1``, ``final_success`` and ``final_false_free``; None (and not
     #: written) without one
     predicted_belief: dict[str, float | int | None] | None = None
+    #: the share of the map's cells the team can observe at all (the rest is walled off)
+    reachable_share: float = 1.0
+    final_coverage_reachable: float = 0.0  #: share of the cells the team can observe that some rover observed
+    #: first step its coverage of the cells it can observe reached each of COVERAGE_LEVELS
+    coverage_reachable_steps: dict[float, int | None] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """The ``summary`` of ``metrics.json``: every field under its own name (so
@@ -176,6 +184,8 @@ class MissionSummary:
         ``coverage_steps`` is keyed by the level in per cent (``"95%"``)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)}
         out["coverage_steps"] = {f"{int(level * 100)}%": t for level, t in self.coverage_steps.items()}
+        out["coverage_reachable_steps"] = {f"{int(level * 100)}%": t for level, t in
+                                           self.coverage_reachable_steps.items()}
         out["first_belief_f1_step_per_rover"] = list(self.first_belief_f1_step_per_rover)
         out["messages"] = dict(self.messages)
         out["ready_coverage"] = READY_COVERAGE
@@ -328,6 +338,7 @@ class StepRow:
     up_dropped: int
     down_delivered: int
     down_dropped: int
+    coverage_reachable: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -365,7 +376,8 @@ def series_of(rows: list[StepRow], evals: list[EvalRow]) -> TimeSeries:
                       bytes_up=tuple(r.bytes_up for r in rows), bytes_down=tuple(r.bytes_down for r in rows),
                       up_delivered=tuple(r.up_delivered for r in rows), up_dropped=tuple(r.up_dropped for r in rows),
                       down_delivered=tuple(r.down_delivered for r in rows),
-                      down_dropped=tuple(r.down_dropped for r in rows), eval=ev)
+                      down_dropped=tuple(r.down_dropped for r in rows), eval=ev,
+                      coverage_reachable=tuple(r.coverage_reachable for r in rows))
 
 
 def share(hit: np.ndarray, where: np.ndarray) -> float:
@@ -389,15 +401,18 @@ def first_step(steps: Sequence[int], values: Sequence[float], level: float) -> i
     return None
 
 
-def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig, slots: int = 0) -> MissionSummary:
-    """Steps to the coverage levels, first step a belief reaches :data:`F1_GOAL`, finals, bytes."""
+def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig, slots: int = 0, *,
+              reachable_share: float = 1.0) -> MissionSummary:
+    """Steps to the coverage levels (of the whole map, and of the share ``reachable_share``
+    of it the team can observe), first step a belief reaches :data:`F1_GOAL`, finals, bytes."""
     ev = series.eval
     per_rover_f1 = tuple(first_step(ev.step, [f[k] for f in ev.belief_f1], F1_GOAL) for k in range(config.rovers))
     reached = [t for t in per_rover_f1 if t is not None]
     team_f1 = [float(np.mean(f[:config.rovers])) for f in ev.belief_f1]  # the rovers' (helicopters plan no paths)
     at = {t: i for i, t in enumerate(series.step)}
+    reach = series.coverage_reachable or series.coverage  # (a series recorded without it: the whole map)
     ready = next((t for t, f in zip(ev.step, team_f1)
-                  if f >= F1_GOAL - 1e-12 and series.coverage[at[t]] >= READY_COVERAGE - 1e-12), None)
+                  if f >= F1_GOAL - 1e-12 and reach[at[t]] >= READY_COVERAGE - 1e-12), None)
     status: dict[str, int] = {}
     for m in ledger:
         key = f"{m.direction}_{m.status}"
@@ -430,6 +445,9 @@ def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig, 
         ready_bytes=None if ready is None else int(np.sum(series.bytes_up[at[ready]]) +
                                                    np.sum(series.bytes_down[at[ready]])),
         predicted_belief=predicted_belief(ev, config.rovers),
+        reachable_share=reachable_share,
+        final_coverage_reachable=reach[-1],
+        coverage_reachable_steps={level: first_step(series.step, reach, level) for level in COVERAGE_LEVELS},
     )
 
 

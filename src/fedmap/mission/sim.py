@@ -60,9 +60,18 @@ from fedmap.mission.results import (
 )
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.world.frames import FramedWorld, check_frames
-from fedmap.mission.world.world import Rover, World, place_starts, plan_waypoints, start_pocket_warning
+from fedmap.mission.world.world import (
+    Rover,
+    World,
+    place_starts,
+    plan_waypoints,
+    reachable_cells,
+    start_pocket_warning,
+)
 
 Cell = tuple[int, int]
+#: The smallest side of a mission's map, in cells (a rover's sensor and a plan need room).
+MIN_SIDE = 8
 #: A strategy's ends for one run: ``ends(name, setup) -> Sharing``.
 Ends = Callable[[str, Setup], Sharing]
 
@@ -91,6 +100,7 @@ class Scoring:
         config, truth = mission.config, mission.truth
         self.name, self.config, self.truth, self.elevation = name, config, truth, mission.elevation
         self.scorer, self.frame_every, self.world = mission.scorer, mission.frame_every, world
+        self.reachable = mission.reachable
         self.own_scorer = [self.scorer if p == "team" else mission.profile_scorers[p] for p in world.profiles]
         self.on_snapshot = on_snapshot
         self._seen = 0  # ledger entries already handed to on_snapshot
@@ -127,6 +137,7 @@ class Scoring:
         truths = [truth if o is None else o for o in w.own_truth]  # a profile rover's own classes
         self.rows.append(StepRow(
             step=t, coverage=float((n_seen > 0).mean()), redundant=float((n_seen > 1).mean()),
+            coverage_reachable=share(n_seen > 0, self.reachable),
             accuracy=tuple(float((b == truth).mean()) for b in beliefs),
             accuracy_observed=tuple(share(b == truth, n_seen > 0) for b in beliefs),
             accuracy_unobserved=tuple(share(b == truth, n_seen == 0) for b in beliefs),
@@ -181,7 +192,7 @@ class Scoring:
         driven; the rest: what the base (or lander) held at the end)."""
         c = self.config
         series = series_of(self.rows, self.evals)
-        summary = summarise(series, ledger, c, slots)
+        summary = summarise(series, ledger, c, slots, reachable_share=float(self.reachable.mean()))
         z = final_heights
         if z is not None and self.elevation is not None:
             held = np.isfinite(z)
@@ -366,7 +377,7 @@ def _runs_in_processes(m: Mission, names: list[str], workers: int,
     global _FORKED
     ctx = multiprocessing.get_context("fork")
     queue = ctx.Queue()
-    m.scorer, m.profile_scorers  # noqa: B018  (computed once here, inherited by every process)
+    m.scorer, m.profile_scorers, m.reachable  # noqa: B018  (computed once here, inherited by every process)
     _FORKED = (m, queue)
 
     def report() -> None:
@@ -414,6 +425,14 @@ class Mission:
     frame_every: int
 
     @cached_property
+    def reachable(self) -> np.ndarray:
+        """The cells the team can observe at all (:func:`~fedmap.mission.world.world.reachable_cells`):
+        what coverage targets are measured against."""
+        c = self.config
+        allowed = make_topology(c.link, self.base).region(self.truth.shape) if c.stay_in_range else None
+        return reachable_cells(self.truth, self.starts, c, allowed)
+
+    @cached_property
     def scorer(self) -> Scorer:
         return Scorer(self.truth, self.config.eval_pairs, self.config.seed)
 
@@ -441,6 +460,9 @@ def prepare_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndar
                     prior: np.ndarray | None = None, profiles: dict[str, np.ndarray] | None = None,
                     thresholds: TraversabilityThresholds | None = None, frames: int = 60) -> Mission:
     """Check a mission's inputs (see :func:`run_mission`) and place its starts, base and waypoints."""
+    if min(truth.shape) < MIN_SIDE:
+        raise FedmapError(f"the map is {truth.shape[0]}x{truth.shape[1]} cells, too small for a mission: both sides "
+                          f"need at least {MIN_SIDE} cells")
     if config.line_of_sight and elevation is None:
         raise needs_dem("line of sight")
     if "elevation" in config.layers and elevation is None:

@@ -291,10 +291,7 @@ class Recorder:
         self.outs: list[_Out] = []
         self.server: Any = None
         if self.path is not None:
-            if self.path.is_dir():
-                raise FedmapError(f"--record {self.path} is a folder; give the MCAP file's path")
-            if not self.path.parent.is_dir():
-                raise FedmapError(f"cannot record to {self.path}: folder {self.path.parent} does not exist")
+            check_recording_path(self.path)
             self._tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
             ctx = foxglove.Context()
             out = _Out(ctx, self._channels(ctx), sequential=False)
@@ -551,6 +548,31 @@ class Recorded:
     encoding: str  #: ``protobuf`` (Foxglove's typed messages) or ``json``
     log_time: int
     data: bytes
+
+
+#: The first bytes of every MCAP file (the format's magic).
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def check_recording_path(path: str | os.PathLike) -> Path:
+    """Where a recording goes, checked before any work: a new file, or an earlier MCAP
+    recording (which is replaced), in a folder that exists. A folder, or a file of anything
+    else (the user's own), is a one-line error: it is never overwritten."""
+    p = Path(path)
+    if p.is_dir():
+        raise FedmapError(f"--record {p} is a folder; give the MCAP file's path")
+    if not p.parent.is_dir():
+        raise FedmapError(f"cannot record to {p}: folder {p.parent} does not exist")
+    if p.exists():
+        try:
+            with open(p, "rb") as fh:
+                head = fh.read(len(MCAP_MAGIC))
+        except OSError as exc:
+            raise FedmapError(f"cannot record to {p}: {exc.strerror or exc}") from None
+        if head != MCAP_MAGIC:
+            raise FedmapError(f"--record {p} exists and is not an MCAP recording; a recording replaces only an "
+                              "earlier one: give a new path")
+    return p
 
 
 def read_recording(path: str | os.PathLike) -> tuple[list[Recorded], dict[str, bytes]]:

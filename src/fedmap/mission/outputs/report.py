@@ -104,7 +104,8 @@ def _fmt_interval(iv: Interval | None, nd: int) -> str:
 
 
 def _steps_to(level: float) -> Callable[[MissionSummary], int | None]:
-    return lambda s: s.coverage_steps[level]
+    """The first step the team observed ``level`` of the cells it can reach."""
+    return lambda s: s.coverage_reachable_steps[level]
 
 
 #: The side-by-side columns: header -> (how to read it from a summary, decimals).
@@ -112,6 +113,7 @@ COLUMNS: dict[str, tuple[Callable[[MissionSummary], Any], int]] = {
     **{f"steps to {int(lv * 100)} %": (_steps_to(lv), 0) for lv in COVERAGE_LEVELS},
     f"belief F1≥{F1_GOAL} at": (lambda s: s.first_belief_f1_step, 0),
     "coverage": (lambda s: s.final_coverage, 3),
+    "reachable coverage": (lambda s: s.final_coverage_reachable, 3),
     "redundant": (lambda s: s.final_redundant, 3),
     "belief acc.": (lambda s: s.final_belief_accuracy_mean, 3),
     "acc. observed": (lambda s: s.final_accuracy_observed_mean, 3),
@@ -158,7 +160,8 @@ def _winner(ivs: dict[str, Interval], *, high: bool) -> tuple[str | None, list[s
 
 def plannable(results: Sequence[MissionResult]) -> str:
     """One computed line: when each strategy's rovers first had a plannable map (their mean
-    belief F1 at least :data:`F1_GOAL` and the coverage at least :data:`READY_COVERAGE`), the
+    belief F1 at least :data:`F1_GOAL` and their coverage of the cells they can reach at least
+    :data:`READY_COVERAGE`; the share of the map those are is said when it is not all of it), the
     bytes spent to get there, the soonest and the fewest bytes among those that got there in
     every repeat (``central``, pooling every observation at once for free, is shown but is no
     candidate). A winner is named only where the intervals separate."""
@@ -166,7 +169,9 @@ def plannable(results: Sequence[MissionResult]) -> str:
     names = list(results[0].runs)
     steps = {k: interval([r.runs[k].summary.ready_step for r in results]) for k in names}
     spent = {k: interval([r.runs[k].summary.ready_bytes for r in results]) for k in names}
-    goal = f"the rovers' mean belief F1 ≥ {F1_GOAL} and {READY_COVERAGE:.0%} coverage"
+    reach = float(np.mean([r.runs[k].summary.reachable_share for r in results for k in names]))
+    goal = (f"the rovers' mean belief F1 ≥ {F1_GOAL} and {READY_COVERAGE:.0%} coverage of the cells they can reach"
+            + (f", {reach:.0%} of the map" if reach < 0.995 else ""))
     reached = [k for k in names if steps[k] is not None]
     if not reached:
         return (f"No strategy gave the team a plannable map ({goal}) in {results[0].config.steps} steps"
@@ -223,40 +228,68 @@ def verdict(result: MissionResult, repeats: Sequence[MissionResult] | None = Non
     acc = {n: interval([r.runs[n].summary.final_belief_accuracy_mean for r in results], bounds=(0.0, 1.0))
            for n in runs}
     spent = {n: [r.runs[n].summary.bytes_up + r.runs[n].summary.bytes_down for r in results] for n in runs}
-    if len(results) == 1:  # one run: the best mean wins, ties go to the fewer bytes
-        best: str | None = max(runs, key=lambda n: (acc[n].mean, -spent[n][0]))  # type: ignore[union-attr]
-        tied: list[str] = []
+    if len(results) == 1:  # one run: the best mean wins; a tie as printed is named as one
+        top_acc = max(round(acc[n].mean, 3) for n in runs)  # type: ignore[union-attr]
+        level = [n for n in runs if round(acc[n].mean, 3) == top_acc]  # type: ignore[union-attr]
+        best: str | None = min(level, key=lambda n: spent[n][0])
+        tied: list[str] = level if len(level) > 1 else []
     else:
         best, tied = _winner(acc, high=True)  # type: ignore[arg-type]
     if best is None:
         line = ("Best map: no clear difference between " + ", ".join(
             f"{n} ({_fmt_interval(acc[n], 3)})" for n in tied) + " (belief accuracy, 95 % intervals overlap).")
+    elif tied:  # one run, several at the top
+        line = (f"Best map: a tie between {_and(tied)} (belief accuracy {_fmt_interval(acc[best], 3)}); **{best}** "
+                f"spent the fewest bytes ({spent[best][0]:,} B)")
+        if low is not None and low not in tied:
+            line += f", against {_fmt_interval(acc[low], 3)} sharing nothing"
+        line += "."
     else:
         line = f"Best map: **{best}** (belief accuracy {_fmt_interval(acc[best], 3)}"
         if low is not None and best != low:
             line += f", against {_fmt_interval(acc[low], 3)} sharing nothing"
         line += ")."
-    # what the bytes bought: the accuracy above sharing nothing (or, without the baseline, above step 0)
-    def base(r: MissionResult, n: str) -> float:
-        return r.runs[low].summary.final_belief_accuracy_mean if low is not None else \
-            float(np.mean(r.runs[n].series.accuracy[0]))
-
-    gains = {n: [(r.runs[n].summary.final_belief_accuracy_mean - base(r, n)) / b
+    # what the bytes bought: the accuracy above sharing nothing (the same mission's `none`), and only that
+    if low is None:
+        if any(max(b) for b in spent.values()):
+            line += " Best map per byte: needs none (sharing nothing) among the strategies, its baseline."
+        return first + line + notes
+    gains = {n: [(r.runs[n].summary.final_belief_accuracy_mean - r.runs[low].summary.final_belief_accuracy_mean) / b
                  for r, b in zip(results, spent[n])] for n in runs if min(spent[n]) > 0}
     gain = {n: interval(g) for n, g in gains.items() if np.mean(g) > 0}
-    than = "sharing nothing" if low is not None else "step 0"
     if gain:
         top, tied_g = _winner(gain, high=True)  # type: ignore[arg-type]
         if top is not None:  # the mean over the repeats (one run: its own figures)
-            points = float(np.mean([(r.runs[top].summary.final_belief_accuracy_mean - base(r, top)) * 100
-                                    for r in results]))
-            line += (f" Best map per byte: **{top}** (+{points:.2f} accuracy points over {than} "
+            points = float(np.mean([(r.runs[top].summary.final_belief_accuracy_mean
+                                     - r.runs[low].summary.final_belief_accuracy_mean) * 100 for r in results]))
+            line += (f" Best map per byte: **{top}** (+{points:.2f} accuracy points over sharing nothing "
                      f"for {round(float(np.mean(spent[top]))):,} B of the team's traffic).")
         else:
             line += f" Best map per byte: no clear difference between {', '.join(tied_g)}."
     elif any(max(b) for b in spent.values()):
-        line += f" No strategy that used the link gave a better map than {than}."
+        line += " No strategy that used the link gave a better map than sharing nothing."
     return first + line + notes
+
+
+def _reach_text(result: MissionResult) -> str:
+    """What share of the map the team can reach, in words."""
+    share = next(iter(result.runs.values())).summary.reachable_share if result.runs else 1.0
+    return "all of the map" if share >= 0.995 else f"{share:.1%} of the map; the rest is walled off"
+
+
+def _wall_time(result: MissionResult, repeats: Sequence[MissionResult] | None) -> str:
+    """The run's wall time and each strategy's; with repeats, all of them together (the
+    whole run) and the per-strategy sums over the repeats."""
+    results = list(repeats) if repeats is not None and len(repeats) > 1 else [result]
+    per = {n: sum(r.runs[n].seconds for r in results) for n in result.runs}
+    total = sum(r.seconds for r in results)
+    over = f" over {len(results)} repeats" if len(results) > 1 else ""
+    return f"Wall time: {total:.1f} s{over} (" + ", ".join(f"{n} {t:.1f} s" for n, t in per.items()) + ")."
+
+
+def _and(names: Sequence[str]) -> str:
+    """``a``, ``a and b``, ``a, b and c``."""
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
 
 
 #: Decimals of each value of a repeats table (:data:`~fedmap.mission.repeats.VALUES`).
@@ -365,7 +398,9 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
            "the truth under its own profile.", ""] if c.profiles else []),
         f"*global* columns score {global_meaning(result)}.", "",
         "Final values at the last step; *steps to* and *at* columns are the first step a level was reached "
-        f"(`-`: never). Path F1 is strict (A*, {c.eval_pairs} seeded start/goal pairs, UNKNOWN impassable), "
+        f"(`-`: never); *steps to* a coverage and *reachable coverage* count the cells the team can reach "
+        f"({_reach_text(result)}: the free cells a rover can drive to from its start, grown by its sensor radius), "
+        "*coverage* the whole map's. Path F1 is strict (A*, {c.eval_pairs} seeded start/goal pairs, UNKNOWN impassable), "
         "scored at step 0, at every sync and at the last step; belief columns average the rovers; *belief acc. at step 0* "
         "is before any message (a model strategy's starts from its initial model's rendering). "
         "*acc. observed* / *acc. unobserved*: belief accuracy on the cells some rover observed (knowing) and on "
@@ -393,8 +428,7 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         *_wire_lines(result),
         side_by_side(result, repeats),
         verdict(result, repeats), "",
-        f"Wall time: {result.seconds:.1f} s ("
-        + ", ".join(f"{n} {r.seconds:.1f} s" for n, r in result.runs.items()) + ").", "",
+        _wall_time(result, repeats), "",
         "Plots: `coverage.png`, `f1.png`, `accuracy_bytes.png`, `knowing.png`; animations: "
         + (", ".join(f"`{name}`" for name in animations) if animations else "none (not asked for)") + ".", "",
     ]
@@ -507,12 +541,17 @@ def _repeats_note(results: Sequence[MissionResult]) -> str:
 
 def plot_coverage(results: Sequence[MissionResult]) -> bytes:
     fig, ax = _pyplot().subplots(figsize=(6, 3.6))
+    walled = any(run.summary.reachable_share < 0.995 for run in results[0].runs.values())
     for i, name in enumerate(results[0].runs):
-        _line(ax, results[0].runs[name].series.step, [r.runs[name].series.coverage for r in results],
+        _line(ax, results[0].runs[name].series.step, [r.runs[name].series.coverage_reachable for r in results],
               label=name, color=f"C{i}")
+        if walled:  # the whole map's, where part of it cannot be reached
+            _line(ax, results[0].runs[name].series.step, [r.runs[name].series.coverage for r in results],
+                  ls=":", color=f"C{i}")
     for t in results[0].config.sync_steps:
         ax.axvline(t, color="0.9", lw=0.6, zorder=0)
-    ax.set(xlabel="step", ylabel="team coverage", ylim=(0, 1), title="Coverage (grey lines: syncs)"
+    ax.set(xlabel="step", ylabel="team coverage of the cells it can reach", ylim=(0, 1),
+           title="Coverage (grey lines: syncs" + ("; dotted: of the whole map" if walled else "") + ")"
            + _repeats_note(results))
     ax.legend()
     return _png(fig)
@@ -715,7 +754,8 @@ def repeats_metrics(results: Sequence[MissionResult]) -> dict:
             "level": 0.95,
             "intervals": {n: {v: (None if iv is None else iv.to_dict()) for v, iv in ivs.items()}
                           for n, ivs in intervals(results).items()},
-            "runs": [{"seed": r.config.seed, "link_seed": r.config.link_seed, "starts": [list(c) for c in r.starts],
+            "runs": [{"seed": r.config.seed, "link_seed": r.config.link_seed, "seconds": r.seconds,
+                      "starts": [list(c) for c in r.starts],
                       "summaries": {n: run.summary.to_dict() for n, run in r.runs.items()}} for r in results]}
 
 

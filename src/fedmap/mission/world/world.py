@@ -79,6 +79,28 @@ class Rover:
 
 
 
+def reachable_cells(truth: GridMap, starts: list[Cell], config: MissionConfig,
+                    allowed: np.ndarray | None = None) -> np.ndarray:
+    """The cells the team can observe (boolean map): every known cell within a rover's sensor
+    radius of the free cells it can drive to from its start (8-connected, within ``allowed``
+    when the rovers must stay in range), by the team's classes; with helicopters, every known
+    cell (they fly over what the rovers cannot cross). Line of sight may hide some of them: it
+    is the most the team could see, the share coverage targets are measured against."""
+    known = truth.classes != UNKNOWN
+    if config.helicopters:
+        return known.copy()
+    free = truth.classes == FREE
+    if allowed is not None:
+        free &= allowed
+    labels, _ = ndimage.label(free, structure=np.ones((3, 3), bool))
+    ids = sorted({int(labels[s]) for s in starts if labels[s]})
+    drive = np.isin(labels, ids)
+    n = int(math.floor(config.sensor_radius))
+    yy, xx = np.mgrid[-n:n + 1, -n:n + 1]
+    disk = yy ** 2 + xx ** 2 <= config.sensor_radius ** 2
+    return ndimage.binary_dilation(drive, structure=disk) & known
+
+
 def place_starts(truth: GridMap, config: MissionConfig) -> tuple[list[Cell], Cell]:
     """Start cells (one per rover) and the base station cell, checked against the truth."""
     h, w = truth.shape
