@@ -78,3 +78,32 @@ def test_the_suite_s_loopback_lanes_each_run_on_one_worker(tmp_path):
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     workers = {(tmp_path / str(k)).read_text() for k in range(3)}
     assert len(workers) == 1, f"one group ran on workers {sorted(workers)}"
+
+
+def test_the_flower_extra_never_downgrades_what_the_base_install_chose():
+    """`pip install -e '.[flower]'` downgraded protobuf and rich: flwr 1.41 caps them. Every
+    package both fedmap's base install and flwr require is bounded in fedmap within flwr's
+    bounds, so adding the extra keeps what the base install chose."""
+    import tomllib
+    from importlib.metadata import requires
+
+    from packaging.requirements import Requirement
+    from packaging.version import Version
+
+    def bounds(spec):
+        lo = max((Version(s.version) for s in spec if s.operator in (">=", ">", "==")), default=None)
+        hi = min((Version(s.version) for s in spec if s.operator in ("<", "<=", "==")), default=None)
+        return lo, hi
+
+    ours = {Requirement(r).name.lower(): Requirement(r).specifier
+            for r in tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]}
+    theirs = {Requirement(r).name.lower(): Requirement(r).specifier
+              for r in requires("flwr") or [] if "extra ==" not in r}
+    shared = sorted(set(ours) & set(theirs))
+    assert {"protobuf", "rich", "typer"} <= set(shared)
+    for name in shared:
+        (lo, hi), (tlo, thi) = bounds(ours[name]), bounds(theirs[name])
+        if thi is not None:
+            assert hi is not None and hi <= thi, f"{name}: fedmap {ours[name]} allows above flwr's {theirs[name]}"
+        if tlo is not None:
+            assert lo is not None and lo >= tlo, f"{name}: fedmap {ours[name]} allows below flwr's {theirs[name]}"

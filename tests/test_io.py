@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import warnings
 
 import numpy as np
@@ -425,6 +426,23 @@ def test_a_dem_of_non_square_cells_says_so_in_words_with_or_without_a_size(tmp_p
         note = truth.meta["cells_note"]
         assert isinstance(note, str) and "\n" not in note and "north-south" in note
         assert ("resampled" in truth.meta) == (size is not None)
+
+
+def test_a_dem_spanning_many_latitudes_is_told_its_cell_size_holds_only_at_its_centre(tmp_path):
+    """A lat/lon DEM from 0 to 60 N got one cell size everywhere (its centre's), true only
+    there: the user is told how far off it is; a one-degree clip is not flagged."""
+    from fedmap.maps.sources import TerrainSource, load_terrain
+
+    z = np.random.default_rng(2).normal(0, 50, (120, 120)).cumsum(axis=0).astype(np.float32)
+    wide = write_raster(tmp_path / "wide.tif", z, transform=Affine(0.5, 0, 0.0, 0, -0.5, 60.0), crs="EPSG:4326")
+    truth, _ = load_terrain(TerrainSource(kind="dem", path=str(wide)))
+    note = truth.meta["latitude_note"]
+    # east-west at 60 N is half the equator's: cos(60) = 0.5 (by hand, on the WGS84 ellipsoid to 1 %)
+    lo, hi = (float(v.replace(",", "")) for v in re.search(r"cells are ([\d,]+) to ([\d,]+) m", note).groups())
+    assert "latitudes 0.00 to 60.00" in note and lo / hi == pytest.approx(0.5, rel=0.01)
+    clip = write_raster(tmp_path / "clip.tif", z, transform=Affine(1 / 120, 0, 10.0, 0, -1 / 120, 41.0),
+                        crs="EPSG:4326")
+    assert "latitude_note" not in load_terrain(TerrainSource(kind="dem", path=str(clip)))[0].meta
 
 
 def test_south_up_grid_is_flipped_rotated_grid_refused(tmp_path):

@@ -827,3 +827,43 @@ def test_a_walled_off_map_is_plannable_on_the_cells_the_team_can_reach():
     assert all(a >= b - 1e-12 for a, b in zip(series.coverage_reachable, series.coverage))
     line = verdict(result)
     assert "95% coverage of the cells they can reach, 83% of the map" in line and "Soonest: **raw**" in line
+
+
+def test_a_mission_whose_records_cannot_fit_is_refused_before_it_starts():
+    """`--steps 1000000000` grew to 12 GB and on: what the per-step records need is weighed
+    against the memory available before the first step, in one line."""
+    from fedmap.mission.sim import STEP_RECORD_BYTES, check_memory
+
+    cfg = _small(steps=1_000_000_000, strategies=("none", "raw"))
+    need = (cfg.steps + 1) * (STEP_RECORD_BYTES[0] + STEP_RECORD_BYTES[1] * 3) * 2
+    with pytest.raises(FedmapError, match=r"a mission of 1,000,000,000 steps keeps about .* GiB") as e:
+        check_memory(cfg, available=need)  # (80 % of it may be used)
+    assert "\n" not in str(e.value)
+    check_memory(cfg, available=2 * need)  # fits
+    assert len(cfg.sync_steps) == 1_000_000_000 // cfg.sync_every  # a range: nothing held per sync
+    assert cfg.sync_round(cfg.sync_every * 7) == 7 and cfg.sync_round(cfg.sync_every * 7 + 1) is None
+
+
+def test_memory_stays_flat_over_steps_within_the_records():
+    """Beyond the per-step records (a few hundred bytes a member), a mission holds nothing per
+    step: the Python-side growth from step 200 to 600 of raw is within those records."""
+    import tracemalloc
+
+    from fedmap.mission.sim import STEP_RECORD_BYTES, prepare_mission
+
+    cfg = _small(steps=600, sync_every=10, strategies=("raw",), link=LinkConfig(loss=0.1, seed=1))
+    m = prepare_mission(cfg, _maze(48), frames=1)
+    run = m.new_run("raw")
+    seen = {}
+
+    def on_step(name, t, coverage):
+        if t in (200, 600):
+            seen[t] = tracemalloc.get_traced_memory()[0]
+
+    tracemalloc.start()
+    try:
+        run.run(on_step)
+    finally:
+        tracemalloc.stop()
+    per_step = (seen[600] - seen[200]) / 400
+    assert per_step < STEP_RECORD_BYTES[0] + STEP_RECORD_BYTES[1] * cfg.rovers, per_step

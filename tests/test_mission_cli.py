@@ -281,3 +281,24 @@ def test_the_wall_time_under_repeats_is_the_whole_run(tmp_path, capsys):
     assert len(runs) == 3 and total > runs[0]["seconds"]
     report = (out / "report.md").read_text()
     assert f"Wall time: {total:.1f} s over 3 repeats (" in report
+
+
+def test_the_knowing_plot_titles_do_not_overlap(monkeypatch):
+    """knowing.png's four panel titles ran into each other: each title's box, drawn, stays
+    clear of its neighbours'."""
+    from fedmap.maps.grid import FREE, GridMap
+    from fedmap.mission import MissionConfig, run_mission
+    from fedmap.mission.outputs import report as rep
+
+    c = np.full((24, 24), FREE, np.uint8)
+    result = run_mission(MissionConfig(rovers=2, steps=6, sync_every=3, sensor_radius=3.0, eval_pairs=4,
+                                       strategies=("none", "raw")), GridMap(c))
+    figs = []
+    monkeypatch.setattr(rep, "_png", lambda fig: figs.append(fig) or b"")
+    rep.plot_knowing([result])
+    fig = figs[0]
+    fig.canvas.draw()
+    boxes = [ax.title.get_window_extent() for ax in fig.axes if ax.get_title()]
+    assert len(boxes) == 4
+    for a, b in zip(boxes, boxes[1:]):
+        assert a.x1 < b.x0, (a, b)

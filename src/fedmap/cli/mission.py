@@ -90,7 +90,8 @@ def mission(
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
         truth, elevation, prior, profiles = mission_terrain(cfg, source)
-        for warning in (truth.meta.get("cells_note"), truth.meta.get("squared"), truth.meta.get("resampled"),
+        for warning in (truth.meta.get("latitude_note"), truth.meta.get("cells_note"), truth.meta.get("squared"),
+                        truth.meta.get("resampled"),
                         truth.meta.get("warning"), start_pocket_warning(truth, cfg)):
             if warning:
                 console.print(f"warning: {warning}", soft_wrap=True)  # one line, however wide

@@ -51,7 +51,8 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
         on_stage, on_step = stage_callbacks(progress)
         on_stage("load terrain", 0)
         resolved, source, truth, pconfig = load_run(config, overrides, terrain=terrain)
-        for warning in (truth.meta.get("cells_note"), truth.meta.get("squared"), truth.meta.get("resampled"),
+        for warning in (truth.meta.get("latitude_note"), truth.meta.get("cells_note"), truth.meta.get("squared"),
+                        truth.meta.get("resampled"),
                         truth.meta.get("warning")):
             if warning:
                 console.print(f"warning: {warning}", soft_wrap=True)  # one line, however wide

@@ -115,6 +115,11 @@ def is_projected(crs) -> bool:
     return bool(CRS.from_wkt(crs_wkt(crs) or "").is_projected)
 
 
+#: How far (a ratio) a geographic grid's east-west cell size may drift from the one used
+#: (its centre latitude's) across the grid before the user is told.
+LATITUDE_SPREAD = 1.05
+
+
 def cell_size_m(crs, transform: Affine, shape: tuple[int, int]) -> tuple[float, float, dict]:
     """Ground size (dx, dy) of a cell in metres and how it was found.
 
@@ -135,6 +140,17 @@ def cell_size_m(crs, transform: Affine, shape: tuple[int, int]) -> tuple[float, 
         dx = sx * rad_per_unit * n_rad * math.cos(math.radians(lat_deg))
         dy = sy * rad_per_unit * m_rad
         info = {"crs_kind": "geographic", "centre_lat_deg": lat_deg, "radius_m": n_rad}
+        # one cell size serves the whole grid: say so where it is far from true (a wide span of latitude)
+        _x0, lat_a = transform @ (0.0, 0.0)
+        _x1, lat_b = transform @ (0.0, float(shape[0]))
+        lats = sorted(math.degrees(v * rad_per_unit) for v in (lat_a, lat_b))
+        if -90.0 <= lats[0] and lats[1] <= 90.0:
+            ew = [sx * rad_per_unit * body_radii(c, la)[1] * math.cos(math.radians(la)) for la in lats]
+            if max(ew) > LATITUDE_SPREAD * dx or min(ew) * LATITUDE_SPREAD < dx:
+                info["latitude_note"] = (
+                    f"the DEM spans latitudes {lats[0]:.2f} to {lats[1]:.2f} deg: its cells are {min(ew):,.0f} to "
+                    f"{max(ew):,.0f} m east-west across it, and the run takes them all as {dx:,.0f} m (true at its "
+                    "centre latitude): crop it, or reproject it to an equal-area or local projection first")
     else:
         _unit, factor = c.linear_units_factor
         dx, dy = sx * factor, sy * factor

@@ -271,7 +271,7 @@ def load_terrain(source: TerrainSource, *, seed: int = 0, with_dem: bool = True)
         return GridMap(classes, px, grid.source, meta, transform=transform, crs=grid.crs), None
     dem = load_source_dem(source, seed=seed)
     truth = dem_to_traversability(dem, source.thresholds)
-    for key in ("cells_note", "resampled", "squared"):  # said once, beside the truth (the CLI prints it)
+    for key in ("latitude_note", "cells_note", "resampled", "squared"):  # said once, beside the truth (CLI prints)
         if key in dem.meta:
             truth.meta[key] = dem.meta[key]
     return truth, dem if with_dem else None

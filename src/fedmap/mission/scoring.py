@@ -56,14 +56,13 @@ def score_strategy(mission: Mission, record: BaseRecord, logs: Sequence[Sequence
             raise FedmapError(f"{name}: rover {k}'s log has no record of step {missing[0]} ({len(missing)} step(s) "
                               "missing): copy its whole log folder into the run folder")
     scoring = Scoring(name, mission, world)
-    evaluated = {0, c.steps, *c.sync_steps}
     for t in range(c.steps + 1):
         states = [held[t] for held in steps]
         team = TeamState(beliefs=[s.belief for s in states], views=[s.view for s in states],
                          observed=np.stack([s.observed for s in states]), positions=[s.pos for s in states],
                          targets=[s.target for s in states], distances=[s.distance for s in states],
                          trail_len=[s.trail_len for s in states])
-        scoring.record(t, t in evaluated, team, record.held_at(t), record.ledger)
+        scoring.record(t, t in (0, c.steps) or c.sync_round(t) is not None, team, record.held_at(t), record.ledger)
         if on_step is not None:
             on_step(name, t, scoring.rows[-1].coverage)
     trails = [[cell for e in log for cell in e.trail] for log in logs]

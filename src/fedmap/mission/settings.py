@@ -474,8 +474,14 @@ class MissionConfig:
         return p * self.rovers if len(p) == 1 else p
 
     @property
-    def sync_steps(self) -> list[int]:
-        return [t for t in range(1, self.steps + 1) if t % self.sync_every == 0]
+    def sync_steps(self) -> range:
+        """Every step with a sync round (``sync_every``, ``2 * sync_every``, ... up to ``steps``):
+        a range, so a mission of a billion steps does not hold a list of them."""
+        return range(self.sync_every, self.steps + 1, self.sync_every)
+
+    def sync_round(self, t: int) -> int | None:
+        """The sync round at step ``t`` (1, 2, ...), or None when ``t`` has none."""
+        return t // self.sync_every if 0 < t <= self.steps and t % self.sync_every == 0 else None
 
     @property
     def link_seed(self) -> int:

@@ -72,6 +72,37 @@ from fedmap.mission.world.world import (
 Cell = tuple[int, int]
 #: The smallest side of a mission's map, in cells (a rover's sensor and a plan need room).
 MIN_SIDE = 8
+#: What one step's record of one strategy holds in memory at most, bytes: a fixed part and a
+#: part per team member (measured: 0.92, 1.37 and 2.12 kB a step for 1, 3 and 6 rovers,
+#: ``python benchmarks/mission_memory.py``).
+STEP_RECORD_BYTES = (800, 300)
+
+
+def check_memory(config: MissionConfig, available: int | None = None) -> None:
+    """One line before a mission starts whose per-step records cannot fit in this machine's
+    available memory (``available`` bytes; None: what the system says, where it says it)."""
+    if available is None:
+        available = available_memory()
+        if available is None:
+            return
+    per_step = STEP_RECORD_BYTES[0] + STEP_RECORD_BYTES[1] * (config.rovers + config.helicopters)
+    need = (config.steps + 1) * per_step * max(len(config.strategies), 1)
+    if need > 0.8 * available:
+        raise FedmapError(f"a mission of {config.steps:,} steps keeps about {need / 2**30:,.1f} GiB of per-step "
+                          f"records for its {len(config.strategies)} strategies; this machine has "
+                          f"{available / 2**30:,.1f} GiB available: run fewer steps or strategies")
+
+
+def available_memory() -> int | None:
+    """The memory available to a new allocation, bytes (Linux's MemAvailable), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
 #: A strategy's ends for one run: ``ends(name, setup) -> Sharing``.
 Ends = Callable[[str, Setup], Sharing]
 
@@ -258,14 +289,14 @@ class _Run:
         for k in range(len(self.team)):
             w.sense(k, 0)
         self.record(0, evaluate=True)  # step 0 too: a score owed to the initial model shows as such
-        syncs = {t: i + 1 for i, t in enumerate(c.sync_steps)}
         for t in range(1, c.steps + 1):
             for k in range(len(self.team)):
                 w.drive(k, t)
-            if t in syncs:
-                self.exchange.sync(t, syncs[t])
+            round_no = c.sync_round(t)
+            if round_no is not None:
+                self.exchange.sync(t, round_no)
             self.exchange.deliver(t)
-            self.record(t, evaluate=t in syncs or t == c.steps)
+            self.record(t, evaluate=round_no is not None or t == c.steps)
             if on_step is not None:
                 on_step(self.name, t, self.scoring.rows[-1].coverage)
         s, journal = self.sharing, self.sharing.journal
@@ -460,6 +491,7 @@ def prepare_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndar
                     prior: np.ndarray | None = None, profiles: dict[str, np.ndarray] | None = None,
                     thresholds: TraversabilityThresholds | None = None, frames: int = 60) -> Mission:
     """Check a mission's inputs (see :func:`run_mission`) and place its starts, base and waypoints."""
+    check_memory(config)
     if min(truth.shape) < MIN_SIDE:
         raise FedmapError(f"the map is {truth.shape[0]}x{truth.shape[1]} cells, too small for a mission: both sides "
                           f"need at least {MIN_SIDE} cells")

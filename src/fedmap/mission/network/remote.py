@@ -257,7 +257,6 @@ class ProcessRover:
         self.log: list[RoverEntry] = []
         self._last: tuple[bytes, bytes] | None = None  # the last order it answered, and its report
         self._seen = {"dropped": 0, "losses": 0, "trained_cells": 0}
-        self.syncs = {t: i + 1 for i, t in enumerate(self.config.sync_steps)}  #: its sync steps, and their rounds
         self.unsent: Frame | None = None  # its last uplink, until the radio takes it (the next report)
         self.reached = False  # in range of the base at its last sync of this order
         self.synced = False  # it passed a sync step while answering this order
@@ -333,7 +332,7 @@ class ProcessRover:
         for t in range(self.step + 1, target + 1):
             node.drive(t)
             self.step = t
-            if t in self.syncs and not order.finish:
+            if self.config.sync_round(t) is not None and not order.finish:
                 self._sync(t)
             if t < target or order.finish:
                 states.append(self._state(t))
@@ -361,7 +360,8 @@ class ProcessRover:
     def _sync(self, t: int) -> None:
         """Its sync at step ``t`` of its clock: an uplink made earlier that never left (no
         message came since) is not delivered, and the new one waits for the radio."""
-        node, round_no = self.node, self.syncs[t]
+        node, round_no = self.node, self.config.sync_round(t)
+        assert round_no is not None
         self.synced = True
         if self.unsent is not None:
             node.acked(self.unsent, False)
@@ -440,8 +440,6 @@ class ProcessBase:
         self.exchange = Exchange(topology, self.link, rovers=self.far, base=self.node,
                                  positions=lambda: list(self.positions), replan=lambda k: None,
                                  on_sync=sharing.on_sync, on_link=sharing.on_link)
-        self.syncs = {t: i + 1 for i, t in enumerate(c.sync_steps)}
-        self.sync_at = sorted(self.syncs)
         #: the global map it held after each of its rounds, by step (its log)
         self.held: dict[int, np.ndarray] = {0: self.node.global_map().copy()}
         #: the frames it sent and took: how many, their bytes (framing included), and of them the orders' and reports'
@@ -454,11 +452,12 @@ class ProcessBase:
 
     def _orders(self, after: int) -> dict[int, Order]:
         """Every rover's next order after step ``after``: to the next sync, or to the end."""
-        nxt = [t for t in self.sync_at if t > after]
-        step, finish = (nxt[0], False) if nxt else (self.config.steps, True)
+        c = self.config
+        nxt = (after // c.sync_every + 1) * c.sync_every  # the next sync step
+        step, finish = (nxt, False) if nxt <= c.steps else (c.steps, True)
         orders = {}
         for s in self.far:
-            orders[s.k] = Order(self.name, s.k, 0 if finish else self.syncs[step], step, finish, s.events,
+            orders[s.k] = Order(self.name, s.k, 0 if finish else step // c.sync_every, step, finish, s.events,
                                 self.mission_id, self.since[s.k], self.pace)
             s.events = []
         return orders
@@ -490,7 +489,7 @@ class ProcessBase:
                 held = getattr(journal, key)
                 if held is not None:
                     held.extend(DroppedUpdate(**e) if key == "dropped" else e for e in entries)
-        self.exchange.sync(step, self.syncs[step])
+        self.exchange.sync(step, step // self.config.sync_every)
         self.exchange.deliver(step)
         self.held[step] = self.node.global_map().copy()
         return self._orders(step)

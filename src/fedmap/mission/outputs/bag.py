@@ -49,11 +49,11 @@ class SyncMaps:
     in a bag (the run's kept frames are fewer: an animation's, or only the last)."""
 
     def __init__(self, config: MissionConfig, truth: GridMap) -> None:
-        self.truth, self.steps = truth, {0, *config.sync_steps, config.steps}
+        self.truth, self.config = truth, config
         self.maps: list[Maps] = []
 
     def __call__(self, snap: Snapshot) -> None:
-        if snap.step in self.steps:
+        if snap.step in (0, self.config.steps) or self.config.sync_round(snap.step) is not None:
             self.maps.append((snap.strategy, snap.step, snap.global_map.copy(), [b.copy() for b in snap.beliefs]))
 
     def write(self, path, *, step_seconds: float = STEP_SECONDS, storage: str = "sqlite3") -> Path:

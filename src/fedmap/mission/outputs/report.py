@@ -367,7 +367,7 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         f"{h}x{w} cells of {result.truth.pixel_size:.3g} m; {c.rovers} rovers from {[list(s) for s in result.starts]}, "
         f"base station at {list(result.base)}; {c.steps} steps at {c.speed} cell(s) per step, sensor radius "
         f"{c.sensor_radius:g} cells{' (line of sight)' if c.line_of_sight else ''}, {c.mode} exploration; "
-        f"a sync every {c.sync_every} steps ({len(c.sync_steps)} rounds).", "",
+        f"a sync every {c.sync_every} steps ({len(c.sync_steps):,} rounds).", "",
         f"Link (seed {c.link_seed}): uplink {budget(link.uplink_bytes)} and downlink {budget(link.downlink_bytes)} per "
         f"rover per round, loss {link.loss:g}, latency {link.latency} step(s), range "
         f"{'unlimited' if link.max_range is None else f'{link.max_range:g} cells'}"
@@ -548,7 +548,8 @@ def plot_coverage(results: Sequence[MissionResult]) -> bytes:
         if walled:  # the whole map's, where part of it cannot be reached
             _line(ax, results[0].runs[name].series.step, [r.runs[name].series.coverage for r in results],
                   ls=":", color=f"C{i}")
-    for t in results[0].config.sync_steps:
+    syncs = results[0].config.sync_steps
+    for t in (syncs if len(syncs) <= 200 else ()):  # (more would be a grey wash)
         ax.axvline(t, color="0.9", lw=0.6, zorder=0)
     ax.set(xlabel="step", ylabel="team coverage of the cells it can reach", ylim=(0, 1),
            title="Coverage (grey lines: syncs" + ("; dotted: of the whole map" if walled else "") + ")"
@@ -624,10 +625,13 @@ def plot_knowing(results: Sequence[MissionResult]) -> bytes:
                                      for run in runs], marker=".", **dashed)
             _line(axes[3], ev.step, [[float(np.mean(f)) for f in run.series.eval.predicted_success or ()]
                                      for run in runs], marker=".", **dashed)
-    axes[0].set(xlabel="step", ylabel="mean over the rovers", ylim=(0, 1.02), title="Accuracy on observed cells")
-    axes[1].set(xlabel="step", ylim=(0, 1.02), title="Accuracy on cells nobody observed")
-    axes[2].set(xlabel="step", ylim=(0, None), title="False-free rate (hazards planned as FREE)")
+    axes[0].set(xlabel="step", ylabel="mean over the rovers", ylim=(0, 1.02), title="Accuracy, observed cells")
+    axes[1].set(xlabel="step", ylim=(0, 1.02), title="Accuracy, cells nobody observed")
+    axes[2].set(xlabel="step", ylim=(0, None), title="False-free rate\n(hazards planned as FREE)")
     axes[3].set(xlabel="step", ylim=(0, 1.02), title="Executed path success" + _repeats_note(results))
+    for ax in axes:
+        ax.title.set_fontsize(10)
+    fig.tight_layout()
     axes[0].legend()
     if any(r.runs[name].series.eval.predicted_success is not None for r in results for name in r.runs):
         axes[3].legend(fontsize=7)
