@@ -227,3 +227,24 @@ def test_the_outputs_line_lists_maps_only_when_they_were_written(tmp_path, capsy
         text = capsys.readouterr().out
         line = " ".join(text[text.index("outputs:"):text.index("wall time:")].split())  # however it was wrapped
         assert ("maps/" in line) is listed and (out / "maps").is_dir() is listed, (strategies, line)
+
+
+def test_a_mistyped_command_is_answered_before_the_library_loads():
+    """A typo answered in 4-7 s (every command's imports, torch among them, came first): the
+    command names are checked first, so a typo imports no part of the library."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from fedmap.cli import main; rc = main(['--quiet', 'misison', '-o', 'x']); "
+            "print(rc, 'torch' in sys.modules, any(m.startswith('fedmap.mission') for m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.stdout.split() == ["2", "False", "False"], r.stdout + r.stderr
+    assert r.stderr.strip() == "error: No such command 'misison'. Did you mean 'mission'?"
+
+
+def test_the_command_list_checked_first_is_the_apps():
+    import typer
+
+    from fedmap.cli import COMMANDS, build_app
+
+    assert tuple(typer.main.get_command(build_app()).commands) == COMMANDS

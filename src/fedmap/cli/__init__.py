@@ -17,25 +17,25 @@ User mistakes (bad files, bad options) print one line ``error: ...`` and exit 2.
 
 from __future__ import annotations
 
+import difflib
 import os
 import re
 import sys
+from typing import Any
 
 import click
 import typer
 
-from fedmap.cli import experiments, export, flower, merge, meta, mission, predictorfed, run, ui
 from fedmap.errors import FedmapError
 
-app = typer.Typer(
-    add_completion=False,
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
-    help="Federated multi-agent mapping for planetary exploration.",
-)
+#: Every command's name, in the order ``--help`` lists them: a mistyped command is answered
+#: from this list before the library (torch and all) is imported. A test checks it is the app's.
+COMMANDS = ("demo", "run", "reproduce", "bandwidth", "terrain", "evaluate", "export", "merge", "base-station",
+            "rover", "certs", "meta-train", "ablate-init", "meta-coder", "meta-predictor", "federate-predictor",
+            "mission", "score")
+_APP: list[typer.Typer] = []
 
 
-@app.callback()
 def _global_options(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress output (results are still printed)."),
     log_json: bool = typer.Option(False, "--log-json", help="Progress as JSON lines: one object per event."),
@@ -45,27 +45,47 @@ def _global_options(
     Without a terminal (output piped to a file, CI, nohup), long commands print a plain
     progress line at each stage boundary and at least every 10 s.
     """
+    from fedmap.cli import ui
+
     ui.set_output(quiet=quiet, log_json=log_json)
 
 
-app.command()(run.demo)
-app.command("run")(run.run)
-app.command()(experiments.reproduce)
-app.command()(experiments.bandwidth)
-app.command()(run.terrain)
-app.command()(run.evaluate)
-app.command()(export.export)
-app.command()(merge.merge)
-app.command("base-station")(flower.base_station)
-app.command()(flower.rover)
-app.command()(flower.certs)
-app.command("meta-train")(meta.meta_train)
-app.command("ablate-init")(meta.ablate_init)
-app.command("meta-coder")(meta.meta_coder)
-app.command("meta-predictor")(meta.meta_predictor)
-app.command("federate-predictor")(predictorfed.federate_predictor)
-app.command()(mission.mission)
-app.command()(mission.score)
+def build_app() -> typer.Typer:
+    """The ``fedmap`` app with every command (built once: importing the commands imports the library)."""
+    if _APP:
+        return _APP[0]
+    from fedmap.cli import experiments, export, flower, merge, meta, mission, predictorfed, run
+
+    app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                      help="Federated multi-agent mapping for planetary exploration.")
+    app.callback()(_global_options)
+    app.command()(run.demo)
+    app.command("run")(run.run)
+    app.command()(experiments.reproduce)
+    app.command()(experiments.bandwidth)
+    app.command()(run.terrain)
+    app.command()(run.evaluate)
+    app.command()(export.export)
+    app.command()(merge.merge)
+    app.command("base-station")(flower.base_station)
+    app.command()(flower.rover)
+    app.command()(flower.certs)
+    app.command("meta-train")(meta.meta_train)
+    app.command("ablate-init")(meta.ablate_init)
+    app.command("meta-coder")(meta.meta_coder)
+    app.command("meta-predictor")(meta.meta_predictor)
+    app.command("federate-predictor")(predictorfed.federate_predictor)
+    app.command()(mission.mission)
+    app.command()(mission.score)
+    _APP.append(app)
+    return app
+
+
+def __getattr__(name: str) -> Any:
+    """``fedmap.cli.app``: the app, built when first asked for (PEP 562)."""
+    if name == "app":
+        return build_app()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 _GLOBAL_FLAGS = ("--quiet", "-q", "--log-json")
@@ -93,8 +113,15 @@ def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     globals_ = [a for a in args if a in _GLOBAL_FLAGS]
     args = globals_ + [a for a in args if a not in _GLOBAL_FLAGS]
+    command = next((a for a in args if not a.startswith("-")), None)
+    if command is not None and command not in COMMANDS:  # answered before the library loads
+        near = difflib.get_close_matches(command, COMMANDS, n=1)
+        print(f"error: No such command '{command}'." + (f" Did you mean '{near[0]}'?" if near else ""), file=sys.stderr)
+        return 2
+    from fedmap.cli import ui
+
     try:
-        code = _home_paths(typer.main.get_command(app))(args=args, standalone_mode=False)
+        code = _home_paths(typer.main.get_command(build_app()))(args=args, standalone_mode=False)
     except FedmapError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
