@@ -564,6 +564,23 @@ def estimate_transform(a: np.ndarray, b: np.ndarray, *, min_overlap: int = DEFAU
                    heading_step=heading_step)[0][0]
 
 
+def _half_cell(ca: np.ndarray, cb: np.ndarray, check: Agreement,
+               transform: RigidTransform) -> tuple[Agreement, RigidTransform]:
+    """The estimate moved by half a cell along either axis where B's cells then land on A's
+    better (more evidence). The search's shift can sit on a cell boundary: nearest-neighbour
+    warping then rounds a whole map one cell either way (exact cuts turned by 90 or 180
+    degrees were placed one cell off, kappa 0.6 where the true placement gives 1.0)."""
+    best = (check, transform)
+    for dy in (-0.5, 0.0, 0.5):
+        for dx in (-0.5, 0.0, 0.5):
+            if dy or dx:
+                u = RigidTransform(transform.dy + dy, transform.dx + dx, transform.heading_deg)
+                c = agreement(ca, u.apply(cb, ca.shape))
+                if c.evidence > best[0].evidence:
+                    best = (c, u)
+    return best
+
+
 def _distinct(t: RigidTransform, u: RigidTransform, pivot: np.ndarray) -> bool:
     """True when ``u`` places B elsewhere than ``t`` does: another heading (more than
     :data:`DISTINCT_DEG`) or the middle of the overlap more than :data:`DISTINCT_CELLS` away."""
@@ -612,6 +629,7 @@ def register(a, b, *, gate: float = DEFAULT_GATE, min_overlap: int = DEFAULT_MIN
     # the gate's check: B warped into A's frame by each placement, compared cell by cell
     checks = [(agreement(ca, t.apply(cb, ca.shape)), t) for t in refined + screened]
     check, transform = max(checks[:len(refined)], key=lambda ct: ct[0].evidence)
+    check, transform = _half_cell(ca, cb, check, transform)
     pivot = _pivot(ca, cb, transform)
     others = [c.evidence for c, t in checks if _distinct(transform, t, pivot)]
     margin = check.evidence - max(others, default=0.0)
