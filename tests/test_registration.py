@@ -325,3 +325,22 @@ def test_exact_cuts_of_one_map_turned_by_right_angles_are_placed_exactly(seed):
         assert reg.accepted and both.sum() > 1000, k
         np.testing.assert_array_equal(placed[both], a[both])
         assert reg.transform.heading_deg == pytest.approx((-90 * k) % 360, abs=0.5)  # B turned back onto A
+
+
+def test_a_merge_says_how_many_known_cells_a_placed_map_changed(tmp_path, capsys):
+    """The merge never overwrites a known cell of the maps placed before without saying so:
+    a cut that marks 7 of the first map's free cells impassable is placed, and the count is
+    reported (by hand: the 7 cells, and only them, changed)."""
+    from fedmap.maps.terrain import generate_dem
+    from fedmap.maps.traversability import dem_to_traversability
+
+    g = dem_to_traversability(generate_dem("mars", 96, seed=2)).classes
+    a, b = g[:70, :70].copy(), g[20:96, 15:91].copy()
+    free = np.argwhere(b[:50, :50] == FREE)[:7]  # cells both maps hold (b's (r, c) is a's (r + 20, c + 15))
+    b[free[:, 0], free[:, 1]] = IMPASSABLE
+    result = merge([GridMap(a, 1.0, "a"), GridMap(b, 1.0, "b")])
+    assert result.placements[1].placed and result.placements[1].changed == 7
+    save_map(GridMap(a, 1.0), tmp_path / "a.npy")
+    save_map(GridMap(b, 1.0), tmp_path / "b.npy")
+    assert main(["merge", str(tmp_path / "a.npy"), str(tmp_path / "b.npy"), "-o", str(tmp_path / "m.npy")]) == 0
+    assert "changed 7 known cell(s) of the maps placed before it" in " ".join(capsys.readouterr().out.split())

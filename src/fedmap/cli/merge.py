@@ -83,6 +83,9 @@ def merge(
     for p, name in zip(result.placements, names):
         if not p.placed:
             console.print(f"refused {name}: {p.reason}", soft_wrap=True)
+        elif p.changed:  # what the maps placed before held, overruled (impassable wins)
+            console.print(f"note: {name} changed {p.changed:,} known cell(s) of the maps placed before it (where they "
+                          "disagree, impassable wins)", soft_wrap=True)
     if result.n_placed < 2:
         raise FedmapError(f"no map could be placed on {names[0]}: nothing merged, {out} not written")
     save_map(result.grid, out)

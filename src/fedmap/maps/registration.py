@@ -668,6 +668,9 @@ class Placement:
         The registration against the merged map (None for the first map).
     reason : str
         Why the map was refused (empty when placed).
+    changed : int
+        Cells the merged map knew before this map was placed whose class it changed (a free
+        cell it says is impassable: impassable wins); 0 for the first map and refused ones.
     """
 
     index: int
@@ -676,6 +679,7 @@ class Placement:
     transform: RigidTransform | None
     registration: Registration | None = None
     reason: str = ""
+    changed: int = 0
 
     @property
     def confidence(self) -> float | None:
@@ -759,9 +763,11 @@ def merge(maps, *, gate: float = DEFAULT_GATE, min_overlap: int = DEFAULT_MIN_OV
                 canvas, origin = bigger, origin + grow_lo
             on_canvas = RigidTransform(reg.transform.dy + grow_lo[0], reg.transform.dx + grow_lo[1],
                                        reg.transform.heading_deg)
-            canvas = combine(canvas, on_canvas.apply(maps[i].classes, canvas.shape))
+            merged = combine(canvas, on_canvas.apply(maps[i].classes, canvas.shape))
+            changed = int(((canvas != UNKNOWN) & (merged != canvas)).sum())
+            canvas = merged
             to_first = RigidTransform(on_canvas.dy - origin[0], on_canvas.dx - origin[1], on_canvas.heading_deg)
-            results[i] = Placement(i, maps[i].source, True, to_first, reg)
+            results[i] = Placement(i, maps[i].source, True, to_first, reg, changed=changed)
             pending.remove(i)
             progress = True
     for i in pending:
