@@ -281,6 +281,8 @@ def test_the_wall_time_under_repeats_is_the_whole_run(tmp_path, capsys):
     assert len(runs) == 3 and total > runs[0]["seconds"]
     report = (out / "report.md").read_text()
     assert f"Wall time: {total:.1f} s over 3 repeats (" in report
+    pairs = json.loads((out / "metrics.json").read_text())["settings"]["mission"]["eval_pairs"]
+    assert f"Path F1 is strict (A*, {pairs} seeded start/goal pairs" in report  # (a literal {c.eval_pairs} was printed)
 
 
 def test_the_knowing_plot_titles_do_not_overlap(monkeypatch):

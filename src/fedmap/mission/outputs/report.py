@@ -398,9 +398,10 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
            "the truth under its own profile.", ""] if c.profiles else []),
         f"*global* columns score {global_meaning(result)}.", "",
         "Final values at the last step; *steps to* and *at* columns are the first step a level was reached "
-        f"(`-`: never); *steps to* a coverage and *reachable coverage* count the cells the team can reach "
+        "(`-`: never); *steps to* a coverage and *reachable coverage* count the cells the team can reach "
         f"({_reach_text(result)}: the free cells a rover can drive to from its start, grown by its sensor radius), "
-        "*coverage* the whole map's. Path F1 is strict (A*, {c.eval_pairs} seeded start/goal pairs, UNKNOWN impassable), "
+        "*coverage* the whole map's. "
+        f"Path F1 is strict (A*, {c.eval_pairs} seeded start/goal pairs, UNKNOWN impassable), "
         "scored at step 0, at every sync and at the last step; belief columns average the rovers; *belief acc. at step 0* "
         "is before any message (a model strategy's starts from its initial model's rendering). "
         "*acc. observed* / *acc. unobserved*: belief accuracy on the cells some rover observed (knowing) and on "
