@@ -32,6 +32,9 @@ class RoverNode:
     """Rover ``k``: its end (``end``) and its robot (member ``k`` of ``world``); ``topology``
     says whether it is in range of the base station from where it is."""
 
+    #: why a sync of its ended with no uplink (its end made none: e.g. its update was rejected)
+    silence = "rejected"
+
     def __init__(self, k: int, end: RoverEnd, world: Any, topology: Any) -> None:
         self.k = self.address = k
         self.end, self.world, self.topology = end, world, topology
@@ -135,7 +138,7 @@ class PeerNode:
 
     def take(self, frame: Frame, due: int) -> bool:
         ok = bool(self.end.receive(frame.sender, frame.payload or b"", frame.round, due))
-        if ok and self.rover is not None and self.agent != BASE:
+        if ok and self.rover is not None:  # (the lander's node has none)
             self.rover.replan = True
         return ok
 
@@ -145,9 +148,6 @@ class PeerNode:
     def close(self, round_no: int) -> None:
         """Its round ``round_no`` is over (what reached it is in)."""
         self.end.close_round(round_no)
-
-
-Node = RoverNode | BaseNode | PeerNode
 
 
 def team_nodes(sharing: Any, world: Any, topology: Any) -> tuple[list[RoverNode], BaseNode | None,
@@ -163,4 +163,4 @@ def team_nodes(sharing: Any, world: Any, topology: Any) -> tuple[list[RoverNode]
     return rovers, base, peers
 
 
-__all__ = ["BaseNode", "Node", "PeerNode", "RoverNode", "team_nodes"]
+__all__ = ["BaseNode", "PeerNode", "RoverNode", "team_nodes"]

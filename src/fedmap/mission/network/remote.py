@@ -1,32 +1,36 @@
 """A mission whose rovers run elsewhere: each rover's world and end on a machine of its
 own, the base station's end and the radio on another, and only messages between them.
 
-The mission clock belongs to the base station. At every sync it sends each rover an
-**order** (:class:`Order`): the events the radio delivered to it since the last order
-(acknowledgements of its uplinks, downlinks), in the order they happened, and the step to
-drive to. The rover (:class:`RoverNode`) applies the events, drives, senses and plans up to
-that step, runs its end's sync (``at_sync``, then ``uplink`` when it is in range) and
-answers with a **report** (:class:`Report`): its uplink (the strategy's own message, the
-bytes the ledger counts), whether it could use each downlink it was handed, and where it is
-(its cell and target: what the base's side of the link needs). What an observer reads of
-it at every step (belief, view, cells observed, distance) stays on the rover: it goes to
-the rover's own log (:class:`~fedmap.mission.network.nodelog.RoverEntry`, :attr:`RoverNode.log`).
-The base (:class:`BaseNode`) runs the same :class:`~fedmap.mission.network.topology.Exchange` and
-:class:`~fedmap.mission.network.link.Link` as the simulator over the rovers' reports and logs what
-it holds (:meth:`BaseNode.record`); the mission is scored from the logs afterwards
-(:func:`~fedmap.mission.scoring.score_strategy`), so with the same seed and config it
-records the same mission as :func:`~fedmap.mission.sim.run_mission`. After the last sync a
-final order (``finish``) delivers what is left and drives the rovers to the last step.
+At every sync the base station sends each rover an **order** (:class:`Order`): the frames
+the radio delivered to it since the last order (acknowledgements of its uplinks,
+downlinks), in the order they happened, and the step to drive to. The rover
+(:class:`ProcessRover`, around its :class:`~fedmap.mission.network.nodes.RoverNode`) hands
+them to its node, drives, senses and plans up to that step, syncing at each of its sync
+steps on the way (``at_sync``, then ``uplink`` when it is in range), and answers with a
+**report** (:class:`Report`): its uplink (the strategy's own message, the bytes the ledger
+counts), whether it could use each downlink it was handed, and where it is (its cell and
+target: what the base's side of the link needs). In lockstep (the default) the base's clock
+is the mission's; with a ``pace`` every node runs on its own clock (:class:`Order`). What
+an observer reads of a rover at every step (belief, view, cells observed, distance) stays
+on it: it goes to its own log (:class:`~fedmap.mission.network.nodelog.RoverEntry`,
+:attr:`ProcessRover.log`). The base (:class:`ProcessBase`) runs its node, the same
+:class:`~fedmap.mission.network.transport.Exchange` and
+:class:`~fedmap.mission.network.link.Link` as the simulator over what the rovers reported
+(:class:`FarRover`) and logs what it holds (:meth:`ProcessBase.record`); the mission is
+scored from the logs afterwards (:func:`~fedmap.mission.scoring.score_strategy`), so with
+the same seed and config it records the same mission as
+:func:`~fedmap.mission.sim.run_mission`. After the last sync a final order (``finish``)
+delivers what is left and drives the rovers to the last step.
 
-Orders and reports are fedmap's frames (:mod:`fedmap.mission.network.wire`): a version byte, a
-CRC-32 check of the rest, a JSON header and length-prefixed blobs. A frame that fails its check is refused with
-one line (:class:`CorruptMessage`); the transport sends it again.
+Orders and reports are fedmap's binary message frames (:mod:`fedmap.mission.network.wire`):
+a head, the kind's fields and a CRC-32. A frame that fails its check is refused with one
+line (:class:`CorruptMessage`); the transport sends it again.
 
 A rover that lost its state (its process started again without its state folder) refuses
 the order with :class:`LostState`. The base keeps every order it sent each rover, and sends
 them all again with the order (:func:`pack_history`): the rover answers each again, as it
 did the first time (its world is seeded and its end is a function of what it was told,
-so it ends where it was, coder state and all, bit for bit; :meth:`RoverNode.rebuild`),
+so it ends where it was, coder state and all, bit for bit; :meth:`ProcessRover.rebuild`),
 then answers the order. That replay is the rover's keyframe: it is sent whenever the base
 cannot know what the rover holds, and its bytes are a line of the run's faults.
 
@@ -230,12 +234,13 @@ def check_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) 
 
 
 class ProcessRover:
-    """Rover ``k`` of strategy ``name`` on a machine of its own, in lockstep with the base:
-    its node (:class:`~fedmap.mission.network.nodes.RoverNode`: its end and its robot, the
-    mission's terrain seeded as the simulator's; or with ``feed`` the maps its own software
-    writes, :class:`~fedmap.mission.world.feed.FeedWorld`), its clock and its own log.
-    :meth:`answer` takes an order, returns the report: the order is its transport (the
-    frames that reached it, and the step to drive to), the report carries its frame back."""
+    """Rover ``k`` of strategy ``name`` on a machine of its own, in lockstep with the base or
+    on its own clock (the order says which): its node
+    (:class:`~fedmap.mission.network.nodes.RoverNode`: its end and its robot, the mission's
+    terrain seeded as the simulator's; or with ``feed`` the maps its own software writes,
+    :class:`~fedmap.mission.world.feed.FeedWorld`), its clock and its own log. :meth:`answer`
+    takes an order, returns the report: the order is its transport (the frames that reached
+    it, and the step to drive to), the report carries its frame back."""
 
     def __init__(self, mission: Mission, name: str, k: int, *, feed: MapFeed | None = None) -> None:
         check_deployable(mission.config, [name])
@@ -332,8 +337,9 @@ class ProcessRover:
         for t in range(self.step + 1, target + 1):
             node.drive(t)
             self.step = t
-            if self.config.sync_round(t) is not None and not order.finish:
-                self._sync(t)
+            round_no = self.config.sync_round(t)
+            if round_no is not None and not order.finish:
+                self._sync(t, round_no)
             if t < target or order.finish:
                 states.append(self._state(t))
         r, up = node.rover, self.unsent
@@ -357,11 +363,10 @@ class ProcessRover:
             self.t0 = self.now() - order.step * order.pace / 1000
         return max(self.step, min(self.config.steps, int((self.now() - self.t0) * 1000 / order.pace)))
 
-    def _sync(self, t: int) -> None:
-        """Its sync at step ``t`` of its clock: an uplink made earlier that never left (no
-        message came since) is not delivered, and the new one waits for the radio."""
-        node, round_no = self.node, self.config.sync_round(t)
-        assert round_no is not None
+    def _sync(self, t: int, round_no: int) -> None:
+        """Its sync (round ``round_no``) at step ``t`` of its clock: an uplink made earlier that
+        never left (no message came since) is not delivered, and the new one waits for the radio."""
+        node = self.node
         self.synced = True
         if self.unsent is not None:
             node.acked(self.unsent, False)
@@ -489,7 +494,9 @@ class ProcessBase:
                 held = getattr(journal, key)
                 if held is not None:
                     held.extend(DroppedUpdate(**e) if key == "dropped" else e for e in entries)
-        self.exchange.sync(step, step // self.config.sync_every)
+        round_no = self.config.sync_round(step)
+        assert round_no is not None  # (orders go to sync steps, but the last)
+        self.exchange.sync(step, round_no)
         self.exchange.deliver(step)
         self.held[step] = self.node.global_map().copy()
         return self._orders(step)

@@ -172,7 +172,7 @@ class Exchange:
                 continue
             frame = node.uplink(round_no, t)
             if frame is None:  # its end made none (a rover far away: or it has not synced since its last report)
-                self.link.ledger.append(Message(round_no, t, k, UP, "update", 0, getattr(node, "silence", "rejected")))
+                self.link.ledger.append(Message(round_no, t, k, UP, "update", 0, node.silence))
                 continue
             self.send(frame, UP)
         self.at(t + self.latency, _call(self._base_round, round_no))
