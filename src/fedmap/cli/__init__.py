@@ -18,6 +18,7 @@ User mistakes (bad files, bad options) print one line ``error: ...`` and exit 2.
 from __future__ import annotations
 
 import difflib
+import functools
 import os
 import re
 import sys
@@ -33,7 +34,6 @@ from fedmap.errors import FedmapError
 COMMANDS = ("demo", "run", "reproduce", "bandwidth", "terrain", "evaluate", "export", "merge", "base-station",
             "rover", "certs", "meta-train", "ablate-init", "meta-coder", "meta-predictor", "federate-predictor",
             "mission", "score")
-_APP: list[typer.Typer] = []
 
 
 def _global_options(
@@ -50,10 +50,9 @@ def _global_options(
     ui.set_output(quiet=quiet, log_json=log_json)
 
 
+@functools.cache
 def build_app() -> typer.Typer:
     """The ``fedmap`` app with every command (built once: importing the commands imports the library)."""
-    if _APP:
-        return _APP[0]
     from fedmap.cli import experiments, export, flower, merge, meta, mission, predictorfed, run
 
     app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -77,7 +76,6 @@ def build_app() -> typer.Typer:
     app.command("federate-predictor")(predictorfed.federate_predictor)
     app.command()(mission.mission)
     app.command()(mission.score)
-    _APP.append(app)
     return app
 
 

@@ -21,6 +21,7 @@ from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
 from fedmap.flower.mission.deploy import DEPLOY_MODES, deploy_logs, deploy_mission
 from fedmap.maps.rosbag import check_bag_path
+from fedmap.maps.sources import terrain_notes
 from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.ends.registry import names_that
 from fedmap.mission.network.remote import check_deployable
@@ -90,9 +91,7 @@ def mission(
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
         truth, elevation, prior, profiles = mission_terrain(cfg, source)
-        for warning in (truth.meta.get("latitude_note"), truth.meta.get("cells_note"), truth.meta.get("squared"),
-                        truth.meta.get("resampled"),
-                        truth.meta.get("warning"), start_pocket_warning(truth, cfg)):
+        for warning in (*terrain_notes(truth), start_pocket_warning(truth, cfg)):
             if warning:
                 console.print(f"warning: {warning}", soft_wrap=True)  # one line, however wide
 

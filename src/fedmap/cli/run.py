@@ -26,6 +26,7 @@ from fedmap.errors import FedmapError
 from fedmap.evaluation.scores import score_map
 from fedmap.maps.export import EXPORT_FORMATS, check_formats
 from fedmap.maps.io import load_map, save_map
+from fedmap.maps.sources import terrain_notes
 from fedmap.maps.terrain import generate_dem
 from fedmap.maps.traversability import dem_to_traversability
 from fedmap.nets.training import precision_reason
@@ -51,9 +52,7 @@ def execute(config: Path | None, settings: dict[str, Any], *, set_: list[str] | 
         on_stage, on_step = stage_callbacks(progress)
         on_stage("load terrain", 0)
         resolved, source, truth, pconfig = load_run(config, overrides, terrain=terrain)
-        for warning in (truth.meta.get("latitude_note"), truth.meta.get("cells_note"), truth.meta.get("squared"),
-                        truth.meta.get("resampled"),
-                        truth.meta.get("warning")):
+        for warning in terrain_notes(truth):
             if warning:
                 console.print(f"warning: {warning}", soft_wrap=True)  # one line, however wide
         console.print(precision_line(resolved, pconfig))

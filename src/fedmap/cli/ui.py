@@ -130,12 +130,16 @@ class LogProgress:
         if self._thread is not None:
             self._thread.join()
         if exc_type is None:
-            for task_id in [*self._alongside, *([] if self._current is None else [self._current])]:
+            for task_id in self._running():
                 self._end(task_id)
 
     def _beat(self) -> None:
         while not self._stop.wait(min(1.0, self.interval)):
             self.tick()
+
+    def _running(self) -> list[int]:
+        """Every stage still open: those side by side, then the current one."""
+        return [*self._alongside, *([] if self._current is None else [self._current])]
 
     def add_task(self, description: str, start: bool = True, total: float | None = 100.0, completed: int = 0,
                  visible: bool = True, alongside: bool = False, **fields: Any) -> TaskID:
@@ -145,7 +149,7 @@ class LogProgress:
             if alongside and self._current is not None and self._tasks[self._current]["alongside"]:
                 self._alongside.append(self._current)
             else:
-                for running in [*self._alongside, *([] if self._current is None else [self._current])]:
+                for running in self._running():
                     self._end(running)
                 self._alongside = []
             task_id = len(self._tasks)

@@ -108,13 +108,6 @@ def body_radii(crs, lat_deg: float) -> tuple[float, float]:
     return a * (1.0 - e2) / w**3, a / w
 
 
-def is_projected(crs) -> bool:
-    """Whether ``crs`` (anything :func:`crs_wkt` takes) is a projected CRS."""
-    from rasterio.crs import CRS
-
-    return bool(CRS.from_wkt(crs_wkt(crs) or "").is_projected)
-
-
 #: How far (a ratio) a geographic grid's east-west cell size may drift from the one used
 #: (its centre latitude's) across the grid before the user is told.
 LATITUDE_SPREAD = 1.05

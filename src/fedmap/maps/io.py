@@ -101,7 +101,7 @@ from fedmap._util import one_line as _one_line
 from fedmap.errors import FedmapError
 from fedmap.maps.dem import Dem
 from fedmap.maps.formats import HEIGHTMAP_OFFSET_M, _pil_errors, read_heightmap_png
-from fedmap.maps.georef import cell_size_m, crs_wkt, is_projected, north_up
+from fedmap.maps.georef import cell_size_m, crs_wkt, north_up
 from fedmap.maps.geotiff import read_class_geotiff, write_class_geotiff
 from fedmap.maps.grid import UNKNOWN, GridMap, classes_from_rgb, render_classes
 from fedmap.maps.regrid import centre_crop, crop_dem, resample_dem  # noqa: F401  (part of this API)
@@ -566,12 +566,12 @@ def load_dem(path, *, pixel_size: float | None = None, nodata: float | None = No
         px, meta["pixel_size_from"] = 1.0, "default"
     else:
         if the_crs is not None:
-            if is_projected(the_crs) and _looks_like_degrees(transform, elev.shape):
+            dx, dy, info = cell_size_m(the_crs, transform, elev.shape)
+            if info["crs_kind"] == "projected" and _looks_like_degrees(transform, elev.shape):
                 raise FedmapError(
                     f"DEM {path} has a projected CRS (metres) but cell size {abs(transform.a):g} with corner "
                     f"({transform.c:g}, {transform.f:g}), which looks like degrees; pass its real crs (e.g. "
                     "'EPSG:4326') or pixel_size")
-            dx, dy, info = cell_size_m(the_crs, transform, elev.shape)
             meta.update(info)
             meta["pixel_size_from"] = "crs"
         else:

@@ -254,6 +254,17 @@ def load_truth(source: TerrainSource, *, seed: int = 0, elevation: bool = False)
     return truth.with_layer("elevation", dem.elevation)
 
 
+#: What reading a DEM has to tell the user, each one line in its ``meta``, carried to the
+#: truth made from it, in the order they are said.
+DEM_NOTES = ("latitude_note", "cells_note", "squared", "resampled")
+
+
+def terrain_notes(truth: GridMap) -> list[str]:
+    """Every line loading ``truth`` has to tell the user: the DEM's notes, then its
+    classification's warning (:func:`~fedmap.maps.traversability.dem_to_traversability`)."""
+    return [str(truth.meta[k]) for k in (*DEM_NOTES, "warning") if truth.meta.get(k)]
+
+
 def load_terrain(source: TerrainSource, *, seed: int = 0, with_dem: bool = True) -> tuple[GridMap, Dem | None]:
     """``(truth, dem)``: the truth as :func:`load_truth` gives it and, with ``with_dem``, the
     DEM it was classified from (None for a ``map`` source, or without ``with_dem``), read once."""
@@ -271,7 +282,7 @@ def load_terrain(source: TerrainSource, *, seed: int = 0, with_dem: bool = True)
         return GridMap(classes, px, grid.source, meta, transform=transform, crs=grid.crs), None
     dem = load_source_dem(source, seed=seed)
     truth = dem_to_traversability(dem, source.thresholds)
-    for key in ("latitude_note", "cells_note", "resampled", "squared"):  # said once, beside the truth (CLI prints)
+    for key in DEM_NOTES:  # said once, beside the truth (terrain_notes)
         if key in dem.meta:
             truth.meta[key] = dem.meta[key]
     return truth, dem if with_dem else None

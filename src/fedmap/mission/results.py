@@ -85,6 +85,8 @@ class TimeSeries:
 
     step: tuple[int, ...]  #: the steps, 0 to ``steps``
     coverage: tuple[float, ...]  #: share of cells any rover has observed
+    #: share of the cells the team can observe (:func:`~fedmap.mission.world.world.reachable_cells`) any rover has observed
+    coverage_reachable: tuple[float, ...]
     redundant: tuple[float, ...]  #: share of cells two or more rovers have observed
     accuracy: tuple[tuple[float, ...], ...]  #: per rover: share of its belief's cells equal to the truth (UNKNOWN wrong)
     #: per rover: its belief's accuracy on the cells some rover has observed (knowing)
@@ -103,8 +105,6 @@ class TimeSeries:
     down_delivered: tuple[int, ...]  #: whole team: downlink messages delivered (arrived by this step)
     down_dropped: tuple[int, ...]  #: whole team: downlink messages not delivered
     eval: EvalSeries  #: the scores at every evaluation step
-    #: share of the cells the team can observe (:func:`~fedmap.mission.world.world.reachable_cells`) any rover has observed
-    coverage_reachable: tuple[float, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The ``series`` of ``metrics.json``."""
@@ -326,6 +326,7 @@ class StepRow:
 
     step: int
     coverage: float
+    coverage_reachable: float
     redundant: float
     accuracy: tuple[float, ...]
     accuracy_observed: tuple[float, ...]
@@ -338,7 +339,6 @@ class StepRow:
     up_dropped: int
     down_delivered: int
     down_dropped: int
-    coverage_reachable: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -410,7 +410,7 @@ def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig, 
     reached = [t for t in per_rover_f1 if t is not None]
     team_f1 = [float(np.mean(f[:config.rovers])) for f in ev.belief_f1]  # the rovers' (helicopters plan no paths)
     at = {t: i for i, t in enumerate(series.step)}
-    reach = series.coverage_reachable or series.coverage  # (a series recorded without it: the whole map)
+    reach = series.coverage_reachable
     ready = next((t for t, f in zip(ev.step, team_f1)
                   if f >= F1_GOAL - 1e-12 and reach[at[t]] >= READY_COVERAGE - 1e-12), None)
     status: dict[str, int] = {}

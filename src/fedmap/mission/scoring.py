@@ -62,7 +62,7 @@ def score_strategy(mission: Mission, record: BaseRecord, logs: Sequence[Sequence
                          observed=np.stack([s.observed for s in states]), positions=[s.pos for s in states],
                          targets=[s.target for s in states], distances=[s.distance for s in states],
                          trail_len=[s.trail_len for s in states])
-        scoring.record(t, t in (0, c.steps) or c.sync_round(t) is not None, team, record.held_at(t), record.ledger)
+        scoring.record(t, c.evaluated(t), team, record.held_at(t), record.ledger)
         if on_step is not None:
             on_step(name, t, scoring.rows[-1].coverage)
     trails = [[cell for e in log for cell in e.trail] for log in logs]

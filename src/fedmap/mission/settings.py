@@ -483,6 +483,10 @@ class MissionConfig:
         """The sync round at step ``t`` (1, 2, ...), or None when ``t`` has none."""
         return t // self.sync_every if 0 < t <= self.steps and t % self.sync_every == 0 else None
 
+    def evaluated(self, t: int) -> bool:
+        """Whether step ``t`` is scored in full (maps and paths): step 0, every sync and the last."""
+        return t in (0, self.steps) or self.sync_round(t) is not None
+
     @property
     def link_seed(self) -> int:
         """The seed the link draws from: ``[link] seed``, or the mission's ``seed`` when unset."""

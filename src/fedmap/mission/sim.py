@@ -296,7 +296,7 @@ class _Run:
             if round_no is not None:
                 self.exchange.sync(t, round_no)
             self.exchange.deliver(t)
-            self.record(t, evaluate=round_no is not None or t == c.steps)
+            self.record(t, evaluate=c.evaluated(t))
             if on_step is not None:
                 on_step(self.name, t, self.scoring.rows[-1].coverage)
         s, journal = self.sharing, self.sharing.journal

@@ -53,7 +53,7 @@ class SyncMaps:
         self.maps: list[Maps] = []
 
     def __call__(self, snap: Snapshot) -> None:
-        if snap.step in (0, self.config.steps) or self.config.sync_round(snap.step) is not None:
+        if self.config.evaluated(snap.step):
             self.maps.append((snap.strategy, snap.step, snap.global_map.copy(), [b.copy() for b in snap.beliefs]))
 
     def write(self, path, *, step_seconds: float = STEP_SECONDS, storage: str = "sqlite3") -> Path:

@@ -130,6 +130,9 @@ COLUMNS: dict[str, tuple[Callable[[MissionSummary], Any], int]] = {
     "B/link/round": (lambda s: round(s.bytes_per_link_round), 0),
 }
 
+#: A share of the map the team can reach below which the report says part of it is walled off.
+WALLED_BELOW = 0.995
+
 #: Ledger statuses of a message that did not arrive, in the order the report names them.
 UNDELIVERED = ("over budget", "lost", "stale", "out of range", "link down", "rejected", "no sync")
 
@@ -171,7 +174,7 @@ def plannable(results: Sequence[MissionResult]) -> str:
     spent = {k: interval([r.runs[k].summary.ready_bytes for r in results]) for k in names}
     reach = float(np.mean([r.runs[k].summary.reachable_share for r in results for k in names]))
     goal = (f"the rovers' mean belief F1 ≥ {F1_GOAL} and {READY_COVERAGE:.0%} coverage of the cells they can reach"
-            + (f", {reach:.0%} of the map" if reach < 0.995 else ""))
+            + (f", {reach:.0%} of the map" if reach < WALLED_BELOW else ""))
     reached = [k for k in names if steps[k] is not None]
     if not reached:
         return (f"No strategy gave the team a plannable map ({goal}) in {results[0].config.steps} steps"
@@ -274,7 +277,7 @@ def verdict(result: MissionResult, repeats: Sequence[MissionResult] | None = Non
 def _reach_text(result: MissionResult) -> str:
     """What share of the map the team can reach, in words."""
     share = next(iter(result.runs.values())).summary.reachable_share if result.runs else 1.0
-    return "all of the map" if share >= 0.995 else f"{share:.1%} of the map; the rest is walled off"
+    return "all of the map" if share >= WALLED_BELOW else f"{share:.1%} of the map; the rest is walled off"
 
 
 def _wall_time(result: MissionResult, repeats: Sequence[MissionResult] | None) -> str:
@@ -542,7 +545,7 @@ def _repeats_note(results: Sequence[MissionResult]) -> str:
 
 def plot_coverage(results: Sequence[MissionResult]) -> bytes:
     fig, ax = _pyplot().subplots(figsize=(6, 3.6))
-    walled = any(run.summary.reachable_share < 0.995 for run in results[0].runs.values())
+    walled = any(run.summary.reachable_share < WALLED_BELOW for run in results[0].runs.values())
     for i, name in enumerate(results[0].runs):
         _line(ax, results[0].runs[name].series.step, [r.runs[name].series.coverage_reachable for r in results],
               label=name, color=f"C{i}")

@@ -95,9 +95,10 @@ def reachable_cells(truth: GridMap, starts: list[Cell], config: MissionConfig,
     labels, _ = ndimage.label(free, structure=np.ones((3, 3), bool))
     ids = sorted({int(labels[s]) for s in starts if labels[s]})
     drive = np.isin(labels, ids)
-    n = int(math.floor(config.sensor_radius))
-    yy, xx = np.mgrid[-n:n + 1, -n:n + 1]
-    disk = yy ** 2 + xx ** 2 <= config.sensor_radius ** 2
+    offsets = disk_offsets(config.sensor_radius)  # what a rover's sensor reaches, as sensing has it
+    n = int(np.abs(offsets).max())
+    disk = np.zeros((2 * n + 1, 2 * n + 1), bool)
+    disk[offsets[:, 0] + n, offsets[:, 1] + n] = True
     return ndimage.binary_dilation(drive, structure=disk) & known
 
 
