@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -827,6 +828,44 @@ def test_a_walled_off_map_is_plannable_on_the_cells_the_team_can_reach():
     assert all(a >= b - 1e-12 for a, b in zip(series.coverage_reachable, series.coverage))
     line = verdict(result)
     assert "95% coverage of the cells they can reach, 83% of the map" in line and "Soonest: **raw**" in line
+
+
+def test_the_stop_rule_ends_each_run_at_the_first_step_its_team_knows_the_share_asked():
+    """A mission kept stepping after every strategy had observed 99 % of what it could reach.
+    With ``stop_coverage`` each run ends at the first step its reachable coverage reaches the
+    share (read here from the same mission run without the rule, step for step), is scored in
+    full there, and says so; without it (the default) the verdict names the step and the option."""
+    from fedmap.mission.outputs.maps_out import mission_maps
+    from fedmap.mission.outputs.report import verdict
+
+    c = np.full((48, 48), FREE, np.uint8)
+    c[0:24, 0:24] = IMPASSABLE
+    cfg = _small(rovers=3, steps=200, sync_every=10, sensor_radius=4.0, strategies=("none", "raw"),
+                 link=LinkConfig(loss=0.0))
+    full = run_mission(cfg, GridMap(c))
+    cut = run_mission(replace(cfg, stop_coverage=0.99), GridMap(c))
+    for name in ("none", "raw"):
+        whole = full.runs[name].series
+        first = next(t for t, v in zip(whole.step, whole.coverage_reachable) if v >= 0.99)
+        assert 0 < first < cfg.steps
+        run = cut.runs[name]
+        assert run.series.step[-1] == first and run.summary.stopped_step == first
+        assert run.series.coverage_reachable == whole.coverage_reachable[:first + 1]  # the same run, cut short
+        assert run.series.eval.step[-1] == first  # scored in full at its last step
+        assert run.frames[-1].step == first
+        assert "stopped_step" not in full.runs[name].summary.to_dict()  # no rule: metrics.json as before
+        assert run.summary.to_dict()["stopped_step"] == first
+    assert mission_maps(cut)["raw_global"].meta["step"] == cut.runs["raw"].summary.stopped_step
+    assert "stop_coverage" not in cfg.to_dict() and cut.config.to_dict()["stop_coverage"] == 0.99
+    firsts = [cut.runs[n].summary.stopped_step for n in ("none", "raw")]
+    assert (f"Stop rule: a run ends once its team has observed 99% of the cells it can reach: none at step "
+            f"{firsts[0]}; raw at step {firsts[1]}.") in verdict(cut)
+    assert (f"No stop rule (the default: every run takes all 200 steps); every strategy's team had observed 99% "
+            f"of the cells it can reach by step {max(firsts)}: --stop-coverage 0.99 ends each run there.") \
+        in verdict(full)
+    for bad in (0, 1.5, True, "0.9"):
+        with pytest.raises(FedmapError, match="stop_coverage must be a share in"):
+            replace(cfg, stop_coverage=bad)
 
 
 def test_a_mission_whose_records_cannot_fit_is_refused_before_it_starts():

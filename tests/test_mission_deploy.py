@@ -232,6 +232,8 @@ def test_a_base_station_beyond_loopback_needs_tls_and_authentication(tmp_path):
     (["--deploy", "local", "--topology", "mesh", "--strategies", "raw"],
      "error: a mission on processes runs the star topology only, not 'mesh': Flower routes every message through"),
     (["--step-seconds", "0.5"], "error: --step-seconds apply to a mission on processes only: add --deploy local or base"),
+    (["--deploy", "local", "--strategies", "raw", "--stop-coverage", "0.99"],
+     "error: a mission on processes takes every step: stop_coverage reads the truth"),
 ])
 def test_a_wrong_deploy_argument_is_one_line_before_the_terrain_loads(tmp_path, capsys, monkeypatch, args, message):
     import fedmap.cli.mission as cli_mission

@@ -18,7 +18,7 @@ from fedmap.maps.grid import FREE, IMPASSABLE, GridMap
 from fedmap.mission import LinkConfig, MissionConfig, run_mission
 from fedmap.mission.outputs.report import plannable, verdict, write_mission
 from fedmap.mission.repeats import Interval, interval, intervals, repeat_configs, run_repeats
-from fedmap.mission.results import F1_GOAL, READY_COVERAGE, movement_warnings
+from fedmap.mission.results import F1_GOAL, READY_COVERAGE, UNWRITTEN_WHEN_NONE, movement_warnings
 from fedmap.mission.world.world import place_starts
 from test_mission import _small
 
@@ -224,7 +224,7 @@ def test_metrics_json_names_every_summary_value_as_python_does(repeated, tmp_pat
         got = data[name]["summary"]
         for f in fields(run.summary):
             value = getattr(run.summary, f.name)
-            if f.name in ("final_prediction", "predicted_belief") and value is None:  # no predictor: not written
+            if f.name in UNWRITTEN_WHEN_NONE and value is None:  # no predictor, no stop rule: not written
                 assert f.name not in got
             elif f.name in ("coverage_steps", "coverage_reachable_steps"):
                 assert got[f.name] == {f"{int(lv * 100)}%": t for lv, t in value.items()}

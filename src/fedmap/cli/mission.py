@@ -124,7 +124,10 @@ def mission(
             tasks[name] = progress.add_task(f"{label}mission: {name}", total=cfg.steps, loss="", alongside=True)
 
         def on_step(name: str, step: int, coverage: float) -> None:
-            progress.update(tasks[name], completed=step, loss=f"coverage {coverage:.0%}")
+            if step < cfg.steps and cfg.stops(coverage):  # the stop rule ends this run here: so does its bar
+                progress.update(tasks[name], total=step, completed=step, loss=f"stopped: reachable {coverage:.0%}")
+            else:
+                progress.update(tasks[name], completed=step, loss=f"reachable {coverage:.0%}")
 
         if deploy is not None:
             assert plan is not None

@@ -122,6 +122,10 @@ class TimeSeries:
                 "eval": self.eval.to_dict()}
 
 
+#: The summary values that ``metrics.json`` leaves out when they are None (no predictor, no stop rule).
+UNWRITTEN_WHEN_NONE = ("final_prediction", "predicted_belief", "stopped_step")
+
+
 @dataclass(frozen=True)
 class MissionSummary:
     """One strategy's mission in a few values: when levels were first reached, and the
@@ -177,6 +181,8 @@ class MissionSummary:
     final_coverage_reachable: float = 0.0  #: share of the cells the team can observe that some rover observed
     #: first step its coverage of the cells it can observe reached each of COVERAGE_LEVELS
     coverage_reachable_steps: dict[float, int | None] = field(default_factory=dict)
+    #: the step the stop rule (``stop_coverage``) ended the run at; None (and not written): it took every step
+    stopped_step: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The ``summary`` of ``metrics.json``: every field under its own name (so
@@ -189,7 +195,7 @@ class MissionSummary:
         out["first_belief_f1_step_per_rover"] = list(self.first_belief_f1_step_per_rover)
         out["messages"] = dict(self.messages)
         out["ready_coverage"] = READY_COVERAGE
-        for name in ("final_prediction", "predicted_belief"):  # missions without a predictor keep their metrics
+        for name in UNWRITTEN_WHEN_NONE:  # missions without a predictor or stop rule keep their metrics.json
             if out[name] is None:
                 del out[name]
         return out
@@ -448,6 +454,7 @@ def summarise(series: TimeSeries, ledger: list[Message], config: MissionConfig, 
         reachable_share=reachable_share,
         final_coverage_reachable=reach[-1],
         coverage_reachable_steps={level: first_step(series.step, reach, level) for level in COVERAGE_LEVELS},
+        stopped_step=series.step[-1] if series.step[-1] < config.steps else None,
     )
 
 

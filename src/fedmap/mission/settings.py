@@ -345,6 +345,9 @@ class MissionConfig:
         "thresholds; or a rover: cadre, mer, msl); each plans on its own (unset: all follow the shared "
         "thresholds)", choices=PROFILES)
     steps: int = setting(150, help="Mission steps")
+    stop_coverage: float | None = setting(None, help="Stop rule: a strategy's run ends at the first step its team has "
+                                          "observed this share of the cells a rover can reach (e.g. 0.99; unset: "
+                                          "every run takes all steps). In process only: it reads the truth")
     sync_every: int = setting(10, help="Steps between sync rounds")
     speed: int = setting(2, help="Cells driven per step")
     sensor_radius: float = setting(8.0, help="Sensor range, cells")
@@ -399,6 +402,10 @@ class MissionConfig:
         whole("sync_every", 1)
         whole("speed", 1)
         whole("eval_pairs", 1)
+        stop = self.stop_coverage
+        if stop is not None and (isinstance(stop, bool) or not isinstance(stop, (int, float))
+                                 or not 0.0 < stop <= 1.0):
+            raise FedmapError(f"stop_coverage must be a share in (0, 1] (e.g. 0.99), got {stop!r}")
         whole("n_waypoints", 1)
         if not (math.isfinite(self.sensor_radius) and self.sensor_radius >= 1.5):
             raise FedmapError(f"sensor_radius must be >= 1.5 cells (a rover must see its neighbours), "
@@ -483,6 +490,11 @@ class MissionConfig:
         """The sync round at step ``t`` (1, 2, ...), or None when ``t`` has none."""
         return t // self.sync_every if 0 < t <= self.steps and t % self.sync_every == 0 else None
 
+    def stops(self, coverage_reachable: float) -> bool:
+        """Whether the stop rule ends a run whose team has observed ``coverage_reachable`` of
+        the cells it can reach (never without ``stop_coverage``)."""
+        return self.stop_coverage is not None and coverage_reachable >= self.stop_coverage - 1e-12
+
     def evaluated(self, t: int) -> bool:
         """Whether step ``t`` is scored in full (maps and paths): step 0, every sync and the last."""
         return t in (0, self.steps) or self.sync_round(t) is not None
@@ -500,9 +512,11 @@ class MissionConfig:
 
 
 def _without_unset_predictor(mission: dict) -> dict:
-    """``mission`` without ``predictor`` when it is ``none``: missions that plan without a
-    predictor keep the settings (and the ``metrics.json``) they had before it existed."""
-    return {k: v for k, v in mission.items() if not (k == "predictor" and v == "none")}
+    """``mission`` without ``predictor`` when it is ``none`` and without ``stop_coverage``
+    when it is unset: missions that use neither keep the settings (and the ``metrics.json``)
+    they had before they existed."""
+    return {k: v for k, v in mission.items() if not ((k == "predictor" and v == "none")
+                                                     or (k == "stop_coverage" and v is None))}
 
 
 #: The tables of a mission file besides the run config's ``seed``, ``[terrain]`` and ``[thresholds]``.

@@ -140,6 +140,8 @@ class Scoring:
         self.rows: list[StepRow] = []
         self.evals: list[EvalRow] = []
         self.frames: list[Frame] = []
+        #: the step the stop rule (``stop_coverage``) ended the run at (None: not reached yet, or no rule)
+        self.stopped: int | None = None
 
     def record(self, t: int, evaluate: bool, team: TeamState, global_map: np.ndarray, ledger: list[Message], *,
                global_heights: Callable[[], np.ndarray | None] = lambda: None,
@@ -176,7 +178,11 @@ class Scoring:
             distance=tuple(team.distances), bytes_up=tuple(up), bytes_down=tuple(down),
             up_delivered=delivered[UP], up_dropped=dropped[UP],
             down_delivered=delivered[DOWN], down_dropped=dropped[DOWN]))
-        if t == self.config.steps and w.predictor is not None:  # ([frames] refuses a predictor)
+        if t < self.config.steps and self.config.stops(self.rows[-1].coverage_reachable):
+            self.stopped = t  # the stop rule: this step is the run's last
+        last = t == self.config.steps or self.stopped == t
+        evaluate = evaluate or last
+        if last and w.predictor is not None:  # ([frames] refuses a predictor)
             nobody = n_seen == 0
             if nobody.any():
                 self.prediction = prediction_scores(
@@ -210,7 +216,7 @@ class Scoring:
                 messages=ledger[self._seen:], row=self.rows[-1],
                 eval=self.evals[-1] if evaluate else None))
             self._seen = len(ledger)
-        if t % self.frame_every == 0 or t == self.config.steps:
+        if t % self.frame_every == 0 or last:
             self.frames.append(Frame(step=t, beliefs=beliefs, global_map=global_map.copy(),
                                      positions=list(team.positions), trail_len=list(team.trail_len),
                                      links=links, leaders=leaders))
@@ -298,7 +304,9 @@ class _Run:
             self.exchange.deliver(t)
             self.record(t, evaluate=c.evaluated(t))
             if on_step is not None:
-                on_step(self.name, t, self.scoring.rows[-1].coverage)
+                on_step(self.name, t, self.scoring.rows[-1].coverage_reachable)
+            if self.scoring.stopped is not None:
+                break
         s, journal = self.sharing, self.sharing.journal
         return self.scoring.result(time.perf_counter() - t0, [list(r.trail) for r in self.team], self.link.ledger,
                                    self.link.slots, final_heights=s.global_heights(), dropped=journal.dropped,
@@ -342,7 +350,8 @@ def run_mission(config: MissionConfig, truth: GridMap, *, elevation: np.ndarray 
     percentile slope limit is resolved once, into the degrees it gave on the truth
     (:func:`~fedmap.maps.traversability.resolved_slope`), never re-taken on a rover's heights.
     ``on_strategy(name)`` announces each strategy and ``on_step(name, step, coverage)``
-    follows it (progress bars); ``frames`` bounds the animation's frames per strategy.
+    follows it (progress bars; ``coverage``: of the cells the team can reach, which the stop
+    rule reads); ``frames`` bounds the animation's frames per strategy.
     ``ends(name, setup)`` builds a strategy's ends (default: the registry's
     :func:`~fedmap.mission.ends.registry.build`, every end in this process; a mission whose
     rovers run elsewhere is :mod:`fedmap.mission.network.remote`).

@@ -226,6 +226,9 @@ def check_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) 
     if c.link.latency != 0:
         raise FedmapError(f"a mission on processes needs [link] latency = 0 (got {c.link.latency}): the real "
                           "link's delay is its latency")
+    if c.stop_coverage is not None:
+        raise FedmapError("a mission on processes takes every step: stop_coverage reads the truth (the share of the "
+                          "reachable cells observed), which no node holds")
     deployable = names_that("deployable")
     bad = [s for s in strategies if s not in deployable]
     if bad:

@@ -53,7 +53,7 @@ class SyncMaps:
         self.maps: list[Maps] = []
 
     def __call__(self, snap: Snapshot) -> None:
-        if self.config.evaluated(snap.step):
+        if snap.eval is not None:  # scored in full: step 0, every sync and the last (or where the stop rule ended it)
             self.maps.append((snap.strategy, snap.step, snap.global_map.copy(), [b.copy() for b in snap.beliefs]))
 
     def write(self, path, *, step_seconds: float = STEP_SECONDS, storage: str = "sqlite3") -> Path:

@@ -74,9 +74,9 @@ def mission_maps(result: MissionResult, *, beliefs: bool = False) -> dict[str, G
         if not run.frames:
             raise FedmapError(f"strategy {name!r} recorded no frame: no final map to give")
         last = run.frames[-1]
-        if last.step != result.config.steps:
-            raise FedmapError(f"strategy {name!r}'s last frame is step {last.step}, not the mission's last step "
-                              f"{result.config.steps}")
+        end = run.series.step[-1]  # the mission's last step, or the step the stop rule ended the run at
+        if last.step != end:
+            raise FedmapError(f"strategy {name!r}'s last frame is step {last.step}, not its run's last step {end}")
         meta = {"strategy": name, "step": last.step}
         if (np.asarray(last.global_map) != UNKNOWN).any():
             out[f"{name}_global"] = _on_truth(truth, last.global_map, f"mission {name}: global map, step {last.step}",

@@ -36,7 +36,7 @@ from fedmap.mission.network.link import BASE
 from fedmap.mission.network.topology import TOPOLOGIES
 from fedmap.mission.outputs.maps_out import write_mission_maps
 from fedmap.mission.repeats import Interval, interval, intervals, values_of, what_varies
-from fedmap.mission.results import READY_COVERAGE
+from fedmap.mission.results import READY_COVERAGE, first_step
 from fedmap.mission.sim import COVERAGE_LEVELS, F1_GOAL, MissionResult, MissionSummary
 from fedmap.mission.world.sensing import disk_offsets
 from fedmap.outputs import write_metrics
@@ -206,7 +206,49 @@ def plannable(results: Sequence[MissionResult]) -> str:
     return line
 
 
+#: The coverage of the cells the team can reach that :func:`stop_rule` names, when no stop rule ran.
+STOP_HINT = 0.99
+
+
+def stop_rule(results: Sequence[MissionResult]) -> str:
+    """One computed sentence on the stop rule: with ``stop_coverage``, the step each strategy's
+    run ended at; without one (the default: every run takes all its steps), the first step by
+    which every strategy's team had observed :data:`STOP_HINT` of the cells it can reach, when
+    one did before the end, and the option that would have ended the runs there."""
+    c = results[0].config
+    names = list(results[0].runs)
+    n = len(results)
+    if c.stop_coverage is not None:
+        parts = []
+        for k in names:
+            ends = [r.runs[k].summary.stopped_step for r in results]
+            got = [t for t in ends if t is not None]
+            if not got:
+                parts.append(f"{k} took all {c.steps} steps")
+                continue
+            span = f"{got[0]}" if len(set(got)) == 1 else f"{min(got)}-{max(got)}"
+            parts.append(f"{k} at step{'s' if len(set(got)) > 1 else ''} {span}"
+                         + (f" in {len(got)}/{n} repeats" if n > 1 else ""))
+        return (f" Stop rule: a run ends once its team has observed {c.stop_coverage:.0%} of the cells it can "
+                f"reach: " + "; ".join(parts) + ".")
+    firsts = [first_step(r.runs[k].series.step, r.runs[k].series.coverage_reachable, STOP_HINT)
+              for r in results for k in names]
+    known = [t for t in firsts if t is not None]
+    if not known or len(known) < len(firsts) or max(known) >= c.steps:
+        return ""
+    return (f" No stop rule (the default: every run takes all {c.steps} steps); every strategy's team had observed "
+            f"{STOP_HINT:.0%} of the cells it can reach by step {max(known)}"
+            + (" in every repeat" if n > 1 else "")
+            + f": --stop-coverage {STOP_HINT:g} ends each run there.")
+
+
 def verdict(result: MissionResult, repeats: Sequence[MissionResult] | None = None) -> str:
+    """:func:`_verdict`, then :func:`stop_rule`'s sentence."""
+    results = list(repeats) if repeats is not None and len(repeats) > 1 else [result]
+    return _verdict(result, repeats) + stop_rule(results)
+
+
+def _verdict(result: MissionResult, repeats: Sequence[MissionResult] | None = None) -> str:
     """Computed lines: when each strategy's team first had a plannable map and for how many
     bytes (:func:`plannable`); which strategy left the rovers the best map, and which gained
     the most map per byte on the link (``central``, the free oracle, is left out of both).
