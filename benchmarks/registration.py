@@ -11,7 +11,7 @@ Terrain: five DEMs classified with fedmap's own traversability rules
 GLD100 2x2 tiles at Hadley Rille (default) and at 14-16 E 22-24 N (p75), 118 m.
 
 A pair: map A is a ``size`` x ``size`` window of a terrain; map B a window of the same
-terrain turned by a heading drawn uniformly in [0, 180) deg and placed so that its
+terrain turned by a heading drawn uniformly in [0, 360) deg and placed so that its
 footprint covers the requested share of A's (10 ... 80 %; the direction is drawn
 uniformly). Both are then degraded independently: a rover-like exploration mask (discs of
 12 cells along a random walk until 75 % of the window is known; the rest UNKNOWN) and 2 %
@@ -60,6 +60,7 @@ from fedmap.maps.registration import (
     DEFAULT_GATE,
     DEFAULT_MARGIN,
     DEFAULT_MIN_OVERLAP,
+    FEW_PATCHES,
     RigidTransform,
     agreement,
     gate_verdict,
@@ -111,7 +112,7 @@ def place(terrain: np.ndarray, n: int, share: float, rng: np.random.Generator):
     h, w = terrain.shape
     half_a, half_b = n / 2 + 1, n / math.sqrt(2) + 1
     for _ in range(200):
-        heading, phi = rng.uniform(0.0, 180.0), rng.uniform(0.0, 2 * math.pi)
+        heading, phi = rng.uniform(0.0, 360.0), rng.uniform(0.0, 2 * math.pi)
         u = np.array([math.sin(phi), math.cos(phi)])
         lo, hi = 0.0, 1.6 * n  # overlap falls with the distance: bisect for the share
         for _ in range(30):
@@ -179,7 +180,7 @@ def make_pair(maps: dict[str, np.ndarray], n: int, level: int, seed: int, index:
                 break
             if _ == 999:  # this terrain has no room for two windows apart: take the next one
                 other = names[(names.index(name) + 1) % len(names)]
-        b, _ = window(maps[other], cb, rng.uniform(0.0, 180.0), n)
+        b, _ = window(maps[other], cb, rng.uniform(0.0, 360.0), n)
         return degrade(a, rng), degrade(b, rng), None, {"terrain": name, "b_terrain": other}
     placed = place(terrain, n, level / 100, rng)
     if placed is None:
@@ -282,6 +283,7 @@ def run(maps, n: int, pairs: int, seed: int, levels, out: Path) -> None:
             reg = register(a, b)
             rec["fedmap"] = dict(zip(("outcome", "heading_err", "cell_err"), judge(reg.accepted, reg.transform, truth, n)),
                                  kappa=reg.confidence, overlap=reg.check.overlap, margin=reg.margin,
+                                 patches=reg.patches,
                                  reason=reg.reason, ms=1000 * reg.seconds, cpu_ms=1000 * (time.process_time() - cpu))
             t, cpu = time.perf_counter(), time.process_time()
             est, conf = akaze(a, b)
@@ -357,7 +359,7 @@ def figure(summary: list[dict], path: Path, pairs: int) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=6.5, loc="center right")
     ax.set_title(f"Registering 128² traversability maps in unknown frames (5 real terrains,\n"
-                 f"heading 0-180°, {NOISE['coverage']:.0%} explored, {NOISE['flips']:.0%} of cells flipped)", fontsize=8)
+                 f"heading 0-360°, {NOISE['coverage']:.0%} explored, {NOISE['flips']:.0%} of cells flipped)", fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
@@ -409,6 +411,12 @@ def main() -> None:
         print(f"{m:10s} at >= 30 %: correct {right(sel)}/{len(sel)} ({right(sel) / len(sel):.1%}), wrong accepted "
               f"{wrong(sel)} ({wrong(sel) / len(sel):.1%}); of the {len(sure)} pairs the gate can confirm at the truth: "
               f"correct {right(sure) / max(len(sure), 1):.1%}, wrong {wrong(sure) / max(len(sure), 1):.1%}")
+    placed = [r for r in rows if r["fedmap"]["outcome"] in ("correct", "wrong")]
+    weak = [r for r in placed if r["fedmap"].get("patches", math.inf) < FEW_PATCHES]
+    print(f"fedmap placements flagged as resting on fewer than {FEW_PATCHES:g} independent patches (every level): "
+          f"{len(weak)} of {len(placed)}: {sum(r['fedmap']['outcome'] == 'correct' for r in weak)} correct, "
+          f"{sum(r['fedmap']['outcome'] == 'wrong' for r in weak)} wrong (of "
+          f"{sum(r['fedmap']['outcome'] == 'wrong' for r in placed)} wrong in all)")
     record = {"pairs_per_level": args.pairs, "size": args.size, "seed": args.seed, "noise": NOISE, "gate": DEFAULT_GATE,
               "min_margin": DEFAULT_MARGIN, "min_overlap": DEFAULT_MIN_OVERLAP,
               "akaze_gates": AKAZE_GATES, "tolerance": {"heading_deg": HEADING_TOL, "cells": CELL_TOL},

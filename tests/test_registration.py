@@ -344,3 +344,61 @@ def test_a_merge_says_how_many_known_cells_a_placed_map_changed(tmp_path, capsys
     save_map(GridMap(b, 1.0), tmp_path / "b.npy")
     assert main(["merge", str(tmp_path / "a.npy"), str(tmp_path / "b.npy"), "-o", str(tmp_path / "m.npy")]) == 0
     assert "changed 7 known cell(s) of the maps placed before it" in " ".join(capsys.readouterr().out.split())
+
+
+def _correlation_area_by_hand(c: np.ndarray, max_lag: int) -> float:
+    """:func:`correlation_area` with loops over every pair of known cells (no FFT)."""
+    h, w = c.shape
+    known = c != UNKNOWN
+    x = (c == IMPASSABLE).astype(float)
+    p = x[known].mean()
+    rho = {}
+    for dy in range(-max_lag, max_lag + 1):
+        for dx in range(-max_lag, max_lag + 1):
+            total, count = 0.0, 0
+            for r in range(h):
+                for q in range(w):
+                    r2, q2 = r + dy, q + dx
+                    if 0 <= r2 < h and 0 <= q2 < w and known[r, q] and known[r2, q2]:
+                        total += (x[r, q] - p) * (x[r2, q2] - p)
+                        count += 1
+            rho[dy, dx] = total / count / (p * (1 - p)) if count >= 50 else 0.0
+    rings: dict[int, list[float]] = {}
+    for (dy, dx), v in rho.items():
+        rings.setdefault(int(np.rint(np.hypot(dy, dx))), []).append(v)
+    cut = next((k for k in sorted(rings) if np.mean(rings[k]) <= 0), max_lag + 1)
+    return max(sum(v for (dy, dx), v in rho.items() if np.rint(np.hypot(dy, dx)) < cut), 1.0)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.5, 3.0])
+def test_the_correlation_area_matches_a_sum_over_every_pair_of_cells(sigma):
+    from fedmap.maps.registration import correlation_area
+
+    rng = np.random.default_rng(7)
+    field = ndimage.gaussian_filter(rng.random((26, 22)), sigma) if sigma else rng.random((26, 22))
+    c = np.where(field > np.median(field), IMPASSABLE, FREE).astype(np.uint8)
+    c[rng.random(c.shape) < 0.2] = UNKNOWN
+    got = correlation_area(c, max_lag=7)
+    assert got == pytest.approx(_correlation_area_by_hand(c, 7), rel=1e-9)
+    assert (got < 3.0) if sigma == 0.0 else (got > 5.0)  # white noise: about one cell; blobs: many
+
+
+def test_a_placement_on_few_independent_patches_of_smooth_terrain_is_flagged(tmp_path, capsys):
+    """A window of Hadley 118 m was merged with another window of it that it never met (kappa
+    0.72 on 4,309 cells): on smooth maps a look-alike place can beat every other place by the
+    margin. Such placements cannot be refused without refusing most right ones there, so the
+    merge says on how many independent patches of terrain it rests: the same cut placed on a
+    speckled map (many patches) gets no note, on a map of blobs 10 cells across it does."""
+    rng = np.random.default_rng(5)
+    noise = rng.random((200, 200))
+    for sigma, weak in ((1.5, False), (7.0, True)):
+        t = np.where(ndimage.gaussian_filter(noise, sigma) > 0.5, IMPASSABLE, FREE).astype(np.uint8)
+        a, b = t[:128, :128].copy(), np.rot90(t[64:192, 60:188]).copy()
+        save_map(GridMap(a, 1.0), tmp_path / "a.npy")
+        save_map(GridMap(b, 1.0), tmp_path / "b.npy")
+        reg = register(a, b)
+        assert reg.accepted and reg.confidence > 0.95
+        assert reg.weak == weak and (reg.patches < 10) == weak
+        assert main(["merge", str(tmp_path / "a.npy"), str(tmp_path / "b.npy"), "-o", str(tmp_path / "m.npy")]) == 0
+        out = " ".join(capsys.readouterr().out.split())
+        assert ("was placed on about" in out) == weak, out

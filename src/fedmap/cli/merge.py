@@ -23,16 +23,16 @@ from fedmap.maps.registration import merge as merge_maps
 
 def _table(result: MergeResult, names: list[str]) -> Table:
     t = Table(title=f"maps placed in the frame of {names[0]}", header_style="bold")
-    for col in ("map", "placed", "dx", "dy", "heading", "confidence", "shared cells", "margin"):
+    for col in ("map", "placed", "dx", "dy", "heading", "confidence", "shared cells", "margin", "patches"):
         t.add_column(col, justify="left" if col in ("map", "placed") else "right", no_wrap=True)
     for p, name in zip(result.placements, names):
         reg, tr = p.registration, p.transform
         if reg is None:  # the first map: the frame itself
-            t.add_row(name, "frame", "0.0", "0.0", "0.0", "-", "-", "-")
+            t.add_row(name, "frame", "0.0", "0.0", "0.0", "-", "-", "-", "-")
             continue
         assert tr is not None
         t.add_row(name, "yes" if p.placed else "refused", f"{tr.dx:+.1f}", f"{tr.dy:+.1f}", f"{tr.heading_deg:.1f}",
-                  fmt(reg.confidence), f"{reg.check.overlap:,}", f"{reg.margin:.1f}")
+                  fmt(reg.confidence), f"{reg.check.overlap:,}", f"{reg.margin:.1f}", f"{reg.patches:.0f}")
     return fit(t)
 
 
@@ -66,7 +66,8 @@ def merge(
     only when the confidence gate passes; where two maps disagree on a cell, impassable wins.
 
     Prints each map's transform into the first map's frame (dx along the columns, dy down the rows, in cells; the
-    heading counter-clockwise as the map is drawn) with its confidence, and one line per refused map. Exits 0 when at
+    heading counter-clockwise as the map is drawn) with its confidence and the independent patches of terrain the
+    maps share (fewer than 10: a note), and one line per refused map. Exits 0 when at
     least one map was placed on the first (the refusals listed), and non-zero, writing nothing, when none was.
     """
     if len(maps) < 2:
@@ -83,9 +84,16 @@ def merge(
     for p, name in zip(result.placements, names):
         if not p.placed:
             console.print(f"refused {name}: {p.reason}", soft_wrap=True)
-        elif p.changed:  # what the maps placed before held, overruled (impassable wins)
+            continue
+        if p.changed:  # what the maps placed before held, overruled (impassable wins)
             console.print(f"note: {name} changed {p.changed:,} known cell(s) of the maps placed before it (where they "
                           "disagree, impassable wins)", soft_wrap=True)
+        if p.registration is not None and p.registration.weak:  # smooth maps: few independent patches shared
+            reg = p.registration
+            console.print(f"note: {name} was placed on about {reg.patches:.0f} independent patches of terrain "
+                          f"({reg.check.overlap:,} shared cells of smooth maps, confidence {reg.confidence:.2f}): a "
+                          "look-alike place can fit such maps almost as well, so check this placement (or raise "
+                          "--gate)", soft_wrap=True)
     if result.n_placed < 2:
         raise FedmapError(f"no map could be placed on {names[0]}: nothing merged, {out} not written")
     save_map(result.grid, out)
