@@ -292,7 +292,8 @@ def _map_qos():
                avoid_ros_namespace_conventions=False)
 
 
-def _check_topic(topic: str) -> str:
+def check_topic(topic: str) -> str:
+    """``topic`` when it is an absolute ROS topic name (``/map``, ``/fedmap/team_map``), else a one-line error."""
     if not topic.startswith("/") or not all(part and (part[0].isalpha() or part[0] == "_") and all(
             c.isalnum() or c == "_" for c in part) for part in topic[1:].split("/")):
         raise FedmapError(f"not a ROS topic name: {topic!r} (e.g. /map, /raw/global_map)")
@@ -331,7 +332,7 @@ def write_bag(messages: Iterable[tuple[str, int, GridMap]], path, *, frame_id: s
             conns: dict[str, Any] = {}
             for topic, time_ns, grid in messages:
                 if topic not in conns:
-                    conns[topic] = writer.add_connection(_check_topic(topic), OCCUPANCY_GRID, typestore=typestore,
+                    conns[topic] = writer.add_connection(check_topic(topic), OCCUPANCY_GRID, typestore=typestore,
                                                          offered_qos_profiles=[_map_qos()])
                 if time_ns < 0:
                     raise FedmapError(f"bag time must not be negative, got {time_ns} ns")

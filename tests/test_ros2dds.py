@@ -1,0 +1,164 @@
+"""ROS 2 messages on DDS: the types built from rosbags' typestore give rosbags' CDR bytes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("cyclonedds")  # the ros2 extra (in the test extra: CI always has it)
+
+from fedmap.errors import FedmapError  # noqa: E402
+from fedmap.maps.ros2dds import dds_name, dds_topic, dds_type, from_dds, to_dds, typestore  # noqa: E402
+
+TS = typestore()
+
+
+def rosbags_make(name: str, **fields):
+    """A message built with rosbags' own class (numeric sequences as numpy arrays)."""
+    return TS.types[name](**fields)
+
+
+def dds_make(name: str, **fields):
+    """A sample built with the DDS class (numeric sequences as lists)."""
+    return dds_type(name)(**{k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in fields.items()})
+
+
+def header(make, rng, frame: str):
+    return make("std_msgs/msg/Header",
+                stamp=make("builtin_interfaces/msg/Time", sec=int(rng.integers(0, 2**31)),
+                           nanosec=int(rng.integers(0, 10**9))), frame_id=frame)
+
+
+def point(make, rng, name="geometry_msgs/msg/Point"):
+    x, y, z = (float(v) for v in rng.normal(size=3))
+    return make(name, x=x, y=y, z=z)
+
+
+def quaternion(make, rng):
+    x, y, z, w = (float(v) for v in rng.normal(size=4))
+    return make("geometry_msgs/msg/Quaternion", x=x, y=y, z=z, w=w)
+
+
+def pose(make, rng):
+    return make("geometry_msgs/msg/Pose", position=point(make, rng), orientation=quaternion(make, rng))
+
+
+def occupancy_grid(make, rng):
+    h, w = (int(v) for v in rng.integers(1, 40, size=2))
+    info = make("nav_msgs/msg/MapMetaData", map_load_time=make("builtin_interfaces/msg/Time", sec=3, nanosec=7),
+                resolution=float(np.float32(rng.uniform(0.05, 2))), width=w, height=h, origin=pose(make, rng))
+    data = rng.choice(np.array([-1, 0, 100], np.int8), size=h * w)
+    return make("nav_msgs/msg/OccupancyGrid", header=header(make, rng, "map"), info=info, data=data)
+
+
+def pose_stamped(make, rng):
+    return make("geometry_msgs/msg/PoseStamped", header=header(make, rng, "odom"), pose=pose(make, rng))
+
+
+def odometry(make, rng):
+    cov = rng.normal(size=36)
+    twist = make("geometry_msgs/msg/Twist", linear=point(make, rng, "geometry_msgs/msg/Vector3"),
+                 angular=point(make, rng, "geometry_msgs/msg/Vector3"))
+    return make("nav_msgs/msg/Odometry", header=header(make, rng, "odom"),
+                child_frame_id="base_link" * int(rng.integers(1, 4)),
+                pose=make("geometry_msgs/msg/PoseWithCovariance", pose=pose(make, rng), covariance=cov),
+                twist=make("geometry_msgs/msg/TwistWithCovariance", twist=twist, covariance=cov[::-1].copy()))
+
+
+def tf_message(make, rng):
+    def one(child):
+        return make("geometry_msgs/msg/TransformStamped", header=header(make, rng, "map"), child_frame_id=child,
+                    transform=make("geometry_msgs/msg/Transform", translation=point(make, rng, "geometry_msgs/msg/Vector3"),
+                                   rotation=quaternion(make, rng)))
+    return make("tf2_msgs/msg/TFMessage", transforms=[one("odom"), one("base_link"), one("rover_7")])
+
+
+CASES = {"nav_msgs/msg/OccupancyGrid": occupancy_grid, "geometry_msgs/msg/PoseStamped": pose_stamped,
+         "nav_msgs/msg/Odometry": odometry, "tf2_msgs/msg/TFMessage": tf_message}
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("msgtype", list(CASES))
+def test_a_sample_built_with_the_dds_type_has_rosbags_cdr_bytes(msgtype, seed):
+    """The same values built twice, with rosbags' class and with the DDS class (every field
+    written out above, odd lengths so alignment matters): byte-equal CDR, header included."""
+    build = CASES[msgtype]
+    msg = build(rosbags_make, np.random.default_rng(seed))
+    sample = build(dds_make, np.random.default_rng(seed))
+    expected = bytes(TS.serialize_cdr(msg, msgtype))
+    assert sample.serialize() == expected
+    assert to_dds(msg, msgtype).serialize() == expected  # the converter gives the same sample
+    back = from_dds(type(sample).deserialize(expected), msgtype)  # and back to rosbags' class
+    assert bytes(TS.serialize_cdr(back, msgtype)) == expected
+
+
+def test_the_names_follow_ros2s_mapping_to_dds():
+    assert dds_name("nav_msgs/msg/OccupancyGrid") == "nav_msgs::msg::dds_::OccupancyGrid_"
+    assert dds_type("nav_msgs/msg/OccupancyGrid").__idl_typename__ == "nav_msgs::msg::dds_::OccupancyGrid_"
+    assert dds_type("std_msgs/msg/Header").__idl_typename__ == "std_msgs::msg::dds_::Header_"
+    assert dds_topic("/map") == "rt/map" and dds_topic("/fedmap/team_map") == "rt/fedmap/team_map"
+    for bad in ("map", "/", "/map/", "//map", "/2map"):
+        with pytest.raises(FedmapError, match="not a ROS topic name"):
+            dds_topic(bad)
+    with pytest.raises(FedmapError, match="unknown ROS 2 message type 'nav_msgs/msg/Nope'"):
+        dds_type("nav_msgs/msg/Nope")
+    with pytest.raises(FedmapError, match="package/msg/Name"):
+        dds_type("OccupancyGrid")
+
+
+PLAYER = """
+import sys, time
+import numpy as np
+from fedmap.maps import ros2dds
+from fedmap.maps.rosbag import occupancy_message
+
+dp = ros2dds.participant(int(sys.argv[1]), loopback=True)
+w = ros2dds.writer(dp, "/map", "nav_msgs/msg/OccupancyGrid", latched=sys.argv[2] == "latched")
+rng = np.random.default_rng(int(sys.argv[3]))
+for k in range(3):  # three maps, as a mapping stack publishes them; only the last is kept
+    classes = rng.integers(0, 3, size=(6, 9)).astype(np.uint8)
+    msg = occupancy_message(ros2dds.typestore(), classes, resolution=0.25, origin=(1.5, -2.0), time_ns=k)
+    w.write(ros2dds.to_dds(msg, "nav_msgs/msg/OccupancyGrid"))
+np.save(sys.argv[4], classes)
+print("published", flush=True)
+time.sleep(30)
+"""
+
+
+@pytest.mark.parametrize("latched", [True, False])
+def test_a_reader_that_joins_late_gets_the_last_map_of_a_latched_writer_only(tmp_path, latched):
+    """Another process plays map_server (its own DDS participant, loopback only) and publishes
+    three maps on /map; this process joins after they were written and reads /map as Nav2's
+    static layer does (transient local). From a latched writer it gets the last map, and
+    fedmap reads it as that map's classes; from a volatile one it gets nothing."""
+    import subprocess
+    import sys
+    import time
+
+    from fedmap.maps import ros2dds
+    from fedmap.maps.rosbag import grid_from_message
+
+    domain = 100 + (2 if latched else 3)  # a domain of this test's own
+    script = tmp_path / "player.py"
+    script.write_text(PLAYER)
+    last = tmp_path / "last.npy"
+    with subprocess.Popen([sys.executable, str(script), str(domain), "latched" if latched else "volatile", "5",
+                           str(last)], stdout=subprocess.PIPE, text=True) as player:
+        try:
+            assert player.stdout is not None and player.stdout.readline().strip() == "published"
+            dp = ros2dds.participant(domain, loopback=True)
+            r = ros2dds.reader(dp, "/map", "nav_msgs/msg/OccupancyGrid")
+            got: list = []
+            deadline = time.monotonic() + (10 if latched else 3)
+            while time.monotonic() < deadline and not got:
+                got = r.take(N=10)
+                time.sleep(0.05)
+        finally:
+            player.kill()
+    if not latched:
+        assert got == []
+        return
+    assert len(got) == 1  # keep last 1: the last of the three
+    grid = grid_from_message(ros2dds.from_dds(got[0], "nav_msgs/msg/OccupancyGrid"), "/map")
+    np.testing.assert_array_equal(grid.classes, np.load(last))
+    assert grid.pixel_size == 0.25 and grid.meta["stamp_ns"] == 2
