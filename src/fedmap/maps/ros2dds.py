@@ -118,38 +118,28 @@ def _fields(msgtype: str) -> list[tuple[str, tuple]]:
     return typestore().fielddefs[msgtype][1]
 
 
-def _to(node: tuple, value: Any) -> Any:
+def _walk(node: tuple, value: Any, message: Any, numbers: Any) -> Any:
+    """A field's value carried across: nested messages by ``message(value, msgtype)``, arrays
+    and sequences of numbers by ``numbers(value, base type)``, the rest as it is."""
     from rosbags.typesys.base import Nodetype
 
     kind, spec = node
     if kind == Nodetype.BASE:
         return value
     if kind == Nodetype.NAME:
-        return to_dds(value, spec)
+        return message(value, spec)
     sub = spec[0]
-    if sub[0] == Nodetype.BASE:  # numbers: rosbags holds a numpy array, the sample a list
-        return np.asarray(value).tolist() if not isinstance(value, list) else list(value)
-    return [_to(sub, v) for v in value]
+    if sub[0] == Nodetype.BASE and sub[1][0] != "string":
+        return numbers(value, sub[1][0])
+    return [_walk(sub, v, message, numbers) for v in value]
 
 
 def to_dds(msg: Any, msgtype: str) -> Any:
-    """A rosbags message of type ``msgtype`` as a sample of :func:`dds_type`."""
+    """A rosbags message of type ``msgtype`` as a sample of :func:`dds_type` (numbers that
+    rosbags holds as numpy arrays become lists)."""
     cls = dds_type(msgtype)
-    return cls(**{name: _to(node, getattr(msg, name)) for name, node in _fields(msgtype)})
-
-
-def _from(node: tuple, value: Any) -> Any:
-    from rosbags.typesys.base import Nodetype
-
-    kind, spec = node
-    if kind == Nodetype.BASE:
-        return value
-    if kind == Nodetype.NAME:
-        return from_dds(value, spec)
-    sub = spec[0]
-    if sub[0] == Nodetype.BASE and sub[1][0] != "string":  # numbers: numpy, as rosbags deserialises them
-        return np.asarray(value, dtype=_NUMPY[sub[1][0]])
-    return [_from(sub, v) for v in value]
+    return cls(**{name: _walk(node, getattr(msg, name), to_dds, lambda v, _: np.asarray(v).tolist())
+                  for name, node in _fields(msgtype)})
 
 
 _NUMPY = {"bool": np.bool_, "byte": np.uint8, "char": np.uint8, "int8": np.int8, "uint8": np.uint8, "int16": np.int16,
@@ -158,9 +148,11 @@ _NUMPY = {"bool": np.bool_, "byte": np.uint8, "char": np.uint8, "int8": np.int8,
 
 
 def from_dds(sample: Any, msgtype: str) -> Any:
-    """A sample of :func:`dds_type` as rosbags' message of type ``msgtype``."""
+    """A sample of :func:`dds_type` as rosbags' message of type ``msgtype`` (numbers as
+    numpy arrays, as rosbags deserialises them)."""
     cls = typestore().types[msgtype]
-    return cls(**{name: _from(node, getattr(sample, name)) for name, node in _fields(msgtype)})
+    return cls(**{name: _walk(node, getattr(sample, name), from_dds, lambda v, t: np.asarray(v, dtype=_NUMPY[t]))
+                  for name, node in _fields(msgtype)})
 
 
 # --------------------------------------------------------------------------- the live graph
