@@ -863,6 +863,10 @@ def test_the_stop_rule_ends_each_run_at_the_first_step_its_team_knows_the_share_
     assert (f"No stop rule (the default: every run takes all 200 steps); every strategy's team had observed 99% "
             f"of the cells it can reach by step {max(firsts)}: --stop-coverage 0.99 ends each run there.") \
         in verdict(full)
+    from fedmap.mission.outputs.report import report_md
+
+    assert "a run ends once its team has observed 99% of the cells it can reach" in report_md(cut, title="t")
+    assert "a run ends once" not in report_md(full, title="t")
     for bad in (0, 1.5, True, "0.9"):
         with pytest.raises(FedmapError, match="stop_coverage must be a share in"):
             replace(cfg, stop_coverage=bad)

@@ -276,3 +276,27 @@ def test_repeats_with_a_predictor_give_the_guessed_beliefs_step_an_interval():
     assert iv is not None and iv.mean == pytest.approx(np.mean(reached)) and iv.missing == len(steps) - len(reached)
     plain = run_repeats(_cfg(strategies=("raw",), steps=10), truth, 2, frames=1)
     assert "guessed F1≥0.9 at" not in intervals(plain)["raw"]
+
+
+def test_repeats_that_the_stop_rule_ended_at_different_steps_are_drawn_over_the_steps_all_reached(tmp_path):
+    """With the stop rule, repeats end at different steps (and their last evaluation is not a
+    sync): a curve's mean is taken only at the steps every repeat reached, each value at its
+    own step (by hand below), and a repeated mission with the rule writes every figure."""
+    from fedmap.mission.outputs.report import _line
+
+    class Ax:
+        def plot(self, x, y, **kw):
+            self.x, self.y = list(x), list(y)
+
+        def fill_between(self, *a, **kw):
+            pass
+
+    ax = Ax()
+    _line(ax, [0, 10, 20, 23], [[0.1, 0.5, 0.7, 0.9], [0.3, 0.6, 0.95]], xs=[[0, 10, 20, 23], [0, 10, 17]])
+    assert ax.x == [0, 10] and ax.y == pytest.approx([0.2, 0.55])
+    results = run_repeats(_cfg(steps=120, strategies=("none", "raw"), stop_coverage=0.9), maze(40, seed=3), 3)
+    ends = [r.runs["raw"].series.step[-1] for r in results]
+    assert all(e < 120 for e in ends) and len(set(ends)) > 1  # stopped, at different steps
+    out = write_mission(results[0], tmp_path / "rep", title="maze", animation=False, repeats=results)
+    for png in ("coverage.png", "f1.png", "accuracy_bytes.png", "knowing.png"):
+        assert (out / png).stat().st_size > 10_000

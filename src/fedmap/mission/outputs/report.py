@@ -412,7 +412,9 @@ def report_md(result: MissionResult, *, title: str, animations: list[str] | None
         f"{h}x{w} cells of {result.truth.pixel_size:.3g} m; {c.rovers} rovers from {[list(s) for s in result.starts]}, "
         f"base station at {list(result.base)}; {c.steps} steps at {c.speed} cell(s) per step, sensor radius "
         f"{c.sensor_radius:g} cells{' (line of sight)' if c.line_of_sight else ''}, {c.mode} exploration; "
-        f"a sync every {c.sync_every} steps ({len(c.sync_steps):,} rounds).", "",
+        f"a sync every {c.sync_every} steps ({len(c.sync_steps):,} rounds)"
+        + (f"; a run ends once its team has observed {c.stop_coverage:.0%} of the cells it can reach "
+           "(`stop_coverage`), and its final values are that step's" if c.stop_coverage is not None else "") + ".", "",
         f"Link (seed {c.link_seed}): uplink {budget(link.uplink_bytes)} and downlink {budget(link.downlink_bytes)} per "
         f"rover per round, loss {link.loss:g}, latency {link.latency} step(s), range "
         f"{'unlimited' if link.max_range is None else f'{link.max_range:g} cells'}"
@@ -569,9 +571,16 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
-def _line(ax, x, ys: Sequence[Sequence[float]], **kw) -> None:
+def _line(ax, x, ys: Sequence[Sequence[float]], *, xs: Sequence[Sequence[int]] | None = None, **kw) -> None:
     """One strategy's curve: the value (one run), or the mean over the repeats with its 95 %
-    interval shaded, step by step."""
+    interval shaded, step by step. Repeats the stop rule ended at different steps are drawn
+    over the steps they all reached: those in every one of ``xs`` (each repeat's own steps)
+    or, without ``xs``, the points they all have."""
+    if xs is not None and any(list(steps) != list(x) for steps in xs):
+        x = sorted(set(x).intersection(*map(set, xs)))
+        ys = [[dict(zip(steps, y))[t] for t in x] for steps, y in zip(xs, ys)]
+    n = min(len(x), *(len(y) for y in ys))
+    x, ys = x[:n], [y[:n] for y in ys]
     if len(ys) == 1:
         ax.plot(x, ys[0], **kw)
         return
@@ -589,11 +598,11 @@ def plot_coverage(results: Sequence[MissionResult]) -> bytes:
     fig, ax = _pyplot().subplots(figsize=(6, 3.6))
     walled = any(run.summary.reachable_share < WALLED_BELOW for run in results[0].runs.values())
     for i, name in enumerate(results[0].runs):
-        _line(ax, results[0].runs[name].series.step, [r.runs[name].series.coverage_reachable for r in results],
+        steps = [r.runs[name].series.step for r in results]
+        _line(ax, steps[0], [r.runs[name].series.coverage_reachable for r in results], xs=steps,
               label=name, color=f"C{i}")
         if walled:  # the whole map's, where part of it cannot be reached
-            _line(ax, results[0].runs[name].series.step, [r.runs[name].series.coverage for r in results],
-                  ls=":", color=f"C{i}")
+            _line(ax, steps[0], [r.runs[name].series.coverage for r in results], xs=steps, ls=":", color=f"C{i}")
     syncs = results[0].config.sync_steps
     for t in (syncs if len(syncs) <= 200 else ()):  # (more would be a grey wash)
         ax.axvline(t, color="0.9", lw=0.6, zorder=0)
@@ -607,13 +616,15 @@ def plot_coverage(results: Sequence[MissionResult]) -> bytes:
 def plot_f1(results: Sequence[MissionResult]) -> bytes:
     fig, axes = _pyplot().subplots(1, 2, figsize=(10, 3.6), sharey=True)
     for i, name in enumerate(results[0].runs):
-        step = results[0].runs[name].series.eval.step
-        _line(axes[0], step, [r.runs[name].series.eval.f1 for r in results], marker=".", label=name, color=f"C{i}")
-        _line(axes[1], step, [[max(f) for f in r.runs[name].series.eval.belief_f1] for r in results], marker=".",
-              label=name, color=f"C{i}")
+        steps = [r.runs[name].series.eval.step for r in results]
+        step = steps[0]
+        _line(axes[0], step, [r.runs[name].series.eval.f1 for r in results], xs=steps, marker=".", label=name,
+              color=f"C{i}")
+        _line(axes[1], step, [[max(f) for f in r.runs[name].series.eval.belief_f1] for r in results], xs=steps,
+              marker=".", label=name, color=f"C{i}")
         if all(r.runs[name].series.eval.predicted_f1 is not None for r in results):  # with the guesses filled in
             _line(axes[1], step, [[max(f) for f in r.runs[name].series.eval.predicted_f1 or ()] for r in results],
-                  marker=".", ls="--", label=f"{name}, with the guesses", color=f"C{i}")
+                  xs=steps, marker=".", ls="--", label=f"{name}, with the guesses", color=f"C{i}")
     axes[0].set(xlabel="step", ylabel="strict path F1", ylim=(0, 1.02), title="Base's global map"
                 + _repeats_note(results))
     axes[1].set(xlabel="step", title="Best rover belief")
@@ -657,14 +668,15 @@ def plot_knowing(results: Sequence[MissionResult]) -> bytes:
     for i, name in enumerate(results[0].runs):
         runs = [r.runs[name] for r in results]
         s, ev = runs[0].series, runs[0].series.eval
-        kw = {"label": name, "color": f"C{i}"}
+        kw: dict[str, Any] = {"label": name, "color": f"C{i}", "xs": [run.series.step for run in runs]}
         _line(axes[0], s.step, [[float(np.mean(a)) for a in run.series.accuracy_observed] for run in runs], **kw)
         _line(axes[1], s.step, [[float(np.mean(a)) for a in run.series.accuracy_unobserved] for run in runs], **kw)
         _line(axes[2], s.step, [[float(np.mean(f)) for f in run.series.false_free] for run in runs], **kw)
+        kw["xs"] = evs = [run.series.eval.step for run in runs]
         _line(axes[3], ev.step, [[float(np.mean(f)) for f in run.series.eval.belief_success] for run in runs],
               marker=".", **kw)
         if all(run.series.eval.predicted_success is not None for run in runs):  # with the guesses filled in
-            dashed = {"color": f"C{i}", "ls": "--", "label": f"{name}, with the guesses"}
+            dashed: dict[str, Any] = {"color": f"C{i}", "ls": "--", "label": f"{name}, with the guesses", "xs": evs}
             _line(axes[1], ev.step, [[float(np.mean(f)) for f in run.series.eval.predicted_accuracy_unobserved or ()]
                                      for run in runs], marker=".", **dashed)
             _line(axes[2], ev.step, [[float(np.mean(f)) for f in run.series.eval.predicted_false_free or ()]
