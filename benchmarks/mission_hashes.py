@@ -8,6 +8,12 @@ that a refactoring changed no behaviour (same metrics, same bytes per message).
 Prints one line per mission: the hash of the whole file (sha256, 16 hex digits) and one
 per strategy (12 hex digits), so a change shows which strategy it touched. Run it before
 and after a change (``git stash``) and compare the lines.
+
+Float rounding differs between CPU kinds (AVX2, AVX-512, AMX), so the exact hashes do too.
+Two more per mission tell what differs across machines: ``ledger`` hashes every strategy's
+ledger (every message's step, sender, bytes and fate: the same ledger means the same
+traffic, so the same maps were sent), and ``6sig`` the whole file with every float rounded
+to 6 significant digits.
 """
 
 from __future__ import annotations
@@ -38,8 +44,19 @@ MISSIONS: dict[str, list[str]] = {
 }
 
 
-def digest(metrics: dict, n: int) -> str:
+def digest(metrics, n: int) -> str:
     return hashlib.sha256(json.dumps(metrics, sort_keys=True).encode()).hexdigest()[:n]
+
+
+def rounded(value, digits: int = 6):
+    """``value`` with every float rounded to ``digits`` significant digits."""
+    if isinstance(value, float):
+        return float(f"{value:.{digits}g}")
+    if isinstance(value, dict):
+        return {k: rounded(v, digits) for k, v in value.items()}
+    if isinstance(value, list):
+        return [rounded(v, digits) for v in value]
+    return value
 
 
 def main_(argv: list[str] | None = None) -> int:
@@ -63,7 +80,9 @@ def main_(argv: list[str] | None = None) -> int:
             m = without_timings(json.loads((folder / "metrics.json").read_text()))
             m.pop("wire", None)  # newer than the hashes: what the transport carried, beside the ledger
             per = {s: digest(r, 12) for s, r in m["strategies"].items()}
-            print(f"{name:18s} {digest(m, 16)}  " + "  ".join(f"{s} {h}" for s, h in per.items()), flush=True)
+            ledgers = {s: r.get("ledger") for s, r in m["strategies"].items()}
+            print(f"{name:18s} {digest(m, 16)}  " + "  ".join(f"{s} {h}" for s, h in per.items())
+                  + f"  ledger {digest(ledgers, 12)}  6sig {digest(rounded(m), 12)}", flush=True)
     return 0
 
 

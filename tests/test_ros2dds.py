@@ -162,3 +162,77 @@ def test_a_reader_that_joins_late_gets_the_last_map_of_a_latched_writer_only(tmp
     grid = grid_from_message(ros2dds.from_dds(got[0], "nav_msgs/msg/OccupancyGrid"), "/map")
     np.testing.assert_array_equal(grid.classes, np.load(last))
     assert grid.pixel_size == 0.25 and grid.meta["stamp_ns"] == 2
+
+
+LATE_READER = """
+import sys, time
+import numpy as np
+from fedmap.maps import ros2dds
+
+dp = ros2dds.participant(int(sys.argv[1]), loopback=True)
+sub = ros2dds.MapSubscriber(dp, "/fedmap/team_map")
+grid = sub.wait(10)
+np.save(sys.argv[2], grid.classes)
+print(sub.received, grid.meta["stamp_ns"], flush=True)
+"""
+
+
+def test_a_rover_fed_live_over_dds_publishes_its_team_map_to_a_late_subscriber(tmp_path):
+    """Another process plays the rover's mapping stack: it publishes the rover's map, latched,
+    on /map. Rover 0 of a raw mission (base and rovers over bytes) takes it live and publishes
+    its belief on /fedmap/team_map after every order. A third process joins after the mission
+    ended, as Nav2's static layer does, and gets the last team map. It equals rover 0's final
+    belief in the same mission fed the same map from a file, in process."""
+    import subprocess
+    import sys
+
+    from fedmap.maps import ros2dds
+    from fedmap.maps.grid import UNKNOWN
+    from fedmap.mission.network.remote import ProcessBase, loopback, rounds
+    from fedmap.mission.settings import load_mission
+    from fedmap.mission.sim import mission_terrain, prepare_mission
+    from fedmap.mission.world.feed import LiveFeed, MapFeed
+
+    config, source, _ = load_mission(overrides=[{"mission": {"steps": 40, "strategies": ["raw"]},
+                                                 "terrain": {"size": 64}, "link": {"loss": 0.0}}])
+    truth, elevation, prior, profiles = mission_terrain(config, source)
+    rows, cols = np.indices(truth.shape)
+    snap = np.where((rows - 20) ** 2 + (cols - 40) ** 2 <= 144, truth.classes, UNKNOWN).astype(np.uint8)
+    np.save(tmp_path / "snap.npy", snap)
+    (tmp_path / "stack.py").write_text(
+        "import sys, time\nimport numpy as np\nfrom fedmap.maps import ros2dds\n"
+        "dp = ros2dds.participant(int(sys.argv[1]), loopback=True)\n"
+        "pub = ros2dds.MapPublisher(dp, '/map', resolution=1.0)\n"
+        "pub.publish(np.load(sys.argv[2]), 7)\nprint('published', flush=True)\ntime.sleep(60)\n")
+    (tmp_path / "late.py").write_text(LATE_READER)
+    domain = 104
+
+    def run(feed, on_belief=None):
+        m = prepare_mission(config, truth, elevation=elevation, prior=prior, profiles=profiles,
+                            thresholds=source.thresholds, frames=1)
+        base = ProcessBase(m, "raw")
+        rovers = loopback(m, "raw", feeds={0: feed}, on_beliefs={0: on_belief} if on_belief else None)
+        for _ in rounds(base, rovers):
+            pass
+        return rovers.nodes[0].node.belief()
+
+    with subprocess.Popen([sys.executable, str(tmp_path / "stack.py"), str(domain), str(tmp_path / "snap.npy")],
+                          stdout=subprocess.PIPE, text=True) as stack:
+        try:
+            assert stack.stdout is not None and stack.stdout.readline().strip() == "published"
+            dp = ros2dds.participant(domain, loopback=True)
+            sub = ros2dds.MapSubscriber(dp, "/map")
+            np.testing.assert_array_equal(sub.wait(10).classes, snap)
+            out = ros2dds.MapPublisher(dp, "/fedmap/team_map", resolution=truth.pixel_size)
+            live = run(LiveFeed(sub), lambda step, belief: out.publish(belief, step))
+            late = subprocess.run([sys.executable, str(tmp_path / "late.py"), str(domain), str(tmp_path / "team.npy")],
+                                  capture_output=True, text=True, timeout=60)
+        finally:
+            stack.kill()
+    assert late.returncode == 0, late.stderr[-2000:]
+    received, stamp = (int(v) for v in late.stdout.split())
+    assert received == 1 and stamp == config.steps and out.sent > 1  # the last of the team maps, only
+    filed = run(MapFeed([(0, snap)], "file"))
+    np.testing.assert_array_equal(live, filed)
+    np.testing.assert_array_equal(np.load(tmp_path / "team.npy"), live)
+    assert ((live != UNKNOWN) >= (snap != UNKNOWN)).all()  # the rover's map is in the team map it plans on

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from fedmap.errors import FedmapError
+from fedmap.maps.grid import GridMap
 from fedmap.maps.rosbag import check_topic
 
 #: rosbags' typestore the types come from: ROS 2 Humble's message definitions.
@@ -214,5 +215,69 @@ def reader(dp: Any, topic: str, msgtype: str, *, latched: bool = True) -> Any:
     return DataReader(dp, Topic(dp, dds_topic(topic), dds_type(msgtype)), qos=map_qos(latched=latched))
 
 
-__all__ = ["LOOPBACK", "STORE", "check_domain", "dds_name", "dds_topic", "dds_type", "from_dds", "map_qos",
-           "participant", "reader", "to_dds", "typestore", "writer"]
+#: The ROS 2 type of every map in and out.
+OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
+
+
+class MapPublisher:
+    """Publishes class maps as ``nav_msgs/OccupancyGrid`` on ROS 2 topic ``topic``,
+    latched (reliable, transient local, the last kept): Nav2's static layer and RViz get the
+    last map when they join late. ``resolution`` (m per cell) and ``origin`` (the lower-left
+    corner in ``frame_id``) place every map."""
+
+    def __init__(self, dp: Any, topic: str, *, resolution: float, origin: tuple[float, float] = (0.0, 0.0),
+                 frame_id: str = "map") -> None:
+        self.writer = writer(dp, topic, OCCUPANCY_GRID)
+        self.resolution, self.origin, self.frame_id = float(resolution), origin, frame_id
+        self.sent = 0  #: maps published
+
+    def publish(self, classes: np.ndarray, time_ns: int) -> None:
+        """Publish the class map ``classes`` (H, W), stamped ``time_ns``."""
+        from fedmap.maps.rosbag import occupancy_message
+
+        msg = occupancy_message(typestore(), classes, resolution=self.resolution, origin=self.origin,
+                                time_ns=time_ns, frame_id=self.frame_id)
+        self.writer.write(to_dds(msg, OCCUPANCY_GRID))
+        self.sent += 1
+
+
+class MapSubscriber:
+    """The latest ``nav_msgs/OccupancyGrid`` on ROS 2 topic ``topic``, read with map_server's
+    thresholds (:func:`fedmap.maps.rosbag.grid_from_message`). The reader is transient local,
+    so it gets the last map of a latched publisher (map_server, slam_toolbox) that published
+    before it joined, and every later one of a volatile publisher too."""
+
+    def __init__(self, dp: Any, topic: str) -> None:
+        self.reader, self.topic = reader(dp, topic, OCCUPANCY_GRID), topic
+        self.latest: GridMap | None = None
+        self.received = 0  #: maps received
+
+    def poll(self) -> GridMap | None:
+        """The latest map received by now (None before the first); a damaged one (a size
+        that does not match its grid) is dropped and the one before kept."""
+        from fedmap.maps.rosbag import grid_from_message
+
+        for sample in self.reader.take(N=64):
+            try:
+                self.latest = grid_from_message(from_dds(sample, OCCUPANCY_GRID), self.topic)
+            except FedmapError:
+                continue
+            self.received += 1
+        return self.latest
+
+    def wait(self, timeout: float) -> GridMap:
+        """The first map, waiting at most ``timeout`` seconds for it (a one-line error when none came)."""
+        import time
+
+        deadline = time.monotonic() + timeout
+        while self.poll() is None:
+            if time.monotonic() > deadline:
+                raise FedmapError(f"no map arrived on {self.topic} within {timeout:g} s (is the mapping stack "
+                                  "running, in this ROS_DOMAIN_ID?)")
+            time.sleep(0.02)
+        assert self.latest is not None
+        return self.latest
+
+
+__all__ = ["LOOPBACK", "OCCUPANCY_GRID", "STORE", "MapPublisher", "MapSubscriber", "check_domain", "dds_name",
+           "dds_topic", "dds_type", "from_dds", "map_qos", "participant", "reader", "to_dds", "typestore", "writer"]

@@ -74,7 +74,7 @@ from fedmap.mission.network.wire import (
 )
 from fedmap.mission.settings import MissionConfig
 from fedmap.mission.sim import Mission
-from fedmap.mission.world.feed import FeedWorld, MapFeed
+from fedmap.mission.world.feed import Feed, FeedWorld
 from fedmap.mission.world.frontiers import choose_target, travel_costs
 from fedmap.mission.world.world import start_team
 
@@ -245,7 +245,7 @@ class ProcessRover:
     takes an order, returns the report: the order is its transport (the frames that reached
     it, and the step to drive to), the report carries its frame back."""
 
-    def __init__(self, mission: Mission, name: str, k: int, *, feed: MapFeed | None = None) -> None:
+    def __init__(self, mission: Mission, name: str, k: int, *, feed: Feed | None = None) -> None:
         check_deployable(mission.config, [name])
         self.name, self.k, self.config = name, k, mission.config
         topology = make_topology(mission.config.link, mission.base)
@@ -270,6 +270,9 @@ class ProcessRover:
         self.synced = False  # it passed a sync step while answering this order
         self.t0: float | None = None  # on its own clock: when its step 0 was (seconds, ``now``'s)
         self.now = time.time
+        #: called after every order it answered with its step and its belief (what it plans on:
+        #: the team's map as it knows it), e.g. to publish it to the robot's ROS 2 graph
+        self.on_belief: Callable[[int, np.ndarray], None] | None = None
         self.node.sense(0)
         self._states = [self._state(0)]  # recorded, not yet logged (the record of a step follows its deliveries)
 
@@ -293,7 +296,7 @@ class ProcessRover:
 
     @classmethod
     def rebuild(cls, mission: Mission, name: str, k: int, history: list[bytes], *,
-                feed: MapFeed | None = None) -> ProcessRover:
+                feed: Feed | None = None) -> ProcessRover:
         """Rover ``k`` as it was after answering ``history`` (every order the base sent it, in
         order): a new node answers each of them again. Its world is seeded and its end is a
         function of what it was told, so it is the node that lost its state, bit for bit."""
@@ -351,6 +354,8 @@ class ProcessRover:
         self.log.append(RoverEntry(self.name, self.k, order.mission, self.step, states, list(r.trail[self._told:])))
         self._told = len(r.trail)
         self._states = []
+        if self.on_belief is not None:
+            self.on_belief(self.step, node.belief())
         return Report(self.name, self.k, self.step, r.pos, r.target, self.reached,
                       None if up is None else Outgoing(up.payload, up.kind), answers, version, self._journal(),
                       0 if up is None else up.round, 0 if up is None else up.step, self.synced)
@@ -564,9 +569,11 @@ class Loopback:
     observations come from a map feed. Call it with the orders; :attr:`logs` holds each
     rover's own log."""
 
-    def __init__(self, mission: Mission, name: str, *, feeds: dict[int, MapFeed] | None = None,
-                 clocks: dict[int, Callable[[], float]] | None = None) -> None:
+    def __init__(self, mission: Mission, name: str, *, feeds: dict[int, Feed] | None = None,
+                 clocks: dict[int, Callable[[], float]] | None = None,
+                 on_beliefs: dict[int, Callable[[int, np.ndarray], None]] | None = None) -> None:
         self.mission, self.name, self.feeds, self.clocks = mission, name, feeds or {}, clocks or {}
+        self.on_beliefs = on_beliefs or {}
         self.nodes: dict[int, ProcessRover] = {}
 
     def __call__(self, orders: dict[int, bytes]) -> dict[int, bytes]:
@@ -576,6 +583,7 @@ class Loopback:
                 self.nodes[k] = ProcessRover(self.mission, self.name, k, feed=self.feeds.get(k))
                 if k in self.clocks:  # its own clock (seconds), for a rover on its own clock
                     self.nodes[k].now = self.clocks[k]
+                self.nodes[k].on_belief = self.on_beliefs.get(k)
             out[k] = self.nodes[k].answer(raw)
         return out
 
@@ -585,11 +593,13 @@ class Loopback:
         return [self.nodes[k].log for k in sorted(self.nodes)]
 
 
-def loopback(mission: Mission, name: str, *, feeds: dict[int, MapFeed] | None = None,
-             clocks: dict[int, Callable[[], float]] | None = None) -> Loopback:
+def loopback(mission: Mission, name: str, *, feeds: dict[int, Feed] | None = None,
+             clocks: dict[int, Callable[[], float]] | None = None,
+             on_beliefs: dict[int, Callable[[int, np.ndarray], None]] | None = None) -> Loopback:
     """:class:`Loopback`: every rover of ``name`` in this process, behind bytes (``clocks``:
-    a rover's own clock, in seconds, instead of the machine's)."""
-    return Loopback(mission, name, feeds=feeds, clocks=clocks)
+    a rover's own clock, in seconds, instead of the machine's; ``on_beliefs``: a rover's
+    :attr:`ProcessRover.on_belief`)."""
+    return Loopback(mission, name, feeds=feeds, clocks=clocks, on_beliefs=on_beliefs)
 
 
 __all__ = ["WIRE_VERSION", "CorruptMessage", "FarRover", "ProcessBase", "ProcessRover", "Loopback", "LostState", "Order",

@@ -8,7 +8,10 @@ from the maps its own software writes instead:
   whatever :func:`fedmap.maps.io.load_map` reads), each named with the mission step it was
   taken at as the last number of its name (``map_0040.png``);
 - a **ROS 2 bag** of ``nav_msgs/OccupancyGrid`` (:func:`fedmap.maps.rosbag.bag_map_feed`,
-  no ROS needed), message time ``t`` at step ``round((t - t0) / step_seconds)``.
+  no ROS needed), message time ``t`` at step ``round((t - t0) / step_seconds)``;
+- a **live ROS 2 topic** (:class:`LiveFeed`: the latest map the robot's mapping stack
+  published, over DDS, :class:`fedmap.maps.ros2dds.MapSubscriber`), whatever step the
+  rover's clock is at.
 
 Every snapshot must be on the mission's grid (its shape). At every step the rover takes
 the latest snapshot at or before that step: its known cells the rover has not observed yet
@@ -23,6 +26,7 @@ import math
 import re
 from bisect import bisect_right
 from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -85,11 +89,48 @@ class MapFeed:
                                   f"mission's grid is {truth.shape[0]}x{truth.shape[1]}")
 
 
+class Feed(Protocol):
+    """What :class:`FeedWorld` reads a rover's maps from: :class:`MapFeed` or :class:`LiveFeed`."""
+
+    source: str
+
+    def at(self, step: int) -> np.ndarray | None: ...
+
+    def check(self, truth: GridMap) -> None: ...
+
+
+class LiveFeed:
+    """A rover's maps as its mapping stack publishes them: at every step, the latest map
+    ``subscriber`` received by then (:class:`fedmap.maps.ros2dds.MapSubscriber`, or anything
+    whose ``poll()`` gives the latest :class:`GridMap` or None). A map that is not on the
+    mission's grid is not used (:attr:`off_grid` counts the steps it was the latest)."""
+
+    def __init__(self, subscriber: Any) -> None:
+        self.subscriber = subscriber
+        self.source = str(getattr(subscriber, "topic", "a live topic"))
+        self.shape: tuple[int, int] | None = None
+        self.off_grid = 0
+
+    def check(self, truth: GridMap) -> None:
+        """Only the mission's grid is known before the maps arrive."""
+        self.shape = truth.shape
+
+    def at(self, step: int) -> np.ndarray | None:
+        """The latest map received by now (None before the first, or when it is off the grid)."""
+        grid = self.subscriber.poll()
+        if grid is None:
+            return None
+        if self.shape is not None and grid.shape != self.shape:
+            self.off_grid += 1
+            return None
+        return grid.classes
+
+
 class FeedWorld(World):
     """The team's world where member ``k`` observes through a :class:`MapFeed` (it plans
     nothing: its own software drives it). Only member ``k`` is ever driven."""
 
-    def __init__(self, world: World, k: int, feed: MapFeed) -> None:
+    def __init__(self, world: World, k: int, feed: Feed) -> None:
         feed.check(world.truth)
         self.__dict__.update(world.__dict__)
         self.k, self.feed = k, feed
@@ -125,4 +166,4 @@ class FeedWorld(World):
         self.sense(k, t)
 
 
-__all__ = ["FEED_SUFFIXES", "FeedWorld", "MapFeed"]
+__all__ = ["FEED_SUFFIXES", "Feed", "FeedWorld", "LiveFeed", "MapFeed"]
