@@ -245,6 +245,11 @@ class ProcessRover:
     takes an order, returns the report: the order is its transport (the frames that reached
     it, and the step to drive to), the report carries its frame back."""
 
+    #: called after every order it answered with its step and its belief (what it plans on:
+    #: the team's map as it knows it), e.g. to publish it to the robot's ROS 2 graph. A class
+    #: default, so a state file written before it existed still loads and answers.
+    on_belief: Callable[[int, np.ndarray], None] | None = None
+
     def __init__(self, mission: Mission, name: str, k: int, *, feed: Feed | None = None) -> None:
         check_deployable(mission.config, [name])
         self.name, self.k, self.config = name, k, mission.config
@@ -270,9 +275,6 @@ class ProcessRover:
         self.synced = False  # it passed a sync step while answering this order
         self.t0: float | None = None  # on its own clock: when its step 0 was (seconds, ``now``'s)
         self.now = time.time
-        #: called after every order it answered with its step and its belief (what it plans on:
-        #: the team's map as it knows it), e.g. to publish it to the robot's ROS 2 graph
-        self.on_belief: Callable[[int, np.ndarray], None] | None = None
         self.node.sense(0)
         self._states = [self._state(0)]  # recorded, not yet logged (the record of a step follows its deliveries)
 
