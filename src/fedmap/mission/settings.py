@@ -505,13 +505,13 @@ class MissionConfig:
         return self.seed if self.link.seed is None else self.link.seed
 
     def to_dict(self) -> dict:
-        out = _without_unset_predictor(asdict(self))
+        out = _without_unset_options(asdict(self))
         if not self.frames.enabled:  # known poses: the settings (and metrics.json) as before [frames] existed
             out.pop("frames", None)
         return out
 
 
-def _without_unset_predictor(mission: dict) -> dict:
+def _without_unset_options(mission: dict) -> dict:
     """``mission`` without ``predictor`` when it is ``none`` and without ``stop_coverage``
     when it is unset: missions that use neither keep the settings (and the ``metrics.json``)
     they had before they existed."""
@@ -611,7 +611,7 @@ def load_mission(path: str | Path | None = None, *, preset: str | None = None, m
                 raise needs_dem(what)
     out = {"seed": resolved["seed"], "terrain": {k: v for k, v in source.to_dict().items() if k != "thresholds"},
            "thresholds": used_thresholds(resolved["thresholds"]),
-           "mission": _without_unset_predictor({k: v for k, v in asdict(config).items()
+           "mission": _without_unset_options({k: v for k, v in asdict(config).items()
                                                 if k not in ("link", "prior", "helicopter", "frames", "methods",
                                                              "seed")}),
            "link": config.link.to_dict(), "prior": config.prior.to_dict(), "helicopter": config.helicopter.to_dict(),
