@@ -236,3 +236,86 @@ def test_a_rover_fed_live_over_dds_publishes_its_team_map_to_a_late_subscriber(t
     np.testing.assert_array_equal(live, filed)
     np.testing.assert_array_equal(np.load(tmp_path / "team.npy"), live)
     assert ((live != UNKNOWN) >= (snap != UNKNOWN)).all()  # the rover's map is in the team map it plans on
+
+
+def _rehearsal_bag(path):
+    """A bag as a rover records it: maps on /map, poses on /pose, interleaved in time."""
+    from rosbags.rosbag2 import Writer
+
+    from fedmap.maps.rosbag import BAG_VERSION, occupancy_message
+
+    rng = np.random.default_rng(9)
+    maps = [(0, rng.integers(0, 3, (5, 7)).astype(np.uint8)), (500_000_000, rng.integers(0, 3, (5, 7)).astype(np.uint8)),
+            (1_500_000_000, rng.integers(0, 3, (5, 7)).astype(np.uint8))]
+    poses = [(t, pose_stamped(rosbags_make, np.random.default_rng(t))) for t in (250_000_000, 1_000_000_000)]
+    with Writer(path, version=BAG_VERSION) as w:
+        cm = w.add_connection("/map", "nav_msgs/msg/OccupancyGrid", typestore=TS)
+        cp = w.add_connection("/pose", "geometry_msgs/msg/PoseStamped", typestore=TS)
+        for t, m in sorted([*((t, ("map", c)) for t, c in maps), *((t, ("pose", p)) for t, p in poses)],
+                           key=lambda x: x[0]):
+            if m[0] == "map":
+                msg = occupancy_message(TS, m[1], resolution=0.5, origin=(0.0, 0.0), time_ns=t)
+                w.write(cm, t, TS.serialize_cdr(msg, "nav_msgs/msg/OccupancyGrid"))
+            else:
+                w.write(cp, t, TS.serialize_cdr(m[1], "geometry_msgs/msg/PoseStamped"))
+    return maps, poses
+
+
+def test_a_bag_is_played_at_its_own_timing(tmp_path):
+    """The pauses between messages are the bag's gaps over the speed (a clock that moves only
+    when the player sleeps: by hand, 0.25, 0.25, 0.5 and 0.5 s of bag time)."""
+    from fedmap.maps import ros2dds
+
+    _rehearsal_bag(tmp_path / "bag")
+    now, slept = [0.0], []
+
+    def sleep(d):
+        slept.append(d)
+        now[0] += d
+
+    dp = ros2dds.participant(105, loopback=True)
+    sent = ros2dds.play_bag(tmp_path / "bag", dp, speed=2.0, clock=lambda: now[0], sleep=sleep)
+    assert sent == 5 and slept == pytest.approx([0.125, 0.125, 0.25, 0.25])
+    with pytest.raises(FedmapError, match="has no topic /scan"):
+        ros2dds.play_bag(tmp_path / "bag", dp, topics=["/scan"])
+    with pytest.raises(FedmapError, match="speed must be a positive number"):
+        ros2dds.play_bag(tmp_path / "bag", dp, speed=0)
+
+
+def test_a_played_bag_reaches_readers_in_another_process_message_for_message(tmp_path):
+    """Another process plays a rover's recorded bag into the graph (waiting for this
+    process's readers first): every pose arrives, in order and byte-equal to the bag's, and
+    the latest map read is the bag's last."""
+    import subprocess
+    import sys
+    import time
+
+    from fedmap.maps import ros2dds
+
+    maps, poses = _rehearsal_bag(tmp_path / "bag")
+    domain = 106
+    dp = ros2dds.participant(domain, loopback=True)
+    sub = ros2dds.MapSubscriber(dp, "/map")
+    pose_reader = ros2dds.reader(dp, "/pose", "geometry_msgs/msg/PoseStamped", latched=False)
+    code = ("import sys\nfrom fedmap.maps import ros2dds\n"
+            f"dp = ros2dds.participant({domain}, loopback=True)\n"
+            "print(ros2dds.play_bag(sys.argv[1], dp, speed=4.0, readers=1), flush=True)\n"
+            "import time; time.sleep(1)\n")
+    got: list = []
+    with subprocess.Popen([sys.executable, "-c", code, str(tmp_path / "bag")], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True) as player:
+        try:
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and (len(got) < len(poses) or sub.received < 1
+                                                   or not np.array_equal(sub.poll().classes, maps[-1][1])):
+                got += pose_reader.take(N=10)
+                sub.poll()
+                time.sleep(0.02)
+            out, err = player.communicate(timeout=20)
+        finally:
+            player.kill()
+    assert player.returncode == 0, err[-2000:]
+    assert out.strip() == "5"
+    assert [g.serialize() for g in got] == [bytes(TS.serialize_cdr(p, "geometry_msgs/msg/PoseStamped"))
+                                            for _, p in poses]
+    np.testing.assert_array_equal(sub.poll().classes, maps[-1][1])

@@ -22,6 +22,7 @@ self-contained wheel); without it, :func:`dds_type` says so in one line.
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any
 
 import numpy as np
@@ -279,5 +280,41 @@ class MapSubscriber:
         return self.latest
 
 
-__all__ = ["LOOPBACK", "OCCUPANCY_GRID", "STORE", "MapPublisher", "MapSubscriber", "check_domain", "dds_name",
+def play_bag(path, dp: Any, *, topics: list[str] | None = None, speed: float = 1.0, readers: int = 0,
+             wait: float = 10.0, clock: Any = None, sleep: Any = None) -> int:
+    """Publish the messages of a ROS 2 bag on their topics at the bag's timing, as the robot
+    that recorded it did (a mapping stack rehearsed from its logs). Returns how many.
+
+    ``topics``: the bag's topics to play (all when None). Maps (OccupancyGrid) go out latched,
+    as map_server and slam_toolbox publish them; every other type reliable and volatile.
+    ``speed``: 2 plays twice as fast. ``readers``: before the first message, wait (at most
+    ``wait`` seconds) until every topic has that many readers, so none misses the start.
+    ``clock`` and ``sleep`` (default: the monotonic clock) pace it."""
+    import time
+
+    from fedmap.maps.rosbag import bag_messages, bag_topics
+
+    if not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed > 0):
+        raise FedmapError(f"speed must be a positive number, got {speed!r}")
+    clock, sleep = clock or time.monotonic, sleep or time.sleep
+    kinds = bag_topics(path)
+    chosen = list(kinds) if topics is None else list(topics)
+    writers = {t: writer(dp, t, kinds[t], latched=kinds[t] == OCCUPANCY_GRID) for t in chosen if t in kinds}
+    deadline = clock() + wait
+    while readers and any(len(w.get_matched_subscriptions()) < readers for w in writers.values()):
+        if clock() > deadline:
+            raise FedmapError(f"no {readers} reader(s) on every topic of {', '.join(writers)} within {wait:g} s")
+        sleep(0.02)
+    start, first, sent = clock(), None, 0
+    for topic, msgtype, t, msg in bag_messages(path, chosen):
+        first = t if first is None else first
+        ahead = start + (t - first) / 1e9 / speed - clock()
+        if ahead > 0:
+            sleep(ahead)
+        writers[topic].write(to_dds(msg, msgtype))
+        sent += 1
+    return sent
+
+
+__all__ = ["LOOPBACK", "OCCUPANCY_GRID", "STORE", "MapPublisher", "MapSubscriber", "play_bag", "check_domain", "dds_name",
            "dds_topic", "dds_type", "from_dds", "map_qos", "participant", "reader", "to_dds", "typestore", "writer"]

@@ -196,21 +196,33 @@ def grid_from_message(msg, source: str, *, time_ns: int | None = None) -> GridMa
     return GridMap(np.ascontiguousarray(classes), res, source, meta, transform=transform)
 
 
-def _grid_messages(path: Path, topic: str | None) -> Generator[tuple[int, GridMap], None, None]:
-    """(bag time in ns, map) of every message of the chosen topic, in bag order."""
+def bag_messages(path, topics: Iterable[str] | None = None) -> Generator[tuple[str, str, int, Any], None, None]:
+    """``(topic, message type, bag time in ns, message)`` of every message on ``topics`` (every
+    topic when None), deserialised, in bag order. A topic the bag lacks is a one-line error."""
+    path = Path(path)
     errors = _reader_errors()
     with _open_bag(path) as reader:
-        topics = {c.topic: c.msgtype for c in reader.connections}
-        chosen = _pick_topic(topics, topic, f"ROS 2 bag {path}")
-        conns = [c for c in reader.connections if c.topic == chosen]
+        known = {c.topic: c.msgtype for c in reader.connections}
+        wanted = list(known) if topics is None else list(topics)
+        missing = [t for t in wanted if t not in known]
+        if missing:
+            raise FedmapError(f"ROS 2 bag {path} has no topic {', '.join(missing)} (it has "
+                              f"{', '.join(sorted(known)) or 'none'})")
+        conns = [c for c in reader.connections if c.topic in wanted]
         try:
-            for n, (conn, t, raw) in enumerate(reader.messages(connections=conns)):
-                msg = reader.deserialize(raw, conn.msgtype)
-                yield int(t), grid_from_message(msg, f"{path} {chosen} #{n}", time_ns=int(t))
+            for conn, t, raw in reader.messages(connections=conns):
+                yield conn.topic, conn.msgtype, int(t), reader.deserialize(raw, conn.msgtype)
         except FedmapError:
             raise
         except errors as exc:
             raise FedmapError(f"cannot read ROS 2 bag {path}: {one_line(exc)} (truncated or not a bag?)") from exc
+
+
+def _grid_messages(path: Path, topic: str | None) -> Generator[tuple[int, GridMap], None, None]:
+    """(bag time in ns, map) of every message of the chosen topic, in bag order."""
+    chosen = _pick_topic(bag_topics(path), topic, f"ROS 2 bag {path}")
+    for n, (_, _, t, msg) in enumerate(bag_messages(path, [chosen])):
+        yield t, grid_from_message(msg, f"{path} {chosen} #{n}", time_ns=t)
 
 
 def bag_map_feed(path, *, topic: str | None = None) -> Iterator[tuple[float, GridMap]]:
@@ -364,5 +376,6 @@ def write_maps_bag(maps: Mapping[str, GridMap], path, *, frame_id: str = "map", 
 
 
 __all__ = ["BAG_SUFFIXES", "BAG_VERSION", "OCCUPANCY_GRID", "OCCUPANCY_VALUES", "STORAGES", "bag_map_feed",
-           "bag_storage", "bag_topics", "classes_from_occupancy", "grid_from_message", "is_bag",
-           "occupancy_from_classes", "occupancy_message", "read_bag_map", "write_bag", "write_map_bag", "write_maps_bag"]
+           "bag_messages", "bag_storage", "bag_topics", "check_topic", "classes_from_occupancy", "grid_from_message",
+           "is_bag", "occupancy_from_classes", "occupancy_message", "read_bag_map", "write_bag", "write_map_bag",
+           "write_maps_bag"]
