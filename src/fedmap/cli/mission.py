@@ -124,7 +124,7 @@ def mission(
             tasks[name] = progress.add_task(f"{label}mission: {name}", total=cfg.steps, loss="", alongside=True)
 
         def on_step(name: str, step: int, coverage: float) -> None:
-            if step < cfg.steps and cfg.stops(coverage):  # the stop rule ends this run here: so does its bar
+            if cfg.stops(step, coverage):  # the stop rule ends this run here: so does its bar
                 progress.update(tasks[name], total=step, completed=step, loss=f"stopped: reachable {coverage:.0%}")
             else:
                 progress.update(tasks[name], completed=step, loss=f"reachable {coverage:.0%}")

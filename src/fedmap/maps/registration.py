@@ -258,7 +258,7 @@ class Registration:
         smooth map say the same thing, so 4,000 shared cells of a map whose features span
         20 cells are a few patches, and a look-alike place can fit as well as the true one
         (a window of Hadley 118 m was placed on another window of it that it never met, at
-        kappa 0.72 on 4,309 cells: 8.7 patches). Below :data:`FEW_PATCHES` the placement is
+        kappa 0.72 on 4,309 cells: 6.8 patches). Below :data:`FEW_PATCHES` the placement is
         flagged, not refused: most right placements on such maps are also there.
     """
 

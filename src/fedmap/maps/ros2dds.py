@@ -292,14 +292,14 @@ def play_bag(path, dp: Any, *, topics: list[str] | None = None, speed: float = 1
     ``clock`` and ``sleep`` (default: the monotonic clock) pace it."""
     import time
 
-    from fedmap.maps.rosbag import bag_messages, bag_topics
+    from fedmap.maps.rosbag import bag_messages, bag_topics, wanted_topics
 
     if not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed > 0):
         raise FedmapError(f"speed must be a positive number, got {speed!r}")
     clock, sleep = clock or time.monotonic, sleep or time.sleep
     kinds = bag_topics(path)
-    chosen = list(kinds) if topics is None else list(topics)
-    writers = {t: writer(dp, t, kinds[t], latched=kinds[t] == OCCUPANCY_GRID) for t in chosen if t in kinds}
+    chosen = wanted_topics(kinds, topics, f"ROS 2 bag {path}")  # before waiting for readers
+    writers = {t: writer(dp, t, kinds[t], latched=kinds[t] == OCCUPANCY_GRID) for t in chosen}
     deadline = clock() + wait
     while readers and any(len(w.get_matched_subscriptions()) < readers for w in writers.values()):
         if clock() > deadline:

@@ -39,7 +39,7 @@ import os
 import shutil
 import tempfile
 from collections import deque
-from collections.abc import Generator, Iterable, Iterator, Mapping
+from collections.abc import Callable, Generator, Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Literal
@@ -196,19 +196,24 @@ def grid_from_message(msg, source: str, *, time_ns: int | None = None) -> GridMa
     return GridMap(np.ascontiguousarray(classes), res, source, meta, transform=transform)
 
 
-def bag_messages(path, topics: Iterable[str] | None = None) -> Generator[tuple[str, str, int, Any], None, None]:
-    """``(topic, message type, bag time in ns, message)`` of every message on ``topics`` (every
-    topic when None), deserialised, in bag order. A topic the bag lacks is a one-line error."""
-    path = Path(path)
+def wanted_topics(known: Mapping[str, str], topics: Iterable[str] | None, where: str) -> list[str]:
+    """``topics`` (every one of ``known`` when None), each checked against ``known`` (topic ->
+    type): a topic not there is a one-line error naming ``where`` and what is."""
+    wanted = list(known) if topics is None else list(topics)
+    missing = [t for t in wanted if t not in known]
+    if missing:
+        raise FedmapError(f"{where} has no topic {', '.join(missing)} (it has {', '.join(sorted(known)) or 'none'})")
+    return wanted
+
+
+def _messages(path: Path, choose: Callable[[dict[str, str]], list[str]]
+              ) -> Generator[tuple[str, str, int, Any], None, None]:
+    """``(topic, type, bag time in ns, message)`` of the topics ``choose`` picks from the bag's
+    (topic -> type), deserialised, in bag order; the bag is opened once."""
     errors = _reader_errors()
     with _open_bag(path) as reader:
-        known = {c.topic: c.msgtype for c in reader.connections}
-        wanted = list(known) if topics is None else list(topics)
-        missing = [t for t in wanted if t not in known]
-        if missing:
-            raise FedmapError(f"ROS 2 bag {path} has no topic {', '.join(missing)} (it has "
-                              f"{', '.join(sorted(known)) or 'none'})")
-        conns = [c for c in reader.connections if c.topic in wanted]
+        chosen = set(choose({c.topic: c.msgtype for c in reader.connections}))
+        conns = [c for c in reader.connections if c.topic in chosen]
         try:
             for conn, t, raw in reader.messages(connections=conns):
                 yield conn.topic, conn.msgtype, int(t), reader.deserialize(raw, conn.msgtype)
@@ -218,10 +223,17 @@ def bag_messages(path, topics: Iterable[str] | None = None) -> Generator[tuple[s
             raise FedmapError(f"cannot read ROS 2 bag {path}: {one_line(exc)} (truncated or not a bag?)") from exc
 
 
+def bag_messages(path, topics: Iterable[str] | None = None) -> Generator[tuple[str, str, int, Any], None, None]:
+    """``(topic, message type, bag time in ns, message)`` of every message on ``topics`` (every
+    topic when None), deserialised, in bag order. A topic the bag lacks is a one-line error."""
+    path = Path(path)
+    yield from _messages(path, lambda known: wanted_topics(known, topics, f"ROS 2 bag {path}"))
+
+
 def _grid_messages(path: Path, topic: str | None) -> Generator[tuple[int, GridMap], None, None]:
     """(bag time in ns, map) of every message of the chosen topic, in bag order."""
-    chosen = _pick_topic(bag_topics(path), topic, f"ROS 2 bag {path}")
-    for n, (_, _, t, msg) in enumerate(bag_messages(path, [chosen])):
+    pick = lambda known: [_pick_topic(known, topic, f"ROS 2 bag {path}")]  # noqa: E731
+    for n, (chosen, _, t, msg) in enumerate(_messages(path, pick)):
         yield t, grid_from_message(msg, f"{path} {chosen} #{n}", time_ns=t)
 
 
@@ -377,5 +389,5 @@ def write_maps_bag(maps: Mapping[str, GridMap], path, *, frame_id: str = "map", 
 
 __all__ = ["BAG_SUFFIXES", "BAG_VERSION", "OCCUPANCY_GRID", "OCCUPANCY_VALUES", "STORAGES", "bag_map_feed",
            "bag_messages", "bag_storage", "bag_topics", "check_topic", "classes_from_occupancy", "grid_from_message",
-           "is_bag", "occupancy_from_classes", "occupancy_message", "read_bag_map", "write_bag", "write_map_bag",
-           "write_maps_bag"]
+           "is_bag", "occupancy_from_classes", "occupancy_message", "read_bag_map", "wanted_topics", "write_bag",
+           "write_map_bag", "write_maps_bag"]

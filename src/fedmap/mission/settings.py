@@ -490,10 +490,11 @@ class MissionConfig:
         """The sync round at step ``t`` (1, 2, ...), or None when ``t`` has none."""
         return t // self.sync_every if 0 < t <= self.steps and t % self.sync_every == 0 else None
 
-    def stops(self, coverage_reachable: float) -> bool:
-        """Whether the stop rule ends a run whose team has observed ``coverage_reachable`` of
-        the cells it can reach (never without ``stop_coverage``)."""
-        return self.stop_coverage is not None and coverage_reachable >= self.stop_coverage - 1e-12
+    def stops(self, t: int, coverage_reachable: float) -> bool:
+        """Whether the stop rule ends a run at step ``t``, before its last, its team having
+        observed ``coverage_reachable`` of the cells it can reach (never without ``stop_coverage``)."""
+        return (self.stop_coverage is not None and t < self.steps
+                and coverage_reachable >= self.stop_coverage - 1e-12)
 
     def evaluated(self, t: int) -> bool:
         """Whether step ``t`` is scored in full (maps and paths): step 0, every sync and the last."""

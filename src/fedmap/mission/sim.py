@@ -178,7 +178,7 @@ class Scoring:
             distance=tuple(team.distances), bytes_up=tuple(up), bytes_down=tuple(down),
             up_delivered=delivered[UP], up_dropped=dropped[UP],
             down_delivered=delivered[DOWN], down_dropped=dropped[DOWN]))
-        if t < self.config.steps and self.config.stops(self.rows[-1].coverage_reachable):
+        if self.config.stops(t, self.rows[-1].coverage_reachable):
             self.stopped = t  # the stop rule: this step is the run's last
         last = t == self.config.steps or self.stopped == t
         evaluate = evaluate or last
