@@ -856,7 +856,7 @@ def test_certs_forced_over_an_old_ca_leave_no_rover_key_of_it(tmp_path):
     launch.make_certs(tmp_path, hosts=["127.0.0.1"], rovers=3)
     (tmp_path / "notes.txt").write_text("mine")
     launch.make_certs(tmp_path, hosts=["127.0.0.1"], rovers=1, overwrite=True)
-    assert sorted(p.name for p in tmp_path.glob("rover*")) == ["rover0", "rover0.crt", "rover0.pub"]
+    assert sorted(p.name for p in tmp_path.glob("rover*")) == ["rover0", "rover0.crt", "rover0.key", "rover0.pub"]
     assert (tmp_path / "notes.txt").read_text() == "mine"
 
 

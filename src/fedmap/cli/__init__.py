@@ -33,7 +33,7 @@ from fedmap.errors import FedmapError
 #: from this list before the library (torch and all) is imported. A test checks it is the app's.
 COMMANDS = ("demo", "run", "reproduce", "bandwidth", "terrain", "evaluate", "export", "merge", "base-station",
             "rover", "certs", "meta-train", "ablate-init", "meta-coder", "meta-predictor", "federate-predictor",
-            "mission", "score")
+            "mission", "score", "node")
 
 
 def _global_options(
@@ -53,7 +53,7 @@ def _global_options(
 @functools.cache
 def build_app() -> typer.Typer:
     """The ``fedmap`` app with every command (built once: importing the commands imports the library)."""
-    from fedmap.cli import experiments, export, flower, merge, meta, mission, predictorfed, run
+    from fedmap.cli import experiments, export, flower, merge, meta, mission, node, predictorfed, run
 
     app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                       help="Federated multi-agent mapping for planetary exploration.")
@@ -76,6 +76,7 @@ def build_app() -> typer.Typer:
     app.command("federate-predictor")(predictorfed.federate_predictor)
     app.command()(mission.mission)
     app.command()(mission.score)
+    app.add_typer(node.node_app, name="node")
     return app
 
 
@@ -94,6 +95,9 @@ def _home_paths(group: click.Command) -> click.Command:
     quoted ``-o "~/out"`` is the home folder's ``out`` for every command and option alike (one
     command wrote a folder named ``~`` where another read the home folder)."""
     for command in group.commands.values() if isinstance(group, click.Group) else [group]:
+        if isinstance(command, click.Group):  # (fedmap node rover|base)
+            _home_paths(command)
+            continue
         for param in command.params:
             if isinstance(param.type, click.Path) and not hasattr(param.type, "home"):
                 base = type(param.type)

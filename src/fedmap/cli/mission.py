@@ -59,7 +59,7 @@ def mission(
     live: bool = typer.Option(False, "--live/--no-live", help="Stream the same channels from a Foxglove WebSocket server while the mission runs (stopped at the end)."),
     rosbag: Optional[Path] = typer.Option(None, "--rosbag", help="Also write every strategy's global map and every rover's belief at step 0, every sync and the last step as a ROS 2 bag folder of nav_msgs/OccupancyGrid (1 s a step; with --repeats, repeat 1's)."),
     port: int = typer.Option(8765, "--port", min=0, max=65535, help="The --live server's port on 127.0.0.1 (0: any free port)."),
-    deploy: Optional[str] = typer.Option(None, "--deploy", help="Run the mission on real processes with Flower: local (a SuperLink, one rover process per rover and the base station on this machine, TLS and authentication), or base (only the base station; rovers join with fedmap rover --mission). Star topology, latency 0."),
+    deploy: Optional[str] = typer.Option(None, "--deploy", help="Run the mission on real processes: zenoh (one process per rover over Zenoh on this machine, mutual TLS and access control), or with Flower local (a SuperLink, one rover process per rover and the base station on this machine, TLS and authentication) or base (only the base station; rovers join with fedmap rover --mission). Star topology, latency 0."),
     listen: Optional[str] = typer.Option(None, "--listen", help="--deploy base: the SuperLink's HOST:PORT (rovers connect to it) [127.0.0.1:9092]."),
     certs: Optional[Path] = typer.Option(None, "--certs", help="--deploy base: TLS folder from fedmap certs (ca.crt, server.pem, server.key)."),
     auth_keys: Optional[Path] = typer.Option(None, "--auth-keys", help="--deploy base: folder of the rovers' *.pub keys (SuperNode authentication)."),
@@ -88,6 +88,11 @@ def mission(
         if inprocess:
             raise FedmapError(f"{', '.join(inprocess)} run in process only, not with --deploy")
         plan = _deploy_plan(cfg, deploy, listen or DEFAULT_LISTEN)  # before the terrain loads: a wrong argument costs nothing
+        base_only = [o for o, on in (("--listen", listen is not None), ("--certs", certs is not None),
+                                     ("--auth-keys", auth_keys is not None), ("--insecure", insecure)) if on]
+        if deploy == "zenoh" and base_only:
+            raise FedmapError(f"{', '.join(base_only)} apply to --deploy base; --deploy zenoh runs the team on this "
+                              "machine with its own certificates (a base on its own computer: fedmap node base)")
     with progress_bar() as progress:
         task = progress.add_task("load terrain", total=None, loss="")
         truth, elevation, prior, profiles = mission_terrain(cfg, source)
@@ -207,8 +212,8 @@ def mission(
 def _deploy_plan(cfg, mode: str, listen: str) -> tuple[tuple[str, ...], list[str], str, str]:
     """What ``--deploy mode`` runs, checked: the strategies that run on processes, those left
     out, and ``--listen``'s host and port."""
-    if mode not in DEPLOY_MODES:
-        raise FedmapError(f"unknown --deploy {mode!r}: choose one of {', '.join(DEPLOY_MODES)}")
+    if mode not in (*DEPLOY_MODES, "zenoh"):
+        raise FedmapError(f"unknown --deploy {mode!r}: choose one of {', '.join((*DEPLOY_MODES, 'zenoh'))}")
     deployable = names_that("deployable")
     names = tuple(n for n in cfg.strategies if n in deployable)
     left = [n for n in cfg.strategies if n not in deployable]
@@ -252,6 +257,9 @@ def _deployed(cfg, resolved: dict, mode: str, plan: tuple[tuple[str, ...], list[
     if left:
         console.print(f"note: {', '.join(left)} stay(s) out of a mission on processes (not one end per machine)")
     members = cfg.rovers + cfg.helicopters
+    if mode == "zenoh":
+        return _over_zenoh(cfg, resolved, names, out=out, animation=animation, progress=progress, resume=resume,
+                           step_seconds=step_seconds)
     start = progress.add_task(f"start the SuperLink, {members} rover processes and the base station" if mode == "local"
                               else "start the SuperLink and the base station; wait for the rovers", total=None, loss="")
     tasks: dict[str, int] = {}
@@ -277,6 +285,29 @@ def _deployed(cfg, resolved: dict, mode: str, plan: tuple[tuple[str, ...], list[
                           certs=certs, auth_keys=auth_keys, insecure=insecure, rounds=len(cfg.sync_steps) + 1,
                           resume=resume, step_seconds=step_seconds,
                           on_status=on_status, on_ready=on_ready)
+
+
+def _over_zenoh(cfg, resolved: dict, names: tuple[str, ...], *, out: Path, animation: bool, progress, resume: bool,
+                step_seconds: float):
+    """The mission with one process per rover over Zenoh on this machine
+    (:func:`fedmap.zenohnet.deploy.deploy_zenoh`), a progress bar per strategy."""
+    from fedmap.zenohnet.deploy import deploy_zenoh
+
+    members = cfg.rovers + cfg.helicopters
+    start = progress.add_task(f"start {members} rover processes (Zenoh, mutual TLS)", total=None, loss="")
+    tasks: dict[str, int] = {}
+
+    def on_started(seconds: float) -> None:
+        progress.update(start, total=1, completed=1, loss=f"{seconds:.1f} s")
+
+    def on_step(name: str, step: int) -> None:
+        if name not in tasks:
+            tasks[name] = progress.add_task(f"mission over Zenoh: {name}", total=cfg.steps, loss="")
+        progress.update(tasks[name], completed=step)
+
+    return deploy_zenoh(mission_toml(resolved), members=members, out=out, strategies=names,
+                        frames=60 if animation else 1, resume=resume, step_seconds=step_seconds,
+                        on_step=on_step, on_started=on_started)
 
 
 def _print_repeats(results: list, title: str) -> None:

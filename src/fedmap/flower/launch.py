@@ -565,7 +565,8 @@ def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365,
     SuperLink), and per rover ``rover{k}`` / ``rover{k}.pub`` (ECDSA P-384 in OpenSSH format,
     Flower's SuperNode authentication: the rover keeps the private key, the base registers
     the ``.pub``) and ``rover{k}.crt``, the TLS client certificate of that key (common name
-    ``rover{k}``) that the base's front asks of every rover. Private keys are readable by
+    ``rover{k}``) that the base's front asks of every rover, with its key again as
+    ``rover{k}.key`` (PEM: what a rover's Zenoh TLS reads). Private keys are readable by
     their owner only. ``keep_ca_key`` False: the CA's key is never written (nobody can make
     another certificate of this CA: a run's own, throw-away CA). A folder that already holds
     a CA is refused unless ``overwrite``: a new CA locks out every base station and rover set
@@ -636,9 +637,10 @@ def make_certs(out_dir: Path, *, hosts: list[str], rovers: int, days: int = 365,
                   .add_extension(x509.ExtendedKeyUsage([x509.oid.ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
                   .sign(ca_key, hashes.SHA256()))
         files[f"rover{k}.crt"] = client.public_bytes(pem)
+        files[f"rover{k}.key"] = key_bytes(rk)  # the same key in PEM (PKCS#8): Zenoh's TLS reads this form
     if held:  # replacing a CA (overwrite): rover keys of the old one beyond the new count would still be registered
         for stale in out_dir.glob("rover*"):
-            if re.fullmatch(r"rover\d+(\.pub|\.crt)?", stale.name) and stale.name not in files:
+            if re.fullmatch(r"rover\d+(\.pub|\.crt|\.key)?", stale.name) and stale.name not in files:
                 stale.unlink()
     written = []
     for fname, data in files.items():

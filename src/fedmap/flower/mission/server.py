@@ -34,9 +34,11 @@ from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
 from fedmap.flower.mission.task import (
     BaseJournal,
+    JournaledSend,
     MissionRun,
     base_dir,
     base_log,
+    lost_state,
     mission_from_text,
     strategies_of,
 )
@@ -44,7 +46,7 @@ from fedmap.flower.polling import exchange, quick_pulls
 from fedmap.flower.records import from_record, to_record
 from fedmap.flower.task import KEY_ROVER, parse_rover_nodes, write_status, wrong_key
 from fedmap.mission.network.nodelog import write_log
-from fedmap.mission.network.remote import CorruptMessage, ProcessBase, Report, check_deployable, pack_history, rounds
+from fedmap.mission.network.remote import CorruptMessage, ProcessBase, Report, check_deployable, rounds
 from fedmap.mission.scoring import write_run
 
 app = ServerApp()
@@ -183,11 +185,9 @@ class _Team:
                 if "error" in reply.content.config_records:
                     why = str(reply.content["error"]["reason"])
                     if reply.content["error"].get("lost") and k not in lost:
-                        lost[k] = pack_history(history.get(k, []))
+                        lost[k], line = lost_state(history.get(k, []), why)
                         again[k] = todo[k]
-                        self._fault(strategy, k, f"lost its state ({why}); its {len(history.get(k, []))} earlier "
-                                                 f"order(s) sent again with this one ({len(lost[k]) / 1e3:.1f} kB) "
-                                                 "to rebuild it")
+                        self._fault(strategy, k, line)
                         continue
                     if not reply.content["error"].get("corrupt"):
                         raise FedmapError(f"rover {k}: {why}")
@@ -261,27 +261,7 @@ def run_mission_base(grid: Grid, run: MissionRun) -> None:
         t1 = time.perf_counter()
         say(run.out, INFO, f"mission {name} on {team.members} rovers")
         base = ProcessBase(mission, name, mission_id=journal.mission_id, pace=round(run.step_seconds * 1000))
-        saved, done = journal.saved(name), 0
-        history: dict[int, list[bytes]] = {}  # every order each rover was sent (to rebuild one that lost its state)
-
-        def send(orders: dict[int, bytes]) -> dict[int, bytes]:
-            nonlocal done
-            if done < saved:  # replayed: the base's state is rebuilt from what the rovers reported
-                reports, faults = journal.load(name, done)
-                team.faults += faults
-            else:
-                if done == saved and saved:
-                    team.note(name, f"base station resumed: {saved} round(s) replayed from its journal")
-                before, t_round = len(team.faults), time.perf_counter()
-                reports = team.send(name, orders, history)
-                journal.save(name, done, reports, team.faults[before:])
-                say(run.out, INFO, f"{name} order {done + 1}: {len(reports)} rovers answered in "
-                                   f"{time.perf_counter() - t_round:.2f} s")
-            done += 1
-            for k, raw in orders.items():
-                history.setdefault(k, []).append(raw)
-            return reports
-
+        send = JournaledSend(journal, name, team, lambda line: say(run.out, INFO, line))
         for step in rounds(base, send):
             write_status(run.out, "running", strategy=name, step=step, steps=c.steps)
         write_log(base_dir(run.out), base.record(time.perf_counter() - t1))

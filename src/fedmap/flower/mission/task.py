@@ -19,6 +19,7 @@ import pickle
 import shutil
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,7 @@ from fedmap.mission.network.remote import (
     Order,
     ProcessRover,
     pack_frame,
+    pack_history,
     unpack_frame,
     unpack_history,
 )
@@ -243,11 +245,51 @@ class BaseJournal:
 # -- the base station's record ----------------------------------------------------------------
 
 
+def lost_state(history: list[bytes], why: str) -> tuple[bytes, str]:
+    """A rover that lost its state (``why``) and was sent ``history`` (every earlier order):
+    the frame to rebuild it from, and the fault's line."""
+    packed = pack_history(history)
+    return packed, (f"lost its state ({why}); its {len(history)} earlier order(s) sent again with this one "
+                    f"({len(packed) / 1e3:.1f} kB) to rebuild it")
+
+
+class JournaledSend:
+    """The base's ``send`` of one strategy's rounds (:func:`~fedmap.mission.network.remote.rounds`)
+    over ``team`` (its ``faults``, ``send(strategy, orders, history)`` and ``note(strategy,
+    what)``), through ``journal``: rounds already in it are replayed from it (a base that
+    was resumed), every new round's reports are saved to it; every order each rover was sent
+    is kept (to rebuild a rover that lost its state). ``say`` logs a line per round."""
+
+    def __init__(self, journal: BaseJournal, name: str, team: Any, say: Callable[[str], None]) -> None:
+        self.journal, self.name, self.team, self.say = journal, name, team, say
+        self.saved, self.done = journal.saved(name), 0
+        self.history: dict[int, list[bytes]] = {}
+
+    def __call__(self, orders: dict[int, bytes]) -> dict[int, bytes]:
+        name, team = self.name, self.team
+        if self.done < self.saved:  # replayed: the base's state is rebuilt from what the rovers reported
+            reports, faults = self.journal.load(name, self.done)
+            team.faults += faults
+        else:
+            if self.done == self.saved and self.saved:
+                team.note(name, f"base station resumed: {self.saved} round(s) replayed from its journal")
+            before, t_round = len(team.faults), time.perf_counter()
+            reports = team.send(name, orders, self.history)
+            self.journal.save(name, self.done, reports, team.faults[before:])
+            self.say(f"{name} order {self.done + 1}: {len(reports)} rovers answered in "
+                     f"{time.perf_counter() - t_round:.3f} s")
+        self.done += 1
+        for k, raw in orders.items():
+            self.history.setdefault(k, []).append(raw)
+        return reports
+
+
 def base_dir(out: Path) -> Path:
     """Where the base station keeps its own log (:class:`~fedmap.mission.network.nodelog.BaseRecord` files)."""
     return run_dir(out) / "base"
 
 
-__all__ = ["MISSION_RUN_DEFAULTS", "BaseJournal", "CorruptMessage", "LostState", "MissionRun", "base_dir", "damaged",
-           "log_dir", "mission_from_text", "node_feed", "parse_mission_fault", "rover_answer", "state_file",
+__all__ = ["MISSION_RUN_DEFAULTS", "BaseJournal", "CorruptMessage", "JournaledSend", "LostState", "MissionRun", "base_dir",
+           "damaged",
+           "log_dir", "lost_state", "mission_from_text", "node_feed", "parse_mission_fault", "rover_answer", "state_file",
            "strategies_of"]

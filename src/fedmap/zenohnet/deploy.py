@@ -1,0 +1,133 @@
+"""``fedmap mission --deploy zenoh``: a whole team on this machine, over Zenoh.
+
+The base station runs in this process (:func:`~fedmap.zenohnet.base.run_base`), listening
+on a free port of 127.0.0.1; each rover is a process of its own (``fedmap node rover``) that
+connects to it. By default every link is TLS with mutual authentication, from a throw-away
+CA made for the run (its key never written; the certificates go when the run ends), and the
+base enforces access control (rover ``k`` answers only under its own keys). A rover process
+that exits is started again (it rebuilds itself from the base's orders). The run's files and
+every process's log are in ``<out>.run/``; the result is scored from the nodes' logs
+(:func:`~fedmap.mission.scoring.score_folder`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+from fedmap.errors import FedmapError
+from fedmap.flower.checkpoint import run_dir
+from fedmap.flower.launch import Processes, free_port, make_certs, sigterm_as_interrupt
+from fedmap.flower.mission.task import base_dir, base_log
+from fedmap.mission.results import MissionResult
+from fedmap.mission.scoring import RUN_FILE, score_folder
+from fedmap.zenohnet.base import ZenohTeam, run_base
+from fedmap.zenohnet.session import Certs, acl, node_config, open_session
+
+#: Rover processes started again after they exited, in all, before the mission fails.
+ROVER_PROCESS_RESTARTS = 20
+
+
+def rover_argv(k: int, *, connect: str, team: str, state: Path, certs: Path | None = None,
+               fault: str | None = None) -> list[str]:
+    """``fedmap node rover`` for member ``k`` (what each rover's computer runs)."""
+    argv = [sys.executable, "-m", "fedmap", "node", "rover", "--rover", str(k), "--connect", connect, "--team", team,
+            "--state", str(state)]
+    if certs is not None:
+        argv += ["--certs", str(certs)]
+    if fault:
+        argv += ["--fault", fault]
+    return argv
+
+
+def deploy_zenoh(mission_toml: str, *, members: int, out: Path, strategies: tuple[str, ...] = (), frames: int = 60,
+                 resume: bool = False, step_seconds: float = 0.0, deadline: float = 600.0,
+                 connect_timeout: float = 120.0, rejoin: float = 120.0, tls: bool = True, team: str = "fedmap",
+                 faults: dict[int, str] | None = None,
+                 on_step: Callable[[str, int], None] | None = None,
+                 on_started: Callable[[float], None] | None = None) -> MissionResult:
+    """Run the mission ``mission_toml`` (resolved TOML) with one process per rover over
+    Zenoh on this machine; its result. ``tls``: mutual TLS and access control (the default).
+    ``on_started(seconds)``: every rover is up (the start-up's wall time), the mission begins.
+    ``faults``: per rover, a fault it injects (tests only: ``corrupt@STEP``)."""
+    out = Path(out).resolve()
+    work = run_dir(out)
+    work.mkdir(parents=True, exist_ok=True)
+    if not resume:  # a rover's log and the base's records of an earlier run are not this run's
+        for old in work.glob("rover*.state"):
+            shutil.rmtree(old, ignore_errors=True)
+        shutil.rmtree(base_dir(out), ignore_errors=True)
+    (work / RUN_FILE).unlink(missing_ok=True)
+    certs = work / "certs" if tls else None
+    if certs is not None:  # a throw-away CA (its key never written) whose certificates go with the run
+        make_certs(certs, hosts=["127.0.0.1", "localhost"], rovers=members, overwrite=True, keep_ca_key=False)
+    port = free_port("127.0.0.1")
+    address = f"{'tls' if tls else 'tcp'}/127.0.0.1:{port}"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    restarted: list[dict] = []
+    status = {"strategy": "", "step": 0}
+    t0 = time.perf_counter()
+    try:
+        with contextlib.ExitStack() as stack:
+            procs = stack.enter_context(Processes())
+            stack.enter_context(sigterm_as_interrupt())
+            conf = node_config(listen=[address], certs=None if certs is None else Certs.for_node(certs, "base"),
+                               access=None if certs is None else acl(team, members))
+            session = open_session(conf)
+            stack.callback(session.close)
+            argvs = {k: rover_argv(k, connect=address, team=team, state=work / f"rover{k}.state", certs=certs,
+                                   fault=(faults or {}).get(k)) for k in range(members)}
+
+            def start(k: int) -> None:
+                procs.start(f"rover{k}", argvs[k], env=env, log=work / f"rover{k}.log", die_with_parent=True)
+
+            def watch() -> None:  # a rover process that exited is started again (it rebuilds itself)
+                for k in range(members):
+                    code = procs.procs[f"rover{k}"].poll()
+                    if code is None:
+                        continue
+                    if len(restarted) >= ROVER_PROCESS_RESTARTS:
+                        raise FedmapError(f"rover {k}'s process exited (code {code}) after {len(restarted)} restarts; "
+                                          f"its log: {work / f'rover{k}.log'}")
+                    restarted.append({"strategy": status["strategy"], "rover": k,
+                                      "fault": f"rover process exited (code {code}) near step {status['step']}; "
+                                               "started again"})
+                    base_log(out, "WARNING", f"{status['strategy']} rover {k}: {restarted[-1]['fault']}")
+                    start(k)
+
+            team_ = ZenohTeam(session, team, members, out, deadline=deadline, rejoin=rejoin, watch=watch)
+            stack.callback(team_.close)
+            for k in range(members):
+                start(k)
+            team_.wait_for_rovers(connect_timeout)
+            if on_started is not None:
+                on_started(time.perf_counter() - t0)
+
+            def stepped(name: str, step: int) -> None:
+                status.update(strategy=name, step=step)
+                if on_step is not None:
+                    on_step(name, step)
+
+            run_base(team_, mission_toml, out=out, strategies=strategies, frames=frames, resume=resume,
+                     step_seconds=step_seconds, connect_timeout=connect_timeout, on_step=stepped)
+            team_.finish()
+            for k in range(members):  # each stops once told the mission is over
+                with contextlib.suppress(Exception):
+                    procs.procs[f"rover{k}"].wait(timeout=30)
+    except KeyboardInterrupt:
+        raise FedmapError(f"mission interrupted ({status['strategy'] or 'before the first strategy'}, step "
+                          f"{status['step']}); its processes are stopped; logs in {work}") from None
+    finally:  # no private key outlives the run
+        if certs is not None:
+            shutil.rmtree(certs, ignore_errors=True)
+    result = score_folder(work, frames=frames)
+    return replace(result, faults=(*result.faults, *restarted))
+
+
+__all__ = ["ROVER_PROCESS_RESTARTS", "deploy_zenoh", "rover_argv"]

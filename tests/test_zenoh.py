@@ -1,0 +1,185 @@
+"""A team over Zenoh (:mod:`fedmap.zenohnet`): one process per rover, the base station's
+clock, mutual TLS and access control, on loopback. It records what the in-process mission
+records, message for message, and carries on through faults."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from fedmap.errors import FedmapError  # noqa: E402
+from fedmap.flower.launch import free_port, make_certs  # noqa: E402
+from fedmap.mission import load_mission, mission_terrain, run_mission  # noqa: E402
+from fedmap.mission.ends.registry import names_that  # noqa: E402
+from fedmap.mission.outputs.report import metrics, without_timings  # noqa: E402
+from fedmap.mission.settings import mission_toml  # noqa: E402
+from fedmap.zenohnet.deploy import deploy_zenoh  # noqa: E402
+from fedmap.zenohnet.session import Certs, acl, check_listen, endpoint, node_config, open_session, order_key  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+
+def _in_process(text: str):
+    config, source, _ = load_mission(None, overrides=[__import__("tomllib").loads(text)])
+    truth, elevation, prior, profiles = mission_terrain(config, source)
+    return run_mission(config, truth, elevation=elevation, prior=prior, profiles=profiles,
+                       thresholds=source.thresholds, frames=1, workers=1)
+
+
+def _same(here, apart, names):
+    a, b = without_timings(metrics(here)), without_timings(metrics(apart))
+    for name in names:
+        assert [(m.bytes, m.status, m.kind) for m in here.runs[name].ledger] == \
+               [(m.bytes, m.status, m.kind) for m in apart.runs[name].ledger], name
+        assert json.dumps(a["strategies"][name], sort_keys=True) == json.dumps(b["strategies"][name], sort_keys=True), name
+        assert here.runs[name].trails == apart.runs[name].trails
+        for va, vb in zip(here.runs[name].views, apart.runs[name].views):
+            np.testing.assert_array_equal(va, vb)
+
+
+def _mission(steps: int, strategies, **link) -> str:
+    _, _, resolved = load_mission(overrides=[{"mission": {"steps": steps, "strategies": list(strategies)},
+                                              "link": link}])
+    return mission_toml(resolved)
+
+
+@pytest.mark.xdist_group("loopback-c")
+def test_every_star_strategy_over_zenoh_equals_the_mission_in_process(tmp_path):
+    names = names_that("deployable")
+    assert {"none", "raw", "predictive", "fedmap", "paper", "rosgrid"} <= set(names)
+    text = _mission(30, names)
+    started: list[float] = []
+    apart = deploy_zenoh(text, members=4, out=tmp_path / "out", strategies=names, frames=1,
+                         on_started=started.append)
+    assert started and apart.faults == ()
+    here = _in_process(text)
+    _same(here, apart, names)
+    for name in ("raw", "predictive", "fedmap", "paper", "rosgrid"):  # every one of them sent something
+        assert sum(m.bytes for m in apart.runs[name].ledger) > 0, name
+    work = tmp_path / "out.run"
+    assert not (work / "certs").exists()  # no private key outlives the run
+    assert sorted(p.name for p in work.glob("rover*.log")) == [f"rover{k}.log" for k in range(4)]
+
+
+@pytest.mark.xdist_group("loopback-c")
+def test_a_mission_over_zenoh_loses_nothing_to_faults(tmp_path):
+    """Rover 1 damages its report of the order to step 30 (its check fails: the order goes
+    again); rover 2's process is killed at step 40 (everything it held in memory is gone) and
+    started again (it refuses the next order as a rover that lost its state; the base sends
+    it with every earlier order and the rover rebuilds itself from them); the lander's link
+    is down for steps 20-40. The result equals the uninterrupted in-process mission's."""
+    text = _mission(60, ["predictive"], loss=0.0, lander_cut=[20, 40])
+    work = tmp_path / "out.run"
+    killed: list[int] = []
+
+    def on_step(name: str, step: int) -> None:
+        if step >= 40 and not killed:
+            pid = _pid_of(work / "rover2.state")
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+
+    apart = deploy_zenoh(text, members=4, out=tmp_path / "out", strategies=("predictive",), frames=1,
+                         faults={1: "corrupt@30"}, on_step=on_step)
+    assert killed
+    here = _in_process(text)
+    _same(here, apart, ("predictive",))
+    what = [(f["rover"], f["fault"]) for f in apart.faults]
+    assert any(k == 1 and "report damaged" in w for k, w in what), what
+    assert any(k == 2 and "rover process exited" in w for k, w in what), what
+    assert any(k == 2 and "lost its state" in w for k, w in what), what
+    assert any(k == 2 and "rebuilt from its orders" in w for k, w in what), what
+    ledger = apart.runs["predictive"].ledger
+    assert any(m.status == "out of range" or m.bytes == 0 for m in ledger if 20 <= m.step <= 40)
+
+
+def _pid_of(state: Path) -> int:
+    """The PID of the rover process whose ``--state`` is ``state`` (its command line says so)."""
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            cmd = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"node" in cmd and str(state).encode() in cmd:
+            return int(proc.name)
+    raise AssertionError(f"no rover process with --state {state}")
+
+
+# -- security -------------------------------------------------------------------------------------
+
+
+def _base(certs: Path, port: int, team: str, rovers: int):
+    return open_session(node_config(listen=[f"tls/127.0.0.1:{port}"], certs=Certs.for_node(certs, "base"),
+                                    access=acl(team, rovers)))
+
+
+def _rover(certs: Path, port: int, who: str):
+    return open_session(node_config(connect=[f"tls/127.0.0.1:{port}"], certs=Certs.for_node(certs, who)))
+
+
+def _ask(session, key: str) -> list[bytes]:
+    """The payloads of the replies to a query on ``key``."""
+    return [r.ok.payload.to_bytes() for r in session.get(key, payload=b"order", timeout=3.0) if r.ok is not None]
+
+
+def _answer(session, key: str, what: bytes):
+    def reply(q):
+        q.reply(q.key_expr, what)
+        q.drop()
+    return session.declare_queryable(key, reply)
+
+
+def test_a_rover_cannot_answer_as_another_rover(tmp_path):
+    """Access control: rover 1's certificate may answer rover 1's orders, not rover 0's."""
+    make_certs(tmp_path, hosts=["127.0.0.1"], rovers=2)
+    port = free_port()
+    with _base(tmp_path, port, "t", 2) as base, _rover(tmp_path, port, "rover1") as impostor:
+        own = _answer(impostor, order_key("t", 1), b"report of rover 1")
+        other = _answer(impostor, order_key("t", 0), b"forged report of rover 0")
+        time.sleep(1.0)
+        assert _ask(base, order_key("t", 1)) == [b"report of rover 1"]  # (the link works)
+        assert _ask(base, order_key("t", 0)) == []  # the forged one never reaches the base
+        own.undeclare()
+        other.undeclare()
+
+
+def test_a_certificate_from_another_ca_is_refused(tmp_path):
+    ours, theirs = tmp_path / "ours", tmp_path / "theirs"
+    make_certs(ours, hosts=["127.0.0.1"], rovers=1)
+    make_certs(theirs, hosts=["127.0.0.1"], rovers=1)
+    port = free_port()
+    with _base(ours, port, "t", 1) as base:
+        # a rover with another CA's certificate (and that CA's root): the base's TLS refuses it
+        with _rover(theirs, port, "rover0") as stranger:
+            q = _answer(stranger, order_key("t", 0), b"stranger")
+            time.sleep(1.5)
+            assert _ask(base, order_key("t", 0)) == []
+            q.undeclare()
+        with _rover(ours, port, "rover0") as friend:  # the same, with our CA's: it gets through
+            q = _answer(friend, order_key("t", 0), b"friend")
+            time.sleep(1.5)
+            assert _ask(base, order_key("t", 0)) == [b"friend"]
+            q.undeclare()
+
+
+def test_listening_beyond_loopback_without_certificates_is_refused():
+    check_listen([endpoint("127.0.0.1:7447", tls=False)], secure=False, insecure=False)  # loopback: fine
+    with pytest.raises(FedmapError, match="refusing to listen on tcp/0.0.0.0:7447 without TLS"):
+        check_listen([endpoint("0.0.0.0:7447", tls=False)], secure=False, insecure=False)
+    check_listen([endpoint("0.0.0.0:7447", tls=True)], secure=True, insecure=False)
+    check_listen([endpoint("0.0.0.0:7447", tls=False)], secure=False, insecure=True)
+    r = subprocess.run([sys.executable, "-m", "fedmap", "node", "base", "--listen", "0.0.0.0:17447"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.startswith("error: refusing to listen on tcp/0.0.0.0:17447")
+    assert len(r.stderr.strip().splitlines()) == 1
