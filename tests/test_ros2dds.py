@@ -319,3 +319,175 @@ def test_a_played_bag_reaches_readers_in_another_process_message_for_message(tmp
     assert [g.serialize() for g in got] == [bytes(TS.serialize_cdr(p, "geometry_msgs/msg/PoseStamped"))
                                             for _, p in poses]
     np.testing.assert_array_equal(sub.poll().classes, maps[-1][1])
+
+
+STACK = """
+import sys, time
+import numpy as np
+from fedmap.maps import ros2dds
+dp = ros2dds.participant(int(sys.argv[1]), loopback=True)
+pub = ros2dds.MapPublisher(dp, '/map', resolution=1.0)
+pub.publish(np.load(sys.argv[2]), 7)
+print('published', flush=True)
+time.sleep(120)
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("loopback-c")
+@pytest.mark.parametrize("mapper", ["stack", "bag"])
+def test_a_ros2_rover_node_over_zenoh_publishes_the_team_map_a_late_nav2_gets(tmp_path, mapper):
+    """Independent processes: one plays the rover's mapping stack (its map, latched, on /map;
+    with ``bag`` the rover node plays it itself from a recorded bag, ``--bag``, a rehearsal);
+    ``fedmap node base`` and four ``fedmap node rover`` processes run a raw mission over
+    Zenoh, rover 0 with ``--ros2``: it takes its map from /map and publishes the team map on
+    /fedmap/team_map after every order. A last process joins after the mission, as Nav2's
+    static layer does, and gets the last team map. It equals rover 0's final belief in the same
+    mission fed the same map from a file, in process; the mission scored from the nodes' logs
+    equals it too."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    pytest.importorskip("zenoh")
+    from fedmap.flower.launch import free_port
+    from fedmap.maps.grid import UNKNOWN
+    from fedmap.mission.network.remote import ProcessBase, loopback, rounds
+    from fedmap.mission.scoring import score_folder
+    from fedmap.mission.settings import load_mission, mission_toml
+    from fedmap.mission.sim import mission_terrain, prepare_mission
+    from fedmap.mission.world.feed import MapFeed
+
+    config, source, resolved = load_mission(overrides=[{"mission": {"steps": 40, "strategies": ["raw"]},
+                                                        "terrain": {"size": 64}, "link": {"loss": 0.0}}])
+    (tmp_path / "mission.toml").write_text(mission_toml(resolved))
+    truth, elevation, prior, profiles = mission_terrain(config, source)
+    rows, cols = np.indices(truth.shape)
+    snap = np.where((rows - 20) ** 2 + (cols - 40) ** 2 <= 144, truth.classes, UNKNOWN).astype(np.uint8)
+    np.save(tmp_path / "snap.npy", snap)
+    (tmp_path / "stack.py").write_text(STACK)
+    (tmp_path / "late.py").write_text(LATE_READER)
+    domain, port = (107 if mapper == "stack" else 109), free_port()
+    ros = ["--ros2", "--domain", str(domain), "--ros2-loopback", "--first-map", "30"]
+    if mapper == "bag":
+        from rosbags.rosbag2 import Writer
+
+        from fedmap.maps.rosbag import BAG_VERSION, occupancy_message
+
+        with Writer(tmp_path / "rover0_bag", version=BAG_VERSION) as bw:
+            c = bw.add_connection("/map", "nav_msgs/msg/OccupancyGrid", typestore=TS)
+            msg = occupancy_message(TS, snap, resolution=1.0, origin=(0.0, 0.0), time_ns=7)
+            bw.write(c, 7, TS.serialize_cdr(msg, "nav_msgs/msg/OccupancyGrid"))
+        ros += ["--bag", str(tmp_path / "rover0_bag")]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    work = tmp_path / "out.run"
+    node = [sys.executable, "-m", "fedmap", "node"]
+    rovers: list = []
+    stack_argv = [sys.executable, str(tmp_path / "stack.py"), str(domain), str(tmp_path / "snap.npy")]
+    with subprocess.Popen(stack_argv if mapper == "stack" else [sys.executable, "-c", "print('published')"],
+                          stdout=subprocess.PIPE, text=True) as stack:
+        try:
+            assert stack.stdout is not None and stack.stdout.readline().strip() == "published"
+            rovers += [subprocess.Popen([*node, "rover", "--rover", str(k), "--connect", f"127.0.0.1:{port}", "--team",
+                                        "ros", "--state", str(work / f"rover{k}.state"),
+                                        *(ros if k == 0 else [])],
+                                       env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                      for k in range(4)]
+            base = subprocess.run([*node, "base", str(tmp_path / "mission.toml"), "--listen", f"127.0.0.1:{port}",
+                                   "--team", "ros", "--out", str(tmp_path / "out"), "--connect-timeout", "60"], env=env,
+                                  capture_output=True, text=True, timeout=300)
+            if base.returncode != 0:
+                for r in rovers:
+                    r.kill()
+                raise AssertionError(base.stdout[-2000:] + base.stderr[-2000:] + "\n".join(
+                    r.communicate()[0][-1000:] for r in rovers))
+            said = [""] + [r.communicate(timeout=60)[0] for r in rovers[1:]]  # the others stop once it is over
+            assert [r.returncode for r in rovers[1:]] == [0] * 3, said
+            late = subprocess.run([sys.executable, str(tmp_path / "late.py"), str(domain), str(tmp_path / "team.npy")],
+                                  capture_output=True, text=True, timeout=60)
+            assert rovers[0].poll() is None  # the ROS 2 node stays in its graph until it is stopped
+            rovers[0].send_signal(signal.SIGINT)
+            said[0] = rovers[0].communicate(timeout=60)[0]
+            assert rovers[0].returncode == 0, said[0]
+        finally:
+            stack.kill()
+            for r in rovers:
+                if r.poll() is None:
+                    r.kill()
+    assert late.returncode == 0, late.stderr[-2000:]
+    assert int(late.stdout.split()[0]) == 1  # the last team map only
+    m = prepare_mission(config, truth, elevation=elevation, prior=prior, profiles=profiles,
+                        thresholds=source.thresholds, frames=1)
+    here = loopback(m, "raw", feeds={0: MapFeed([(0, snap)], "file")})
+    for _ in rounds(ProcessBase(m, "raw"), here):
+        pass
+    filed = here.nodes[0].node.belief()
+    team = np.load(tmp_path / "team.npy")
+    np.testing.assert_array_equal(team, filed)
+    assert ((team != UNKNOWN) >= (snap != UNKNOWN)).all()  # the rover's map is in the team map it plans on
+    apart = score_folder(work, frames=1)  # what the nodes logged: rover 0's views are its live map's
+    np.testing.assert_array_equal(apart.runs["raw"].views[0], filed)
+    assert "ROS 2 map in /map" in said[0] and "stays on /fedmap/team_map" in said[0]
+
+
+def test_bad_input_on_the_ros_side_costs_a_line_and_nothing_else(tmp_path):
+    """A map with a non-finite origin is dropped (one line, the map before kept); a map of
+    another size than the mission's grid is not used (one line); a message of another type on
+    /map never reaches the node; after all that, a good map is taken."""
+    import time
+
+    from fedmap.maps import ros2dds
+    from fedmap.maps.rosbag import occupancy_message
+    from fedmap.mission.settings import load_mission
+    from fedmap.mission.sim import mission_terrain, prepare_mission
+    from fedmap.zenohnet.ros2 import Ros2Bridge
+
+    config, source, _ = load_mission(overrides=[{"mission": {"steps": 10}, "terrain": {"size": 64}}])
+    truth, elevation, prior, profiles = mission_terrain(config, source)
+    mission = prepare_mission(config, truth, elevation=elevation, prior=prior, profiles=profiles,
+                              thresholds=source.thresholds, frames=1)
+    domain = 108
+    lines: list[str] = []
+    bridge = Ros2Bridge(0, domain=domain, loopback=True, say=lines.append)
+    bridge.on_mission(mission)
+    bridge.feed.check(truth)
+    dp = ros2dds.participant(domain, loopback=True)
+    w = ros2dds.writer(dp, "/map", ros2dds.OCCUPANCY_GRID)
+    rng = np.random.default_rng(3)
+    good = rng.integers(0, 3, truth.shape).astype(np.uint8)
+
+    def send(classes, origin=(0.0, 0.0)):
+        msg = occupancy_message(ros2dds.typestore(), classes, resolution=1.0, origin=origin, time_ns=1)
+        w.write(ros2dds.to_dds(msg, ros2dds.OCCUPANCY_GRID))
+
+    def until(cond, what):
+        t_end = time.monotonic() + 10
+        while not cond():
+            assert time.monotonic() < t_end, what
+            time.sleep(0.02)
+
+    send(good)  # (latched: the node's reader gets it whenever discovery matches them)
+    until(lambda: bridge.feed.at(1) is not None, "the first good map")
+    bridge.on_belief(1, good)
+    assert lines == []
+    send(good, origin=(float("nan"), 0.0))
+    until(lambda: bridge.sub.poll() is not None and bridge.sub.rejected, "the damaged map")
+    np.testing.assert_array_equal(bridge.feed.at(2), good)  # the map before is kept
+    bridge.on_belief(2, good)
+    assert len(lines) == 1 and "was dropped" in lines[0] and "origin is not finite" in lines[0]
+    send(rng.integers(0, 3, (10, 12)).astype(np.uint8))
+    until(lambda: bridge.feed.at(3) is None, "the map off the grid")
+    bridge.on_belief(3, good)
+    assert len(lines) == 2 and "is 10x12 cells, not the mission's 64x64 grid" in lines[1]
+    other = ros2dds.participant(domain, loopback=True)  # a PoseStamped published on /map
+    pw = ros2dds.writer(other, "/map", "geometry_msgs/msg/PoseStamped", latched=False)
+    pw.write(ros2dds.to_dds(pose_stamped(rosbags_make, np.random.default_rng(1)), "geometry_msgs/msg/PoseStamped"))
+    received = bridge.sub.received
+    time.sleep(0.5)
+    bridge.sub.poll()
+    assert bridge.sub.received == received  # it never reached the node's reader
+    later = rng.integers(0, 3, truth.shape).astype(np.uint8)
+    send(later)
+    until(lambda: bridge.feed.at(4) is not None, "a good map after the bad ones")
+    np.testing.assert_array_equal(bridge.feed.at(4), later)

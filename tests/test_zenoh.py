@@ -84,13 +84,13 @@ def test_a_mission_over_zenoh_loses_nothing_to_faults(tmp_path):
 
     def on_step(name: str, step: int) -> None:
         if step >= 40 and not killed:
-            pid = _pid_of(work / "rover2.state")
+            pid = int((work / "rover2.pid").read_text())
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)
 
     apart = deploy_zenoh(text, members=4, out=tmp_path / "out", strategies=("predictive",), frames=1,
                          faults={1: "corrupt@30"}, on_step=on_step)
-    assert killed
+    assert killed and int((work / "rover2.pid").read_text()) != killed[0]  # started again
     here = _in_process(text)
     _same(here, apart, ("predictive",))
     what = [(f["rover"], f["fault"]) for f in apart.faults]
@@ -100,20 +100,6 @@ def test_a_mission_over_zenoh_loses_nothing_to_faults(tmp_path):
     assert any(k == 2 and "rebuilt from its orders" in w for k, w in what), what
     ledger = apart.runs["predictive"].ledger
     assert any(m.status == "out of range" or m.bytes == 0 for m in ledger if 20 <= m.step <= 40)
-
-
-def _pid_of(state: Path) -> int:
-    """The PID of the rover process whose ``--state`` is ``state`` (its command line says so)."""
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit():
-            continue
-        try:
-            cmd = (proc / "cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if b"node" in cmd and str(state).encode() in cmd:
-            return int(proc.name)
-    raise AssertionError(f"no rover process with --state {state}")
 
 
 # -- security -------------------------------------------------------------------------------------
@@ -183,3 +169,55 @@ def test_listening_beyond_loopback_without_certificates_is_refused():
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and r.stderr.startswith("error: refusing to listen on tcp/0.0.0.0:17447")
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+# -- nodes started on their own: fedmap node base / rover -------------------------------------------
+
+
+@pytest.mark.xdist_group("loopback-c")
+def test_a_base_station_killed_and_resumed_loses_nothing(tmp_path):
+    """``fedmap node base`` and four ``fedmap node rover`` processes, each started on its own.
+    The base is killed (SIGKILL) once it has journaled 3 rounds and started again with
+    ``--resume``: it replays its journal and carries on, the rovers (still running) answer
+    the order it sends again with the same report. Scored from the nodes' logs, the mission
+    equals the in-process one."""
+    text = _mission(60, ["predictive"])
+    (tmp_path / "mission.toml").write_text(text)
+    out = tmp_path / "out"
+    work = tmp_path / "out.run"
+    port = free_port()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    base_argv = [sys.executable, "-m", "fedmap", "--quiet", "node", "base", str(tmp_path / "mission.toml"),
+                 "--listen", f"127.0.0.1:{port}", "--out", str(out), "--team", "kill"]
+    logs = {name: open(tmp_path / f"{name}.log", "ab") for name in ("base", "base2", *(f"rover{k}" for k in range(4)))}
+    rovers = [subprocess.Popen([sys.executable, "-m", "fedmap", "node", "rover", "--rover", str(k), "--connect",
+                                f"127.0.0.1:{port}", "--team", "kill", "--state", str(work / f"rover{k}.state")],
+                               env=env, stdout=logs[f"rover{k}"], stderr=subprocess.STDOUT) for k in range(4)]
+    try:
+        base = subprocess.Popen(base_argv, env=env, stdout=logs["base"], stderr=subprocess.STDOUT)
+        journal = work / "mission-journal"
+        t_end = time.monotonic() + 300
+        while len(list(journal.glob("predictive-*.frame"))) < 3:
+            assert base.poll() is None and time.monotonic() < t_end, (tmp_path / "base.log").read_text()[-2000:]
+            time.sleep(0.01)
+        base.kill()
+        base.wait(timeout=30)
+        assert all(r.poll() is None for r in rovers)  # the rovers carry on waiting
+        again = subprocess.run([*base_argv, "--resume"], env=env, stdout=logs["base2"], stderr=subprocess.STDOUT,
+                               timeout=600)
+        assert again.returncode == 0, (tmp_path / "base2.log").read_text()[-2000:]
+        for r in rovers:  # each stops once told the mission is over
+            assert r.wait(timeout=60) == 0
+    finally:
+        for p in rovers:
+            if p.poll() is None:
+                p.kill()
+        for fh in logs.values():
+            fh.close()
+    from fedmap.mission.scoring import score_folder
+
+    apart = score_folder(work, frames=1)
+    _same(_in_process(text), apart, ("predictive",))
+    resumed = [f["fault"] for f in apart.faults if f["rover"] == -1]
+    assert len(resumed) == 1 and resumed[0].startswith("base station resumed: "), apart.faults
+    assert int(resumed[0].split(": ")[1].split(" ")[0]) >= 3  # at least the rounds journaled before the kill

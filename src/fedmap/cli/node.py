@@ -28,6 +28,13 @@ def rover(
     certs: Optional[Path] = typer.Option(None, "--certs", help="TLS with mutual authentication: a folder with ca.crt, rover<k>.crt and rover<k>.key (from fedmap certs)."),
     feed: Optional[Path] = typer.Option(None, "--feed", help="Take this rover's observations from its own mapping software: a folder of map snapshots named with their step, or a ROS 2 bag of nav_msgs/OccupancyGrid."),
     feed_topic: Optional[str] = typer.Option(None, "--feed-topic", help="--feed: the bag's OccupancyGrid topic (default: its only one)."),
+    ros2: bool = typer.Option(False, "--ros2", help="Live in the robot's ROS 2 graph (DDS): the map comes from --map-topic, the team's map goes out on --team-map-topic (latched) and the status on /fedmap/status."),
+    domain: Optional[int] = typer.Option(None, "--domain", help="--ros2: the ROS_DOMAIN_ID (default: the environment's, else 0)."),
+    map_topic: str = typer.Option("/map", "--map-topic", help="--ros2: the robot's nav_msgs/OccupancyGrid (slam_toolbox, Cartographer, map_server)."),
+    team_map_topic: str = typer.Option("/fedmap/team_map", "--team-map-topic", help="--ros2: where the team's map goes (reliable, transient local: Nav2's static layer)."),
+    bag: Optional[Path] = typer.Option(None, "--bag", help="--ros2: rehearse from a recorded rover: play this ROS 2 bag's --map-topic into the graph at its own timing."),
+    ros2_loopback: bool = typer.Option(False, "--ros2-loopback", help="--ros2: keep DDS on this machine (the loopback interface, no multicast)."),
+    first_map: float = typer.Option(0.0, "--first-map", min=0.0, help="--ros2: wait up to this many seconds for the first map on --map-topic before joining the team (0: join at once; the rover observes nothing until a map comes)."),
     fault: Optional[str] = typer.Option(None, hidden=True, help="Testing: corrupt@STEP damages one report."),
 ) -> None:
     """A rover node: answers the base station's orders (drive, sense, share) until the mission is over."""
@@ -39,17 +46,59 @@ def rover(
     ep = endpoint(connect, tls=certs is not None)
     tls = Certs.for_node(certs, f"rover{rover_}") if certs is not None else None
     folder = state or Path(f"fedmap-rover{rover_}")
+    ros_only = [o for o, on in (("--domain", domain is not None), ("--bag", bag is not None),
+                                ("--ros2-loopback", ros2_loopback), ("--first-map", first_map > 0)) if on]
+    if ros_only and not ros2:
+        raise FedmapError(f"{', '.join(ros_only)} apply with --ros2 only")
+    if ros2 and feed is not None:
+        raise FedmapError("--feed and --ros2 are two sources of the rover's map: give one")
+
+    def say(line: str) -> None:
+        console.print(escape(line), soft_wrap=True)
+
+    bridge, player = None, None
+    if ros2:
+        from fedmap.zenohnet.ros2 import Ros2Bridge, play_in_background
+
+        bridge = Ros2Bridge(rover_, domain=ros_domain(domain), map_topic=map_topic, team_topic=team_map_topic,
+                            loopback=ros2_loopback, say=say)
+        if bag is not None:
+            player = play_in_background(bag, ros_domain(domain), map_topic, loopback=ros2_loopback, say=say)
+        if first_map > 0:
+            bridge.sub.wait(first_map)
     mapfeed = node_feed({"feed": str(feed) if feed else "", "feed-topic": feed_topic or ""})
     session = open_session(node_config(connect=[ep], certs=tls))
     try:
-        console.print(f"rover {rover_} of team {team}: connecting to {ep}; log in {folder}/log", soft_wrap=True)
-        n = serve_rover(session, team, rover_, folder, feed=mapfeed, fault=fault,
-                        say=lambda line: console.print(escape(line), soft_wrap=True))
+        console.print(f"rover {rover_} of team {team}: connecting to {ep}; log in {folder}/log"
+                      + (f"; ROS 2 map in {map_topic}, team map out {team_map_topic}" if ros2 else ""), soft_wrap=True)
+        n = serve_rover(session, team, rover_, folder, feed=mapfeed, fault=fault, bridge=bridge, say=say)
     except KeyboardInterrupt:
         raise FedmapError(f"rover {rover_} stopped; its log is in {folder}/log") from None
     finally:
         session.close()
+        del player
     console.print(f"rover {rover_}: mission over ({n} orders answered)")
+    if bridge is not None:  # a ROS 2 node stays in its graph: Nav2 and RViz may still join for the team map
+        console.print(f"the last team map stays on {team_map_topic} until this node is stopped (Ctrl-C)")
+        try:
+            while True:
+                time.sleep(3600)
+        except KeyboardInterrupt:
+            console.print(f"rover {rover_}: stopped")
+
+
+def ros_domain(domain: Optional[int]) -> int:
+    """``--domain``, else ROS_DOMAIN_ID, else 0 (one line for a value DDS refuses)."""
+    import os
+
+    from fedmap.maps.ros2dds import check_domain
+
+    if domain is not None:
+        return check_domain(domain)
+    text = os.environ.get("ROS_DOMAIN_ID", "").strip() or "0"
+    if not text.isdigit():
+        raise FedmapError(f"ROS_DOMAIN_ID must be a whole number in [0, 232], got {text!r}")
+    return check_domain(int(text))
 
 
 @node_app.command("base")

@@ -181,9 +181,13 @@ def participant(domain: int = 0, *, loopback: bool = False) -> Any:
     from cyclonedds.domain import Domain, DomainParticipant
 
     check_domain(domain)
-    if loopback:
-        Domain(domain, LOOPBACK)
+    if loopback and domain not in _CONFIGURED:  # (once: a domain is configured before its first participant)
+        _CONFIGURED[domain] = Domain(domain, LOOPBACK)
     return DomainParticipant(domain)
+
+
+#: Domains this process confined to the loopback interface (:func:`participant`).
+_CONFIGURED: dict[int, Any] = {}
 
 
 def map_qos(*, latched: bool = True) -> Any:
@@ -252,16 +256,19 @@ class MapSubscriber:
         self.reader, self.topic = reader(dp, topic, OCCUPANCY_GRID), topic
         self.latest: GridMap | None = None
         self.received = 0  #: maps received
+        self.rejected: list[str] = []  #: why each map that could not be read was dropped, in order
 
     def poll(self) -> GridMap | None:
         """The latest map received by now (None before the first); a damaged one (a size
-        that does not match its grid) is dropped and the one before kept."""
+        that does not match its grid, a non-finite origin) is dropped, the one before kept and
+        why noted in :attr:`rejected`."""
         from fedmap.maps.rosbag import grid_from_message
 
         for sample in self.reader.take(N=64):
             try:
                 self.latest = grid_from_message(from_dds(sample, OCCUPANCY_GRID), self.topic)
-            except FedmapError:
+            except FedmapError as e:
+                self.rejected.append(str(e))
                 continue
             self.received += 1
         return self.latest
@@ -273,6 +280,9 @@ class MapSubscriber:
         deadline = time.monotonic() + timeout
         while self.poll() is None:
             if time.monotonic() > deadline:
+                if self.rejected:
+                    raise FedmapError(f"no map on {self.topic} could be read within {timeout:g} s: "
+                                      f"{len(self.rejected)} dropped, the last because {self.rejected[-1]}")
                 raise FedmapError(f"no map arrived on {self.topic} within {timeout:g} s (is the mapping stack "
                                   "running, in this ROS_DOMAIN_ID?)")
             time.sleep(0.02)

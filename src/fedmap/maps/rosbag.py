@@ -184,6 +184,8 @@ def grid_from_message(msg, source: str, *, time_ns: int | None = None) -> GridMa
     classes = classes_from_occupancy(data.reshape(h, w)[::-1])  # ROS row 0 is the bottom
     pos, yaw = info.origin.position, _yaw(info.origin.orientation)
     x0, y0 = float(pos.x), float(pos.y)
+    if not (math.isfinite(x0) and math.isfinite(y0) and math.isfinite(yaw)):
+        raise FedmapError(f"{source}: the grid's origin is not finite (x {x0}, y {y0}, yaw {yaw})")
     transform = Affine(res, 0.0, x0, 0.0, -res, y0 + h * res) if abs(yaw) < 1e-12 else None
     stamp = msg.header.stamp
     meta: dict[str, Any] = {"format": "rosbag2", "frame_id": str(msg.header.frame_id), "origin": [x0, y0, yaw],

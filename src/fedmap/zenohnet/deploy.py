@@ -1,7 +1,9 @@
 """``fedmap mission --deploy zenoh``: a whole team on this machine, over Zenoh.
 
 The base station runs in this process (:func:`~fedmap.zenohnet.base.run_base`), listening
-on a free port of 127.0.0.1; each rover is a process of its own (``fedmap node rover``) that
+on a free port of 127.0.0.1; each rover is a process of its own (``fedmap node rover``,
+forked from a host that imported fedmap and torch once, as ``--deploy local``'s rovers are:
+:class:`~fedmap.flower.mission.deploy.RoverHost`; its PID in ``<out>.run/rover<k>.pid``) that
 connects to it. By default every link is TLS with mutual authentication, from a throw-away
 CA made for the run (its key never written; the certificates go when the run ends), and the
 base enforces access control (rover ``k`` answers only under its own keys). A rover process
@@ -21,9 +23,11 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
+from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
-from fedmap.flower.launch import Processes, free_port, make_certs, sigterm_as_interrupt
+from fedmap.flower.launch import Processes, free_port, make_certs, sigterm_as_interrupt, socket_dir
+from fedmap.flower.mission.deploy import ROVER_HOST, ROVER_HOST_SOCKET, RoverHost
 from fedmap.flower.mission.task import base_dir, base_log
 from fedmap.mission.results import MissionResult
 from fedmap.mission.scoring import RUN_FILE, score_folder
@@ -75,8 +79,11 @@ def deploy_zenoh(mission_toml: str, *, members: int, out: Path, strategies: tupl
     t0 = time.perf_counter()
     try:
         with contextlib.ExitStack() as stack:
+            socks = stack.enter_context(socket_dir("fedmap-rovers-", ROVER_HOST_SOCKET))
             procs = stack.enter_context(Processes())
             stack.enter_context(sigterm_as_interrupt())
+            # the rovers are forked from it (fedmap and torch imported once, their pages shared)
+            host = RoverHost(procs, socks, env=env, log=work / f"{ROVER_HOST}.log")
             conf = node_config(listen=[address], certs=None if certs is None else Certs.for_node(certs, "base"),
                                access=None if certs is None else acl(team, members))
             session = open_session(conf)
@@ -84,8 +91,9 @@ def deploy_zenoh(mission_toml: str, *, members: int, out: Path, strategies: tupl
             argvs = {k: rover_argv(k, connect=address, team=team, state=work / f"rover{k}.state", certs=certs,
                                    fault=(faults or {}).get(k)) for k in range(members)}
 
-            def start(k: int) -> None:
-                procs.start(f"rover{k}", argvs[k], env=env, log=work / f"rover{k}.log", die_with_parent=True)
+            def start(k: int) -> None:  # its PID recorded for whoever runs the machine
+                p = host.start(f"rover{k}", argvs[k], env=env, log=work / f"rover{k}.log")
+                atomic_write_bytes(work / f"rover{k}.pid", f"{p.pid}\n".encode())
 
             def watch() -> None:  # a rover process that exited is started again (it rebuilds itself)
                 for k in range(members):

@@ -23,8 +23,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from fedmap.errors import FedmapError
 from fedmap.flower.mission.task import damaged, log_dir, parse_mission_fault
 from fedmap.mission.network.nodelog import write_log
@@ -41,14 +39,15 @@ MISSION_WAIT = 30.0
 class RoverService:
     """Rover ``k`` of team ``team`` on the open Zenoh ``session``: its nodes (one per mission
     and strategy), its log in ``state``/log. ``fault``: ``corrupt@STEP`` damages its report
-    of the order to STEP once (tests). ``on_belief``: every node's
-    :attr:`~fedmap.mission.network.remote.ProcessRover.on_belief`."""
+    of the order to STEP once (tests). ``feed``: its observations come from its own mapping
+    software; ``bridge``: and it lives in the robot's ROS 2 graph
+    (:class:`~fedmap.zenohnet.ros2.Ros2Bridge`: its feed, and the team map it publishes)."""
 
     def __init__(self, session: Any, team: str, k: int, state: Path, *, feed: Feed | None = None,
-                 fault: str | None = None, on_belief: Callable[[int, np.ndarray], None] | None = None,
-                 say: Callable[[str], None] = print) -> None:
+                 fault: str | None = None, bridge: Any = None, say: Callable[[str], None] = print) -> None:
         self.session, self.team, self.k, self.state = session, team, k, Path(state)
-        self.feed, self.on_belief, self.say = feed, on_belief, say
+        self.bridge, self.say = bridge, say
+        self.feed = bridge.feed if bridge is not None else feed
         self.fault = parse_mission_fault(fault)[1] if fault else None
         self.faulted: set[tuple[str, str]] = set()
         self.missions: dict[str, Mission] = {}
@@ -66,8 +65,10 @@ class RoverService:
             while True:
                 for reply in self.session.get(mission_key(self.team), payload=mission_id.encode(), timeout=10.0):
                     if reply.ok is not None:
-                        self.missions[mission_id] = mission_from_text(reply.ok.payload.to_string(), frames=1)
-                        return self.missions[mission_id]
+                        self.missions[mission_id] = mission = mission_from_text(reply.ok.payload.to_string(), frames=1)
+                        if self.bridge is not None:
+                            self.bridge.on_mission(mission)
+                        return mission
                     raise FedmapError(f"rover {self.k}: the base station has no mission {mission_id!r}: "
                                       f"{reply.err.payload.to_string()}")
                 if time.monotonic() > t_end:
@@ -89,9 +90,11 @@ class RoverService:
                                         unpack_history(history), feed=self.feed)
         elif node is None:
             node = ProcessRover(self._mission(order.mission), order.strategy, self.k, feed=self.feed)
-        node.on_belief = self.on_belief
+        node.on_belief = None if self.bridge is None else self.bridge.on_belief
         self.nodes[key] = node
         report = node.answer(raw)
+        if self.bridge is not None:
+            self.bridge.on_traffic(len(raw), len(report))
         for entry in node.log:  # its own log (never sent)
             write_log(log_dir(self.state), entry)
         node.log = []

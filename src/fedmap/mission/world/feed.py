@@ -110,6 +110,7 @@ class LiveFeed:
         self.source = str(getattr(subscriber, "topic", "a live topic"))
         self.shape: tuple[int, int] | None = None
         self.off_grid = 0
+        self.off_shape: tuple[int, int] | None = None  #: the shape of the last map off the grid
 
     def check(self, truth: GridMap) -> None:
         """Only the mission's grid is known before the maps arrive."""
@@ -122,6 +123,7 @@ class LiveFeed:
             return None
         if self.shape is not None and grid.shape != self.shape:
             self.off_grid += 1
+            self.off_shape = grid.shape
             return None
         return grid.classes
 
