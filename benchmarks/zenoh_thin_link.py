@@ -2,11 +2,13 @@
 of its own, joined to the rovers by a veth pair rate-limited with ``tc tbf`` both ways
 (250 kbit/s by default: Ingenuity's Zigbee link), against the same mission in process.
 
-    sudo python benchmarks/zenoh_thin_link.py [--rate 250kbit] [--steps 300] [--strategies raw,predictive]
+    sudo python benchmarks/zenoh_thin_link.py [--rate 250kbit] [--loss 0.05] [--steps 300] [--strategies raw,predictive]
 
 Needs root (``ip netns``, ``tc``). It makes namespace ``fm-base`` with ``veth-fm-b``
 (10.77.0.1) and leaves ``veth-fm-r`` (10.77.0.2) in this namespace, puts a token-bucket
-filter on both ends, runs ``fedmap node base`` inside it and four ``fedmap node rover``
+filter on both ends (and with ``--loss`` an nftables rule that drops that share of the
+base's packets at random both ways: TCP sends them again, so the link loses time, not
+messages), runs ``fedmap node base`` inside it and four ``fedmap node rover``
 processes outside, scores the mission from the nodes' logs, and removes the namespace.
 It prints, per strategy, the bytes the link model counted (the strategy's messages), the
 wire bytes (orders and reports, framing included), the time on the base's clock over the
@@ -43,7 +45,7 @@ def sh(*argv: str) -> None:
     subprocess.run(argv, check=True)
 
 
-def link_up(rate: str) -> None:
+def link_up(rate: str, loss: float = 0.0) -> None:
     link_down()
     sh("ip", "netns", "add", NS)
     sh("ip", "link", "add", ROVER_IF, "type", "veth", "peer", "name", BASE_IF)
@@ -55,6 +57,13 @@ def link_up(rate: str) -> None:
     sh("ip", "netns", "exec", NS, "ip", "link", "set", "lo", "up")
     for pre, dev in (([], ROVER_IF), (["ip", "netns", "exec", NS], BASE_IF)):
         sh(*pre, "tc", "qdisc", "add", "dev", dev, "root", "tbf", "rate", rate, "burst", "4kb", "latency", "400ms")
+    if loss > 0:  # packets lost at random, both ways, on the base's side (nftables; netem is not available)
+        ns = ["ip", "netns", "exec", NS, "nft"]
+        sh(*ns, "add", "table", "inet", "fmloss")
+        for hook in ("input", "output"):
+            sh(*ns, "add", "chain", "inet", "fmloss", hook, f"{{ type filter hook {hook} priority 0 ; }}")
+            sh(*ns, "add", "rule", "inet", "fmloss", hook, "iifname" if hook == "input" else "oifname", BASE_IF,
+               "numgen", "random", "mod", "1000", "<", str(round(loss * 1000)), "drop")
 
 
 def link_down() -> None:
@@ -89,6 +98,7 @@ def main() -> None:
     ap.add_argument("--rate", default="250kbit")
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--strategies", default="raw,predictive")
+    ap.add_argument("--loss", type=float, default=0.0, help="share of packets dropped at random both ways (nftables)")
     ap.add_argument("--out", type=Path, default=OUT)
     a = ap.parse_args()
     if os.geteuid() != 0:
@@ -103,7 +113,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         loop = deploy_zenoh(text, members=config.rovers, out=Path(tmp) / "loop", strategies=tuple(names), frames=1,
                             tls=False)
-        link_up(a.rate)
+        link_up(a.rate, a.loss)
         try:
             wall, far = thin(text, Path(tmp), 7447, names)
         finally:
@@ -117,10 +127,10 @@ def main() -> None:
                      "wire_bytes": far.runs[n].wire.get("bytes") if far.runs[n].wire else None,
                      "thin_s": round(far.runs[n].seconds, 2), "loopback_s": round(loop.runs[n].seconds, 2),
                      "in_process_s": round(here.runs[n].seconds, 2), "final_maps_equal": maps_equal})
-    result = {"rate": a.rate, "steps": a.steps, "wall_s": round(wall, 1), "same_metrics": same, "rows": rows}
+    result = {"rate": a.rate, "loss": a.loss, "steps": a.steps, "wall_s": round(wall, 1), "same_metrics": same, "rows": rows}
     print(json.dumps(result, indent=1))
     a.out.mkdir(parents=True, exist_ok=True)
-    (a.out / "results.json").write_text(json.dumps(result, indent=1))
+    (a.out / f"results{'_loss' if a.loss else ''}.json").write_text(json.dumps(result, indent=1))
 
 
 if __name__ == "__main__":
