@@ -375,11 +375,13 @@ def test_a_ros2_rover_node_over_zenoh_publishes_the_team_map_a_late_nav2_gets(tm
 
         from fedmap.maps.rosbag import BAG_VERSION, occupancy_message
 
-        with Writer(tmp_path / "rover0_bag", version=BAG_VERSION) as bw:
+        with Writer(tmp_path / "rover0_bag", version=BAG_VERSION) as bw:  # its map, then its pose
             c = bw.add_connection("/map", "nav_msgs/msg/OccupancyGrid", typestore=TS)
             msg = occupancy_message(TS, snap, resolution=1.0, origin=(0.0, 0.0), time_ns=7)
             bw.write(c, 7, TS.serialize_cdr(msg, "nav_msgs/msg/OccupancyGrid"))
-        ros += ["--bag", str(tmp_path / "rover0_bag")]
+            cp = bw.add_connection("/pose", "geometry_msgs/msg/PoseStamped", typestore=TS)
+            bw.write(cp, 8, TS.serialize_cdr(_pose_at(40.5, 43.5), "geometry_msgs/msg/PoseStamped"))
+        ros += ["--bag", str(tmp_path / "rover0_bag"), "--pose-topic", "/pose"]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     work = tmp_path / "out.run"
     node = [sys.executable, "-m", "fedmap", "node"]
@@ -419,7 +421,10 @@ def test_a_ros2_rover_node_over_zenoh_publishes_the_team_map_a_late_nav2_gets(tm
     assert int(late.stdout.split()[0]) == 1  # the last team map only
     m = prepare_mission(config, truth, elevation=elevation, prior=prior, profiles=profiles,
                         thresholds=source.thresholds, frames=1)
-    here = loopback(m, "raw", feeds={0: MapFeed([(0, snap)], "file")})
+    filed_feed = MapFeed([(0, snap)], "file")
+    if mapper == "bag":  # the pose (40.5, 43.5) m is column 40, row 43 from the bottom: 63 - 43 = 20 from the top
+        filed_feed.pose = lambda: (20, 40)  # type: ignore[attr-defined]
+    here = loopback(m, "raw", feeds={0: filed_feed})
     for _ in rounds(ProcessBase(m, "raw"), here):
         pass
     filed = here.nodes[0].node.belief()
@@ -429,6 +434,15 @@ def test_a_ros2_rover_node_over_zenoh_publishes_the_team_map_a_late_nav2_gets(tm
     apart = score_folder(work, frames=1)  # what the nodes logged: rover 0's views are its live map's
     np.testing.assert_array_equal(apart.runs["raw"].views[0], filed)
     assert "ROS 2 map in /map" in said[0] and "stays on /fedmap/team_map" in said[0]
+    if mapper == "bag":  # placed by its pose, in the live mission as in the reference
+        assert here.nodes[0].node.rover.pos == (20, 40) and tuple(apart.runs["raw"].trails[0][-1]) == (20, 40)
+
+
+def _pose_at(x: float, y: float):
+    p = rosbags_make("geometry_msgs/msg/Pose", position=rosbags_make("geometry_msgs/msg/Point", x=x, y=y, z=0.0),
+                     orientation=rosbags_make("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=0.0, w=1.0))
+    return rosbags_make("geometry_msgs/msg/PoseStamped", header=pose_stamped(rosbags_make, np.random.default_rng(0)).header,
+                        pose=p)
 
 
 def test_bad_input_on_the_ros_side_costs_a_line_and_nothing_else(tmp_path):
@@ -491,3 +505,72 @@ def test_bad_input_on_the_ros_side_costs_a_line_and_nothing_else(tmp_path):
     send(later)
     until(lambda: bridge.feed.at(4) is not None, "a good map after the bad ones")
     np.testing.assert_array_equal(bridge.feed.at(4), later)
+
+
+def test_a_pose_is_placed_on_the_latest_map_and_moves_the_rover(tmp_path):
+    """The pose topic's (x, y) becomes the cell of the latest map that holds it (origin and
+    resolution from the map; row 0 of the grid is the top, ROS's row 0 the bottom: a hand
+    computation); a pose before any map is not placed (one line). A rover fed a map and a
+    pose is where its pose says at the end of a mission, not where its map's cells are."""
+    import time
+
+    from fedmap.maps import ros2dds
+    from fedmap.maps.grid import UNKNOWN
+    from fedmap.maps.rosbag import occupancy_message
+    from fedmap.mission.network.remote import ProcessBase, loopback, rounds
+    from fedmap.mission.settings import load_mission
+    from fedmap.mission.sim import mission_terrain, prepare_mission
+    from fedmap.zenohnet.ros2 import Ros2Bridge
+
+    domain = 110
+    lines: list[str] = []
+    bridge = Ros2Bridge(0, domain=domain, pose_topic="/pose", loopback=True, say=lines.append)
+    dp = ros2dds.participant(domain, loopback=True)
+    pw = ros2dds.writer(dp, "/pose", "geometry_msgs/msg/PoseStamped", latched=False)
+    mw = ros2dds.writer(dp, "/map", ros2dds.OCCUPANCY_GRID)
+
+    def send_pose(x, y):
+        pw.write(ros2dds.to_dds(_pose_at(x, y), "geometry_msgs/msg/PoseStamped"))
+
+    def until(cond, what):
+        t_end = time.monotonic() + 10
+        while not cond():
+            assert time.monotonic() < t_end, what
+            send_pose(*xy)  # (volatile: sent again until the reader has matched)
+            time.sleep(0.05)
+
+    xy = (3.0, 4.0)
+    until(lambda: bridge.poses.poll() is not None, "the first pose")
+    assert bridge.feed.pose() is None  # no map yet to place it on
+    bridge.on_belief(0, np.zeros((4, 4), np.uint8))
+    assert len(lines) == 1 and "came before any map" in lines[0]
+    classes = np.full((64, 48), UNKNOWN, np.uint8)
+    mw.write(ros2dds.to_dds(occupancy_message(ros2dds.typestore(), classes, resolution=0.5, origin=(1.0, 2.0),
+                                              time_ns=1), ros2dds.OCCUPANCY_GRID))
+    xy = (1.0 + 0.5 * 10.2, 2.0 + 0.5 * 5.7)  # column 10; row 5 from the bottom: 63 - 5 = 58 from the top
+    until(lambda: bridge.sub.poll() is not None and bridge.feed.pose() == (58, 10), "the pose on the map")
+
+    config, source, _ = load_mission(overrides=[{"mission": {"steps": 30, "strategies": ["raw"]},
+                                                 "terrain": {"size": 64}, "link": {"loss": 0.0}}])
+    truth, elevation, prior, profiles = mission_terrain(config, source)
+
+    class Fed:  # a map that shows a disc, a pose somewhere else
+        source = "test"
+
+        def check(self, grid):
+            pass
+
+        def at(self, step):
+            rows, cols = np.indices(truth.shape)
+            return np.where((rows - 20) ** 2 + (cols - 40) ** 2 <= 64, truth.classes, UNKNOWN).astype(np.uint8)
+
+        def pose(self):
+            return (50, 7)
+
+    m = prepare_mission(config, truth, elevation=elevation, prior=prior, profiles=profiles,
+                        thresholds=source.thresholds, frames=1)
+    rovers = loopback(m, "raw", feeds={0: Fed()})
+    for _ in rounds(ProcessBase(m, "raw"), rovers):
+        pass
+    rover = rovers.nodes[0].node.rover
+    assert rover.pos == (50, 7) and rover.trail[-1] == (50, 7)

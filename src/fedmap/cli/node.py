@@ -32,9 +32,11 @@ def rover(
     domain: Optional[int] = typer.Option(None, "--domain", help="--ros2: the ROS_DOMAIN_ID (default: the environment's, else 0)."),
     map_topic: str = typer.Option("/map", "--map-topic", help="--ros2: the robot's nav_msgs/OccupancyGrid (slam_toolbox, Cartographer, map_server)."),
     team_map_topic: str = typer.Option("/fedmap/team_map", "--team-map-topic", help="--ros2: where the team's map goes (reliable, transient local: Nav2's static layer)."),
-    bag: Optional[Path] = typer.Option(None, "--bag", help="--ros2: rehearse from a recorded rover: play this ROS 2 bag's --map-topic into the graph at its own timing."),
+    pose_topic: Optional[str] = typer.Option(None, "--pose-topic", help="--ros2: the rover's pose in its map's frame (geometry_msgs/PoseStamped, or nav_msgs/Odometry with --pose-odometry); default: placed by what it observes."),
+    pose_odometry: bool = typer.Option(False, "--pose-odometry", help="--pose-topic carries nav_msgs/Odometry."),
+    bag: Optional[Path] = typer.Option(None, "--bag", help="--ros2: rehearse from a recorded rover: play this ROS 2 bag's --map-topic (and --pose-topic) into the graph at its own timing."),
     ros2_loopback: bool = typer.Option(False, "--ros2-loopback", help="--ros2: keep DDS on this machine (the loopback interface, no multicast)."),
-    first_map: float = typer.Option(0.0, "--first-map", min=0.0, help="--ros2: wait up to this many seconds for the first map on --map-topic before joining the team (0: join at once; the rover observes nothing until a map comes)."),
+    first_map: float = typer.Option(0.0, "--first-map", min=0.0, help="--ros2: wait up to this many seconds for the first map on --map-topic (and the first pose on --pose-topic) before joining the team (0: join at once; the rover observes nothing until a map comes)."),
     fault: Optional[str] = typer.Option(None, hidden=True, help="Testing: corrupt@STEP damages one report."),
 ) -> None:
     """A rover node: answers the base station's orders (drive, sense, share) until the mission is over."""
@@ -47,7 +49,8 @@ def rover(
     tls = Certs.for_node(certs, f"rover{rover_}") if certs is not None else None
     folder = state or Path(f"fedmap-rover{rover_}")
     ros_only = [o for o, on in (("--domain", domain is not None), ("--bag", bag is not None),
-                                ("--ros2-loopback", ros2_loopback), ("--first-map", first_map > 0)) if on]
+                                ("--ros2-loopback", ros2_loopback), ("--first-map", first_map > 0),
+                                ("--pose-topic", pose_topic is not None), ("--pose-odometry", pose_odometry)) if on]
     if ros_only and not ros2:
         raise FedmapError(f"{', '.join(ros_only)} apply with --ros2 only")
     if ros2 and feed is not None:
@@ -58,14 +61,16 @@ def rover(
 
     bridge, player = None, None
     if ros2:
-        from fedmap.zenohnet.ros2 import Ros2Bridge, play_in_background
+        from fedmap.zenohnet.ros2 import POSE_TYPES, Ros2Bridge, play_in_background
 
         bridge = Ros2Bridge(rover_, domain=ros_domain(domain), map_topic=map_topic, team_topic=team_map_topic,
+                            pose_topic=pose_topic, pose_type=POSE_TYPES[1 if pose_odometry else 0],
                             loopback=ros2_loopback, say=say)
         if bag is not None:
-            player = play_in_background(bag, ros_domain(domain), map_topic, loopback=ros2_loopback, say=say)
+            player = play_in_background(bag, ros_domain(domain), [map_topic, *([pose_topic] if pose_topic else [])],
+                                        loopback=ros2_loopback, say=say)
         if first_map > 0:
-            bridge.sub.wait(first_map)
+            bridge.wait_first(first_map)
     mapfeed = node_feed({"feed": str(feed) if feed else "", "feed-topic": feed_topic or ""})
     session = open_session(node_config(connect=[ep], certs=tls))
     try:

@@ -20,6 +20,7 @@ reaches it. The team link is any transport behind the seam; here Zenoh
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -27,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from fedmap.errors import FedmapError
 from fedmap.maps import ros2dds
 from fedmap.mission.sim import Mission
 from fedmap.mission.world.feed import LiveFeed
@@ -35,23 +37,39 @@ from fedmap.mission.world.feed import LiveFeed
 STATUS_TYPE = "std_msgs/msg/String"
 
 
+#: The ROS 2 types a rover's pose may come in.
+POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "nav_msgs/msg/Odometry")
+
+
 class Ros2Bridge:
     """Rover ``k``'s maps in and out of ROS 2 domain ``domain`` (``loopback``: DDS confined
     to this machine). ``say`` gets each line about bad input."""
 
     def __init__(self, k: int, *, domain: int = 0, map_topic: str = "/map", team_topic: str = "/fedmap/team_map",
-                 status_topic: str = "/fedmap/status", loopback: bool = False,
+                 status_topic: str = "/fedmap/status", pose_topic: str | None = None,
+                 pose_type: str = POSE_TYPES[0], loopback: bool = False,
                  say: Callable[[str], None] = print) -> None:
         self.k, self.say = k, say
         self.dp = ros2dds.participant(domain, loopback=loopback)
         self.sub = ros2dds.MapSubscriber(self.dp, map_topic)
-        self.feed = LiveFeed(self.sub)
+        self.poses = None if pose_topic is None else PoseSubscriber(self.dp, pose_topic, pose_type)
+        self.feed = LiveFeed(self.sub, poses=self.poses)
         self.team_topic = team_topic
         self.pub: ros2dds.MapPublisher | None = None
         self.status = ros2dds.writer(self.dp, status_topic, STATUS_TYPE, latched=False)
         self.traffic = {"orders": 0, "bytes_in": 0, "bytes_out": 0}
-        self._told = {"rejected": 0, "off_grid": 0}
+        self._told = {"rejected": 0, "off_grid": 0, "unplaced": 0}
         self.step = 0
+
+    def wait_first(self, timeout: float) -> None:
+        """Until the first map (and, with a pose topic, the first pose) has come; one line
+        after ``timeout`` seconds."""
+        self.sub.wait(timeout)
+        t_end = time.monotonic() + timeout
+        while self.poses is not None and self.poses.poll() is None:
+            if time.monotonic() > t_end:
+                raise FedmapError(f"no pose arrived on {self.poses.topic} within {timeout:g} s")
+            time.sleep(0.02)
 
     def on_mission(self, mission: Mission) -> None:
         """The mission's grid: the team map is published on it (its cell size)."""
@@ -71,6 +89,10 @@ class Ros2Bridge:
                      f"{self.feed.shape[0]}x{self.feed.shape[1]} grid; not used" if self.feed.shape else
                      f"rover {self.k}: the latest map on {self.sub.topic} is off the mission's grid; not used")
             self._told["off_grid"] = self.feed.off_grid
+        if self.poses is not None and self.poses.unplaced > self._told["unplaced"]:
+            self.say(f"rover {self.k}: a pose on {self.poses.topic} came before any map (or off it): not used until "
+                     "a map places it")
+            self._told["unplaced"] = self.poses.unplaced
         self.step = step
 
     def on_traffic(self, order: int, report: int) -> None:
@@ -83,19 +105,59 @@ class Ros2Bridge:
         self.status.write(ros2dds.to_dds(_string(json.dumps(status)), STATUS_TYPE))
 
 
-def play_in_background(bag: Any, domain: int, topic: str, *, loopback: bool = False,
+class PoseSubscriber:
+    """The latest pose on ROS 2 topic ``topic`` (``PoseStamped`` or ``Odometry``), as a cell
+    of a map: :meth:`cell` places it on the map's grid through its origin and resolution
+    (None, and counted in :attr:`unplaced`, before any map or off it)."""
+
+    def __init__(self, dp: Any, topic: str, msgtype: str = POSE_TYPES[0]) -> None:
+        if msgtype not in POSE_TYPES:
+            raise FedmapError(f"a pose is one of {', '.join(POSE_TYPES)}, not {msgtype!r}")
+        self.reader, self.topic, self.msgtype = ros2dds.reader(dp, topic, msgtype, latched=False), topic, msgtype
+        self.xy: tuple[float, float] | None = None
+        self.unplaced = 0
+
+    def poll(self) -> tuple[float, float] | None:
+        for sample in self.reader.take(N=64):
+            msg = ros2dds.from_dds(sample, self.msgtype)
+            p = (msg.pose.pose if self.msgtype.endswith("Odometry") else msg.pose).position
+            if math.isfinite(p.x) and math.isfinite(p.y):
+                self.xy = (float(p.x), float(p.y))
+        return self.xy
+
+    def cell(self, grid: Any) -> tuple[int, int] | None:
+        """The latest pose's cell of ``grid`` (a :class:`~fedmap.maps.grid.GridMap` read from
+        an OccupancyGrid), or None."""
+        xy = self.poll()
+        if xy is None:
+            return None
+        x0, y0, yaw = grid.meta.get("origin", (0.0, 0.0, 0.0)) if grid is not None else (0.0, 0.0, 0.0)
+        if grid is None or abs(yaw) > 1e-12:
+            self.unplaced += 1
+            return None
+        h, w = grid.shape
+        col = math.floor((xy[0] - x0) / grid.pixel_size)
+        row = h - 1 - math.floor((xy[1] - y0) / grid.pixel_size)  # ROS row 0 is the bottom
+        if not (0 <= row < h and 0 <= col < w):
+            self.unplaced += 1
+            return None
+        return row, col
+
+
+def play_in_background(bag: Any, domain: int, topics: list[str], *, loopback: bool = False,
                        say: Callable[[str], None] = print) -> threading.Thread:
-    """Play ``bag``'s ``topic`` into domain ``domain`` at the bag's timing from a participant
-    of its own, in a daemon thread (``--bag``: a rover rehearsed from its logs). The bag is
-    checked first (one line for a bag without that topic)."""
+    """Play ``bag``'s ``topics`` (its map, and its poses) into domain ``domain`` at the bag's
+    timing from a participant of its own, once every topic has a reader, in a daemon thread
+    (``--bag``: a rover rehearsed from its logs). The bag is checked first (one line for a
+    bag without one of the topics)."""
     from fedmap.maps.rosbag import bag_topics, wanted_topics
 
-    wanted_topics(bag_topics(bag), [topic], str(bag))
+    wanted_topics(bag_topics(bag), topics, str(bag))
     dp = ros2dds.participant(domain, loopback=loopback)
 
     def play() -> None:
-        n = ros2dds.play_bag(bag, dp, topics=[topic], readers=1)
-        say(f"played {n} message(s) of {topic} from {bag}")
+        n = ros2dds.play_bag(bag, dp, topics=topics, readers=1)
+        say(f"played {n} message(s) of {', '.join(topics)} from {bag}")
 
     t = threading.Thread(target=play, name="bag", daemon=True)
     t.start()
@@ -106,4 +168,4 @@ def _string(text: str) -> Any:
     return ros2dds.typestore().types[STATUS_TYPE](data=text)
 
 
-__all__ = ["STATUS_TYPE", "Ros2Bridge", "play_in_background"]
+__all__ = ["POSE_TYPES", "STATUS_TYPE", "PoseSubscriber", "Ros2Bridge", "play_in_background"]

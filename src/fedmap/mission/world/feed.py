@@ -103,10 +103,12 @@ class LiveFeed:
     """A rover's maps as its mapping stack publishes them: at every step, the latest map
     ``subscriber`` received by then (:class:`fedmap.maps.ros2dds.MapSubscriber`, or anything
     whose ``poll()`` gives the latest :class:`GridMap` or None). A map that is not on the
-    mission's grid is not used (:attr:`off_grid` counts the steps it was the latest)."""
+    mission's grid is not used (:attr:`off_grid` counts the steps it was the latest).
+    ``poses``: where the rover is, from its pose topic (:meth:`pose`;
+    :class:`fedmap.zenohnet.ros2.PoseSubscriber`)."""
 
-    def __init__(self, subscriber: Any) -> None:
-        self.subscriber = subscriber
+    def __init__(self, subscriber: Any, *, poses: Any = None) -> None:
+        self.subscriber, self.poses = subscriber, poses
         self.source = str(getattr(subscriber, "topic", "a live topic"))
         self.shape: tuple[int, int] | None = None
         self.off_grid = 0
@@ -127,6 +129,13 @@ class LiveFeed:
             return None
         return grid.classes
 
+    def pose(self) -> tuple[int, int] | None:
+        """The rover's cell from its pose topic, placed on the latest map (None: no pose
+        topic, no pose yet, or no map to place it on)."""
+        if self.poses is None:
+            return None
+        return self.poses.cell(getattr(self.subscriber, "latest", None))
+
 
 class FeedWorld(World):
     """The team's world where member ``k`` observes through a :class:`MapFeed` (it plans
@@ -142,6 +151,11 @@ class FeedWorld(World):
             super().sense(k, t)
             return
         r, snap = self.team[k], self.feed.at(t)
+        cell = self.feed.pose() if hasattr(self.feed, "pose") else None
+        if cell is not None and cell != r.pos:  # its pose topic says where it is
+            r.distance += math.hypot(cell[0] - r.pos[0], cell[1] - r.pos[1])
+            r.pos = cell
+            r.trail.append(cell)
         if snap is None:
             return
         new = (snap != UNKNOWN) & (r.local == UNKNOWN)
@@ -150,6 +164,8 @@ class FeedWorld(World):
         r.local[new] = snap[new]
         r.obs_step[new] = t
         r.wrote()
+        if cell is not None:  # placed by its pose: not guessed from what it saw
+            return
         cells = np.argwhere(new)
         centre = cells.mean(axis=0)
         free = np.argwhere(r.local == FREE)
