@@ -68,7 +68,7 @@ def test_every_star_strategy_over_zenoh_equals_the_mission_in_process(tmp_path):
         assert sum(m.bytes for m in apart.runs[name].ledger) > 0, name
     work = tmp_path / "out.run"
     assert not (work / "certs").exists()  # no private key outlives the run
-    assert sorted(p.name for p in work.glob("rover*.log")) == [f"rover{k}.log" for k in range(4)]
+    assert {f"rover{k}.log" for k in range(4)} | {"rover-host.log"} <= {p.name for p in work.glob("*.log")}
 
 
 @pytest.mark.xdist_group("loopback-c")
