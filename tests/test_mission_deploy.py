@@ -226,12 +226,13 @@ def test_a_base_station_beyond_loopback_needs_tls_and_authentication(tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--deploy", "cloud"], "error: unknown --deploy 'cloud': choose one of local, base"),
+    (["--deploy", "cloud"], "error: unknown --deploy 'cloud': choose one of local, base, zenoh"),
     (["--deploy", "base", "--listen", "nope"], "error: --listen must be HOST:PORT, got 'nope'"),
     (["--deploy", "local", "--strategies", "central"], "error: none of the strategies central runs on processes"),
     (["--deploy", "local", "--topology", "mesh", "--strategies", "raw"],
-     "error: a mission on processes runs the star topology only, not 'mesh': Flower routes every message through"),
-    (["--step-seconds", "0.5"], "error: --step-seconds apply to a mission on processes only: add --deploy local or base"),
+     "error: a mission on processes runs the star topology only, not 'mesh': rovers have no links of their own"),
+    (["--step-seconds", "0.5"],
+     "error: --step-seconds apply to a mission on processes only: add --deploy zenoh, local or base"),
     (["--deploy", "local", "--strategies", "raw", "--stop-coverage", "0.99"],
      "error: a mission on processes takes every step: stop_coverage reads the truth"),
 ])

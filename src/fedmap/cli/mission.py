@@ -81,7 +81,7 @@ def mission(
                                  ("--auth-keys", auth_keys is not None), ("--insecure", insecure),
                                  ("--step-seconds", step_seconds > 0)) if on]
         if alone:
-            raise FedmapError(f"{', '.join(alone)} apply to a mission on processes only: add --deploy local or base")
+            raise FedmapError(f"{', '.join(alone)} apply to a mission on processes only: add --deploy zenoh, local or base")
     else:
         inprocess = [o for o, on in (("--repeats", repeats > 1), ("--record", record is not None), ("--live", live),
                                      ("--rosbag", rosbag is not None)) if on]
