@@ -81,7 +81,6 @@ def rover(
         raise FedmapError(f"rover {rover_} stopped; its log is in {folder}/log") from None
     finally:
         session.close()
-        del player
     console.print(f"rover {rover_}: mission over ({n} orders answered)")
     if bridge is not None:  # a ROS 2 node stays in its graph: Nav2 and RViz may still join for the team map
         console.print(f"the last team map stays on {team_map_topic} until this node is stopped (Ctrl-C)")
@@ -90,6 +89,7 @@ def rover(
                 time.sleep(3600)
         except KeyboardInterrupt:
             console.print(f"rover {rover_}: stopped")
+    del player  # (a bag's player keeps its last map latched until here)
 
 
 def ros_domain(domain: Optional[int]) -> int:

@@ -220,6 +220,14 @@ def reader(dp: Any, topic: str, msgtype: str, *, latched: bool = True) -> Any:
     return DataReader(dp, Topic(dp, dds_topic(topic), dds_type(msgtype)), qos=map_qos(latched=latched))
 
 
+def samples(reader: Any, n: int = 64) -> list:
+    """Up to ``n`` samples taken from ``reader`` that hold data: the notifications DDS also
+    delivers (a writer that left, an instance disposed: Cyclone's ``InvalidSample``) are dropped."""
+    from cyclonedds.sub import InvalidSample
+
+    return [s for s in reader.take(N=n) if not isinstance(s, InvalidSample)]
+
+
 #: The ROS 2 type of every map in and out.
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 
@@ -264,7 +272,7 @@ class MapSubscriber:
         why noted in :attr:`rejected`."""
         from fedmap.maps.rosbag import grid_from_message
 
-        for sample in self.reader.take(N=64):
+        for sample in samples(self.reader):
             try:
                 self.latest = grid_from_message(from_dds(sample, OCCUPANCY_GRID), self.topic)
             except FedmapError as e:
@@ -327,4 +335,5 @@ def play_bag(path, dp: Any, *, topics: list[str] | None = None, speed: float = 1
 
 
 __all__ = ["LOOPBACK", "OCCUPANCY_GRID", "STORE", "MapPublisher", "MapSubscriber", "play_bag", "check_domain", "dds_name",
-           "dds_topic", "dds_type", "from_dds", "map_qos", "participant", "reader", "to_dds", "typestore", "writer"]
+           "dds_topic", "dds_type", "from_dds", "map_qos", "participant", "reader", "samples", "to_dds", "typestore",
+           "writer"]

@@ -118,7 +118,7 @@ class PoseSubscriber:
         self.unplaced = 0
 
     def poll(self) -> tuple[float, float] | None:
-        for sample in self.reader.take(N=64):
+        for sample in ros2dds.samples(self.reader):
             msg = ros2dds.from_dds(sample, self.msgtype)
             p = (msg.pose.pose if self.msgtype.endswith("Odometry") else msg.pose).position
             if math.isfinite(p.x) and math.isfinite(p.y):
@@ -148,7 +148,8 @@ def play_in_background(bag: Any, domain: int, topics: list[str], *, loopback: bo
                        say: Callable[[str], None] = print) -> threading.Thread:
     """Play ``bag``'s ``topics`` (its map, and its poses) into domain ``domain`` at the bag's
     timing from a participant of its own, once every topic has a reader, in a daemon thread
-    (``--bag``: a rover rehearsed from its logs). The bag is checked first (one line for a
+    (``--bag``: a rover rehearsed from its logs). Keep the thread object: its participant, and
+    with it the last map played (latched), lives as long as it does. The bag is checked first (one line for a
     bag without one of the topics)."""
     from fedmap.maps.rosbag import bag_topics, wanted_topics
 
@@ -160,6 +161,7 @@ def play_in_background(bag: Any, domain: int, topics: list[str], *, loopback: bo
         say(f"played {n} message(s) of {', '.join(topics)} from {bag}")
 
     t = threading.Thread(target=play, name="bag", daemon=True)
+    t.participant = dp  # type: ignore[attr-defined]  # its writers (the latched map) live as long as the thread object
     t.start()
     return t
 
