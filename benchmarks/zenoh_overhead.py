@@ -11,7 +11,8 @@ rounds, start-up excluded) against the in-process time (the overhead), the media
 percentile of a round (every order out, every report back: the rovers' own work included),
 and the rovers' memory as PSS (proportional set size: a page shared by N processes counts 1/N
 to each), read from ``/proc/<pid>/smaps_rollup`` at the mission's last round. It checks that the two
-missions' metrics agree (timings aside). Results go to ``benchmarks/results/zenoh_overhead/``.
+missions' metrics agree (timings aside). Results go to ``benchmarks/results/zenoh_overhead/``
+(``results.json``, ``results.md``, ``overhead.png``; ``--figure-only`` draws the figure again).
 """
 
 from __future__ import annotations
@@ -92,13 +93,53 @@ def one(rovers: int, steps: int, strategy: str) -> dict:
             "rover_processes_seen": len(pss)}
 
 
+def figure(rows: list[dict], path: Path, cpu: str) -> None:
+    """Time (in process, over Zenoh) and PSS per rover against the team's size."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = [r["rovers"] for r in rows]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
+    a.plot(n, [r["in_process_s"] for r in rows], "o-", label="in process (one process)")
+    a.plot(n, [r["zenoh_s"] for r in rows], "s-", label="over Zenoh (a process per rover, mutual TLS)")
+    for r in rows:
+        a.annotate(f"{r['overhead']:.2f}x", (r["rovers"], r["zenoh_s"]), textcoords="offset points", xytext=(-10, 8),
+                   fontsize=8)
+    a.set(xscale="log", yscale="log", xlabel="rovers", ylabel="seconds (start-up excluded)",
+          title=f"{rows[0]['strategy']}, {rows[0]['steps']} steps, lockstep")
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    a.set_xticks(n, [str(x) for x in n])
+    a.xaxis.set_minor_formatter(NullFormatter())
+    a.yaxis.set_major_formatter(ScalarFormatter())
+    a.yaxis.set_minor_formatter(NullFormatter())
+    a.set_xlim(n[0] / 1.5, n[-1] * 1.5)
+    a.set_yticks([t for t in (1, 2, 5, 10, 20, 50, 100, 200, 500) if t <= 2 * max(r["zenoh_s"] for r in rows)])
+    a.legend(fontsize=8)
+    b.bar([str(x) for x in n], [r["pss_mb_per_rover"] or 0 for r in rows], color="tab:orange")
+    b.axhline(150, color="k", ls="--", lw=1, label="target: 150 MB")
+    b.set(xlabel="rovers", ylabel="PSS per rover process (MB)", title="memory per rover")
+    b.legend(fontsize=8, loc="upper left")
+    fig.suptitle(f"A mission over Zenoh against in process ({cpu}, 2 cores)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rovers", type=int, nargs="+", default=[4, 16, 64])
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--strategy", default="predictive")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--figure-only", action="store_true", help="draw overhead.png from --out's results.json")
     a = ap.parse_args()
+    if a.figure_only:
+        saved = json.loads((a.out / "results.json").read_text())
+        figure(saved["rows"], a.out / "overhead.png", saved["cpu"])
+        return
     rows = []
     for n in a.rovers:
         row = one(n, a.steps, a.strategy)
@@ -117,6 +158,7 @@ def main() -> None:
                      f"{r['round_median_ms']} | {r['round_p95_ms']} | {r['in_process_round_ms']} | "
                      f"{r['pss_mb_per_rover']} | {r['host_pss_mb']} | {r['same_metrics']} |")
     (a.out / "results.md").write_text("\n".join(lines) + "\n")
+    figure(rows, a.out / "overhead.png", cpu)
     print("\n".join(lines))
 
 
