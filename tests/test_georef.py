@@ -149,3 +149,21 @@ def test_a_runs_png_maps_keep_their_place_on_the_body(tmp_path, capsys):
     # a map in a local frame writes no sidecar
     save_map(GridMap(np.zeros((4, 4), np.uint8), 1.0, "local"), tmp_path / "local.png")
     assert not (tmp_path / "local.png.aux.xml").exists() and load_map(tmp_path / "local.png").transform is None
+
+
+def test_cell_of_is_the_inverse_of_cell_centre():
+    """A point falls in the cell whose centre the forward transform gives, anywhere in the
+    cell; by hand on a north-up grid whose lower-left corner is (1, 2) m, cells of 0.5 m and
+    64 rows: (6.1, 4.85) m is column 10, row (2 + 32 - 4.85) / 0.5 = 58.3, so row 58."""
+    from affine import Affine
+
+    from fedmap.maps.georef import cell_centre, cell_of
+
+    t = Affine(0.5, 0.0, 1.0, 0.0, -0.5, 2.0 + 64 * 0.5)
+    assert cell_of(t, 6.1, 4.85) == (58, 10)
+    rng = np.random.default_rng(5)
+    for row, col in rng.integers(0, 64, (20, 2)):
+        x, y = cell_centre(t, row, col)
+        dx, dy = rng.uniform(-0.24, 0.24, 2)
+        assert cell_of(t, x + dx, y + dy) == (row, col)
+    assert cell_of(t, 0.9, 4.85) == (58, -1)  # left of the grid: outside, not clamped

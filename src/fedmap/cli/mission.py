@@ -23,8 +23,7 @@ from fedmap.flower.mission.deploy import DEPLOY_MODES, deploy_logs, deploy_missi
 from fedmap.maps.rosbag import check_bag_path
 from fedmap.maps.sources import terrain_notes
 from fedmap.mission import load_mission, mission_terrain
-from fedmap.mission.ends.registry import names_that
-from fedmap.mission.network.remote import check_deployable
+from fedmap.mission.network.remote import deployable_strategies
 from fedmap.mission.outputs.bag import SyncMaps
 from fedmap.mission.outputs.maps_out import MAPS_DIR
 from fedmap.mission.outputs.recording import Recorder, check_recording_path
@@ -214,13 +213,7 @@ def _deploy_plan(cfg, mode: str, listen: str) -> tuple[tuple[str, ...], list[str
     out, and ``--listen``'s host and port."""
     if mode not in (*DEPLOY_MODES, "zenoh"):
         raise FedmapError(f"unknown --deploy {mode!r}: choose one of {', '.join((*DEPLOY_MODES, 'zenoh'))}")
-    deployable = names_that("deployable")
-    names = tuple(n for n in cfg.strategies if n in deployable)
-    left = [n for n in cfg.strategies if n not in deployable]
-    if not names:
-        raise FedmapError(f"none of the strategies {', '.join(cfg.strategies)} runs on processes; these do: "
-                          f"{', '.join(deployable)}")
-    check_deployable(cfg, names)  # the topology and latency, before any process starts
+    names, left = deployable_strategies(cfg)  # before any process starts
     host, _, port = listen.rpartition(":")
     if mode == "base" and not (host and port.isdigit()):
         raise FedmapError(f"--listen must be HOST:PORT, got {listen!r}")

@@ -40,7 +40,7 @@ def rover(
     fault: Optional[str] = typer.Option(None, hidden=True, help="Testing: corrupt@STEP damages one report."),
 ) -> None:
     """A rover node: answers the base station's orders (drive, sense, share) until the mission is over."""
-    from fedmap.flower.mission.task import node_feed
+    from fedmap.mission.world.feed import MapFeed
     from fedmap.zenohnet.rover import serve_rover
     from fedmap.zenohnet.session import Certs, check_team, endpoint, node_config, open_session
 
@@ -63,15 +63,16 @@ def rover(
     if ros2:
         from fedmap.zenohnet.ros2 import POSE_TYPES, Ros2Bridge, play_in_background
 
-        bridge = Ros2Bridge(rover_, domain=ros_domain(domain), map_topic=map_topic, team_topic=team_map_topic,
+        ros_id = ros_domain(domain)
+        bridge = Ros2Bridge(rover_, domain=ros_id, map_topic=map_topic, team_topic=team_map_topic,
                             pose_topic=pose_topic, pose_type=POSE_TYPES[1 if pose_odometry else 0],
                             loopback=ros2_loopback, say=say)
         if bag is not None:
-            player = play_in_background(bag, ros_domain(domain), [map_topic, *([pose_topic] if pose_topic else [])],
+            player = play_in_background(bag, ros_id, [map_topic, *([pose_topic] if pose_topic else [])],
                                         loopback=ros2_loopback, say=say)
         if first_map > 0:
             bridge.wait_first(first_map)
-    mapfeed = node_feed({"feed": str(feed) if feed else "", "feed-topic": feed_topic or ""})
+    mapfeed = MapFeed.open(feed, topic=feed_topic) if feed is not None else None
     session = open_session(node_config(connect=[ep], certs=tls))
     try:
         console.print(f"rover {rover_} of team {team}: connecting to {ep}; log in {folder}/log"
@@ -122,19 +123,14 @@ def base(
 ) -> None:
     """The base station: waits for the team's rovers, runs the mission's clock, logs its side; score with fedmap score."""
     from fedmap.mission import load_mission
-    from fedmap.mission.ends.registry import names_that
-    from fedmap.mission.network.remote import check_deployable
+    from fedmap.mission.network.remote import deployable_strategies
     from fedmap.mission.settings import mission_toml
     from fedmap.zenohnet.base import ZenohTeam, run_base
     from fedmap.zenohnet.session import Certs, acl, check_listen, check_team, endpoint, node_config, open_session
 
     check_team(team)
     cfg, _source, resolved = load_mission(config, preset=preset, overrides=[*parse_sets(set_)])
-    names = tuple(n for n in cfg.strategies if n in names_that("deployable"))
-    if not names:
-        raise FedmapError(f"none of the strategies {', '.join(cfg.strategies)} runs on processes; these do: "
-                          f"{', '.join(names_that('deployable'))}")
-    check_deployable(cfg, names)
+    names, _ = deployable_strategies(cfg)
     ep = endpoint(listen, tls=certs is not None)
     check_listen([ep], secure=certs is not None, insecure=insecure)
     members = cfg.rovers + cfg.helicopters

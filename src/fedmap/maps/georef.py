@@ -58,6 +58,13 @@ def cell_centre(transform: Affine, row: float, col: float) -> tuple[float, float
     return float(x), float(y)
 
 
+def cell_of(transform: Affine, x: float, y: float) -> tuple[int, int]:
+    """The cell (row, col) that CRS point (x, y) falls in (the inverse of :func:`cell_centre`;
+    it may lie outside the grid)."""
+    col, row = ~transform @ (x, y)
+    return math.floor(row), math.floor(col)
+
+
 def local_transform(pixel_size: float, shape: tuple[int, int]) -> Affine:
     """A metric north-up transform with the map's lower-left corner at (0, 0): the frame of a
     grid that has no georeferencing of its own (generated terrain)."""

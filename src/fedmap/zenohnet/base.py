@@ -29,9 +29,15 @@ from typing import Any
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
 from fedmap.flower.mission.task import BaseJournal, JournaledSend, base_dir, base_log, lost_state
-from fedmap.mission.ends.registry import REGISTRY
 from fedmap.mission.network.nodelog import write_log
-from fedmap.mission.network.remote import CorruptMessage, ProcessBase, Report, check_deployable, rounds
+from fedmap.mission.network.remote import (
+    CorruptMessage,
+    ProcessBase,
+    Report,
+    check_deployable,
+    deployable_strategies,
+    rounds,
+)
 from fedmap.mission.scoring import mission_from_text, write_run
 from fedmap.zenohnet.session import alive_key, done_key, mission_key, order_key
 
@@ -86,22 +92,30 @@ class ZenohTeam:
     def say(self, level: str, line: str) -> None:
         base_log(self.out, level, line)
 
-    def wait_for_rovers(self, timeout: float) -> None:
-        """Until every rover of the team is alive; one line naming those that are not."""
-        t_end = time.monotonic() + timeout
+    def _until_alive(self, rovers: set[int], t_end: float, fail: Callable[[list[int]], str]) -> None:
+        """Until every rover of ``rovers`` is alive; ``fail(missing)`` is the line once the
+        monotonic clock passes ``t_end``. The launcher's ``watch`` runs while it waits."""
         while True:
             with self._lock:
-                missing = sorted(set(range(self.members)) - self.alive)
+                missing = sorted(rovers - self.alive)
             if not missing:
                 return
             left = t_end - time.monotonic()
             if left <= 0:
-                raise FedmapError(f"rover(s) {missing} of team {self.team} did not come up within {timeout:g} s "
-                                  f"({self.members - len(missing)} of {self.members} did)")
+                raise FedmapError(fail(missing))
             if self.watch is not None:
                 self.watch()
             self._changed.wait(min(left, self.poll))
             self._changed.clear()
+
+    def _not_back(self, missing: list[int]) -> str:
+        return f"rover {missing[0]} did not come back within {self.rejoin:g} s"
+
+    def wait_for_rovers(self, timeout: float) -> None:
+        """Until every rover of the team is alive; one line naming those that are not."""
+        self._until_alive(set(range(self.members)), time.monotonic() + timeout,
+                          lambda missing: f"rover(s) {missing} of team {self.team} did not come up within {timeout:g} "
+                                          f"s ({self.members - len(missing)} of {self.members} did)")
 
     def note(self, strategy: str, what: str) -> None:
         """A fault of the base station itself (rover -1)."""
@@ -196,23 +210,10 @@ class ZenohTeam:
                 if damaged.get(k, 0) > RESENDS:
                     raise FedmapError(f"rover {k}: every copy of the order or report was damaged ({damaged[k]})")
             for k in again:
-                if k in gone:
-                    self._wait_back(k, gone[k])
+                if k in gone:  # until it is alive again; one line once ``rejoin`` s have passed since it went
+                    self._until_alive({k}, gone[k] + self.rejoin, self._not_back)
             todo = again
         return reports
-
-    def _wait_back(self, k: int, since: float) -> None:
-        """Until rover ``k`` is alive again; one line once ``rejoin`` s have passed since it went."""
-        while True:
-            with self._lock:
-                if k in self.alive:
-                    return
-            if time.monotonic() - since > self.rejoin:
-                raise FedmapError(f"rover {k} did not come back within {self.rejoin:g} s")
-            if self.watch is not None:
-                self.watch()
-            self._changed.wait(self.poll)
-            self._changed.clear()
 
     def finish(self) -> None:
         """Tell every rover the mission is over (each may stop)."""
@@ -238,7 +239,7 @@ def run_base(team: ZenohTeam, mission_text: str, *, out: Path, strategies: tuple
     out = Path(out)
     run_dir(out).mkdir(parents=True, exist_ok=True)
     mission = mission_from_text(mission_text, frames=frames)
-    names = strategies or tuple(s for s in mission.config.strategies if REGISTRY[s].deployable)
+    names = strategies or deployable_strategies(mission.config)[0]
     check_deployable(mission.config, names)
     journal = BaseJournal(out, mission_text, resume=resume)
     team.missions[journal.mission_id] = mission_text

@@ -30,6 +30,7 @@ import numpy as np
 
 from fedmap.errors import FedmapError
 from fedmap.maps import ros2dds
+from fedmap.maps.georef import cell_of
 from fedmap.mission.sim import Mission
 from fedmap.mission.world.feed import LiveFeed
 
@@ -131,13 +132,10 @@ class PoseSubscriber:
         xy = self.poll()
         if xy is None:
             return None
-        x0, y0, yaw = grid.meta.get("origin", (0.0, 0.0, 0.0)) if grid is not None else (0.0, 0.0, 0.0)
-        if grid is None or abs(yaw) > 1e-12:
+        if grid is None or grid.transform is None:  # no map yet, or one turned in its frame
             self.unplaced += 1
             return None
-        h, w = grid.shape
-        col = math.floor((xy[0] - x0) / grid.pixel_size)
-        row = h - 1 - math.floor((xy[1] - y0) / grid.pixel_size)  # ROS row 0 is the bottom
+        (row, col), (h, w) = cell_of(grid.transform, *xy), grid.shape
         if not (0 <= row < h and 0 <= col < w):
             self.unplaced += 1
             return None

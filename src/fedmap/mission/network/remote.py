@@ -236,6 +236,19 @@ def check_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) 
                           f"these can: {', '.join(deployable)}")
 
 
+def deployable_strategies(c: MissionConfig) -> tuple[tuple[str, ...], list[str]]:
+    """The mission's strategies that run on processes and those left out, checked before any
+    process starts: one line when none of them does, or when the mission cannot
+    (:func:`check_deployable`)."""
+    deployable = names_that("deployable")
+    names = tuple(n for n in c.strategies if n in deployable)
+    if not names:
+        raise FedmapError(f"none of the strategies {', '.join(c.strategies)} runs on processes; these do: "
+                          f"{', '.join(deployable)}")
+    check_deployable(c, names)  # the topology and latency
+    return names, [n for n in c.strategies if n not in deployable]
+
+
 class ProcessRover:
     """Rover ``k`` of strategy ``name`` on a machine of its own, in lockstep with the base or
     on its own clock (the order says which): its node
@@ -606,5 +619,5 @@ def loopback(mission: Mission, name: str, *, feeds: dict[int, Feed] | None = Non
 
 __all__ = ["WIRE_VERSION", "CorruptMessage", "FarRover", "ProcessBase", "ProcessRover", "Loopback", "LostState", "Order",
            "Report",
-           "StepState", "check_deployable", "loopback", "pack_frame", "pack_history", "rounds", "unpack_frame",
-           "unpack_history", "warm_up"]
+           "StepState", "check_deployable", "deployable_strategies", "loopback", "pack_frame", "pack_history", "rounds",
+           "unpack_frame", "unpack_history", "warm_up"]
