@@ -21,7 +21,16 @@ import numpy as np
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
-from fedmap.mission.network.nodelog import BaseRecord, RoverEntry, StepState, base_name, read_base_record, read_rover_log
+from fedmap.mission.network.nodelog import (
+    BaseRecord,
+    RoverEntry,
+    StepState,
+    base_name,
+    read_base_record,
+    read_peer_records,
+    read_rover_log,
+)
+from fedmap.mission.network.peers import merge_records
 from fedmap.mission.network.topology import make_topology
 from fedmap.mission.results import MissionResult, StrategyRun
 from fedmap.mission.settings import load_mission
@@ -99,7 +108,8 @@ def score_folder(folder: Path, *, frames: int = 60,
                  on_step: Callable[[str, int, float], None] | None = None) -> MissionResult:
     """The mission of the run folder ``folder`` scored from its nodes' logs: the base's
     records (``*.base.log``), the mission they ran (``mission.toml``) and every rover's log
-    (``*-rover<k>-*.log``, anywhere under ``folder``). One line for what is missing."""
+    (``*-rover<k>-*.log``, anywhere under ``folder``); a peer mission's from every agent's
+record (``*.peer.log``) instead of the base's. One line for what is missing."""
     folder = Path(folder)
     if not folder.is_dir():
         raise FedmapError(f"no run folder {folder}")
@@ -120,10 +130,13 @@ def score_folder(folder: Path, *, frames: int = 60,
     runs = {}
     for name in strategies:
         record = read_base_record(folder, mission_id, name, shape=shape)
+        logs = [read_rover_log(folder, mission_id, name, k, shape=shape) for k in range(n)]
+        if record is None and mission.config.link.topology != "star":  # a peer mission: every agent's own record
+            peers = read_peer_records(folder, mission_id, name, shape=shape)
+            record = merge_records(mission, peers, logs) if peers else None
         if record is None:
             raise FedmapError(f"{folder}: no base station record of {name} ({base_name(mission_id, name)}): the base "
                               "did not finish it")
-        logs = [read_rover_log(folder, mission_id, name, k, shape=shape) for k in range(n)]
         runs[name] = score_strategy(mission, record, logs, on_step=on_step)
     return MissionResult(mission.config, mission.truth, mission.starts, mission.base, runs, seconds,
                          faults=faults)

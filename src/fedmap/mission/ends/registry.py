@@ -53,6 +53,9 @@ class StrategySpec:
     #: its rover ends hold only their own rover, so each can run in a process of its own
     #: (``central`` pools every rover's observations at once: a reference, not a protocol)
     deployable: bool = False
+    #: its peer ends hold only their own agent, so each agent of a peer mission can run in a
+    #: process of its own (:mod:`fedmap.mission.network.peers`)
+    peer_deployable: bool = False
     #: it runs with ``[frames]`` (rovers that do not know their poses, :mod:`fedmap.mission.world.frames`)
     framed: bool = False
     #: its ends with ``[frames]`` (None: its own ends, each rover keeping its own frame)
@@ -162,6 +165,7 @@ REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
                  on_link=False, default=True, peer_default=True, deployable=True, framed=True, role="baseline"),
     StrategySpec("raw", "observed cells, lossless (context codec): merged at the base on the star, gossiped on "
                  "peers", star=_raw_star, peer=_raw_peer, default=True, peer_default=True, deployable=True,
+                 peer_deployable=True,
                  framed=True, framed_ends=framed_raw),
     StrategySpec("predictive", "new cells, lossless, with a learned probability model both ends keep",
                  star=_predictive, options=PredictiveOptions, default=True,
@@ -174,8 +178,9 @@ REGISTRY: dict[str, StrategySpec] = {spec.name: spec for spec in (
     StrategySpec("fedmap", "fedmap's feature grids, coverage-aware FedAvg", star=_model, trains=True, default=True,
                  deployable=True),
     StrategySpec("gossip", "fedmap's network averaged peer to peer (Metropolis weights)", peer=_gossip(GossipPeer),
-                 trains=True, peer_default=True),
-    StrategySpec("admm", "fedmap's network by DiNNO's decentralised C-ADMM", peer=_gossip(AdmmPeer), trains=True),
+                 trains=True, peer_default=True, peer_deployable=True),
+    StrategySpec("admm", "fedmap's network by DiNNO's decentralised C-ADMM", peer=_gossip(AdmmPeer), trains=True,
+                 peer_deployable=True),
     StrategySpec("central", "every observation pooled at once, free (a reference, not a bound)", star=_central,
                  peer=_central, on_link=False, default=True, peer_default=True, role="reference"),
 )}

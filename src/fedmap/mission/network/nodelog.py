@@ -205,7 +205,68 @@ class BaseRecord:
                 from None
 
 
-def write_log(folder: Path, record: RoverEntry | BaseRecord) -> Path:
+def peer_name(mission: str, strategy: str, agent: int) -> str:
+    return f"{mission or 'mission'}-{strategy}-agent{agent}.peer.log"
+
+
+@dataclass
+class PeerRecord:
+    """What one agent of a peer mission writes to its own log once its run is over: its side
+    of the link (the ledger entries of what it sent, each with its place in the round's order:
+    ``(step, offer, hop)``), its slots and wire bytes, and, for the lander, the map it held
+    after each sync (by step). Merged with the others' by
+    :func:`~fedmap.mission.network.peers.merge_records`."""
+
+    strategy: str
+    mission: str
+    agent: int  #: a rover, or the lander (-1)
+    seconds: float
+    ledger: list[Message]
+    order: list[tuple[int, int, int]]
+    slots: int
+    wire: dict
+    held: dict[int, np.ndarray]
+
+    @property
+    def name(self) -> str:
+        return peer_name(self.mission, self.strategy, self.agent)
+
+    def to_bytes(self) -> bytes:
+        steps = sorted(self.held)
+        head = {"kind": "peer-log", "strategy": self.strategy, "mission": self.mission, "agent": self.agent,
+                "seconds": self.seconds, "ledger": [m.to_dict() for m in self.ledger],
+                "order": [list(o) for o in self.order], "slots": self.slots, "wire": self.wire, "held": steps}
+        maps = np.stack([self.held[s][None] for s in steps]) if steps else np.zeros((0, 1, 0, 0), dtype=np.uint8)
+        return pack_frame(head, [pack_stack(maps)])
+
+    @classmethod
+    def from_bytes(cls, raw: bytes, *, shape: tuple[int, int] | None = None) -> PeerRecord:
+        h, blobs = unpack_frame(raw)
+        if h.get("kind") != "peer-log" or len(blobs) != 1:
+            raise CorruptMessage(f"expected an agent's peer log, got a {h.get('kind')!r} record")
+        try:
+            steps = [int(s) for s in h["held"]]
+            maps = unpack_stack(blobs[0], len(steps), 1, shape)
+            ledger = [Message(**m) for m in h["ledger"]]
+            order = [(int(o[0]), int(o[1]), int(o[2])) for o in h["order"]]
+            if len(order) != len(ledger):
+                raise ValueError(f"{len(order)} places for {len(ledger)} ledger entries")
+            return cls(str(h["strategy"]), str(h["mission"]), int(h["agent"]), float(h["seconds"]), ledger, order,
+                       int(h["slots"]), dict(h["wire"]), {s: m[0] for s, m in zip(steps, maps)})
+        except (KeyError, TypeError, IndexError, ValueError) as e:
+            raise CorruptMessage(f"corrupted log: its header is not a peer log's ({type(e).__name__}: {e})") from None
+
+
+def read_peer_records(folder: Path, mission: str, strategy: str, *,
+                      shape: tuple[int, int] | None = None) -> list[PeerRecord]:
+    """Every agent's :class:`PeerRecord` of ``strategy`` in mission ``mission`` under ``folder`` (one per agent)."""
+    found: dict[str, Path] = {}
+    for p in sorted(Path(folder).rglob(peer_name(mission, strategy, 0).replace("agent0", "agent*"))):
+        found.setdefault(p.name, p)
+    return [_read(p, PeerRecord, shape) for _, p in sorted(found.items())]
+
+
+def write_log(folder: Path, record: RoverEntry | BaseRecord | PeerRecord) -> Path:
     """``record`` into ``folder`` (made if need be), atomically: written again, it replaces itself."""
     path = Path(folder) / record.name
     atomic_write_bytes(path, record.to_bytes())
@@ -241,5 +302,5 @@ def read_base_record(folder: Path, mission: str, strategy: str, *,
     return _read(found[0], BaseRecord, shape) if found else None
 
 
-__all__ = ["MAX_ENTRY_MAPS", "BaseRecord", "RoverEntry", "StepState", "base_name", "entry_name", "pack_stack",
-           "read_base_record", "read_rover_log", "unpack_stack", "write_log"]
+__all__ = ["MAX_ENTRY_MAPS", "BaseRecord", "PeerRecord", "RoverEntry", "StepState", "base_name", "entry_name", "pack_stack",
+           "peer_name", "read_base_record", "read_peer_records", "read_rover_log", "unpack_stack", "write_log"]

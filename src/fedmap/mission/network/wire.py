@@ -31,9 +31,10 @@ WIRE_VERSION = 2
 #: The record frame's version (the first byte of every record a node writes to its disk).
 RECORD_VERSION = 1
 #: Message kinds: the base's order to a rover, a rover's report, every order a rover was sent,
-#: and a strategy's message from one node to another (an uplink, a downlink, a peer message).
-ORDER, REPORT, HISTORY, PAYLOAD = 1, 2, 3, 4
-KINDS = {ORDER: "order", REPORT: "report", HISTORY: "history", PAYLOAD: "strategy message"}
+#: a strategy's message from one node to another (an uplink, a downlink, a peer message), and
+#: mail between the agents of a peer mission (:mod:`fedmap.mission.network.peers`).
+ORDER, REPORT, HISTORY, PAYLOAD, MAIL = 1, 2, 3, 4, 5
+KINDS = {ORDER: "order", REPORT: "report", HISTORY: "history", PAYLOAD: "strategy message", MAIL: "mail"}
 _MSG = struct.Struct("<BBhII")  # version, kind, sender, round, step
 _CRC = struct.Struct("<I")
 #: Bytes a message frame adds to its body: its head and its check.
