@@ -159,6 +159,42 @@ def test_a_certificate_from_another_ca_is_refused(tmp_path):
             q.undeclare()
 
 
+def _listening_ports() -> set[int]:
+    """The TCP ports this process listens on (Linux: its sockets in /proc/net/tcp*, state LISTEN)."""
+    inodes = set()
+    for fd in Path("/proc/self/fd").iterdir():
+        try:
+            link = os.readlink(fd)
+        except OSError:
+            continue
+        if link.startswith("socket:["):
+            inodes.add(link[8:-1])
+    ports = set()
+    for table in ("/proc/self/net/tcp", "/proc/self/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            f = line.split()
+            if f[3] == "0A" and f[9] in inodes:
+                ports.add(int(f[1].rsplit(":", 1)[1], 16))
+    return ports
+
+
+def test_a_node_that_connects_listens_nowhere(tmp_path):
+    """A Zenoh peer listens on every interface by default (plain TCP, a random port): past
+    the base's TLS and access control. A rover's node listens only where it is told: nowhere."""
+    make_certs(tmp_path, hosts=["127.0.0.1"], rovers=1)
+    port = free_port()
+    before = _listening_ports()
+    with _base(tmp_path, port, "t", 1):
+        assert _listening_ports() - before == {port}
+        with _rover(tmp_path, port, "rover0"):
+            time.sleep(0.3)
+            assert _listening_ports() - before == {port}  # the base's port only
+    bare = zenoh.Config()  # (the default it guards against: a peer listens anyway)
+    bare.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(bare):
+        assert _listening_ports() - before
+
+
 def test_listening_beyond_loopback_without_certificates_is_refused():
     check_listen([endpoint("127.0.0.1:7447", tls=False)], secure=False, insecure=False)  # loopback: fine
     with pytest.raises(FedmapError, match="refusing to listen on tcp/0.0.0.0:7447 without TLS"):

@@ -138,8 +138,9 @@ def node_config(*, listen: list[str] = (), connect: list[str] = (), certs: Certs
 
     put("mode", mode)
     put("scouting/multicast/enabled", False)
-    if listen:
-        put("listen/endpoints", list(listen))
+    # a node listens only where told: a Zenoh peer's default (every interface, a random port,
+    # plain TCP) would let anyone who reaches it past the TLS and access control of the base
+    put("listen/endpoints", list(listen))
     if connect:
         put("connect/endpoints", list(connect))
         put("connect/timeout_ms", -1)  # keep trying: the base may start after its rovers
