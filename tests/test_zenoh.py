@@ -102,6 +102,67 @@ def test_a_mission_over_zenoh_loses_nothing_to_faults(tmp_path):
     assert any(m.status == "out of range" or m.bytes == 0 for m in ledger if 20 <= m.step <= 40)
 
 
+# -- peer missions: an agent per process, no base station giving orders ----------------------------
+
+
+def _peer_mission(steps: int, strategies, **link) -> str:
+    _, _, resolved = load_mission(overrides=[{"mission": {"steps": steps, "strategies": list(strategies)},
+                                              "link": {"latency": 0, **link}}])
+    return mission_toml(resolved)
+
+
+PEER_CASES = [
+    # the lander an agent and leader of its group, its link cut for a while; a damaged mail
+    ("leader", ("raw", "gossip"), {"loss": 0.1, "drop": 0.1, "lander_cut": [10, 25], "uplink_bytes": 1500}),
+    # no lander: a mesh of rovers alone
+    ("mesh", ("raw", "admm"), {"loss": 0.1, "drop": 0.1, "lander_agent": False, "peer_range": 60.0}),
+]
+
+
+@pytest.mark.xdist_group("loopback-c")
+@pytest.mark.parametrize("topology,names,link", PEER_CASES)
+def test_a_peer_mission_over_zenoh_equals_the_mission_in_process(tmp_path, topology, names, link):
+    """One process per rover (``fedmap node peer``) and the lander in this process, over
+    Zenoh with mutual TLS and access control: every agent runs its side of the rounds, and
+    the mission scored from their logs equals the in-process one, message for message.
+    Rover 1 damages one mail (its check fails at the receiver, which refuses it; it is sent again)."""
+    text = _peer_mission(40, names, topology=topology, **link)
+    apart = deploy_zenoh(text, members=4, out=tmp_path / "out", strategies=names, frames=1,
+                         faults={1: "corrupt@10"})
+    here = _in_process(text)
+    _same(here, apart, names)
+    for name in names:
+        assert sum(m.bytes for m in apart.runs[name].ledger) > 0, name
+        assert {m.status for m in apart.runs[name].ledger} - {"delivered"}, name  # losses and drops drawn
+    assert [f["rover"] for f in apart.faults] == [1], apart.faults
+    assert "damaged on the way" in apart.faults[0]["fault"] and "its check failed" in apart.faults[0]["fault"]
+    assert not (tmp_path / "out.run" / "certs").exists()
+
+
+def test_a_rover_cannot_post_mail_as_another_rover(tmp_path):
+    """Access control on a peer mission: rover 1 may post mail to rover 0 as itself, not as rover 2."""
+    from fedmap.zenohnet.peer import mail_key
+
+    make_certs(tmp_path, hosts=["127.0.0.1"], rovers=3)
+    port = free_port()
+
+    def client(who: str):
+        return open_session(node_config(connect=[f"tls/127.0.0.1:{port}"], certs=Certs.for_node(tmp_path, who),
+                                        mode="client"))
+
+    for guarded in (True, False):
+        lander = open_session(node_config(listen=[f"tls/127.0.0.1:{port}"], certs=Certs.for_node(tmp_path, "base"),
+                                          access=acl("t", 3) if guarded else None, mode="router"))
+        with lander, client("rover0") as r0, client("rover1") as r1:
+            inbox = _answer(r0, mail_key("t", "raw", 0, "*"), b"taken")
+            time.sleep(0.5)
+            assert _ask(r1, mail_key("t", "raw", 0, 1)) == [b"taken"]  # as itself
+            forged = _ask(r1, mail_key("t", "raw", 0, 2))  # as rover 2
+            assert forged == ([] if guarded else [b"taken"])  # (without the rules it gets through)
+            inbox.undeclare()
+        port = free_port()
+
+
 # -- security -------------------------------------------------------------------------------------
 
 

@@ -23,6 +23,7 @@ from fedmap.flower.mission.deploy import DEPLOY_MODES, deploy_logs, deploy_missi
 from fedmap.maps.rosbag import check_bag_path
 from fedmap.maps.sources import terrain_notes
 from fedmap.mission import load_mission, mission_terrain
+from fedmap.mission.network.peers import peer_strategies
 from fedmap.mission.network.remote import deployable_strategies
 from fedmap.mission.outputs.bag import SyncMaps
 from fedmap.mission.outputs.maps_out import MAPS_DIR
@@ -213,7 +214,10 @@ def _deploy_plan(cfg, mode: str, listen: str) -> tuple[tuple[str, ...], list[str
     out, and ``--listen``'s host and port."""
     if mode not in (*DEPLOY_MODES, "zenoh"):
         raise FedmapError(f"unknown --deploy {mode!r}: choose one of {', '.join((*DEPLOY_MODES, 'zenoh'))}")
-    names, left = deployable_strategies(cfg)  # before any process starts
+    if mode == "zenoh" and cfg.link.topology != "star":  # a peer mission: an agent per process
+        names, left = peer_strategies(cfg)
+    else:
+        names, left = deployable_strategies(cfg)  # before any process starts
     host, _, port = listen.rpartition(":")
     if mode == "base" and not (host and port.isdigit()):
         raise FedmapError(f"--listen must be HOST:PORT, got {listen!r}")

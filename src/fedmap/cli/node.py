@@ -1,5 +1,5 @@
-"""``fedmap node rover`` / ``fedmap node base``: one node of a team as its own process, over
-Zenoh (:mod:`fedmap.zenohnet`). This module only wires options."""
+"""``fedmap node rover`` / ``fedmap node peer`` / ``fedmap node base``: one node of a team as
+its own process, over Zenoh (:mod:`fedmap.zenohnet`). This module only wires options."""
 
 from __future__ import annotations
 
@@ -107,6 +107,35 @@ def ros_domain(domain: Optional[int]) -> int:
     return check_domain(int(text))
 
 
+@node_app.command("peer")
+def peer(
+    rover_: int = typer.Option(..., "--rover", min=0, help="This rover's index in the team (0-based)."),
+    connect: str = typer.Option(..., "--connect", help="The lander's HOST:PORT (fedmap node base of a mesh or leader mission)."),
+    team: str = typer.Option("fedmap", "--team", help="The team's name (teams can share a network); the lander's --team."),
+    state: Optional[Path] = typer.Option(None, "--state", help="Folder for this rover's own log (default: fedmap-rover<k>); the mission is scored from it."),
+    certs: Optional[Path] = typer.Option(None, "--certs", help="TLS with mutual authentication: a folder with ca.crt, rover<k>.crt and rover<k>.key (from fedmap certs)."),
+    connect_timeout: float = typer.Option(300.0, "--connect-timeout", min=1.0, help="Seconds to wait for the lander and every other agent to come up."),
+    fault: Optional[str] = typer.Option(None, hidden=True, help="Testing: corrupt@STEP damages one mail."),
+) -> None:
+    """A rover of a peer mission (mesh or leader): runs its side of every sync round with the other agents; no orders."""
+    from fedmap.zenohnet.peer import serve_peer
+    from fedmap.zenohnet.session import Certs, check_team, endpoint, node_config, open_session
+
+    check_team(team)
+    ep = endpoint(connect, tls=certs is not None)
+    tls = Certs.for_node(certs, f"rover{rover_}") if certs is not None else None
+    folder = state or Path(f"fedmap-rover{rover_}")
+    console.print(f"rover {rover_} of team {team}: peer node, connecting to {ep}", soft_wrap=True)
+    session = open_session(node_config(connect=[ep], certs=tls, mode="client"))  # through the lander, its access control
+    try:
+        names = serve_peer(session, team, rover_, folder, connect_timeout=connect_timeout, fault=fault)
+    except KeyboardInterrupt:
+        raise FedmapError(f"rover {rover_} stopped") from None
+    finally:
+        session.close()
+    console.print(f"rover {rover_}: ran {', '.join(names)}; its log is in {folder / 'log'}", soft_wrap=True)
+
+
 @node_app.command("base")
 def base(
     config: Optional[Path] = typer.Argument(None, help=escape("Mission TOML (as fedmap mission takes); default: built-in mars 128².")),
@@ -121,8 +150,9 @@ def base(
     step_seconds: float = typer.Option(0.0, "--step-seconds", min=0.0, help="Every node on its own clock, a step every this many seconds (0: lockstep)."),
     connect_timeout: float = typer.Option(300.0, "--connect-timeout", min=1.0, help="Seconds to wait for every rover to come up."),
 ) -> None:
-    """The base station: waits for the team's rovers, runs the mission's clock, logs its side; score with fedmap score."""
+    """The base station (star) or the lander (mesh, leader): runs the mission's clock or desk, logs its side; score with fedmap score."""
     from fedmap.mission import load_mission
+    from fedmap.mission.network.peers import peer_strategies
     from fedmap.mission.network.remote import deployable_strategies
     from fedmap.mission.settings import mission_toml
     from fedmap.zenohnet.base import ZenohTeam, run_base
@@ -130,12 +160,20 @@ def base(
 
     check_team(team)
     cfg, _source, resolved = load_mission(config, preset=preset, overrides=[*parse_sets(set_)])
-    names, _ = deployable_strategies(cfg)
+    peers = cfg.link.topology != "star"
+    if peers and (resume or step_seconds):
+        raise FedmapError("a peer mission runs in lockstep from its start: --resume and --step-seconds are for the star")
+    names, _ = peer_strategies(cfg) if peers else deployable_strategies(cfg)
     ep = endpoint(listen, tls=certs is not None)
     check_listen([ep], secure=certs is not None, insecure=insecure)
     members = cfg.rovers + cfg.helicopters
     tls = Certs.for_node(certs, "base") if certs is not None else None
-    session = open_session(node_config(listen=[ep], certs=tls, access=None if tls is None else acl(team, members)))
+    session = open_session(node_config(listen=[ep], certs=tls, access=None if tls is None else acl(team, members),
+                                       mode="router" if peers else "peer"))
+    if peers:
+        _lander(session, cfg, mission_toml(resolved), names, team=team, listen=listen, certs=certs, out=out,
+                connect_timeout=connect_timeout)
+        return
     t0 = time.perf_counter()
     try:
         team_ = ZenohTeam(session, team, members, out)
@@ -158,4 +196,31 @@ def base(
     finally:
         session.close()
     console.print(f"mission over in {time.perf_counter() - t0:.1f} s; the base's records are in {run_dir(out)}. "
+                  f"Copy each rover's log folder into it, then: fedmap score {run_dir(out)} --out {out}", soft_wrap=True)
+
+
+def _lander(session: Any, cfg: Any, text: str, names: tuple[str, ...], *, team: str, listen: str,
+            certs: Optional[Path], out: Path, connect_timeout: float) -> None:
+    """``fedmap node base`` of a peer mission: the lander (:func:`fedmap.zenohnet.peer.run_lander`)."""
+    from fedmap.zenohnet.peer import run_lander
+
+    t0 = time.perf_counter()
+    try:
+        console.print(f"lander of team {team} ({cfg.link.topology}) listening; start each rover k with: fedmap node "
+                      f"peer --rover k --connect {listen}{' --certs DIR' if certs else ''}", soft_wrap=True)
+        with progress_bar() as progress:
+            tasks: dict[str, Any] = {}
+
+            def on_step(name: str, step: int) -> None:
+                if name not in tasks:
+                    tasks[name] = progress.add_task(f"peer mission over Zenoh: {name}", total=cfg.steps, loss="")
+                progress.update(tasks[name], completed=step)
+
+            run_lander(session, team, text, out=out, strategies=names, connect_timeout=connect_timeout,
+                       on_step=on_step)
+    except KeyboardInterrupt:
+        raise FedmapError("lander stopped: a peer mission cannot resume; start it again") from None
+    finally:
+        session.close()
+    console.print(f"mission over in {time.perf_counter() - t0:.1f} s; the lander's records are in {run_dir(out)}. "
                   f"Copy each rover's log folder into it, then: fedmap score {run_dir(out)} --out {out}", soft_wrap=True)

@@ -19,9 +19,11 @@ import os
 import shutil
 import sys
 import time
+import tomllib
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
@@ -32,6 +34,7 @@ from fedmap.flower.mission.task import base_dir, base_log
 from fedmap.mission.results import MissionResult
 from fedmap.mission.scoring import RUN_FILE, score_folder
 from fedmap.zenohnet.base import ZenohTeam, run_base
+from fedmap.zenohnet.peer import run_lander
 from fedmap.zenohnet.session import Certs, acl, node_config, open_session
 
 #: Rover processes started again after they exited, in all, before the mission fails.
@@ -50,6 +53,45 @@ def rover_argv(k: int, *, connect: str, team: str, state: Path, certs: Path | No
     return argv
 
 
+def _prepare(out: Path, members: int, *, tls: bool, resume: bool) -> tuple[Path, Path | None, str]:
+    """A run's folder (the logs and records of an earlier run into it gone, unless
+    ``resume``), its certificates (``tls``: a throw-away CA whose key is never written) and
+    the address its base or lander listens on (a free port of 127.0.0.1)."""
+    work = run_dir(out)
+    work.mkdir(parents=True, exist_ok=True)
+    if not resume:  # a rover's log and the base's records of an earlier run are not this run's
+        for old in work.glob("rover*.state"):
+            shutil.rmtree(old, ignore_errors=True)
+        shutil.rmtree(base_dir(out), ignore_errors=True)
+    (work / RUN_FILE).unlink(missing_ok=True)
+    certs = work / "certs" if tls else None
+    if certs is not None:  # the certificates go with the run
+        make_certs(certs, hosts=["127.0.0.1", "localhost"], rovers=members, overwrite=True, keep_ca_key=False)
+    return work, certs, f"{'tls' if tls else 'tcp'}/127.0.0.1:{free_port('127.0.0.1')}"
+
+
+def _open(stack: contextlib.ExitStack, work: Path, certs: Path | None, address: str, team: str, members: int,
+          env: dict, *, mode: str) -> tuple[Processes, RoverHost, Any]:
+    """The processes of a run on this machine, within ``stack``: the host the rovers are forked
+    from (fedmap and torch imported once, their pages shared) and the base's (or lander's)
+    Zenoh session listening on ``address``, with TLS and access control when ``certs``."""
+    socks = stack.enter_context(socket_dir("fedmap-rovers-", ROVER_HOST_SOCKET))
+    procs = stack.enter_context(Processes())
+    stack.enter_context(sigterm_as_interrupt())
+    host = RoverHost(procs, socks, env=env, log=work / f"{ROVER_HOST}.log")
+    session = open_session(node_config(listen=[address], certs=None if certs is None else Certs.for_node(certs, "base"),
+                                       access=None if certs is None else acl(team, members), mode=mode))
+    stack.callback(session.close)
+    return procs, host, session
+
+
+def peer_argv(k: int, *, connect: str, team: str, state: Path, certs: Path | None = None,
+              fault: str | None = None) -> list[str]:
+    """``fedmap node peer`` for rover ``k`` of a peer mission (what each rover's computer runs)."""
+    return ["peer" if a == "rover" else a for a in rover_argv(k, connect=connect, team=team, state=state,
+                                                               certs=certs, fault=fault)]
+
+
 def deploy_zenoh(mission_toml: str, *, members: int, out: Path, strategies: tuple[str, ...] = (), frames: int = 60,
                  resume: bool = False, step_seconds: float = 0.0, deadline: float = 600.0,
                  connect_timeout: float = 120.0, rejoin: float = 120.0, tls: bool = True, team: str = "fedmap",
@@ -59,35 +101,24 @@ def deploy_zenoh(mission_toml: str, *, members: int, out: Path, strategies: tupl
     """Run the mission ``mission_toml`` (resolved TOML) with one process per rover over
     Zenoh on this machine; its result. ``tls``: mutual TLS and access control (the default).
     ``on_started(seconds)``: every rover is up (the start-up's wall time), the mission begins.
-    ``faults``: per rover, a fault it injects (tests only: ``corrupt@STEP``)."""
+    ``faults``: per rover, a fault it injects (tests only: ``corrupt@STEP``). A mesh or
+    leader mission runs as peers (:func:`deploy_peers`)."""
+    if tomllib.loads(mission_toml).get("link", {}).get("topology", "star") != "star":
+        if resume or step_seconds:
+            raise FedmapError("a peer mission on processes runs in lockstep from its start: --resume and "
+                              "--step-seconds are for the star")
+        return deploy_peers(mission_toml, members=members, out=out, strategies=strategies, frames=frames,
+                            connect_timeout=connect_timeout, tls=tls, team=team, faults=faults, on_step=on_step,
+                            on_started=on_started)
     out = Path(out).resolve()
-    work = run_dir(out)
-    work.mkdir(parents=True, exist_ok=True)
-    if not resume:  # a rover's log and the base's records of an earlier run are not this run's
-        for old in work.glob("rover*.state"):
-            shutil.rmtree(old, ignore_errors=True)
-        shutil.rmtree(base_dir(out), ignore_errors=True)
-    (work / RUN_FILE).unlink(missing_ok=True)
-    certs = work / "certs" if tls else None
-    if certs is not None:  # a throw-away CA (its key never written) whose certificates go with the run
-        make_certs(certs, hosts=["127.0.0.1", "localhost"], rovers=members, overwrite=True, keep_ca_key=False)
-    port = free_port("127.0.0.1")
-    address = f"{'tls' if tls else 'tcp'}/127.0.0.1:{port}"
+    work, certs, address = _prepare(out, members, tls=tls, resume=resume)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     restarted: list[dict] = []
     status = {"strategy": "", "step": 0}
     t0 = time.perf_counter()
     try:
         with contextlib.ExitStack() as stack:
-            socks = stack.enter_context(socket_dir("fedmap-rovers-", ROVER_HOST_SOCKET))
-            procs = stack.enter_context(Processes())
-            stack.enter_context(sigterm_as_interrupt())
-            # the rovers are forked from it (fedmap and torch imported once, their pages shared)
-            host = RoverHost(procs, socks, env=env, log=work / f"{ROVER_HOST}.log")
-            conf = node_config(listen=[address], certs=None if certs is None else Certs.for_node(certs, "base"),
-                               access=None if certs is None else acl(team, members))
-            session = open_session(conf)
-            stack.callback(session.close)
+            procs, host, session = _open(stack, work, certs, address, team, members, env, mode="peer")
             argvs = {k: rover_argv(k, connect=address, team=team, state=work / f"rover{k}.state", certs=certs,
                                    fault=(faults or {}).get(k)) for k in range(members)}
 
@@ -138,4 +169,58 @@ def deploy_zenoh(mission_toml: str, *, members: int, out: Path, strategies: tupl
     return replace(result, faults=(*result.faults, *restarted))
 
 
-__all__ = ["ROVER_PROCESS_RESTARTS", "deploy_zenoh", "rover_argv"]
+def deploy_peers(mission_toml: str, *, members: int, out: Path, strategies: tuple[str, ...] = (), frames: int = 60,
+                 connect_timeout: float = 120.0, tls: bool = True, team: str = "fedmap",
+                 faults: dict[int, str] | None = None, on_step: Callable[[str, int], None] | None = None,
+                 on_started: Callable[[float], None] | None = None) -> MissionResult:
+    """Run the peer mission ``mission_toml`` (mesh or leader) with one process per rover
+    over Zenoh on this machine, the lander in this process
+    (:func:`~fedmap.zenohnet.peer.run_lander`: the team's router, and its own agent when it
+    is one); its result, scored from every agent's log. ``tls`` and ``faults`` as
+    :func:`deploy_zenoh`'s. A rover process that fails stops the mission with one line (a
+    lockstep round cannot close without it)."""
+    out = Path(out).resolve()
+    work, certs, address = _prepare(out, members, tls=tls, resume=False)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    status = {"strategy": "", "step": 0}
+    t0 = time.perf_counter()
+    try:
+        with contextlib.ExitStack() as stack:
+            procs, host, session = _open(stack, work, certs, address, team, members, env, mode="router")
+            for k in range(members):
+                argv = peer_argv(k, connect=address, team=team, state=work / f"rover{k}.state", certs=certs,
+                                 fault=(faults or {}).get(k))
+                p = host.start(f"rover{k}", argv, env=env, log=work / f"rover{k}.log")
+                atomic_write_bytes(work / f"rover{k}.pid", f"{p.pid}\n".encode())
+
+            def watch() -> None:  # a rover process that failed: the mission cannot go on without it
+                for k in range(members):
+                    code = procs.procs[f"rover{k}"].poll()
+                    if code not in (None, 0):
+                        raise FedmapError(f"rover {k}'s process exited (code {code}) near {status['strategy']} step "
+                                          f"{status['step']}; its log: {work / f'rover{k}.log'}")
+
+            def stepped(name: str, step: int) -> None:
+                status.update(strategy=name, step=step)
+                if on_step is not None:
+                    on_step(name, step)
+
+            def started() -> None:
+                if on_started is not None:
+                    on_started(time.perf_counter() - t0)
+
+            run_lander(session, team, mission_toml, out=out, strategies=strategies, connect_timeout=connect_timeout,
+                       frames=frames, on_step=stepped, watch=watch, on_started=started)
+            for k in range(members):
+                with contextlib.suppress(Exception):
+                    procs.procs[f"rover{k}"].wait(timeout=30)
+    except KeyboardInterrupt:
+        raise FedmapError(f"mission interrupted ({status['strategy'] or 'before the first strategy'}, step "
+                          f"{status['step']}); its processes are stopped; logs in {work}") from None
+    finally:
+        if certs is not None:
+            shutil.rmtree(certs, ignore_errors=True)
+    return score_folder(work, frames=frames)
+
+
+__all__ = ["ROVER_PROCESS_RESTARTS", "deploy_peers", "deploy_zenoh", "peer_argv", "rover_argv"]

@@ -102,25 +102,32 @@ class Certs:
 
 
 def acl(team: str, rovers: int) -> dict:
-    """The base's access-control rules: everything is denied but what each node needs.
-    The base (no client certificate: it listens) is trusted through its own session; rover
-    ``k`` (common name ``rover<k>``) may declare and answer its own queryable, hold its own
-    liveliness token, and ask the base for the mission."""
+    """The base's (or lander's) access-control rules: everything is denied but what each
+    node needs. The base (no client certificate: it listens) is trusted through its own
+    session. Rover ``k`` (common name ``rover<k>``) may declare and answer its own queryable
+    and hold its own liveliness token (it sees everyone's), ask the base for the mission, and
+    on a peer mission post mail as itself only (``fedmap/<team>/peer/*/mail/*/<k>``), take
+    its own (``fedmap/<team>/peer/<k>/mail/**``), and ask for the plan and say it finished."""
     rules: list[dict] = [{
-        "id": "mission", "permission": "allow", "flows": ["egress", "ingress"],
-        "messages": ["query", "reply", "declare_queryable"], "key_exprs": [mission_key(team)],
+        "id": "desk", "permission": "allow", "flows": ["egress", "ingress"],
+        "messages": ["query", "reply", "declare_queryable"],
+        "key_exprs": [mission_key(team), f"fedmap/{team}/base/plan", f"fedmap/{team}/base/finished"],
     }, {
-        "id": "base-alive", "permission": "allow", "flows": ["egress", "ingress"],
-        "messages": ["liveliness_token", "liveliness_query", "declare_liveliness_subscriber"],
-        "key_exprs": [alive_key(team, "**")],
+        "id": "see-alive", "permission": "allow", "flows": ["egress", "ingress"],
+        "messages": ["liveliness_query", "declare_liveliness_subscriber"], "key_exprs": [alive_key(team, "**")],
+    }, {
+        "id": "told-alive", "permission": "allow", "flows": ["egress"],  # everyone's tokens reach it
+        "messages": ["liveliness_token"], "key_exprs": [alive_key(team, "**")],
     }]
     subjects, policies = [], []
     for k in range(rovers):
         rules.append({"id": f"rover{k}", "permission": "allow", "flows": ["egress", "ingress"],
                       "messages": ["query", "reply", "declare_queryable", "liveliness_token"],
-                      "key_exprs": [f"fedmap/{team}/rover/{k}/**", alive_key(team, f"rover/{k}")]})
+                      "key_exprs": [f"fedmap/{team}/rover/{k}/**", alive_key(team, f"rover/{k}"),
+                                    alive_key(team, f"peer/{k}"), f"fedmap/{team}/peer/{k}/mail/**",
+                                    f"fedmap/{team}/peer/*/mail/*/{k}"]})
         subjects.append({"id": f"rover{k}", "cert_common_names": [f"rover{k}"]})
-        policies.append({"rules": [f"rover{k}", "mission", "base-alive"], "subjects": [f"rover{k}"]})
+        policies.append({"rules": [f"rover{k}", "desk", "see-alive", "told-alive"], "subjects": [f"rover{k}"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 

@@ -120,12 +120,14 @@ class Post(Protocol):
 class Inbox:
     """What reached one agent, by :attr:`Mail.key`, until it is read (thread-safe; a
     transport's receiving side puts, the agent waits). ``alive(agent)`` says whether an agent
-    is still there (a wait for a gone agent's mail fails at once, not at the timeout)."""
+    is still there (a wait for a gone agent's mail fails at once, not at the timeout);
+    ``failed()`` an error of the agent's own transport, raised by a wait."""
 
-    def __init__(self, alive: Callable[[int], bool] = lambda a: True, timeout: float = MAIL_WAIT) -> None:
+    def __init__(self, alive: Callable[[int], bool] = lambda a: True, timeout: float = MAIL_WAIT,
+                 failed: Callable[[], FedmapError | None] = lambda: None) -> None:
         self.held: dict[tuple[int, int, int, int], Mail] = {}
         self.cond = threading.Condition()
-        self.alive, self.timeout = alive, timeout
+        self.alive, self.timeout, self.failed = alive, timeout, failed
 
     def put(self, mail: Mail) -> None:
         with self.cond:
@@ -136,6 +138,9 @@ class Inbox:
         t_end = time.monotonic() + self.timeout
         with self.cond:
             while key not in self.held:
+                error = self.failed()
+                if error is not None:  # its own sending failed (the transport's)
+                    raise error
                 left = t_end - time.monotonic()
                 if left <= 0 or not self.alive(key[1]):
                     who = "the lander" if key[1] == BASE else f"rover {key[1]}"
@@ -234,7 +239,7 @@ def peer_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) -
         raise FedmapError("a mission on processes runs with known poses: [frames] runs in process only")
     if c.link.latency != 0:
         raise FedmapError(f"a mission on processes needs [link] latency = 0 (got {c.link.latency}): the real "
-                          "link's delay is its latency")
+                          "link's delay is its latency: add --set link.latency=0")
     if c.stop_coverage is not None:
         raise FedmapError("a mission on processes takes every step: stop_coverage reads the truth, which no node holds")
     if c.helicopters:

@@ -225,7 +225,7 @@ def check_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) 
                           "in process only")
     if c.link.latency != 0:
         raise FedmapError(f"a mission on processes needs [link] latency = 0 (got {c.link.latency}): the real "
-                          "link's delay is its latency")
+                          "link's delay is its latency: add --set link.latency=0")
     if c.stop_coverage is not None:
         raise FedmapError("a mission on processes takes every step: stop_coverage reads the truth (the share of the "
                           "reachable cells observed), which no node holds")
