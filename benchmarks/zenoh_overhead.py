@@ -2,6 +2,8 @@
 mission in process: its time, its start-up, the time of a round, and each rover process's memory.
 
     python benchmarks/zenoh_overhead.py [--rovers 4 16 64] [--steps 300] [--strategy predictive]
+    python benchmarks/zenoh_overhead.py --topology mesh --rovers 4 16 --strategy raw
+
 
 For each team size: the in-process mission of that one strategy (``workers=1``: one process,
 its time is the strategy's own); then the same mission with ``deploy_zenoh`` (the base here,
@@ -13,6 +15,12 @@ and the rovers' memory as PSS (proportional set size: a page shared by N process
 to each), read from ``/proc/<pid>/smaps_rollup`` at the mission's last round. It checks that the two
 missions' metrics agree (timings aside). Results go to ``benchmarks/results/zenoh_overhead/``
 (``results.json``, ``results.md``, ``overhead.png``; ``--figure-only`` draws the figure again).
+
+With ``--topology mesh`` (or ``leader``) the team is peers: every rover a ``fedmap node peer``
+process, the lander an agent in this process and the team's router, no orders
+(:mod:`fedmap.zenohnet.peer`); a round is then the lander's time from one sync to the next
+(the rovers' driving, the round's mail and the wait for the slowest agent). Results go to
+``benchmarks/results/zenoh_overhead_<topology>/``.
 """
 
 from __future__ import annotations
@@ -28,6 +36,7 @@ import tomllib
 from pathlib import Path
 
 from fedmap.mission import load_mission, mission_terrain, run_mission
+from fedmap.mission.network.nodelog import read_peer_records
 from fedmap.mission.outputs.report import metrics, without_timings
 from fedmap.mission.settings import mission_toml
 from fedmap.zenohnet.deploy import deploy_zenoh
@@ -48,9 +57,9 @@ def _cmdline(proc: Path) -> bytes:
         return b""
 
 
-def one(rovers: int, steps: int, strategy: str) -> dict:
-    _, _, resolved = load_mission(overrides=[{"mission": {"steps": steps, "rovers": rovers,
-                                                          "strategies": [strategy]}}])
+def one(rovers: int, steps: int, strategy: str, topology: str = "star") -> dict:
+    _, _, resolved = load_mission(overrides=[{"mission": {"steps": steps, "rovers": rovers, "strategies": [strategy]},
+                                              "link": {"topology": topology, "latency": 0}}])
     text = mission_toml(resolved)
     config, source, _ = load_mission(None, overrides=[tomllib.loads(text)])
     truth, elevation, prior, profiles = mission_terrain(config, source)
@@ -66,7 +75,7 @@ def one(rovers: int, steps: int, strategy: str) -> dict:
         host: list[float] = []  # the host the rovers were forked from (one per team)
 
         def on_step(name: str, step: int) -> None:
-            if step == steps and not pss:
+            if step >= steps - (topology != "star") and not pss:  # (peers: before they finish and exit)
                 pss.extend(pss_mb(int((work / f"rover{k}.pid").read_text())) for k in range(rovers))
                 rover0 = int((work / "rover0.pid").read_text())
                 parent = int(Path(f"/proc/{rover0}/stat").read_text().rsplit(")", 1)[1].split()[1])
@@ -77,11 +86,15 @@ def one(rovers: int, steps: int, strategy: str) -> dict:
         apart = deploy_zenoh(text, members=rovers, out=out, strategies=(strategy,), frames=1,
                              on_started=started.append, on_step=on_step)
         wall_apart = time.perf_counter() - t1
-        log = (out.with_name("out.run") / "base.log").read_text()
-    rounds = [float(s) for s in re.findall(r"rovers answered in ([\d.]+) s", log)]
+        if topology == "star":
+            log = (work / "base.log").read_text()
+            rounds = [float(s) for s in re.findall(r"rovers answered in ([\d.]+) s", log)]
+        else:  # the lander's own record: its time from one sync to the next
+            lander = read_peer_records(work, "*", strategy)
+            rounds = next(r.rounds for r in lander if r.agent == -1)
     same = without_timings(metrics(here)["strategies"]) == without_timings(metrics(apart)["strategies"])
     mine, theirs = here.runs[strategy].seconds, apart.runs[strategy].seconds
-    return {"rovers": rovers, "steps": steps, "strategy": strategy, "same_metrics": same,
+    return {"rovers": rovers, "steps": steps, "strategy": strategy, "topology": topology, "same_metrics": same,
             "in_process_s": round(mine, 3), "zenoh_s": round(theirs, 3), "overhead": round(theirs / mine, 3),
             "startup_s": round(started[0], 2), "wall_in_process_s": round(wall_here, 2),
             "wall_zenoh_s": round(wall_apart, 2), "rounds": len(rounds),
@@ -105,10 +118,10 @@ def figure(rows: list[dict], path: Path, cpu: str) -> None:
     a.plot(n, [r["in_process_s"] for r in rows], "o-", label="in process (one process)")
     a.plot(n, [r["zenoh_s"] for r in rows], "s-", label="over Zenoh (a process per rover, mutual TLS)")
     for r in rows:
-        a.annotate(f"{r['overhead']:.2f}x", (r["rovers"], r["zenoh_s"]), textcoords="offset points", xytext=(-10, 8),
+        a.annotate(f"{r['overhead']:.2f}x", (r["rovers"], r["zenoh_s"]), textcoords="offset points", xytext=(-12, -14),
                    fontsize=8)
     a.set(xscale="log", yscale="log", xlabel="rovers", ylabel="seconds (start-up excluded)",
-          title=f"{rows[0]['strategy']}, {rows[0]['steps']} steps, lockstep")
+          title=f"{rows[0]['strategy']} on the {rows[0].get('topology', 'star')}, {rows[0]['steps']} steps, lockstep")
     from matplotlib.ticker import NullFormatter, ScalarFormatter
 
     a.set_xticks(n, [str(x) for x in n])
@@ -133,23 +146,25 @@ def main() -> None:
     ap.add_argument("--rovers", type=int, nargs="+", default=[4, 16, 64])
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--strategy", default="predictive")
-    ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--topology", default="star", choices=["star", "mesh", "leader"])
+    ap.add_argument("--out", type=Path, default=None, help="default: results/zenoh_overhead[_<topology>]/")
     ap.add_argument("--figure-only", action="store_true", help="draw overhead.png from --out's results.json")
     a = ap.parse_args()
+    a.out = a.out or (OUT if a.topology == "star" else OUT.with_name(f"zenoh_overhead_{a.topology}"))
     if a.figure_only:
         saved = json.loads((a.out / "results.json").read_text())
         figure(saved["rows"], a.out / "overhead.png", saved["cpu"])
         return
     rows = []
     for n in a.rovers:
-        row = one(n, a.steps, a.strategy)
+        row = one(n, a.steps, a.strategy, a.topology)
         rows.append(row)
         print(json.dumps(row), flush=True)
     cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
                 if ln.startswith("model name")), platform.processor())
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / "results.json").write_text(json.dumps({"cpu": cpu, "rows": rows}, indent=1))
-    lines = [f"# A mission over Zenoh against in process ({a.strategy}, {a.steps} steps; {cpu})", "",
+    lines = [f"# A mission over Zenoh against in process ({a.strategy}, {a.topology}, {a.steps} steps; {cpu})", "",
              "| rovers | in process s | over Zenoh s | overhead | start-up s | round median ms | round p95 ms "
              "| in-process ms/round | PSS MB/rover | host PSS MB | same metrics |",
              "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]

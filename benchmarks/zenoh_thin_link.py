@@ -3,6 +3,7 @@ of its own, joined to the rovers by a veth pair rate-limited with ``tc tbf`` bot
 (250 kbit/s by default: Ingenuity's Zigbee link), against the same mission in process.
 
     sudo python benchmarks/zenoh_thin_link.py [--rate 250kbit] [--loss 0.05] [--steps 300] [--strategies raw,predictive]
+    sudo python benchmarks/zenoh_thin_link.py --topology leader --strategies raw,gossip
 
 Needs root (``ip netns``, ``tc``). It makes namespace ``fm-base`` with ``veth-fm-b``
 (10.77.0.1) and leaves ``veth-fm-r`` (10.77.0.2) in this namespace, puts a token-bucket
@@ -15,6 +16,11 @@ wire bytes (orders and reports, framing included), the time on the base's clock 
 thin link, over loopback and in process, and whether the final maps and metrics equal the
 in-process mission's (in lockstep the link model decides every message's fate, so they
 must; the thin link costs time). Results go to ``benchmarks/results/zenoh_thin_link/``.
+
+With ``--topology mesh`` or ``leader`` the team is peers: the lander (``fedmap node base``,
+the team's router and an agent) in the namespace and four ``fedmap node peer`` outside, so
+every mail between agents crosses the thin link; its wire bytes are the mail the agents
+posted (positions, messages and answers).
 """
 
 from __future__ import annotations
@@ -66,17 +72,24 @@ def link_up(rate: str, loss: float = 0.0) -> None:
                "numgen", "random", "mod", "1000", "<", str(round(loss * 1000)), "drop")
 
 
+def veth_bytes() -> int:
+    """Bytes that crossed the thin link so far, both ways (the rovers' end's counters: IP, TCP and TLS included)."""
+    stats = Path(f"/sys/class/net/{ROVER_IF}/statistics")
+    return int((stats / "tx_bytes").read_text()) + int((stats / "rx_bytes").read_text())
+
+
 def link_down() -> None:
     subprocess.run(["ip", "link", "del", ROVER_IF], capture_output=True)
     subprocess.run(["ip", "netns", "del", NS], capture_output=True)
 
 
-def thin(text: str, tmp: Path, port: int, strategies: list[str]) -> tuple[float, dict]:
+def thin(text: str, tmp: Path, port: int, strategies: list[str], topology: str = "star") -> tuple[float, dict]:
     """The mission with the base in the namespace; (wall seconds, the scored result)."""
     (tmp / "mission.toml").write_text(text)
     out, work = tmp / "thin", tmp / "thin.run"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    rovers = [subprocess.Popen([sys.executable, "-m", "fedmap", "node", "rover", "--rover", str(k), "--connect",
+    node = "rover" if topology == "star" else "peer"
+    rovers = [subprocess.Popen([sys.executable, "-m", "fedmap", "node", node, "--rover", str(k), "--connect",
                                 f"{BASE_IP}:{port}", "--team", "thin", "--state", str(work / f"rover{k}.state")],
                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT) for k in range(4)]
     t0 = time.perf_counter()
@@ -99,12 +112,14 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--strategies", default="raw,predictive")
     ap.add_argument("--loss", type=float, default=0.0, help="share of packets dropped at random both ways (nftables)")
+    ap.add_argument("--topology", default="star", choices=["star", "mesh", "leader"])
     ap.add_argument("--out", type=Path, default=OUT)
     a = ap.parse_args()
     if os.geteuid() != 0:
         sys.exit("error: needs root (ip netns, tc)")
     names = a.strategies.split(",")
-    _, _, resolved = load_mission(overrides=[{"mission": {"steps": a.steps, "strategies": names}}])
+    _, _, resolved = load_mission(overrides=[{"mission": {"steps": a.steps, "strategies": names},
+                                              "link": {"topology": a.topology, "latency": 0}}])
     text = mission_toml(resolved)
     config, source, _ = load_mission(None, overrides=[tomllib.loads(text)])
     truth, elevation, prior, profiles = mission_terrain(config, source)
@@ -115,7 +130,9 @@ def main() -> None:
                             tls=False)
         link_up(a.rate, a.loss)
         try:
-            wall, far = thin(text, Path(tmp), 7447, names)
+            before = veth_bytes()
+            wall, far = thin(text, Path(tmp), 7447, names, a.topology)
+            crossed = veth_bytes() - before
         finally:
             link_down()
     rows = []
@@ -124,13 +141,15 @@ def main() -> None:
         ledger = far.runs[n].ledger
         maps_equal = all(np.array_equal(a_, b_) for a_, b_ in zip(here.runs[n].views, far.runs[n].views))
         rows.append({"strategy": n, "ledger_bytes": sum(m.bytes for m in ledger),
-                     "wire_bytes": far.runs[n].wire.get("bytes") if far.runs[n].wire else None,
+                     "wire_bytes": (far.runs[n].wire or {}).get("mail_bytes", (far.runs[n].wire or {}).get("bytes")),
                      "thin_s": round(far.runs[n].seconds, 2), "loopback_s": round(loop.runs[n].seconds, 2),
                      "in_process_s": round(here.runs[n].seconds, 2), "final_maps_equal": maps_equal})
-    result = {"rate": a.rate, "loss": a.loss, "steps": a.steps, "wall_s": round(wall, 1), "same_metrics": same, "rows": rows}
+    result = {"rate": a.rate, "loss": a.loss, "steps": a.steps, "topology": a.topology, "wall_s": round(wall, 1),
+              "link_bytes": crossed, "same_metrics": same, "rows": rows}
     print(json.dumps(result, indent=1))
     a.out.mkdir(parents=True, exist_ok=True)
-    (a.out / f"results{'_loss' if a.loss else ''}.json").write_text(json.dumps(result, indent=1))
+    tag = ("" if a.topology == "star" else f"_{a.topology}") + ("_loss" if a.loss else "")
+    (a.out / f"results{tag}.json").write_text(json.dumps(result, indent=1))
 
 
 if __name__ == "__main__":

@@ -114,3 +114,28 @@ def test_merging_refuses_a_missing_agent_and_a_star_mission_is_refused():
         peer_strategies(star)
     names, left = peer_strategies(replace(config, strategies=("none", "raw", "gossip", "central")))
     assert names == ("raw", "gossip") and left == ["none", "central"]
+
+
+def test_a_round_table_is_the_same_for_everyone_and_names_who_left():
+    """The table keeper makes a round's table once every rover posted or left, and hands the
+    same one to every agent; a rover that left keeps its last cell and never comes back."""
+    from fedmap.mission.network.peers import Tables
+
+    alive = {0: True, 1: True, 2: True}
+    made: list = []
+    tables = Tables(3, alive=lambda k: alive[k], timeout=5.0,
+                    on_table=lambda strategy, step, gone: made.append((strategy, step, sorted(gone))))
+    tables.post("raw", 10, 2, (7, 7))
+    tables.post("raw", 10, 0, (1, 2))
+    assert tables.ready("raw", 10) is None  # rover 1 has not posted
+    first = tables.table("raw", 10, 1, (3, 4))
+    assert first == ([(1, 2), (3, 4), (7, 7)], frozenset())
+    assert tables.table("raw", 10, 0, (9, 9)) == first  # made once: a late post changes nothing
+    alive[2] = False  # rover 2's process is killed
+    tables.post("raw", 20, 0, (1, 3))
+    second = tables.table("raw", 20, 1, (3, 5))
+    assert second == ([(1, 3), (3, 5), (7, 7)], frozenset({2}))  # its last cell stands
+    alive[2] = True  # (a token seen again): it does not come back
+    tables.post("raw", 30, 1, (3, 6))
+    assert tables.table("raw", 30, 0, (1, 4))[1] == frozenset({2})
+    assert made[:2] == [("raw", 10, []), ("raw", 20, [2])]

@@ -139,6 +139,29 @@ def test_a_peer_mission_over_zenoh_equals_the_mission_in_process(tmp_path, topol
     assert not (tmp_path / "out.run" / "certs").exists()
 
 
+@pytest.mark.xdist_group("loopback-c")
+def test_a_leader_killed_mid_mission_is_replaced_and_the_team_goes_on(tmp_path):
+    """No lander agent: rover 0, the lowest-numbered, leads its group. Its process is killed
+    (SIGKILL) after the sync of step 30. At the next sync the lander's table says it left;
+    every agent drops its links and the group elects rover 1, by the same rule and with no
+    message about it. The mission finishes and is scored: rover 0's last record stands."""
+    text = _peer_mission(60, ["raw"], topology="leader", lander_agent=False)
+    apart = deploy_zenoh(text, members=4, out=tmp_path / "out", strategies=("raw",), frames=1,
+                         faults={0: "die@30"})
+    ledger = apart.runs["raw"].ledger
+    assert [(f["rover"], f["fault"].split(";")[0]) for f in apart.faults] == \
+        [(0, "left the team before the sync of step 40")]
+    assert any(m.to == 0 for m in ledger if m.step <= 30)  # it led: its members sent to it
+    assert not any(0 in (m.rover, m.to) for m in ledger if m.step > 30)  # then nobody reached it
+    assert any(m.to == 1 and m.status == "delivered" for m in ledger if m.step > 30)  # rover 1 leads
+    here = _in_process(text).runs["raw"]
+    gone = apart.runs["raw"].trails[0]
+    assert 0 < len(gone) < len(here.trails[0]) and here.trails[0][:len(gone)] == gone  # its log up to its last sync
+    assert [m for m in here.ledger if m.step <= 30] != [] and \
+        [(m.step, m.rover, m.to, m.bytes) for m in here.ledger if m.step <= 30] == \
+        [(m.step, m.rover, m.to, m.bytes) for m in ledger if m.step <= 30]  # until then, the in-process mission
+
+
 def test_a_rover_cannot_post_mail_as_another_rover(tmp_path):
     """Access control on a peer mission: rover 1 may post mail to rover 0 as itself, not as rover 2."""
     from fedmap.zenohnet.peer import mail_key
@@ -254,6 +277,14 @@ def test_a_node_that_connects_listens_nowhere(tmp_path):
     bare.insert_json5("scouting/multicast/enabled", "false")
     with zenoh.open(bare):
         assert _listening_ports() - before
+
+
+def test_a_node_sends_every_byte_over_the_network():
+    """Zenoh hands messages above 3 kB to another process of the same machine through shared
+    memory, around the network: a team rehearsed on one machine behind a thin link would not
+    feel the link. Every node's config turns that off."""
+    assert zenoh.Config().get_json("transport/shared_memory/enabled") == "true"  # (the default it guards against)
+    assert node_config(connect=["tcp/127.0.0.1:7447"]).get_json("transport/shared_memory/enabled") == "false"
 
 
 def test_listening_beyond_loopback_without_certificates_is_refused():

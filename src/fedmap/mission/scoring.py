@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import tomllib
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -49,13 +50,19 @@ class MissingLog(FedmapError):
 def score_strategy(mission: Mission, record: BaseRecord, logs: Sequence[Sequence[RoverEntry]], *,
                    on_step: Callable[[str, int, float], None] | None = None) -> StrategyRun:
     """Strategy ``record.strategy``'s run, scored from the base's ``record`` and every rover's
-    log (``logs[k]``: rover ``k``'s entries, in order). One line when a log misses a step."""
+    log (``logs[k]``: rover ``k``'s entries, in order). One line when a log misses a step; a
+    rover that left a peer mission (``record.left``) stays as its last record says."""
     c, name = mission.config, record.strategy
     world = mission.world(make_topology(c.link, mission.base))
     n = len(world.team)
     if len(logs) != n:
         raise FedmapError(f"{name}: logs of {len(logs)} rovers, the team has {n}")
     steps: list[dict[int, StepState]] = [{s.step: s for e in log for s in e.states} for log in logs]
+    for k in (record.left or {}):  # a rover that left the team: it stays where it was, as it was
+        held = steps[k]
+        if held:
+            last = held[max(held)]
+            held.update({t: replace(last, step=t) for t in range(max(held) + 1, c.steps + 1)})
     for k, held in enumerate(steps):
         if not held:
             raise MissingLog(f"{name}: no log of rover {k} in the run folder: a rover keeps its own log (log/ in its "

@@ -177,8 +177,8 @@ def deploy_peers(mission_toml: str, *, members: int, out: Path, strategies: tupl
     over Zenoh on this machine, the lander in this process
     (:func:`~fedmap.zenohnet.peer.run_lander`: the team's router, and its own agent when it
     is one); its result, scored from every agent's log. ``tls`` and ``faults`` as
-    :func:`deploy_zenoh`'s. A rover process that fails stops the mission with one line (a
-    lockstep round cannot close without it)."""
+    :func:`deploy_zenoh`'s. A rover process that stops leaves the team: the others go on
+    without it (a line of the run's faults; its last record stands)."""
     out = Path(out).resolve()
     work, certs, address = _prepare(out, members, tls=tls, resume=False)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -193,12 +193,15 @@ def deploy_peers(mission_toml: str, *, members: int, out: Path, strategies: tupl
                 p = host.start(f"rover{k}", argv, env=env, log=work / f"rover{k}.log")
                 atomic_write_bytes(work / f"rover{k}.pid", f"{p.pid}\n".encode())
 
-            def watch() -> None:  # a rover process that failed: the mission cannot go on without it
+            exited: set[int] = set()
+
+            def watch() -> None:  # a rover process that stopped: the team goes on without it (the lander notes it)
                 for k in range(members):
                     code = procs.procs[f"rover{k}"].poll()
-                    if code not in (None, 0):
-                        raise FedmapError(f"rover {k}'s process exited (code {code}) near {status['strategy']} step "
-                                          f"{status['step']}; its log: {work / f'rover{k}.log'}")
+                    if code not in (None, 0) and k not in exited:
+                        exited.add(k)
+                        base_log(out, "WARNING", f"{status['strategy']} rover {k}: its process exited (code {code}) "
+                                                 f"near step {status['step']}; its log: {work / f'rover{k}.log'}")
 
             def stepped(name: str, step: int) -> None:
                 status.update(strategy=name, step=step)

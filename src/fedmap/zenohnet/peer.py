@@ -29,7 +29,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import queue
+import signal
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -38,22 +41,27 @@ from typing import Any
 
 from fedmap.errors import FedmapError
 from fedmap.flower.checkpoint import run_dir
-from fedmap.flower.mission.task import base_dir, damaged, log_dir, parse_mission_fault
+from fedmap.flower.mission.task import base_dir, damaged, log_dir
 from fedmap.mission.network.link import BASE
 from fedmap.mission.network.nodelog import write_log
 from fedmap.mission.network.peers import (
     MAIL_WAIT,
+    POS,
     Inbox,
     Mail,
     ProcessPeer,
+    Table,
+    Tables,
     agents_of,
     peer_deployable,
     peer_strategies,
+    pos_body,
 )
 from fedmap.mission.network.wire import CorruptMessage
 from fedmap.mission.scoring import mission_from_text, write_run
 from fedmap.zenohnet.session import alive_key, mission_key
 
+Cell = tuple[int, int]
 #: Seconds a sender waits for one reply to a mail before it asks again.
 MAIL_REPLY = 5.0
 #: Times a mail is sent again after its receiver found it damaged, before the mission fails.
@@ -77,11 +85,59 @@ def finished_key(team: str) -> str:
     return f"fedmap/{team}/base/finished"
 
 
+def table_key(team: str, strategy: str, k: int | str) -> str:
+    """Where rover ``k`` posts its cell at a sync and gets the round's table back (``k`` ``"*"``: the lander's queryable)."""
+    return f"fedmap/{team}/base/table/{strategy}/{k}"
+
+
+class Desk:
+    """The lander's tables of a peer mission (:class:`~fedmap.mission.network.peers.Tables`)
+    served over Zenoh: a rover's query carries its cell (a checked :class:`Mail`) and is
+    answered once the round's table is made (every rover posted or left)."""
+
+    def __init__(self, tables: Tables, team: str) -> None:
+        self.tables, self.team = tables, team
+        self.pending: list[tuple[Any, str, int]] = []
+        self.lock = threading.Lock()
+
+    def take(self, query: Any) -> None:
+        try:
+            mail = Mail.from_bytes(query.payload.to_bytes() if query.payload is not None else b"")
+        except CorruptMessage as e:
+            query.reply_err(json.dumps({"reason": str(e), "corrupt": True}))
+            query.drop()
+            return
+        if str(query.key_expr) != table_key(self.team, mail.strategy, mail.sender) or len(mail.body) < 4:
+            query.reply_err(json.dumps({"reason": f"a cell of rover {mail.sender} posted as {query.key_expr}"}))
+            query.drop()
+            return
+        r, c = struct.unpack_from("<hh", mail.body)
+        self.tables.post(mail.strategy, mail.step, mail.sender, (r, c))
+        with self.lock:
+            self.pending.append((query, mail.strategy, mail.step))
+        self.settle()
+
+    def settle(self) -> None:
+        """Answer every query whose table is made (a rover posted, or one left)."""
+        with self.lock, self.tables.cond:
+            still = []
+            for query, strategy, step in self.pending:
+                table = self.tables.ready(strategy, step)
+                if table is None:
+                    still.append((query, strategy, step))
+                    continue
+                query.reply(query.key_expr, json.dumps({"cells": [list(c) for c in table[0]],
+                                                        "gone": sorted(table[1])}))
+                query.drop()
+            self.pending = still
+            self.tables.cond.notify_all()
+
+
 class Roster:
     """Which agents of team ``team`` are up, from their liveliness tokens. An agent never
     seen counts as alive (it may not have started yet); one seen and gone does not."""
 
-    def __init__(self, session: Any, team: str) -> None:
+    def __init__(self, session: Any, team: str, on_change: Callable[[], None] | None = None) -> None:
         from zenoh import SampleKind
         from zenoh.handlers import Callback
 
@@ -97,6 +153,8 @@ class Roster:
                     self.alive.add(name)
                 else:
                     self.alive.discard(name)
+            if on_change is not None:
+                on_change()
 
         self.sub = session.liveliness().declare_subscriber(alive_key(team, "peer/*"), Callback(on, lambda: None),
                                                            history=True)
@@ -108,14 +166,14 @@ class Roster:
 
     def wait_for(self, agents: list[int] | tuple[int, ...], timeout: float,
                  watch: Callable[[], None] | None = None) -> None:
-        """Until every one of ``agents`` is up; one line naming those that are not after
-        ``timeout`` s (``watch`` is called while it waits)."""
+        """Until every one of ``agents`` is up (or has left: it does not come back); one line
+        naming those that are not after ``timeout`` s (``watch`` is called while it waits)."""
         t_end = time.monotonic() + timeout
         while True:
             if watch is not None:
                 watch()
             with self.lock:
-                missing = [a for a in agents if agent_name(a) not in self.alive]
+                missing = [a for a in agents if agent_name(a) not in self.alive | self.seen]
             if not missing:
                 return
             if time.monotonic() > t_end:
@@ -136,14 +194,18 @@ class ZenohPost:
     went wrong go."""
 
     def __init__(self, session: Any, team: str, me: int, strategy: str, roster: Roster, *,
-                 fault: int | None = None, faults: list[dict] | None = None, timeout: float = MAIL_WAIT) -> None:
+                 fault: int | None = None, faults: list[dict] | None = None, timeout: float = MAIL_WAIT,
+                 tables: Tables | None = None) -> None:
         from zenoh.handlers import Callback
 
         self.session, self.team, self.me, self.strategy, self.roster = session, team, me, strategy, roster
         self.fault, self.faults = fault, faults if faults is not None else []
+        self.tables = tables  # the lander's own (its agent asks them here); a rover asks the lander
         self.inbox = Inbox(alive=roster.is_alive, timeout=timeout, failed=lambda: self.error)
         self.timeout = timeout
         self.error: FedmapError | None = None
+        #: what it posted: mails delivered and their bytes (framing included; a copy sent again counts again)
+        self.sent = {"mails": 0, "mail_bytes": 0}
         self.out: queue.Queue = queue.Queue()
         self.queryable = session.declare_queryable(mail_key(team, strategy, me, "*"), Callback(self._take, lambda: None))
         self.thread = threading.Thread(target=self._send_all, name=f"mail-{agent_name(me)}", daemon=True)
@@ -174,6 +236,15 @@ class ZenohPost:
     def wait(self, key: tuple[int, int, int, int]) -> Mail:
         return self.inbox.wait(key)
 
+    def table(self, strategy: str, step: int, agent: int, pos: Cell | None) -> Table:
+        if self.tables is not None:
+            return self.tables.table(strategy, step, agent, pos)
+        mail = Mail(POS, agent, BASE, 0, step, 0, strategy, b"" if pos is None else pos_body(pos, None))
+        text = _ask(self.session, table_key(self.team, strategy, agent), mail.to_bytes(), self.timeout,
+                    f"the table of step {step}", reply_timeout=self.timeout)
+        got = json.loads(text)
+        return [(int(c[0]), int(c[1])) for c in got["cells"]], frozenset(int(a) for a in got["gone"])
+
     def _send_all(self) -> None:
         while True:
             mail = self.out.get()
@@ -198,6 +269,9 @@ class ZenohPost:
                     ok = True
                 else:
                     err = reply.err.payload.to_string()
+            if ok or err is not None:
+                self.sent["mails"] += 1
+                self.sent["mail_bytes"] += len(raw)
             if ok:
                 return
             who = f"{self.strategy} agent {agent_name(mail.to)}"
@@ -228,10 +302,10 @@ class ZenohPost:
             raise self.error
 
 
-def _ask(session: Any, key: str, payload: bytes, timeout: float, what: str) -> str:
+def _ask(session: Any, key: str, payload: bytes, timeout: float, what: str, reply_timeout: float = 5.0) -> str:
     t_end = time.monotonic() + timeout
     while True:
-        for reply in session.get(key, payload=payload, timeout=5.0):
+        for reply in session.get(key, payload=payload, timeout=reply_timeout):
             if reply.ok is not None:
                 return reply.ok.payload.to_string()
             raise FedmapError(f"the lander refused: {reply.err.payload.to_string()}")
@@ -244,11 +318,23 @@ def _stepper(on_step: Callable[[str, int], None] | None, name: str) -> Callable[
     return None if on_step is None else (lambda t: on_step(name, t))
 
 
+def parse_peer_fault(text: str | None) -> tuple[str, int] | None:
+    """A test's fault of a peer node: ``corrupt@STEP`` damages its first mail of STEP once;
+    ``die@STEP`` kills its process (SIGKILL) at STEP, of its first strategy."""
+    if not text:
+        return None
+    kind, _, at = text.partition("@")
+    if kind not in ("corrupt", "die") or not at.isdigit():
+        raise FedmapError(f"unknown peer fault {text!r}: use corrupt@STEP or die@STEP")
+    return kind, int(at)
+
+
 def serve_peer(session: Any, team: str, k: int, state: Path, *, connect_timeout: float = 300.0,
                fault: str | None = None, on_step: Callable[[str, int], None] | None = None) -> list[str]:
     """Rover ``k``'s agent of team ``team``: the plan and mission from the lander, every
-    strategy run with the other agents, its own log in ``state``/log. The strategies run."""
-    step = parse_mission_fault(fault)[1] if fault else None
+    strategy run with the other agents, its own log in ``state``/log (written as it goes).
+    The strategies run."""
+    hurt = parse_peer_fault(fault)
     roster = Roster(session, team)
     token = session.liveliness().declare_token(alive_key(team, f"peer/{k}"))
     try:
@@ -258,20 +344,28 @@ def serve_peer(session: Any, team: str, k: int, state: Path, *, connect_timeout:
         agents = [int(a) for a in plan["agents"]]
         if k not in agents:
             raise FedmapError(f"rover {k} is not in the team's agents {', '.join(map(agent_name, agents))}")
-        log_dir(state).mkdir(parents=True, exist_ok=True)
+        folder = log_dir(state)
+        folder.mkdir(parents=True, exist_ok=True)
         for name in plan["strategies"]:
             faults: list[dict] = []
-            post = ZenohPost(session, team, k, name, roster, fault=step, faults=faults)
+            post = ZenohPost(session, team, k, name, roster, faults=faults,
+                             fault=hurt[1] if hurt and hurt[0] == "corrupt" else None)
+
+            def stepped(t: int, name: str = name) -> None:
+                if hurt is not None and hurt[0] == "die" and t == hurt[1]:
+                    os.kill(os.getpid(), signal.SIGKILL)  # a test's fault: killed mid-mission
+                if on_step is not None:
+                    on_step(name, t)
+
             try:
                 roster.wait_for(agents, connect_timeout)
                 peer = ProcessPeer(mission, name, k, post, mission_id=plan["mission"])
-                record = peer.run(_stepper(on_step, name))
+                record = peer.run(stepped, keep=lambda entry: write_log(folder, entry))
             finally:
                 post.close()
-            step = None  # (the fault: once)
-            for entry in peer.log:
-                write_log(log_dir(state), entry)
-            write_log(log_dir(state), record)
+            hurt = None  # (a fault: once)
+            record.wire.update(post.sent)  # the mail it posted (all delivered: the post is closed)
+            write_log(folder, record)
             _ask(session, finished_key(team), json.dumps({"strategy": name, "agent": k, "faults": faults}).encode(),
                  connect_timeout, "the end of the mission")
         return list(plan["strategies"])
@@ -336,9 +430,24 @@ def run_lander(session: Any, team: str, mission_text: str, *, out: Path, strateg
         finally:
             query.drop()
 
+    gone_noted: set[int] = set()
+
+    def note_gone(strategy: str, step: int, gone: frozenset[int]) -> None:
+        if on_step is not None and BASE not in agents:  # (the lander's own agent reports its steps)
+            on_step(strategy, step)
+        for a in sorted(gone - gone_noted):
+            gone_noted.add(a)
+            faults.append({"strategy": strategy, "rover": a, "fault": f"left the team before the sync of step "
+                           f"{step}; the team went on without it (its last record stands)"})
+
+    roster: Roster | None = None
+    tables = Tables(c.rovers, alive=lambda a: roster is None or roster.is_alive(a), timeout=MAIL_WAIT,
+                    on_table=note_gone)
+    keeper = Desk(tables, team)
     served = [session.declare_queryable(k, Callback(desk, lambda: None))
               for k in (plan_key(team), mission_key(team), finished_key(team))]
-    roster = Roster(session, team)
+    served.append(session.declare_queryable(table_key(team, "*", "*"), Callback(keeper.take, lambda: None)))
+    roster = Roster(session, team, on_change=keeper.settle)
     token = session.liveliness().declare_token(alive_key(team, "peer/lander")) if BASE in agents else None
     try:
         roster.wait_for(rovers, connect_timeout, watch)  # every rover up (or one line naming those that are not)
@@ -346,19 +455,18 @@ def run_lander(session: Any, team: str, mission_text: str, *, out: Path, strateg
             on_started()
         for name in names:
             if BASE in agents:
-                post = ZenohPost(session, team, BASE, name, roster, faults=faults)
+                post = ZenohPost(session, team, BASE, name, roster, faults=faults, tables=tables)
                 try:
                     record = ProcessPeer(mission, name, BASE, post, mission_id=mid).run(_stepper(on_step, name))
                 finally:
                     post.close()
+                record.wire.update(post.sent)
                 write_log(base_dir(out), record)
-            with cond:
-                while finished[name] != set(rovers):
-                    gone = [a for a in rovers if a not in finished[name] and not roster.is_alive(a)]
-                    if gone:
-                        raise FedmapError(f"{name}: rover {gone[0]} left the team before it finished")
+            with cond:  # every rover finished, or left the team
+                while finished[name] | {a for a in rovers if not roster.is_alive(a)} != set(rovers):
                     if watch is not None:
                         watch()
+                    keeper.settle()
                     cond.wait(0.2)
             if on_step is not None:
                 on_step(name, c.steps)

@@ -125,7 +125,7 @@ def acl(team: str, rovers: int) -> dict:
                       "messages": ["query", "reply", "declare_queryable", "liveliness_token"],
                       "key_exprs": [f"fedmap/{team}/rover/{k}/**", alive_key(team, f"rover/{k}"),
                                     alive_key(team, f"peer/{k}"), f"fedmap/{team}/peer/{k}/mail/**",
-                                    f"fedmap/{team}/peer/*/mail/*/{k}"]})
+                                    f"fedmap/{team}/peer/*/mail/*/{k}", f"fedmap/{team}/base/table/*/{k}"]})
         subjects.append({"id": f"rover{k}", "cert_common_names": [f"rover{k}"]})
         policies.append({"rules": [f"rover{k}", "desk", "see-alive", "told-alive"], "subjects": [f"rover{k}"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
@@ -148,6 +148,9 @@ def node_config(*, listen: list[str] = (), connect: list[str] = (), certs: Certs
     # a node listens only where told: a Zenoh peer's default (every interface, a random port,
     # plain TCP) would let anyone who reaches it past the TLS and access control of the base
     put("listen/endpoints", list(listen))
+    # every byte goes over the link: Zenoh would hand a message above 3 kB to a process of this
+    # machine through shared memory, around the network (and a thin link's limits)
+    put("transport/shared_memory/enabled", False)
     if connect:
         put("connect/endpoints", list(connect))
         put("connect/timeout_ms", -1)  # keep trying: the base may start after its rovers

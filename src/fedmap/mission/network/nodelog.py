@@ -17,7 +17,7 @@ from another machine is input like any other).
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -157,6 +157,8 @@ class BaseRecord:
     registrations: list[dict] | None = None
     #: the frames its transport carried: ``orders``, ``reports`` (bytes) and ``messages`` (pairs)
     wire: dict | None = None
+    #: a peer mission's rovers that left the team, and the step it was noticed at (their last record stands)
+    left: dict[int, int] | None = None
 
     @property
     def name(self) -> str:
@@ -174,7 +176,7 @@ class BaseRecord:
                 "heights": self.final_heights is not None,
                 "dropped": None if self.dropped is None else [d.to_dict() for d in self.dropped],
                 "lags": self.lags, "registrations": self.registrations,
-                "wire": self.wire}
+                "wire": self.wire, "left": None if self.left is None else {str(a): t for a, t in self.left.items()}}
         maps = np.stack([self.held[s][None] for s in steps]) if steps else np.zeros((0, 1, 0, 0), dtype=np.uint8)
         z = b"" if self.final_heights is None else zstandard.ZstdCompressor(level=3).compress(
             np.ascontiguousarray(self.final_heights, dtype="<f4").tobytes())
@@ -199,7 +201,8 @@ class BaseRecord:
             return cls(str(h["strategy"]), str(h["mission"]), float(h["seconds"]), held,
                        [Message(**m) for m in h["ledger"]], int(h["slots"]), heights,
                        None if h["dropped"] is None else [DroppedUpdate(**d) for d in h["dropped"]],
-                       h["lags"], h["registrations"], h.get("wire"))
+                       h["lags"], h["registrations"], h.get("wire"),
+                       None if h.get("left") is None else {int(a): int(t) for a, t in h["left"].items()})
         except (KeyError, TypeError, IndexError, ValueError) as e:
             raise CorruptMessage(f"corrupted log: its header is not a base station's ({type(e).__name__}: {e})") \
                 from None
@@ -226,6 +229,11 @@ class PeerRecord:
     slots: int
     wire: dict
     held: dict[int, np.ndarray]
+    #: per sync, the wall seconds since the last one ended (its driving, its round and the
+    #: wait for the slowest agent: a lockstep round's cadence)
+    rounds: list[float] = field(default_factory=list)
+    #: the agents that left the team, and the sync step it noticed it at
+    left: dict[int, int] = field(default_factory=dict)
 
     @property
     def name(self) -> str:
@@ -235,7 +243,8 @@ class PeerRecord:
         steps = sorted(self.held)
         head = {"kind": "peer-log", "strategy": self.strategy, "mission": self.mission, "agent": self.agent,
                 "seconds": self.seconds, "ledger": [m.to_dict() for m in self.ledger],
-                "order": [list(o) for o in self.order], "slots": self.slots, "wire": self.wire, "held": steps}
+                "order": [list(o) for o in self.order], "slots": self.slots, "wire": self.wire, "held": steps,
+                "rounds": self.rounds, "left": {str(a): t for a, t in self.left.items()}}
         maps = np.stack([self.held[s][None] for s in steps]) if steps else np.zeros((0, 1, 0, 0), dtype=np.uint8)
         return pack_frame(head, [pack_stack(maps)])
 
@@ -252,7 +261,8 @@ class PeerRecord:
             if len(order) != len(ledger):
                 raise ValueError(f"{len(order)} places for {len(ledger)} ledger entries")
             return cls(str(h["strategy"]), str(h["mission"]), int(h["agent"]), float(h["seconds"]), ledger, order,
-                       int(h["slots"]), dict(h["wire"]), {s: m[0] for s, m in zip(steps, maps)})
+                       int(h["slots"]), dict(h["wire"]), {s: m[0] for s, m in zip(steps, maps)},
+                       [float(x) for x in h.get("rounds", [])], {int(a): int(t) for a, t in h.get("left", {}).items()})
         except (KeyError, TypeError, IndexError, ValueError) as e:
             raise CorruptMessage(f"corrupted log: its header is not a peer log's ({type(e).__name__}: {e})") from None
 

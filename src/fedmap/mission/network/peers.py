@@ -8,10 +8,13 @@ in-process :class:`~fedmap.mission.network.transport.Exchange` with only its own
 home. Every agent runs the same round, so they agree on who talks to whom without a word
 about it:
 
-1. **Positions.** Each rover posts its cell (and target) to every other agent and waits
-   for theirs: the topology's range, the links that are up (the seeded drops), the
-   connected groups and their leaders (:func:`~fedmap.mission.network.topology.elect_leaders`)
-   are functions of the positions, the round and the seed, so every agent computes the same.
+1. **Positions.** Each rover posts its cell to the team's table keeper (the lander's desk on
+   Zenoh) and gets back the table of the round: every rover's cell, and the agents that left.
+   The topology's range, the links that are up (the seeded drops, and none to an agent that
+   left), the connected groups and their leaders
+   (:func:`~fedmap.mission.network.topology.elect_leaders`) are functions of the table, the
+   round and the seed, so every agent computes the same: a leader that leaves is replaced at
+   the next round by the same rule, with no election messages.
 2. **Messages.** The topology offers its messages in the same order on every agent (an
    *offer number* per message). The sender applies the link model (budget, the seeded
    loss of each hop, relays: :meth:`~fedmap.mission.network.link.Link.send_route`) on its
@@ -31,9 +34,14 @@ of the link (:class:`~fedmap.mission.network.nodelog.PeerRecord`); the mission i
 from the logs afterwards (:func:`merge_records`, then
 :func:`~fedmap.mission.scoring.score_strategy`).
 
+An agent that leaves mid-round (its process killed) costs the others only what it would have
+sent them: a frame that does not come is not delivered, an answer that does not come is "not
+used". From the next round it has no links; its log ends where it left, and its last record
+stands for the rest of the mission (:func:`~fedmap.mission.scoring.score_strategy`).
+
 Limits: lockstep, ``latency = 0``, and the strategies whose peer ends hold only their own
 agent (``peer_deployable``). A relayed message's hops are drawn and counted by its sender
-(the relays' radios are modelled, not run).
+(the relays' radios are modelled, not run). An agent that left does not come back.
 """
 
 from __future__ import annotations
@@ -107,14 +115,31 @@ def pos_body(pos: Cell, target: Cell | None) -> bytes:
     return Writer().put("hhhh", *pos, *t).done()
 
 
+class AgentGone(FedmapError):
+    """The agent whose mail was awaited left the team."""
+
+    def __init__(self, agent: int, what: str) -> None:
+        self.agent = agent
+        who = "the lander" if agent == BASE else f"rover {agent}"
+        super().__init__(f"{who} left the team: {what}")
+
+
+#: A round's table: every rover's cell (team order) and the agents that left.
+Table = tuple[list[Cell], frozenset[int]]
+
+
 class Post(Protocol):
     """How an agent's mail travels: ``send`` hands one on (it arrives, in order per receiver,
     or the mission fails), ``wait`` blocks until the mail with ``key`` (:attr:`Mail.key`)
-    reached this agent, and returns it."""
+    reached this agent, and returns it (:class:`AgentGone`: its sender left), ``table``
+    posts this rover's cell at sync step ``step`` (None: the lander, which does not move) and
+    returns the round's :data:`Table`, the same for every agent."""
 
     def send(self, mail: Mail) -> None: ...
 
     def wait(self, key: tuple[int, int, int, int]) -> Mail: ...
+
+    def table(self, strategy: str, step: int, agent: int, pos: Cell | None) -> Table: ...
 
 
 class Inbox:
@@ -142,10 +167,12 @@ class Inbox:
                 if error is not None:  # its own sending failed (the transport's)
                     raise error
                 left = t_end - time.monotonic()
-                if left <= 0 or not self.alive(key[1]):
+                if not self.alive(key[1]):
+                    raise AgentGone(key[1], f"waiting for its {_WHAT[key[0]]} of step {key[2]}")
+                if left <= 0:
                     who = "the lander" if key[1] == BASE else f"rover {key[1]}"
-                    why = "left the team" if not self.alive(key[1]) else f"sent nothing for {self.timeout:g} s"
-                    raise FedmapError(f"{who} {why}: waiting for its {_WHAT[key[0]]} of step {key[2]}")
+                    raise FedmapError(f"{who} sent nothing for {self.timeout:g} s: waiting for its {_WHAT[key[0]]} "
+                                      f"of step {key[2]}")
                 self.cond.wait(min(left, 0.5))
             return self.held.pop(key)
 
@@ -153,13 +180,71 @@ class Inbox:
 _WHAT = {POS: "position", FRAME: "message", NOTHING: "message", ANSWER: "answer"}
 
 
+class Tables:
+    """The keeper of a peer mission's tables (the lander's, or a process's for its threads):
+    a round's table is made once every rover of ``rovers`` posted its cell or left
+    (``alive(k)`` says), and is the same for everyone who asks. ``on_table(strategy, step,
+    gone)``: a table was made (who had left by then)."""
+
+    def __init__(self, rovers: int, alive: Callable[[int], bool] = lambda a: True, timeout: float = MAIL_WAIT,
+                 on_table: Callable[[str, int, frozenset[int]], None] | None = None) -> None:
+        self.rovers, self.alive, self.timeout, self.on_table = rovers, alive, timeout, on_table
+        self.cond = threading.Condition()
+        self.cells: dict[tuple[str, int], dict[int, Cell]] = {}
+        self.made: dict[tuple[str, int], Table] = {}
+        self.last: dict[str, list[Cell]] = {}  # every rover's last cell posted, per strategy
+        self.gone: set[int] = set()  # (an agent that left does not come back)
+
+    def post(self, strategy: str, step: int, agent: int, pos: Cell | None) -> None:
+        with self.cond:
+            if pos is not None:
+                self.cells.setdefault((strategy, step), {})[agent] = pos
+            self.cond.notify_all()
+
+    def ready(self, strategy: str, step: int) -> Table | None:
+        """The table of ``step``, made now if every rover posted or left (under the lock)."""
+        key = (strategy, step)
+        if key in self.made:
+            return self.made[key]
+        posted = self.cells.get(key, {})
+        self.gone |= {k for k in range(self.rovers) if k not in posted and not self.alive(k)}
+        if any(k not in posted and k not in self.gone for k in range(self.rovers)):
+            return None
+        last = self.last.setdefault(strategy, [(0, 0)] * self.rovers)
+        cells = [posted.get(k, last[k]) for k in range(self.rovers)]
+        self.last[strategy] = cells
+        self.made[key] = table = (cells, frozenset(self.gone))
+        self.cells.pop(key, None)
+        if self.on_table is not None:
+            self.on_table(strategy, step, table[1])
+        return table
+
+    def table(self, strategy: str, step: int, agent: int, pos: Cell | None) -> Table:
+        self.post(strategy, step, agent, pos)
+        t_end = time.monotonic() + self.timeout
+        with self.cond:
+            while (table := self.ready(strategy, step)) is None:
+                if time.monotonic() > t_end:
+                    raise FedmapError(f"no table of step {step} within {self.timeout:g} s: a rover neither posted "
+                                      "its cell nor left")
+                self.cond.wait(0.2)
+            self.cond.notify_all()
+            return table
+
+    def settle(self) -> None:
+        """Someone left: wake whoever waits for a table."""
+        with self.cond:
+            self.cond.notify_all()
+
+
 class LocalPost:
     """Every agent's post in one process (tests, and the reference the real one is checked
     against): ``post(agent)`` is agent ``agent``'s :class:`Post`."""
 
-    def __init__(self) -> None:
+    def __init__(self, rovers: int) -> None:
         self.inboxes: dict[int, Inbox] = {}
         self.lock = threading.Lock()
+        self.tables = Tables(rovers, timeout=120.0)
 
     def inbox(self, agent: int) -> Inbox:
         with self.lock:
@@ -174,6 +259,9 @@ class LocalPost:
 
             def wait(self, key: tuple[int, int, int, int]) -> Mail:
                 return me.inbox(agent).wait(key)
+
+            def table(self, strategy: str, step: int, who: int, pos: Cell | None) -> Table:
+                return me.tables.table(strategy, step, who, pos)
 
         return _Agent()
 
@@ -216,18 +304,35 @@ class PeerRound(Exchange):
             self._mail(FRAME, b, round_no, t, n, raw)
 
             def acked(due: int) -> None:  # where the in-process transport acknowledges it
-                ok = self.post.wait((ANSWER, b, t, n)).body == b"\x01"
+                try:
+                    ok = self.post.wait((ANSWER, b, t, n)).body == b"\x01"
+                except AgentGone:  # it left before it answered: as good as not used
+                    ok = False
                 self.answered(frame, msg, ok, peer=True)
             self.at(msg.arrival, acked)
         elif b == self.me:
             def take(due: int) -> None:  # where it would arrive (latency 0: this step)
-                mail = self.post.wait((FRAME, a, t, n))
+                try:
+                    mail = self.post.wait((FRAME, a, t, n))
+                except AgentGone:  # it left before it sent it
+                    return
                 if mail.what == NOTHING:
                     return
                 frame = Frame.unpack(mail.body)
                 ok = self.node.take(frame, due)
                 self._mail(ANSWER, a, round_no, t, n, b"\x01" if ok else b"\x00")
             self.at(t + self.latency * (len(path) - 1), take)
+
+
+class TeamLink(Link):
+    """The link model of one agent on processes: the mission's, and no link to an agent that left (``gone``)."""
+
+    def __init__(self, config, topology) -> None:
+        super().__init__(config, topology)
+        self.gone: frozenset[int] = frozenset()
+
+    def down(self, round_no: int, a: int, b: int, step: int | None = None) -> bool:
+        return a in self.gone or b in self.gone or super().down(round_no, a, b, step)
 
 
 def peer_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) -> None:
@@ -287,7 +392,8 @@ class ProcessPeer:
         self.rover = None if agent == BASE else world.team[agent]
         self.node = PeerNode(agent, sharing.peers[agent], self.rover)
         self.positions: list[Cell] = world.positions()
-        self.link = Link(replace(c.link, seed=c.link_seed), topology)
+        self.link = TeamLink(replace(c.link, seed=c.link_seed), topology)
+        self.left: dict[int, int] = {}  #: the agents that left, and the sync step it was noticed at
 
         def replan(k: int | None) -> None:
             if self.rover is not None and k in (None, agent):
@@ -307,23 +413,23 @@ class ProcessPeer:
                          r.distance, len(r.trail))
 
     def _positions(self, t: int, round_no: int) -> None:
-        """Every rover's cell at sync step ``t``: its own posted to every other agent, theirs awaited."""
-        if self.rover is not None:
-            body = pos_body(self.rover.pos, self.rover.target)
-            for a in self.agents:
-                if a != self.agent:
-                    self.post.send(Mail(POS, self.agent, a, round_no, t, 0, self.name, body))
-        for k in range(self.config.rovers):
-            if k != self.agent:
-                r, c = np.frombuffer(self.post.wait((POS, k, t, 0)).body[:4], "<i2")
-                self.positions[k] = (int(r), int(c))
-        if self.rover is not None:
-            self.positions[self.agent] = self.rover.pos
+        """Every rover's cell at sync step ``t``, and who left: the round's table (its own cell posted)."""
+        pos = None if self.rover is None else self.rover.pos
+        cells, gone = self.post.table(self.name, t, self.agent, pos)
+        self.positions = list(cells)
+        for a in gone - set(self.left):
+            self.left[a] = t
+        self.link.gone = gone
 
-    def run(self, on_step: Callable[[int], None] | None = None) -> PeerRecord:
-        """The whole mission, step by step, in lockstep with the other agents; its record."""
+    def run(self, on_step: Callable[[int], None] | None = None,
+            keep: Callable[[RoverEntry | PeerRecord], object] | None = None) -> PeerRecord:
+        """The whole mission, step by step, in lockstep with the other agents; its record.
+        ``keep(entry)`` writes its log as it goes: each rover entry, and its record after every
+        sync (a process killed mid-mission leaves its log up to its last sync)."""
         c, w, t0 = self.config, self.world, time.perf_counter()
         k, states, told = self.agent, [], 0
+        rounds: list[float] = []
+        last = t0
         if self.rover is not None:
             w.sense(k, 0)
             states.append(self._state(0))
@@ -336,6 +442,10 @@ class ProcessPeer:
                 self._positions(t, round_no)
                 self.round.sync(t, round_no)
             self.round.deliver(t)
+            if round_no is not None:
+                now = time.perf_counter()
+                rounds.append(now - last)
+                last = now
             self.step = t
             if round_no is not None and self.rover is None:
                 self.held[t] = self.node.belief().copy()
@@ -345,11 +455,18 @@ class ProcessPeer:
                     self.log.append(RoverEntry(self.name, k, self.mission_id, t, states,
                                                list(self.rover.trail[told:])))
                     told, states = len(self.rover.trail), []
+                    if keep is not None:
+                        keep(self.log[-1])
+            if keep is not None and (round_no is not None or t == c.steps):
+                keep(self._record(time.perf_counter() - t0, rounds))
             if on_step is not None:
                 on_step(t)
-        return PeerRecord(self.name, self.mission_id, k, time.perf_counter() - t0, self.link.ledger,
-                          self.round.order, self.link.slots, dict(self.round.wire),
-                          self.held if self.rover is None else {})
+        return self._record(time.perf_counter() - t0, rounds)
+
+    def _record(self, seconds: float, rounds: list[float]) -> PeerRecord:
+        return PeerRecord(self.name, self.mission_id, self.agent, seconds, list(self.link.ledger),
+                          list(self.round.order), self.link.slots, dict(self.round.wire),
+                          dict(self.held) if self.rover is None else {}, list(rounds), dict(self.left))
 
 
 def merge_records(mission: Mission, records: list[PeerRecord], logs: list[list[RoverEntry]]) -> BaseRecord:
@@ -364,34 +481,38 @@ def merge_records(mission: Mission, records: list[PeerRecord], logs: list[list[R
     name = records[0].strategy
     agents = agents_of(c, mission.base)
     have = sorted(r.agent for r in records)
+    left: dict[int, int] = {}
+    for r in records:
+        for a, t in r.left.items():
+            left[a] = min(t, left.get(a, t))
     if have != sorted(agents):
         raise FedmapError(f"{name}: records of agents {have}, the team's are {sorted(agents)} (-1: the lander)")
     keyed = sorted(((key, m) for r in records for key, m in zip(r.order, r.ledger)), key=lambda km: km[0])
     ledger: list[Message] = [m for _, m in keyed]
-    wire = {"frames": sum(r.wire.get("frames", 0) for r in records),
-            "bytes": sum(r.wire.get("bytes", 0) for r in records)}
+    wire = {key: sum(r.wire.get(key, 0) for r in records) for key in dict.fromkeys(k for r in records for k in r.wire)}
     lander = next((r for r in records if r.agent == BASE), None)
     if lander is not None:
         held = lander.held
     else:
         by_step: list[dict[int, np.ndarray]] = [{s.step: s.belief for e in log for s in e.states} for log in logs]
         held = {}
-        for t in range(c.steps + 1):
-            beliefs = [b[t] for b in by_step if t in b]
+        for t in range(c.steps + 1):  # (a rover that left: its last belief)
+            beliefs = [b[t] if t in b else b[max(b)] for k, b in enumerate(by_step)
+                       if t in b or (k in left and b and max(b) < t)]
             if len(beliefs) != len(by_step):
                 continue  # (score_strategy names the missing step)
             agree = np.all([b == beliefs[0] for b in beliefs[1:]], axis=0) if len(beliefs) > 1 else \
                 np.ones(beliefs[0].shape, bool)
             held[t] = np.where(agree, beliefs[0], UNKNOWN).astype(np.uint8)
     return BaseRecord(name, records[0].mission, max(r.seconds for r in records), held, ledger,
-                      sum(r.slots for r in records), wire=wire)
+                      sum(r.slots for r in records), wire=wire, left=left or None)
 
 
 def run_local(mission: Mission, name: str, *, mission_id: str = "") -> tuple[BaseRecord, list[list[RoverEntry]]]:
     """Strategy ``name``'s peer mission with every agent in a thread of this process, through
     :class:`LocalPost` (tests: the reference for a mission over a real network); the merged
     record and every rover's log."""
-    post = LocalPost()
+    post = LocalPost(mission.config.rovers)
     agents = agents_of(mission.config, mission.base)
     peers = {a: ProcessPeer(mission, name, a, post.post(a), mission_id=mission_id) for a in agents}
     records: dict[int, PeerRecord] = {}
@@ -414,5 +535,6 @@ def run_local(mission: Mission, name: str, *, mission_id: str = "") -> tuple[Bas
     return merge_records(mission, [records[a] for a in agents], logs), logs
 
 
-__all__ = ["ANSWER", "FRAME", "MAIL_WAIT", "NOTHING", "POS", "Inbox", "LocalPost", "Mail", "PeerRound", "Post",
-           "ProcessPeer", "agents_of", "merge_records", "peer_deployable", "peer_strategies", "pos_body", "run_local"]
+__all__ = ["ANSWER", "FRAME", "MAIL_WAIT", "NOTHING", "POS", "AgentGone", "Inbox", "LocalPost", "Mail", "PeerRound",
+           "Post", "ProcessPeer", "Table", "Tables", "TeamLink", "agents_of", "merge_records", "peer_deployable",
+           "peer_strategies", "pos_body", "run_local"]

@@ -493,11 +493,18 @@ def _wire_lines(result: MissionResult) -> list[str]:
         w, counted = r.wire, sum(m.bytes for m in r.ledger)
         assert w is not None
         how = f" ({w['orders']:,} B of orders, {w['reports']:,} B of reports)" if "orders" in w else ""
+        if "mail_bytes" in w:  # a peer mission on processes: the mail the agents posted, positions included
+            how = f" (agents posted {w['mail_bytes']:,} B of mail in {w['mails']:,} posts, positions included)"
         parts.append(f"{n} {w['bytes']:,} B in {w['frames']:,} frames{how} for {counted:,} B of the strategy's own")
     deployed = any("orders" in (r.wire or {}) for _, r in runs)
+    peers = any("mail_bytes" in (r.wire or {}) for _, r in runs)
     return [("**On processes**: every rover and the base ran as processes of their own, exchanging only fedmap's "
              "frames (the strategy's messages inside orders and reports); scores come from each node's own log, off "
              "the link (`fedmap score`). " if deployed else "")
+            + ("**On processes, as peers**: every agent ran as a process of its own, with no base giving orders: "
+               "each ran its side of every round, exchanging only fedmap's mail (positions, the strategy's messages "
+               "and the receivers' answers); scores come from each agent's own log, off the link (`fedmap score`). "
+               if peers else "")
             + "*Wire bytes*, every frame the transport carried with its framing (the table's bytes are the "
             "strategy's own, as the ledger counts them): " + "; ".join(parts) + ".", ""]
 
