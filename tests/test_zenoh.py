@@ -162,6 +162,14 @@ def test_a_leader_killed_mid_mission_is_replaced_and_the_team_goes_on(tmp_path):
         [(m.step, m.rover, m.to, m.bytes) for m in ledger if m.step <= 30]  # until then, the in-process mission
 
 
+def test_a_peer_node_without_its_lander_is_one_line(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "fedmap", "node", "peer", "--rover", "0", "--connect",
+                        f"127.0.0.1:{free_port()}", "--connect-timeout", "1", "--state", str(tmp_path / "r0")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.startswith("error: zenoh: Unable to connect"), r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and ".rs:" not in r.stderr  # (not zenoh's source line)
+
+
 def test_a_rover_cannot_post_mail_as_another_rover(tmp_path):
     """Access control on a peer mission: rover 1 may post mail to rover 0 as itself, not as rover 2."""
     from fedmap.zenohnet.peer import mail_key

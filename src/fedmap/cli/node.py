@@ -126,7 +126,8 @@ def peer(
     tls = Certs.for_node(certs, f"rover{rover_}") if certs is not None else None
     folder = state or Path(f"fedmap-rover{rover_}")
     console.print(f"rover {rover_} of team {team}: peer node, connecting to {ep}", soft_wrap=True)
-    session = open_session(node_config(connect=[ep], certs=tls, mode="client"))  # through the lander, its access control
+    # a client of the lander's router (its access control sees every message); waits for it up to --connect-timeout
+    session = open_session(node_config(connect=[ep], certs=tls, mode="client", connect_timeout=connect_timeout))
     try:
         names = serve_peer(session, team, rover_, folder, connect_timeout=connect_timeout, fault=fault)
     except KeyboardInterrupt:

@@ -132,9 +132,10 @@ def acl(team: str, rovers: int) -> dict:
 
 
 def node_config(*, listen: list[str] = (), connect: list[str] = (), certs: Certs | None = None,  # type: ignore[assignment]
-                access: dict | None = None, mode: str = "peer") -> Any:
+                access: dict | None = None, mode: str = "peer", connect_timeout: float | None = None) -> Any:
     """A ``zenoh.Config`` for one node: ``listen`` and ``connect`` endpoints, no multicast
-    scouting (a team finds its base by address; gossip still finds the rest), ``certs`` for TLS
+    scouting (a team finds its base by address; gossip still finds the rest; ``connect_timeout``:
+    seconds a client waits for it to answer, None: for ever), ``certs`` for TLS
     with mutual authentication, ``access`` control rules (:func:`acl`) for the base."""
     import zenoh
 
@@ -153,7 +154,9 @@ def node_config(*, listen: list[str] = (), connect: list[str] = (), certs: Certs
     put("transport/shared_memory/enabled", False)
     if connect:
         put("connect/endpoints", list(connect))
-        put("connect/timeout_ms", -1)  # keep trying: the base may start after its rovers
+        # keep trying: the base may start after its rovers (a client waits for it in zenoh.open:
+        # up to ``connect_timeout`` s, then one line)
+        put("connect/timeout_ms", -1 if connect_timeout is None else round(connect_timeout * 1000))
     if certs is not None:
         put("transport/link/tls", {
             "root_ca_certificate": str(certs.ca),
@@ -184,7 +187,9 @@ def open_session(conf: Any) -> Any:
     try:
         return zenoh.open(conf)
     except zenoh.ZError as e:
-        raise FedmapError(f"zenoh: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+        line = str(e).splitlines()[0] if str(e) else type(e).__name__
+        line = re.sub(r"\s+at \S+\.rs:\d+\.?$", "", line)  # (not the Rust source line it came from)
+        raise FedmapError(f"zenoh: {line}") from None
 
 
 __all__ = ["DEFAULT_PORT", "Certs", "acl", "alive_key", "check_listen", "check_team", "done_key", "endpoint",
