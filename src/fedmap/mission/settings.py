@@ -375,6 +375,10 @@ class MissionConfig:
                              "cell costs more the likelier it is impassable and a frontier's gain counts the guesses' "
                              "uncertainty (no bytes; guesses are never shared or counted as observed)",
                              choices=PREDICTORS)
+    predictor_check: bool = setting(True, help="learned: every 10 steps each rover hides patches of its own map's "
+                                    "known cells from the predictor and plans with the guesses only while they beat "
+                                    "all free there (it steps aside where they cannot help)",
+                                    cli="--predictor-check/--predictor-always")
     strategies: tuple[str, ...] = setting(DEFAULT_STRATEGIES, help="Ways of sharing to run side by side, "
                                           "comma-separated", choices=STRATEGIES)
     train_on: str = setting("map", help="Model strategies: what a rover trains on at a sync: map (its whole map) or "
@@ -513,10 +517,11 @@ class MissionConfig:
 
 
 def _without_unset_options(mission: dict) -> dict:
-    """``mission`` without ``predictor`` when it is ``none`` and without ``stop_coverage``
+    """``mission`` without ``predictor`` (and ``predictor_check``) when it is ``none`` and without ``stop_coverage``
     when it is unset: missions that use neither keep the settings (and the ``metrics.json``)
     they had before they existed."""
-    return {k: v for k, v in mission.items() if not ((k == "predictor" and v == "none")
+    none = mission.get("predictor") == "none"
+    return {k: v for k, v in mission.items() if not ((k in ("predictor", "predictor_check") and none)
                                                      or (k == "stop_coverage" and v is None))}
 
 

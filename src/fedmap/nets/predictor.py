@@ -158,6 +158,58 @@ def predict(model: MapPredictor, classes: np.ndarray, *, adapt: bool = True) -> 
     return (1.0 - p_imp).astype(np.float32), p_imp
 
 
+#: Hidden cells a check of the guesses needs before its verdict counts (fewer: no verdict).
+MIN_CHECK_CELLS = 100
+
+
+@dataclass(frozen=True)
+class GuessCheck:
+    """The guesses checked on a map's own known cells (:func:`check_guesses`): how many were
+    hidden and scored, the share the guesses got right, and the share "all free" got right."""
+
+    cells: int
+    accuracy: float
+    all_free: float
+
+    @property
+    def pays(self) -> bool | None:
+        """Whether the guesses beat "all free" there (None: too few cells to say)."""
+        return None if self.cells < MIN_CHECK_CELLS else self.accuracy > self.all_free
+
+
+def check_guesses(model: MapPredictor, classes: np.ndarray, rng: np.random.Generator, *, radius: float,
+                  patches: int = 8) -> GuessCheck:
+    """Masked cross-validation of the guesses on the map ``classes`` alone: ``patches``
+    disks of ``radius`` cells, each centred on a known cell next to an unknown one (where a
+    rover asks for guesses: its frontier), are hidden; the predictor guesses them from the
+    rest, and its guesses (the likelier class) are scored against what the map holds, beside
+    "all free". Self-supervised: nothing but the map is read."""
+    b = np.asarray(classes)
+    known = b != UNKNOWN
+    if not known.any():
+        return GuessCheck(0, 0.0, 0.0)
+    unknown = ~known
+    near = np.zeros_like(known)
+    near[1:] |= unknown[:-1]
+    near[:-1] |= unknown[1:]
+    near[:, 1:] |= unknown[:, :-1]
+    near[:, :-1] |= unknown[:, 1:]
+    edge = np.argwhere(known & near)
+    pool = edge if len(edge) else np.argwhere(known)
+    centres = pool[rng.choice(len(pool), size=min(patches, len(pool)), replace=False)]
+    rows, cols = np.indices(b.shape)
+    hide = np.zeros_like(known)
+    for r, c in centres:
+        hide |= (rows - r) ** 2 + (cols - c) ** 2 <= radius ** 2
+    hide &= known
+    masked = np.where(hide, UNKNOWN, b).astype(np.uint8)
+    _, p_imp = predict(model, masked)
+    truth = b[hide]
+    guess = np.where(p_imp[hide] > 0.5, IMPASSABLE, FREE)
+    n = int(hide.sum())
+    return GuessCheck(n, float((guess == truth).mean()) if n else 0.0, float((truth == FREE).mean()) if n else 0.0)
+
+
 # -- training ------------------------------------------------------------------------------
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ from fedmap.mission.settings import MissionConfig
 from fedmap.mission.world.flight import fly
 from fedmap.mission.world.frontiers import cheapest_path, choose_target, plan_path
 from fedmap.mission.world.sensing import block_classes, coarse_footprint, disk_offsets, footprint
-from fedmap.nets.predictor import MapPredictor, predict, shipped_predictor
+from fedmap.nets.predictor import MapPredictor, check_guesses, predict, shipped_predictor
 
 Cell = tuple[int, int]
 
@@ -170,6 +170,10 @@ def plan_waypoints(truth: GridMap, config: MissionConfig) -> list[list[Cell]]:
 
 
 
+#: Steps between two checks of a rover's guesses on its own map (``[mission] predictor_check``).
+GUESS_CHECK_EVERY = 10
+
+
 @dataclass(frozen=True)
 class PredictedView:
     """A map with the predictor's guesses, for planning only: ``classes`` is the map with
@@ -236,6 +240,11 @@ class World:
         #: the map predictor every rover runs on the map it holds (None: plan without guesses)
         self.predictor: MapPredictor | None = shipped_predictor() if config.predictor == "learned" else None
         self._predicted: dict[int, tuple[bytes, PredictedView]] = {}
+        #: per member: whether it plans with the guesses now (with ``predictor_check`` it starts
+        #: aside and joins once a check says they beat "all free" on its own map)
+        self.guessing = [self.predictor is not None and not config.predictor_check] * len(self.team)
+        #: every check of the guesses: (step, member, cells, accuracy, all free, guessing after it)
+        self.checks: list[tuple[int, int, int, float, float, bool]] = []
 
     def positions(self) -> list[Cell]:
         """Every member's cell now, in team order."""
@@ -298,7 +307,7 @@ class World:
                 r.waypoints.pop(0)
             return r.waypoints[0] if r.waypoints else None
         heading = (*self.origin, 2 * math.pi * k / self.config.rovers)
-        guess = None if self.predictor is None else self.predicted(k, belief).p_impassable
+        guess = self.predicted(k, belief).p_impassable if self.guessing[k] else None
         return choose_target(belief, r.pos, radius=self.config.sensor_radius, unknown_cost=self.config.unknown_cost,
                              others=self.ends[k].others(), allowed=self.allowed, excluded=r.excluded,
                              heading=heading, p_impassable=guess)
@@ -382,7 +391,7 @@ class World:
             target = self._pick(k, belief)
             if target is None:
                 return
-            if self.predictor is None:
+            if not self.guessing[k]:
                 path = plan_path(on, r.pos, target)
             else:
                 path = cheapest_path(on, r.pos, target, self.config.unknown_cost,
@@ -394,11 +403,28 @@ class World:
                 return
             r.excluded.add(target)
 
+    def check_guesses(self, k: int, t: int) -> None:
+        """Rover ``k`` checks the guesses on its own map at step ``t``
+        (:func:`~fedmap.nets.predictor.check_guesses`, seeded by the mission, the rover and the
+        step) and plans with them from now on only if they beat "all free" there; a check with
+        too few cells changes nothing."""
+        assert self.predictor is not None
+        c = self.config
+        rng = np.random.default_rng(np.random.SeedSequence([c.seed, k, t, 68]))
+        got = check_guesses(self.predictor, self.ends[k].belief(), rng, radius=c.sensor_radius)
+        pays = got.pays
+        if pays is not None and pays != self.guessing[k]:
+            self.guessing[k] = pays
+            self.team[k].replan = True
+        self.checks.append((t, k, got.cells, got.accuracy, got.all_free, self.guessing[k]))
+
     def drive(self, k: int, t: int) -> None:
         r = self.team[k]
         if r.kind == "helicopter":
             fly(self, k, t)
             return
+        if self.predictor is not None and self.config.predictor_check and t % GUESS_CHECK_EVERY == 0:
+            self.check_guesses(k, t)
         for _ in range(self.config.speed):
             belief = self.ends[k].belief()
             self.plan(k, belief)
