@@ -116,6 +116,8 @@ PEER_CASES = [
     ("leader", ("raw", "gossip"), {"loss": 0.1, "drop": 0.1, "lander_cut": [10, 25], "uplink_bytes": 1500}),
     # no lander: a mesh of rovers alone
     ("mesh", ("raw", "admm"), {"loss": 0.1, "drop": 0.1, "lander_agent": False, "peer_range": 60.0}),
+    # rovers alone on a short range: the team splits into groups, each electing its leader, and heals
+    ("leader", ("raw",), {"lander_agent": False, "peer_range": 40.0, "steps": 90}),
 ]
 
 
@@ -126,14 +128,22 @@ def test_a_peer_mission_over_zenoh_equals_the_mission_in_process(tmp_path, topol
     Zenoh with mutual TLS and access control: every agent runs its side of the rounds, and
     the mission scored from their logs equals the in-process one, message for message.
     Rover 1 damages one mail (its check fails at the receiver, which refuses it; it is sent again)."""
-    text = _peer_mission(40, names, topology=topology, **link)
+    link = dict(link)
+    text = _peer_mission(link.pop("steps", 40), names, topology=topology, **link)
     apart = deploy_zenoh(text, members=4, out=tmp_path / "out", strategies=names, frames=1,
                          faults={1: "corrupt@10"})
     here = _in_process(text)
     _same(here, apart, names)
     for name in names:
         assert sum(m.bytes for m in apart.runs[name].ledger) > 0, name
-        assert {m.status for m in apart.runs[name].ledger} - {"delivered"}, name  # losses and drops drawn
+    if "loss" in link:
+        assert all({m.status for m in apart.runs[n].ledger} - {"delivered"} for n in names)  # losses and drops drawn
+    else:  # the team split into groups with leaders of their own, and healed (the in-process run's frames say so)
+        config, source, _ = load_mission(None, overrides=[__import__("tomllib").loads(text)])
+        truth, *_ = mission_terrain(config, source)
+        groups = [len(set(f.leaders)) for f in run_mission(config, truth, frames=90).runs["raw"].frames if f.leaders]
+        whole = [i for i, g in enumerate(groups) if g == 1]
+        assert whole and any(g > 1 for g in groups[whole[0]:whole[-1]])
     assert [f["rover"] for f in apart.faults] == [1], apart.faults
     assert "damaged on the way" in apart.faults[0]["fault"] and "its check failed" in apart.faults[0]["fault"]
     assert not (tmp_path / "out.run" / "certs").exists()
