@@ -230,7 +230,9 @@ def test_a_base_station_beyond_loopback_needs_tls_and_authentication(tmp_path):
     (["--deploy", "base", "--listen", "nope"], "error: --listen must be HOST:PORT, got 'nope'"),
     (["--deploy", "local", "--strategies", "central"], "error: none of the strategies central runs on processes"),
     (["--deploy", "local", "--topology", "mesh", "--strategies", "raw"],
-     "error: a mission on processes runs the star topology only, not 'mesh': rovers have no links of their own"),
+     "error: a mission on Flower's processes runs the star topology only, not 'mesh': rovers have no links of their "
+     "own there (Flower routes every message through the base's SuperLink); run mesh and leader teams with --deploy "
+     "zenoh"),
     (["--step-seconds", "0.5"],
      "error: --step-seconds apply to a mission on processes only: add --deploy zenoh, local or base"),
     (["--deploy", "local", "--strategies", "raw", "--stop-coverage", "0.99"],

@@ -217,9 +217,10 @@ def unpack_history(raw: bytes) -> list[bytes]:
 def check_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) -> None:
     """One line when the mission ``c`` or a strategy cannot run on processes (see the module's limits)."""
     if c.link.topology != "star":
-        raise FedmapError(f"a mission on processes runs the star topology only, not {c.link.topology!r}: rovers have "
-                          "no links of their own there yet (Flower routes every message through the base's SuperLink; "
-                          "over Zenoh the peer node is not built); mesh, leader, gossip and admm run in process")
+        raise FedmapError(f"a mission on Flower's processes runs the star topology only, not {c.link.topology!r}: "
+                          "rovers have no links of their own there (Flower routes every message through the base's "
+                          "SuperLink); run mesh and leader teams with --deploy zenoh (fedmap node base and fedmap node "
+                          "peer)")
     if c.frames.enabled:
         raise FedmapError("a mission on processes runs with known poses: [frames] (unknown poses, drift) runs "
                           "in process only")
