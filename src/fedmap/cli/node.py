@@ -42,12 +42,9 @@ def rover(
     """A rover node: answers the base station's orders (drive, sense, share) until the mission is over."""
     from fedmap.mission.world.feed import MapFeed
     from fedmap.zenohnet.rover import serve_rover
-    from fedmap.zenohnet.session import Certs, check_team, endpoint, node_config, open_session
+    from fedmap.zenohnet.session import node_config, open_session
 
-    check_team(team)
-    ep = endpoint(connect, tls=certs is not None)
-    tls = Certs.for_node(certs, f"rover{rover_}") if certs is not None else None
-    folder = state or Path(f"fedmap-rover{rover_}")
+    ep, tls, folder = _rover_ends(rover_, connect, team, state, certs)
     ros_only = [o for o, on in (("--domain", domain is not None), ("--bag", bag is not None),
                                 ("--ros2-loopback", ros2_loopback), ("--first-map", first_map > 0),
                                 ("--pose-topic", pose_topic is not None), ("--pose-odometry", pose_odometry)) if on]
@@ -93,6 +90,16 @@ def rover(
     del player  # (a bag's player keeps its last map latched until here)
 
 
+def _rover_ends(k: int, connect: str, team: str, state: Optional[Path],
+                certs: Optional[Path]) -> tuple[str, Any, Path]:
+    """A rover node's endpoint, its TLS files (None without ``certs``) and its state folder, checked."""
+    from fedmap.zenohnet.session import Certs, check_team, endpoint
+
+    check_team(team)
+    ep = endpoint(connect, tls=certs is not None)
+    return ep, Certs.for_node(certs, f"rover{k}") if certs is not None else None, state or Path(f"fedmap-rover{k}")
+
+
 def ros_domain(domain: Optional[int]) -> int:
     """``--domain``, else ROS_DOMAIN_ID, else 0 (one line for a value DDS refuses)."""
     import os
@@ -119,12 +126,9 @@ def peer(
 ) -> None:
     """A rover of a peer mission (mesh or leader): runs its side of every sync round with the other agents; no orders."""
     from fedmap.zenohnet.peer import serve_peer
-    from fedmap.zenohnet.session import Certs, check_team, endpoint, node_config, open_session
+    from fedmap.zenohnet.session import node_config, open_session
 
-    check_team(team)
-    ep = endpoint(connect, tls=certs is not None)
-    tls = Certs.for_node(certs, f"rover{rover_}") if certs is not None else None
-    folder = state or Path(f"fedmap-rover{rover_}")
+    ep, tls, folder = _rover_ends(rover_, connect, team, state, certs)
     console.print(f"rover {rover_} of team {team}: peer node, connecting to {ep}", soft_wrap=True)
     # a client of the lander's router (its access control sees every message); waits for it up to --connect-timeout
     session = open_session(node_config(connect=[ep], certs=tls, mode="client", connect_timeout=connect_timeout))

@@ -250,6 +250,17 @@ class _Layers(Mapping[str, np.ndarray]):
         return f"layers({', '.join(self._arrays)})"
 
 
+def beside_unknown(classes: np.ndarray) -> np.ndarray:
+    """Cells with at least one UNKNOWN 4-neighbour (map edges are not unknown)."""
+    unknown = np.asarray(classes) == UNKNOWN
+    near = np.zeros_like(unknown)
+    near[1:, :] |= unknown[:-1, :]
+    near[:-1, :] |= unknown[1:, :]
+    near[:, 1:] |= unknown[:, :-1]
+    near[:, :-1] |= unknown[:, 1:]
+    return near
+
+
 def render_classes(classes: np.ndarray) -> np.ndarray:
     """Class array (H, W) -> RGB (H, W, 3) float32 in the paper's colours."""
     return PALETTE[np.asarray(classes, dtype=np.intp)]

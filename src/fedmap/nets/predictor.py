@@ -52,7 +52,7 @@ from torch import nn
 
 from fedmap._util import atomic_write_bytes
 from fedmap.errors import FedmapError
-from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
+from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, beside_unknown
 
 #: The shipped weights (learned by ``fedmap meta-predictor``; its command is in the file's metadata).
 PREDICTOR_FILE = "predictor.safetensors"
@@ -188,13 +188,7 @@ def check_guesses(model: MapPredictor, classes: np.ndarray, rng: np.random.Gener
     known = b != UNKNOWN
     if not known.any():
         return GuessCheck(0, 0.0, 0.0)
-    unknown = ~known
-    near = np.zeros_like(known)
-    near[1:] |= unknown[:-1]
-    near[:-1] |= unknown[1:]
-    near[:, 1:] |= unknown[:, :-1]
-    near[:, :-1] |= unknown[:, 1:]
-    edge = np.argwhere(known & near)
+    edge = np.argwhere(known & beside_unknown(b))
     pool = edge if len(edge) else np.argwhere(known)
     centres = pool[rng.choice(len(pool), size=min(patches, len(pool)), replace=False)]
     rows, cols = np.indices(b.shape)

@@ -42,9 +42,10 @@ ROVER_PROCESS_RESTARTS = 20
 
 
 def rover_argv(k: int, *, connect: str, team: str, state: Path, certs: Path | None = None,
-               fault: str | None = None) -> list[str]:
-    """``fedmap node rover`` for member ``k`` (what each rover's computer runs)."""
-    argv = [sys.executable, "-m", "fedmap", "node", "rover", "--rover", str(k), "--connect", connect, "--team", team,
+               fault: str | None = None, command: str = "rover") -> list[str]:
+    """``fedmap node rover`` for member ``k`` (what each rover's computer runs; ``command``
+    ``peer``: ``fedmap node peer``, a rover of a peer mission)."""
+    argv = [sys.executable, "-m", "fedmap", "node", command, "--rover", str(k), "--connect", connect, "--team", team,
             "--state", str(state)]
     if certs is not None:
         argv += ["--certs", str(certs)]
@@ -85,11 +86,10 @@ def _open(stack: contextlib.ExitStack, work: Path, certs: Path | None, address: 
     return procs, host, session
 
 
-def peer_argv(k: int, *, connect: str, team: str, state: Path, certs: Path | None = None,
-              fault: str | None = None) -> list[str]:
-    """``fedmap node peer`` for rover ``k`` of a peer mission (what each rover's computer runs)."""
-    return ["peer" if a == "rover" else a for a in rover_argv(k, connect=connect, team=team, state=state,
-                                                               certs=certs, fault=fault)]
+def _start(host: RoverHost, work: Path, k: int, argv: list[str], env: dict) -> None:
+    """Rover ``k``'s process, forked from ``host``; its PID recorded for whoever runs the machine."""
+    p = host.start(f"rover{k}", argv, env=env, log=work / f"rover{k}.log")
+    atomic_write_bytes(work / f"rover{k}.pid", f"{p.pid}\n".encode())
 
 
 def deploy_zenoh(mission_toml: str, *, members: int, out: Path, strategies: tuple[str, ...] = (), frames: int = 60,
@@ -122,9 +122,8 @@ def deploy_zenoh(mission_toml: str, *, members: int, out: Path, strategies: tupl
             argvs = {k: rover_argv(k, connect=address, team=team, state=work / f"rover{k}.state", certs=certs,
                                    fault=(faults or {}).get(k)) for k in range(members)}
 
-            def start(k: int) -> None:  # its PID recorded for whoever runs the machine
-                p = host.start(f"rover{k}", argvs[k], env=env, log=work / f"rover{k}.log")
-                atomic_write_bytes(work / f"rover{k}.pid", f"{p.pid}\n".encode())
+            def start(k: int) -> None:
+                _start(host, work, k, argvs[k], env)
 
             def watch() -> None:  # a rover process that exited is started again (it rebuilds itself)
                 for k in range(members):
@@ -188,10 +187,8 @@ def deploy_peers(mission_toml: str, *, members: int, out: Path, strategies: tupl
         with contextlib.ExitStack() as stack:
             procs, host, session = _open(stack, work, certs, address, team, members, env, mode="router")
             for k in range(members):
-                argv = peer_argv(k, connect=address, team=team, state=work / f"rover{k}.state", certs=certs,
-                                 fault=(faults or {}).get(k))
-                p = host.start(f"rover{k}", argv, env=env, log=work / f"rover{k}.log")
-                atomic_write_bytes(work / f"rover{k}.pid", f"{p.pid}\n".encode())
+                _start(host, work, k, rover_argv(k, connect=address, team=team, state=work / f"rover{k}.state",
+                                                 certs=certs, fault=(faults or {}).get(k), command="peer"), env)
 
             exited: set[int] = set()
 
@@ -226,4 +223,4 @@ def deploy_peers(mission_toml: str, *, members: int, out: Path, strategies: tupl
     return score_folder(work, frames=frames)
 
 
-__all__ = ["ROVER_PROCESS_RESTARTS", "deploy_peers", "deploy_zenoh", "peer_argv", "rover_argv"]
+__all__ = ["ROVER_PROCESS_RESTARTS", "deploy_peers", "deploy_zenoh", "rover_argv"]

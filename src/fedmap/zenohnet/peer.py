@@ -20,9 +20,12 @@ again: a damaged one fails its check and the receiver says so). Agents are named
   strategy and writes its own log (its rover's steps and its
   :class:`~fedmap.mission.network.nodelog.PeerRecord`).
 
+At each sync a rover posts its cell to the lander's tables (``fedmap/<team>/base/table/...``)
+and gets the round's table back: every rover's cell, and who left.
+
 Faults: a damaged mail is refused by its check and sent again (a line of the run's faults);
-an agent that leaves the team mid-mission (its liveliness token goes) stops the mission
-with one line naming it: a lockstep round cannot close without it.
+an agent that leaves the team mid-mission (its liveliness token goes) is dropped by the next
+round's table, alike for everyone: the team goes on without it (a line of the run's faults).
 """
 
 from __future__ import annotations
@@ -90,6 +93,17 @@ def table_key(team: str, strategy: str, k: int | str) -> str:
     return f"fedmap/{team}/base/table/{strategy}/{k}"
 
 
+def _mail_of(query: Any) -> Mail | None:
+    """The mail a query carries; None, the query answered with an error and dropped, when
+    its check fails (the sender sends it again)."""
+    try:
+        return Mail.from_bytes(query.payload.to_bytes() if query.payload is not None else b"")
+    except CorruptMessage as e:
+        query.reply_err(json.dumps({"reason": str(e), "corrupt": True}))
+        query.drop()
+        return None
+
+
 class Desk:
     """The lander's tables of a peer mission (:class:`~fedmap.mission.network.peers.Tables`)
     served over Zenoh: a rover's query carries its cell (a checked :class:`Mail`) and is
@@ -101,13 +115,10 @@ class Desk:
         self.lock = threading.Lock()
 
     def take(self, query: Any) -> None:
-        try:
-            mail = Mail.from_bytes(query.payload.to_bytes() if query.payload is not None else b"")
-        except CorruptMessage as e:
-            query.reply_err(json.dumps({"reason": str(e), "corrupt": True}))
-            query.drop()
+        mail = _mail_of(query)
+        if mail is None:
             return
-        if str(query.key_expr) != table_key(self.team, mail.strategy, mail.sender) or len(mail.body) < 4:
+        if str(query.key_expr) != table_key(self.team, mail.strategy, mail.sender) or len(mail.body) != 4:
             query.reply_err(json.dumps({"reason": f"a cell of rover {mail.sender} posted as {query.key_expr}"}))
             query.drop()
             return
@@ -212,12 +223,10 @@ class ZenohPost:
         self.thread.start()
 
     def _take(self, query: Any) -> None:
+        mail = _mail_of(query)
+        if mail is None:
+            return
         try:
-            try:
-                mail = Mail.from_bytes(query.payload.to_bytes() if query.payload is not None else b"")
-            except CorruptMessage as e:
-                query.reply_err(json.dumps({"reason": str(e), "corrupt": True}))
-                return
             frm = str(query.key_expr).rsplit("/", 1)[1]
             if agent_name(mail.sender) != frm or mail.to != self.me or mail.strategy != self.strategy:
                 query.reply_err(json.dumps({"reason": f"mail from {agent_name(mail.sender)} to {agent_name(mail.to)} "
@@ -239,7 +248,8 @@ class ZenohPost:
     def table(self, strategy: str, step: int, agent: int, pos: Cell | None) -> Table:
         if self.tables is not None:
             return self.tables.table(strategy, step, agent, pos)
-        mail = Mail(POS, agent, BASE, 0, step, 0, strategy, b"" if pos is None else pos_body(pos, None))
+        assert pos is not None  # (a rover's: the lander keeps the tables itself)
+        mail = Mail(POS, agent, BASE, 0, step, 0, strategy, pos_body(pos))
         text = _ask(self.session, table_key(self.team, strategy, agent), mail.to_bytes(), self.timeout,
                     f"the table of step {step}", reply_timeout=self.timeout)
         got = json.loads(text)
@@ -432,7 +442,7 @@ def run_lander(session: Any, team: str, mission_text: str, *, out: Path, strateg
 
     gone_noted: set[int] = set()
 
-    def note_gone(strategy: str, step: int, gone: frozenset[int]) -> None:
+    def tabled(strategy: str, step: int, gone: frozenset[int]) -> None:  # a round's table is made
         if on_step is not None and BASE not in agents:  # (the lander's own agent reports its steps)
             on_step(strategy, step)
         for a in sorted(gone - gone_noted):
@@ -442,7 +452,7 @@ def run_lander(session: Any, team: str, mission_text: str, *, out: Path, strateg
 
     roster: Roster | None = None
     tables = Tables(c.rovers, alive=lambda a: roster is None or roster.is_alive(a), timeout=MAIL_WAIT,
-                    on_table=note_gone)
+                    on_table=tabled)
     keeper = Desk(tables, team)
     served = [session.declare_queryable(k, Callback(desk, lambda: None))
               for k in (plan_key(team), mission_key(team), finished_key(team))]

@@ -69,10 +69,7 @@ class Sharing:
         assert self.peers is not None
         if BASE in self.peers:
             return self.peers[BASE].belief()
-        beliefs = [r.belief() for r in self.rovers]
-        agree = np.all([b == beliefs[0] for b in beliefs[1:]], axis=0) if len(beliefs) > 1 else \
-            np.ones(beliefs[0].shape, bool)
-        return np.where(agree, beliefs[0], UNKNOWN).astype(np.uint8)
+        return agreed([r.belief() for r in self.rovers])
 
     def global_heights(self) -> np.ndarray | None:
         return self.base.global_heights() if self.base is not None else None
@@ -81,4 +78,12 @@ class Sharing:
 Factory = Callable[[Setup], Sharing]
 
 
-__all__ = ["Factory", "Setup", "Sharing"]
+def agreed(beliefs: list[np.ndarray]) -> np.ndarray:
+    """The cells every one of ``beliefs`` holds with the same class (the others UNKNOWN): a
+    peer team's map without a lander."""
+    agree = np.all([b == beliefs[0] for b in beliefs[1:]], axis=0) if len(beliefs) > 1 else \
+        np.ones(beliefs[0].shape, bool)
+    return np.where(agree, beliefs[0], UNKNOWN).astype(np.uint8)
+
+
+__all__ = ["Factory", "Setup", "Sharing", "agreed"]

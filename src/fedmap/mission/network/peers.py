@@ -57,9 +57,11 @@ import numpy as np
 from fedmap.errors import FedmapError
 from fedmap.maps.grid import UNKNOWN
 from fedmap.mission.ends.registry import Setup, build, names_that
+from fedmap.mission.ends.sharing import agreed
 from fedmap.mission.network.link import BASE, Link, Message
 from fedmap.mission.network.nodelog import BaseRecord, PeerRecord, RoverEntry, StepState
 from fedmap.mission.network.nodes import PeerNode
+from fedmap.mission.network.remote import check_process_limits
 from fedmap.mission.network.topology import make_topology
 from fedmap.mission.network.transport import Exchange
 from fedmap.mission.network.wire import MAIL, Frame, Head, Writer, pack_message, unpack_message
@@ -80,7 +82,7 @@ class Mail:
     """One message between two agents of strategy ``strategy``'s run: ``what`` (:data:`POS`,
     :data:`FRAME`, :data:`NOTHING`, :data:`ANSWER`) from ``sender`` to ``to`` at ``step``
     (round ``round``), for the round's offer ``offer`` (0 for a position), with ``body``
-    (a position: its cell and target; a frame: the packed frame; an answer: one byte)."""
+    (a position: its cell, :func:`pos_body`; a frame: the packed frame; an answer: one byte)."""
 
     what: int
     sender: int
@@ -110,9 +112,13 @@ class Mail:
         return cls(what, head.sender, to, head.round, head.step, offer, strategy, body)
 
 
-def pos_body(pos: Cell, target: Cell | None) -> bytes:
-    t = (-1, -1) if target is None else target
-    return Writer().put("hhhh", *pos, *t).done()
+def pos_body(pos: Cell) -> bytes:
+    """A rover's cell, as a :data:`POS` mail carries it."""
+    return Writer().put("hh", *pos).done()
+
+
+def _who(agent: int) -> str:
+    return "the lander" if agent == BASE else f"rover {agent}"
 
 
 class AgentGone(FedmapError):
@@ -120,8 +126,7 @@ class AgentGone(FedmapError):
 
     def __init__(self, agent: int, what: str) -> None:
         self.agent = agent
-        who = "the lander" if agent == BASE else f"rover {agent}"
-        super().__init__(f"{who} left the team: {what}")
+        super().__init__(f"{_who(agent)} left the team: {what}")
 
 
 #: A round's table: every rover's cell (team order) and the agents that left.
@@ -170,8 +175,7 @@ class Inbox:
                 if not self.alive(key[1]):
                     raise AgentGone(key[1], f"waiting for its {_WHAT[key[0]]} of step {key[2]}")
                 if left <= 0:
-                    who = "the lander" if key[1] == BASE else f"rover {key[1]}"
-                    raise FedmapError(f"{who} sent nothing for {self.timeout:g} s: waiting for its {_WHAT[key[0]]} "
+                    raise FedmapError(f"{_who(key[1])} sent nothing for {self.timeout:g} s: waiting for its {_WHAT[key[0]]} "
                                       f"of step {key[2]}")
                 self.cond.wait(min(left, 0.5))
             return self.held.pop(key)
@@ -269,7 +273,7 @@ class LocalPost:
 class PeerRound(Exchange):
     """One agent's side of its topology's rounds: the in-process transport with only its
     own node (``node``, agent ``me``) at home; every other agent's part reaches it as mail
-    (module docstring). ``positions()``: every rover's cell as the last position exchange said."""
+    (module docstring). ``positions()``: every rover's cell as the round's table said."""
 
     def __init__(self, topology, link: Link, me: int, node: PeerNode, post: Post, strategy: str, *,
                  positions: Callable[[], list[Cell]], replan: Callable[[int | None], None]) -> None:
@@ -291,10 +295,11 @@ class PeerRound(Exchange):
         self.offers += 1
         a, b = path[0], path[-1]
         if a == self.me:
-            frame = self.node.message(b, round_no, t, self.topology.budget(a, b, role))
+            budget = self.topology.budget(a, b, role)
+            frame = self.node.message(b, round_no, t, budget)
             ledger, sent = self.link.ledger, len(self.link.ledger)
             msg = self.link.send_route(frame.payload, path, round_no=round_no, step=frame.step, kind=frame.kind,
-                                       budget=self.topology.budget(a, b, role))
+                                       budget=budget)
             self.order += [(t, n, i) for i in range(len(ledger) - sent)]
             raw = self._carry(frame, sent)
             if msg.to != b or msg.arrival is None:  # lost on the way, or nothing fit: told at once
@@ -340,13 +345,7 @@ def peer_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) -
     if c.link.topology == "star":
         raise FedmapError("a peer mission on processes needs a peer topology (mesh or leader); the star runs "
                           "with a base station (fedmap node base)")
-    if c.frames.enabled:
-        raise FedmapError("a mission on processes runs with known poses: [frames] runs in process only")
-    if c.link.latency != 0:
-        raise FedmapError(f"a mission on processes needs [link] latency = 0 (got {c.link.latency}): the real "
-                          "link's delay is its latency: add --set link.latency=0")
-    if c.stop_coverage is not None:
-        raise FedmapError("a mission on processes takes every step: stop_coverage reads the truth, which no node holds")
+    check_process_limits(c)
     if c.helicopters:
         raise FedmapError("a peer mission on processes runs rovers only: helicopters fly in process")
     ok = names_that("peer_deployable")
@@ -404,7 +403,6 @@ class ProcessPeer:
         #: its own log: rover entries (a rover agent), taken by its keeper as they come
         self.log: list[RoverEntry] = []
         self.held: dict[int, np.ndarray] = {}  #: the lander: its belief after every sync, by step
-        self.step = 0
 
     def _state(self, t: int) -> StepState:
         r, belief = self.rover, self.node.belief()
@@ -412,7 +410,7 @@ class ProcessPeer:
         return StepState(t, belief, self.world.own_view(self.agent, belief), r.local != UNKNOWN, r.pos, r.target,
                          r.distance, len(r.trail))
 
-    def _positions(self, t: int, round_no: int) -> None:
+    def _positions(self, t: int) -> None:
         """Every rover's cell at sync step ``t``, and who left: the round's table (its own cell posted)."""
         pos = None if self.rover is None else self.rover.pos
         cells, gone = self.post.table(self.name, t, self.agent, pos)
@@ -439,26 +437,26 @@ class ProcessPeer:
                 w.drive(k, t)
             round_no = c.sync_round(t)
             if round_no is not None:
-                self._positions(t, round_no)
+                self._positions(t)
                 self.round.sync(t, round_no)
             self.round.deliver(t)
             if round_no is not None:
                 now = time.perf_counter()
                 rounds.append(now - last)
                 last = now
-            self.step = t
-            if round_no is not None and self.rover is None:
-                self.held[t] = self.node.belief().copy()
+                if self.rover is None:
+                    self.held[t] = self.node.belief().copy()
             if self.rover is not None:
                 states.append(self._state(t))
-                if round_no is not None or t == c.steps:  # its log, a chunk per sync
+            if round_no is not None or t == c.steps:  # its log, a chunk per sync
+                if self.rover is not None:
                     self.log.append(RoverEntry(self.name, k, self.mission_id, t, states,
                                                list(self.rover.trail[told:])))
                     told, states = len(self.rover.trail), []
                     if keep is not None:
                         keep(self.log[-1])
-            if keep is not None and (round_no is not None or t == c.steps):
-                keep(self._record(time.perf_counter() - t0, rounds))
+                if keep is not None:
+                    keep(self._record(time.perf_counter() - t0, rounds))
             if on_step is not None:
                 on_step(t)
         return self._record(time.perf_counter() - t0, rounds)
@@ -501,9 +499,7 @@ def merge_records(mission: Mission, records: list[PeerRecord], logs: list[list[R
                        if t in b or (k in left and b and max(b) < t)]
             if len(beliefs) != len(by_step):
                 continue  # (score_strategy names the missing step)
-            agree = np.all([b == beliefs[0] for b in beliefs[1:]], axis=0) if len(beliefs) > 1 else \
-                np.ones(beliefs[0].shape, bool)
-            held[t] = np.where(agree, beliefs[0], UNKNOWN).astype(np.uint8)
+            held[t] = agreed(beliefs)
     return BaseRecord(name, records[0].mission, max(r.seconds for r in records), held, ledger,
                       sum(r.slots for r in records), wire=wire, left=left or None)
 

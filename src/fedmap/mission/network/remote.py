@@ -214,13 +214,8 @@ def unpack_history(raw: bytes) -> list[bytes]:
 # -- the rover's side -----------------------------------------------------------------------
 
 
-def check_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) -> None:
-    """One line when the mission ``c`` or a strategy cannot run on processes (see the module's limits)."""
-    if c.link.topology != "star":
-        raise FedmapError(f"a mission on Flower's processes runs the star topology only, not {c.link.topology!r}: "
-                          "rovers have no links of their own there (Flower routes every message through the base's "
-                          "SuperLink); run mesh and leader teams with --deploy zenoh (fedmap node base and fedmap node "
-                          "peer)")
+def check_process_limits(c: MissionConfig) -> None:
+    """One line when the mission ``c`` asks for what no mission on processes (star or peers) does."""
     if c.frames.enabled:
         raise FedmapError("a mission on processes runs with known poses: [frames] (unknown poses, drift) runs "
                           "in process only")
@@ -230,6 +225,16 @@ def check_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) 
     if c.stop_coverage is not None:
         raise FedmapError("a mission on processes takes every step: stop_coverage reads the truth (the share of the "
                           "reachable cells observed), which no node holds")
+
+
+def check_deployable(c: MissionConfig, strategies: list[str] | tuple[str, ...]) -> None:
+    """One line when the mission ``c`` or a strategy cannot run on processes (see the module's limits)."""
+    if c.link.topology != "star":
+        raise FedmapError(f"a mission on Flower's processes runs the star topology only, not {c.link.topology!r}: "
+                          "rovers have no links of their own there (Flower routes every message through the base's "
+                          "SuperLink); run mesh and leader teams with --deploy zenoh (fedmap node base and fedmap node "
+                          "peer)")
+    check_process_limits(c)
     deployable = names_that("deployable")
     bad = [s for s in strategies if s not in deployable]
     if bad:
@@ -618,7 +623,6 @@ def loopback(mission: Mission, name: str, *, feeds: dict[int, Feed] | None = Non
     return Loopback(mission, name, feeds=feeds, clocks=clocks, on_beliefs=on_beliefs)
 
 
-__all__ = ["WIRE_VERSION", "CorruptMessage", "FarRover", "ProcessBase", "ProcessRover", "Loopback", "LostState", "Order",
-           "Report",
-           "StepState", "check_deployable", "deployable_strategies", "loopback", "pack_frame", "pack_history", "rounds",
-           "unpack_frame", "unpack_history", "warm_up"]
+__all__ = ["WIRE_VERSION", "CorruptMessage", "FarRover", "ProcessBase", "ProcessRover", "Loopback", "LostState",
+           "Order", "Report", "StepState", "check_deployable", "check_process_limits", "deployable_strategies",
+           "loopback", "pack_frame", "pack_history", "rounds", "unpack_frame", "unpack_history", "warm_up"]

@@ -44,21 +44,14 @@ import numpy as np
 
 from fedmap._util import compiled_once
 from fedmap.errors import FedmapError
-from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
+from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN, beside_unknown
 from fedmap.maps.planning import astar
 from fedmap.mission.world.sensing import disk_offsets
 
 
 def frontier_mask(belief: np.ndarray) -> np.ndarray:
     """Known free cells with at least one UNKNOWN 4-neighbour (map edges are not unknown)."""
-    b = np.asarray(belief)
-    unknown = b == UNKNOWN
-    near = np.zeros_like(unknown)
-    near[1:, :] |= unknown[:-1, :]
-    near[:-1, :] |= unknown[1:, :]
-    near[:, 1:] |= unknown[:, :-1]
-    near[:, :-1] |= unknown[:, 1:]
-    return (b == FREE) & near
+    return (np.asarray(belief) == FREE) & beside_unknown(belief)
 
 
 #: What a cell that turns out impassable costs the rover, in cells: a detour of about a
