@@ -181,8 +181,9 @@ def test_a_peer_node_without_its_lander_is_one_line(tmp_path):
 
 
 def test_a_rover_cannot_post_mail_as_another_rover(tmp_path):
-    """Access control on a peer mission: rover 1 may post mail to rover 0 as itself, not as rover 2."""
-    from fedmap.zenohnet.peer import mail_key
+    """Access control on a peer mission: rover 1 may post mail to rover 0, and tell the
+    lander it finished, as itself, not as rover 2."""
+    from fedmap.zenohnet.peer import finished_key, mail_key
 
     make_certs(tmp_path, hosts=["127.0.0.1"], rovers=3)
     port = free_port()
@@ -196,11 +197,15 @@ def test_a_rover_cannot_post_mail_as_another_rover(tmp_path):
                                           access=acl("t", 3) if guarded else None, mode="router"))
         with lander, client("rover0") as r0, client("rover1") as r1:
             inbox = _answer(r0, mail_key("t", "raw", 0, "*"), b"taken")
+            desk = _answer(lander, finished_key("t", "*"), b"noted")
             time.sleep(0.5)
             assert _ask(r1, mail_key("t", "raw", 0, 1)) == [b"taken"]  # as itself
             forged = _ask(r1, mail_key("t", "raw", 0, 2))  # as rover 2
             assert forged == ([] if guarded else [b"taken"])  # (without the rules it gets through)
+            assert _ask(r1, finished_key("t", 1)) == [b"noted"]
+            assert _ask(r1, finished_key("t", 2)) == ([] if guarded else [b"noted"])
             inbox.undeclare()
+            desk.undeclare()
         port = free_port()
 
 

@@ -14,7 +14,7 @@ again: a damaged one fails its check and the receiver says so). Agents are named
   mission (``fedmap/<team>/base/mission``) and the plan (``fedmap/<team>/base/plan``: the
   mission's id, its strategies and its agents), runs the lander's own agent when it is one
   (``[link] lander_agent``), and writes the run's files once every rover said it finished
-  (``fedmap/<team>/base/finished``). It gives no orders: the rounds run among the agents.
+  (``fedmap/<team>/base/finished/<k>``). It gives no orders: the rounds run among the agents.
 * **A rover** (``fedmap node peer``) asks the lander for the plan and the mission, waits
   for every agent to be up (liveliness ``fedmap/<team>/alive/peer/<agent>``), runs each
   strategy and writes its own log (its rover's steps and its
@@ -84,8 +84,9 @@ def plan_key(team: str) -> str:
     return f"fedmap/{team}/base/plan"
 
 
-def finished_key(team: str) -> str:
-    return f"fedmap/{team}/base/finished"
+def finished_key(team: str, k: int | str) -> str:
+    """Where rover ``k`` says it finished a strategy (``k`` ``"*"``: the lander's queryable)."""
+    return f"fedmap/{team}/base/finished/{k}"
 
 
 def table_key(team: str, strategy: str, k: int | str) -> str:
@@ -376,7 +377,7 @@ def serve_peer(session: Any, team: str, k: int, state: Path, *, connect_timeout:
             hurt = None  # (a fault: once)
             record.wire.update(post.sent)  # the mail it posted (all delivered: the post is closed)
             write_log(folder, record)
-            _ask(session, finished_key(team), json.dumps({"strategy": name, "agent": k, "faults": faults}).encode(),
+            _ask(session, finished_key(team, k), json.dumps({"strategy": name, "agent": k, "faults": faults}).encode(),
                  connect_timeout, "the end of the mission")
         return list(plan["strategies"])
     finally:
@@ -429,6 +430,9 @@ def run_lander(session: Any, team: str, mission_text: str, *, out: Path, strateg
             else:
                 try:
                     note = json.loads(body)
+                    if key != finished_key(team, int(note["agent"])):
+                        query.reply_err(f"rover {note['agent']}'s end posted as {key}")
+                        return
                     with cond:
                         finished[str(note["strategy"])].add(int(note["agent"]))
                         faults.extend(dict(f) for f in note.get("faults", ()))
@@ -455,7 +459,7 @@ def run_lander(session: Any, team: str, mission_text: str, *, out: Path, strateg
                     on_table=tabled)
     keeper = Desk(tables, team)
     served = [session.declare_queryable(k, Callback(desk, lambda: None))
-              for k in (plan_key(team), mission_key(team), finished_key(team))]
+              for k in (plan_key(team), mission_key(team), finished_key(team, "*"))]
     served.append(session.declare_queryable(table_key(team, "*", "*"), Callback(keeper.take, lambda: None)))
     roster = Roster(session, team, on_change=keeper.settle)
     token = session.liveliness().declare_token(alive_key(team, "peer/lander")) if BASE in agents else None

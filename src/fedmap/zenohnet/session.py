@@ -107,11 +107,12 @@ def acl(team: str, rovers: int) -> dict:
     session. Rover ``k`` (common name ``rover<k>``) may declare and answer its own queryable
     and hold its own liveliness token (it sees everyone's), ask the base for the mission, and
     on a peer mission post mail as itself only (``fedmap/<team>/peer/*/mail/*/<k>``), take
-    its own (``fedmap/<team>/peer/<k>/mail/**``), and ask for the plan and say it finished."""
+    its own (``fedmap/<team>/peer/<k>/mail/**``), post its cell and say it finished as
+    itself only, and ask for the plan."""
     rules: list[dict] = [{
         "id": "desk", "permission": "allow", "flows": ["egress", "ingress"],
         "messages": ["query", "reply", "declare_queryable"],
-        "key_exprs": [mission_key(team), f"fedmap/{team}/base/plan", f"fedmap/{team}/base/finished"],
+        "key_exprs": [mission_key(team), f"fedmap/{team}/base/plan"],
     }, {
         "id": "see-alive", "permission": "allow", "flows": ["egress", "ingress"],
         "messages": ["liveliness_query", "declare_liveliness_subscriber"], "key_exprs": [alive_key(team, "**")],
@@ -125,7 +126,8 @@ def acl(team: str, rovers: int) -> dict:
                       "messages": ["query", "reply", "declare_queryable", "liveliness_token"],
                       "key_exprs": [f"fedmap/{team}/rover/{k}/**", alive_key(team, f"rover/{k}"),
                                     alive_key(team, f"peer/{k}"), f"fedmap/{team}/peer/{k}/mail/**",
-                                    f"fedmap/{team}/peer/*/mail/*/{k}", f"fedmap/{team}/base/table/*/{k}"]})
+                                    f"fedmap/{team}/peer/*/mail/*/{k}", f"fedmap/{team}/base/table/*/{k}",
+                                    f"fedmap/{team}/base/finished/{k}"]})
         subjects.append({"id": f"rover{k}", "cert_common_names": [f"rover{k}"]})
         policies.append({"rules": [f"rover{k}", "desk", "see-alive", "told-alive"], "subjects": [f"rover{k}"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
