@@ -44,6 +44,10 @@ def _candidates(s: _schema.Setting) -> list:
     return []
 
 
+#: Settings that only build beside another one (their prerequisite, laid under the value tried).
+NEEDS = {"mission.predictor_adapt": {"mission": {"predictor": "learned"}}}
+
+
 def _table(s: _schema.Setting, value) -> dict:
     return {s.section: {s.name: value}} if s.section else {s.name: value}
 
@@ -137,7 +141,7 @@ def test_every_mission_setting_is_reachable(s):
     assert _read(part(default_cfg), s, section=False) == _schema.to_toml(s.default)
     for value in _candidates(s):
         try:
-            cfg, _, _ = load_mission(overrides=[_table(s, value)])
+            cfg, _, _ = load_mission(overrides=[NEEDS.get(s.key, {}), _table(s, value)])
         except FedmapError:
             continue
         break
@@ -148,7 +152,7 @@ def test_every_mission_setting_is_reachable(s):
     got = _read(part(cfg), s, section=False)
     assert got == value
     text = repr(value).replace("'", '"').replace("True", "true").replace("False", "false")
-    cfg2, _, _ = load_mission(overrides=[parse_set(f"{s.key}={text}")])
+    cfg2, _, _ = load_mission(overrides=[NEEDS.get(s.key, {}), parse_set(f"{s.key}={text}")])
     assert cfg2 == cfg
     if s.scalar or s.choices:
         flag = (s.cli or f"--{s.name.replace('_', '-')}").split("/")[0]

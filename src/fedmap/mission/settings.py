@@ -379,6 +379,10 @@ class MissionConfig:
                                     "known cells from the predictor and plans with the guesses only while they beat "
                                     "all free there (it steps aside where they cannot help)",
                                     cli="--predictor-check/--predictor-always")
+    predictor_adapt: bool = setting(False, help="learned: every 10 steps each rover fine-tunes its own copy of the "
+                                    "predictor on its own map (hides known cells and learns to guess them); for "
+                                    "planning only: the coder keeps the shipped weights",
+                                    cli="--predictor-adapt/--predictor-fixed")
     strategies: tuple[str, ...] = setting(DEFAULT_STRATEGIES, help="Ways of sharing to run side by side, "
                                           "comma-separated", choices=STRATEGIES)
     train_on: str = setting("map", help="Model strategies: what a rover trains on at a sync: map (its whole map) or "
@@ -418,6 +422,8 @@ class MissionConfig:
             raise FedmapError(f"unknown_cost must be >= 1, got {self.unknown_cost!r}")
         if self.predictor not in PREDICTORS:
             raise FedmapError(f"unknown predictor {self.predictor!r}{suggest(self.predictor, PREDICTORS)}")
+        if self.predictor_adapt and self.predictor == "none":
+            raise FedmapError("predictor_adapt needs predictor = \"learned\" (there is no predictor to adapt)")
         if self.train_on not in TRAIN_ON:
             raise FedmapError(f"unknown train_on {self.train_on!r}{suggest(self.train_on, TRAIN_ON)}")
         if not (math.isfinite(self.replay) and self.replay >= 0):
@@ -517,11 +523,13 @@ class MissionConfig:
 
 
 def _without_unset_options(mission: dict) -> dict:
-    """``mission`` without ``predictor`` (and ``predictor_check``) when it is ``none`` and without ``stop_coverage``
+    """``mission`` without ``predictor`` (and ``predictor_check``) when it is ``none``, without ``predictor_adapt``
+    when it is off, and without ``stop_coverage``
     when it is unset: missions that use neither keep the settings (and the ``metrics.json``)
     they had before they existed."""
     none = mission.get("predictor") == "none"
     return {k: v for k, v in mission.items() if not ((k in ("predictor", "predictor_check") and none)
+                                                     or (k == "predictor_adapt" and not v)
                                                      or (k == "stop_coverage" and v is None))}
 
 

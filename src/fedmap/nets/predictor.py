@@ -177,6 +177,25 @@ class GuessCheck:
         return None if self.cells < MIN_CHECK_CELLS else self.accuracy > self.all_free
 
 
+def hide_patches(classes: np.ndarray, rng: np.random.Generator, *, radius: float, patches: int) -> np.ndarray:
+    """Which known cells of ``classes`` to hide from the predictor: ``patches`` disks of
+    ``radius`` cells, each centred on a known cell next to an unknown one (a rover's
+    frontier, where it asks for guesses; any known cell when there is none), drawn from
+    ``rng``. All False when the map knows nothing."""
+    b = np.asarray(classes)
+    known = b != UNKNOWN
+    hide = np.zeros_like(known)
+    if not known.any():
+        return hide
+    edge = np.argwhere(known & beside_unknown(b))
+    pool = edge if len(edge) else np.argwhere(known)
+    centres = pool[rng.choice(len(pool), size=min(patches, len(pool)), replace=False)]
+    rows, cols = np.indices(b.shape)
+    for r, c in centres:
+        hide |= (rows - r) ** 2 + (cols - c) ** 2 <= radius ** 2
+    return hide & known
+
+
 def check_guesses(model: MapPredictor, classes: np.ndarray, rng: np.random.Generator, *, radius: float,
                   patches: int = 8) -> GuessCheck:
     """Masked cross-validation of the guesses on the map ``classes`` alone: ``patches``
@@ -185,23 +204,88 @@ def check_guesses(model: MapPredictor, classes: np.ndarray, rng: np.random.Gener
     rest, and its guesses (the likelier class) are scored against what the map holds, beside
     "all free". Self-supervised: nothing but the map is read."""
     b = np.asarray(classes)
-    known = b != UNKNOWN
-    if not known.any():
+    hide = hide_patches(b, rng, radius=radius, patches=patches)
+    if not hide.any():
         return GuessCheck(0, 0.0, 0.0)
-    edge = np.argwhere(known & beside_unknown(b))
-    pool = edge if len(edge) else np.argwhere(known)
-    centres = pool[rng.choice(len(pool), size=min(patches, len(pool)), replace=False)]
-    rows, cols = np.indices(b.shape)
-    hide = np.zeros_like(known)
-    for r, c in centres:
-        hide |= (rows - r) ** 2 + (cols - c) ** 2 <= radius ** 2
-    hide &= known
     masked = np.where(hide, UNKNOWN, b).astype(np.uint8)
     _, p_imp = predict(model, masked)
     truth = b[hide]
     guess = np.where(p_imp[hide] > 0.5, IMPASSABLE, FREE)
     n = int(hide.sum())
     return GuessCheck(n, float((guess == truth).mean()) if n else 0.0, float((truth == FREE).mean()) if n else 0.0)
+
+
+# -- adaptation during a mission -----------------------------------------------------------
+
+def _check_fitting(options, what: str, counts: tuple[str, ...]) -> None:
+    """``counts`` of ``options`` >= 1 and its ``lr`` finite and > 0, else a one-line error about ``what``."""
+    for name in counts:
+        if getattr(options, name) < 1:
+            raise FedmapError(f"{what} {name} must be >= 1, got {getattr(options, name)}")
+    if not (math.isfinite(options.lr) and options.lr > 0):
+        raise FedmapError(f"{what} lr must be finite and > 0, got {options.lr}")
+
+
+@dataclass(frozen=True)
+class Adaptation:
+    """How a rover fine-tunes its copy of the predictor on its own map (:func:`adapt_predictor`)."""
+
+    steps: int = 3  #: Adam steps per adaptation (a fresh optimiser each time: nothing but the weights is state)
+    lr: float = 3e-4  #: Adam learning rate (a tenth of the offline training's: small moves from the shipped weights)
+    crop: int = 64  #: side of the window around the rover it trains on (the whole map when smaller)
+    patches: int = 8  #: disks hidden per step, as the check hides (:func:`hide_patches`)
+
+    def __post_init__(self) -> None:
+        _check_fitting(self, "predictor adaptation", ("steps", "crop", "patches"))
+
+
+def copy_predictor(model: MapPredictor) -> MapPredictor:
+    """A predictor with ``model``'s config and a copy of its weights (``model`` untouched)."""
+    out = MapPredictor(model.config)
+    out.load_state_dict({k: v.detach().clone() for k, v in model.state_dict().items()})
+    return out.eval()
+
+
+def adapt_predictor(model: MapPredictor, classes: np.ndarray, rng: np.random.Generator, *, radius: float,
+                    around: tuple[int, int] | None = None, adaptation: Adaptation | None = None) -> MapPredictor:
+    """A copy of ``model`` fine-tuned on the map ``classes`` alone, self-supervised: every
+    step hides patches of its known cells (:func:`hide_patches`, in a ``crop`` window around
+    the cell ``around``, or the map's centre), guesses them from the rest with the base-rate
+    shift :func:`predict` applies, and takes one Adam step on the binary cross-entropy of
+    the hidden cells, in one of the 8 rotations/reflections. No truth is read: only what the
+    map holds. ``model`` is never changed (the coder's shipped weights stay the shipped
+    weights). One thread and deterministic algorithms, every draw from ``rng``: the same
+    map and draws give the same weights bit for bit on one machine. A window with fewer
+    than :data:`MIN_CHECK_CELLS` hidden cells in a step is skipped."""
+    a = adaptation or Adaptation()
+    b = np.asarray(classes)
+    if b.ndim != 2:
+        raise FedmapError(f"the predictor adapts to one (H, W) class map, got shape {b.shape}")
+    h, w = b.shape
+    ch, cw = min(a.crop, h), min(a.crop, w)
+    r, c = around if around is not None else (h // 2, w // 2)
+    r0, c0 = int(np.clip(r - ch // 2, 0, h - ch)), int(np.clip(c - cw // 2, 0, w - cw))
+    window = b[r0:r0 + ch, c0:c0 + cw]
+    out = copy_predictor(model)
+    with one_thread(deterministic=True), torch.enable_grad():
+        out.train()
+        opt = torch.optim.Adam(out.parameters(), lr=a.lr)
+        base = _logit(float(out.base_rate))
+        for _ in range(a.steps):
+            hide = hide_patches(window, rng, radius=radius, patches=a.patches)
+            k = int(rng.integers(8))
+            if int(hide.sum()) < MIN_CHECK_CELLS:
+                continue
+            masked = np.where(hide, UNKNOWN, window).astype(np.uint8)
+            shift = _logit(known_rate(masked)) - base
+            x = _dihedral(masked, k)[None]
+            target = torch.from_numpy(_dihedral(window == IMPASSABLE, k)[None].astype(np.float32))
+            weight = torch.from_numpy(_dihedral(hide, k)[None].astype(np.float32))
+            loss = unknown_cell_loss(out(one_hot(x))[:, 0] + shift, target, weight)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+    return out.eval()
 
 
 # -- training ------------------------------------------------------------------------------
@@ -217,11 +301,7 @@ class PredictorTraining:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("steps", "batch", "crop"):
-            if getattr(self, name) < 1:
-                raise FedmapError(f"predictor training {name} must be >= 1, got {getattr(self, name)}")
-        if not (math.isfinite(self.lr) and self.lr > 0):
-            raise FedmapError(f"predictor training lr must be finite and > 0, got {self.lr}")
+        _check_fitting(self, "predictor training", ("steps", "batch", "crop"))
 
 
 def _dihedral(a: np.ndarray, k: int) -> np.ndarray:
@@ -347,6 +427,6 @@ def shipped_predictor() -> MapPredictor:
     return load_predictor(SHIPPED_PREDICTOR)
 
 
-__all__ = ["MapPredictor", "PredictorConfig", "PredictorTraining", "SHIPPED_PREDICTOR", "count_parameters",
-           "known_rate", "load_predictor", "one_hot", "predict", "predictor_metadata", "save_predictor", "shipped_predictor",
-           "train_predictor"]
+__all__ = ["Adaptation", "MapPredictor", "PredictorConfig", "PredictorTraining", "SHIPPED_PREDICTOR",
+           "adapt_predictor", "copy_predictor", "count_parameters", "hide_patches", "known_rate", "load_predictor",
+           "one_hot", "predict", "predictor_metadata", "save_predictor", "shipped_predictor", "train_predictor"]

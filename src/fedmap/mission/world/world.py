@@ -32,7 +32,7 @@ from fedmap.mission.settings import MissionConfig
 from fedmap.mission.world.flight import fly
 from fedmap.mission.world.frontiers import cheapest_path, choose_target, plan_path
 from fedmap.mission.world.sensing import block_classes, coarse_footprint, disk_offsets, footprint
-from fedmap.nets.predictor import MapPredictor, check_guesses, predict, shipped_predictor
+from fedmap.nets.predictor import MapPredictor, adapt_predictor, check_guesses, predict, shipped_predictor
 
 Cell = tuple[int, int]
 
@@ -239,6 +239,10 @@ class World:
         self.ends: list = []
         #: the map predictor every rover runs on the map it holds (None: plan without guesses)
         self.predictor: MapPredictor | None = shipped_predictor() if config.predictor == "learned" else None
+        #: per member: the predictor it plans with (the shipped one, or its own copy adapted
+        #: to its map with ``predictor_adapt``; never the coder's, which stays the shipped one)
+        self.models: list[MapPredictor | None] = [self.predictor] * len(self.team)
+        self._versions = [0] * len(self.team)  # adaptations of each member's copy so far
         self._predicted: dict[int, tuple[bytes, PredictedView]] = {}
         #: per member: whether it plans with the guesses now (with ``predictor_check`` it starts
         #: aside and joins once a check says they beat "all free" on its own map)
@@ -316,13 +320,14 @@ class World:
         """Rover ``k``'s planning view with the predictor's guesses (cached while its map is
         unchanged): the map it holds, every unknown cell filled with its likelier class and
         marked as predicted. Needs ``predictor = "learned"``."""
-        assert self.predictor is not None
+        model = self.models[k]
+        assert model is not None
         b = np.ascontiguousarray(belief, dtype=np.uint8)
-        key = hashlib.blake2b(b.tobytes(), digest_size=16).digest()
+        key = hashlib.blake2b(b.tobytes(), digest_size=16).digest() + self._versions[k].to_bytes(4, "little")
         hit = self._predicted.get(k)
         if hit is not None and hit[0] == key:
             return hit[1]
-        view = PredictedView.of(self.predictor, b)
+        view = PredictedView.of(model, b)
         self._predicted[k] = (key, view)
         return view
 
@@ -408,23 +413,40 @@ class World:
         (:func:`~fedmap.nets.predictor.check_guesses`, seeded by the mission, the rover and the
         step) and plans with them from now on only if they beat "all free" there; a check with
         too few cells changes nothing."""
-        assert self.predictor is not None
+        model = self.models[k]
+        assert model is not None
         c = self.config
         rng = np.random.default_rng(np.random.SeedSequence([c.seed, k, t, 68]))
-        got = check_guesses(self.predictor, self.ends[k].belief(), rng, radius=c.sensor_radius)
+        got = check_guesses(model, self.ends[k].belief(), rng, radius=c.sensor_radius)
         pays = got.pays
         if pays is not None and pays != self.guessing[k]:
             self.guessing[k] = pays
             self.team[k].replan = True
         self.checks.append((t, k, got.cells, got.accuracy, got.all_free, self.guessing[k]))
 
+    def adapt(self, k: int, t: int) -> None:
+        """Rover ``k`` fine-tunes its copy of the predictor on its own map at step ``t``
+        (:func:`~fedmap.nets.predictor.adapt_predictor` in a window around it, seeded by the
+        mission, the rover and the step), for planning only: the shipped weights (the coder's)
+        are never changed."""
+        model = self.models[k]
+        assert model is not None
+        c = self.config
+        rng = np.random.default_rng(np.random.SeedSequence([c.seed, k, t, 69]))
+        self.models[k] = adapt_predictor(model, self.ends[k].belief(), rng, radius=c.sensor_radius,
+                                         around=self.team[k].pos)
+        self._versions[k] += 1
+
     def drive(self, k: int, t: int) -> None:
         r = self.team[k]
         if r.kind == "helicopter":
             fly(self, k, t)
             return
-        if self.predictor is not None and self.config.predictor_check and t % GUESS_CHECK_EVERY == 0:
-            self.check_guesses(k, t)
+        if self.predictor is not None and t % GUESS_CHECK_EVERY == 0:
+            if self.config.predictor_check:
+                self.check_guesses(k, t)
+            if self.config.predictor_adapt:  # after the check: it scores the copy adapted 10 steps ago
+                self.adapt(k, t)
         for _ in range(self.config.speed):
             belief = self.ends[k].belief()
             self.plan(k, belief)
