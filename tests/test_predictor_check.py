@@ -9,7 +9,7 @@ import torch
 
 from fedmap.maps.grid import FREE, IMPASSABLE, UNKNOWN
 from fedmap.mission import load_mission, mission_terrain, run_mission
-from fedmap.nets.predictor import MIN_CHECK_CELLS, MapPredictor, check_guesses, shipped_predictor
+from fedmap.nets.predictor import CHECK_MARGIN, MIN_CHECK_CELLS, GuessCheck, MapPredictor, check_guesses, shipped_predictor
 
 
 def always_impassable() -> MapPredictor:
@@ -71,3 +71,10 @@ def test_a_rover_steps_aside_from_guesses_worse_than_all_free(monkeypatch):
     always = _trails(monkeypatch, predictor="learned", predictor_check=False)
     assert checked == without
     assert always != without
+
+
+def test_guesses_must_beat_all_free_by_the_margin_to_be_planned_with():
+    """Guesses a point or two better than "all free" are no reason to plan with them."""
+    assert GuessCheck(200, 0.80 + CHECK_MARGIN / 2, 0.80).pays is False
+    assert GuessCheck(200, 0.80 + CHECK_MARGIN * 1.5, 0.80).pays is True
+    assert GuessCheck(200, 0.79, 0.80).pays is False

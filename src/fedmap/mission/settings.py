@@ -377,7 +377,7 @@ class MissionConfig:
                              choices=PREDICTORS)
     predictor_check: bool = setting(True, help="learned: every 10 steps each rover hides patches of its own map's "
                                     "known cells from the predictor and plans with the guesses only while they beat "
-                                    "all free there (it steps aside where they cannot help)",
+                                    "all free there by 3 points (it steps aside where they cannot help)",
                                     cli="--predictor-check/--predictor-always")
     predictor_adapt: bool = setting(False, help="learned: every 10 steps each rover fine-tunes its own copy of the "
                                     "predictor on its own map (hides known cells and learns to guess them); for "

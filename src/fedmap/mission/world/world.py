@@ -245,7 +245,7 @@ class World:
         self._versions = [0] * len(self.team)  # adaptations of each member's copy so far
         self._predicted: dict[int, tuple[bytes, PredictedView]] = {}
         #: per member: whether it plans with the guesses now (with ``predictor_check`` it starts
-        #: aside and joins once a check says they beat "all free" on its own map)
+        #: aside and joins once a check says they beat "all free" on its own map by 3 points)
         self.guessing = [self.predictor is not None and not config.predictor_check] * len(self.team)
         #: every check of the guesses: (step, member, cells, accuracy, all free, guessing after it)
         self.checks: list[tuple[int, int, int, float, float, bool]] = []
@@ -411,7 +411,8 @@ class World:
     def check_guesses(self, k: int, t: int) -> None:
         """Rover ``k`` checks the guesses on its own map at step ``t``
         (:func:`~fedmap.nets.predictor.check_guesses`, seeded by the mission, the rover and the
-        step) and plans with them from now on only if they beat "all free" there; a check with
+        step) and plans with them from now on only if they beat "all free" there by
+        :data:`~fedmap.nets.predictor.CHECK_MARGIN`; a check with
         too few cells changes nothing."""
         model = self.models[k]
         assert model is not None
