@@ -127,3 +127,19 @@ def test_the_coder_guesses_alike_at_both_ends_with_adaptation_on(monkeypatch):
 def test_adaptation_without_a_predictor_is_a_one_line_error():
     with pytest.raises(FedmapError, match="predictor_adapt needs predictor"):
         load_mission(overrides=[{"mission": {"predictor_adapt": True}}])
+
+
+def test_a_mission_with_adaptation_is_reproducible_and_adaptation_changes_the_plans():
+    """The same seed gives the same trails with adaptation on; the adapted copies steer the
+    rovers otherwise than the shipped weights do (the guesses are in use: no check)."""
+    def trails(**mission):
+        cfg, src, _ = load_mission(overrides=[{"mission": {"steps": 60, "strategies": ["raw"], "predictor": "learned",
+                                                           "predictor_check": False, **mission}}])
+        truth, elevation, prior, profiles = mission_terrain(cfg, src)
+        m = prepare_mission(cfg, truth, elevation=elevation, prior=prior, profiles=profiles,
+                            thresholds=src.thresholds, frames=1)
+        return m.new_run("raw").run().trails
+
+    adapted = trails(predictor_adapt=True)
+    assert trails(predictor_adapt=True) == adapted
+    assert trails() != adapted
