@@ -137,6 +137,12 @@ def _logit(p: float) -> float:
     return float(np.log(p) - np.log1p(-p))
 
 
+def base_rate_shift(model: MapPredictor, classes: np.ndarray) -> float:
+    """What :func:`predict` adds to every logit of ``classes`` to move the guesses to the map's
+    own base rate: ``logit(known_rate(classes)) - logit(model.base_rate)`` (see the module notes)."""
+    return _logit(known_rate(classes)) - _logit(float(model.base_rate))
+
+
 def predict(model: MapPredictor, classes: np.ndarray, *, adapt: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """``(P(free), P(impassable))`` of every cell of the ``(H, W)`` map ``classes``, float32.
 
@@ -151,7 +157,7 @@ def predict(model: MapPredictor, classes: np.ndarray, *, adapt: bool = True) -> 
     b = np.asarray(classes)
     if b.ndim != 2:
         raise FedmapError(f"the predictor takes one (H, W) class map, got shape {b.shape}")
-    shift = _logit(known_rate(b)) - _logit(float(model.base_rate)) if adapt else 0.0
+    shift = base_rate_shift(model, b) if adapt else 0.0
     with one_thread(), torch.inference_mode():
         p = torch.sigmoid(model(one_hot(b)[None]) + shift)[0, 0].numpy()
     p_imp = np.where(b == IMPASSABLE, 1.0, np.where(b == FREE, 0.0, p)).astype(np.float32)
@@ -274,14 +280,13 @@ def adapt_predictor(model: MapPredictor, classes: np.ndarray, rng: np.random.Gen
     with one_thread(deterministic=True), torch.enable_grad():
         out.train()
         opt = torch.optim.Adam(out.parameters(), lr=a.lr)
-        base = _logit(float(out.base_rate))
         for _ in range(a.steps):
             hide = hide_patches(window, rng, radius=radius, patches=a.patches)
             k = int(rng.integers(8))
             if int(hide.sum()) < MIN_CHECK_CELLS:
                 continue
             masked = np.where(hide, UNKNOWN, window).astype(np.uint8)
-            shift = _logit(known_rate(masked)) - base
+            shift = base_rate_shift(out, masked)  # the correction predict() applies: trained as it is used
             x = _dihedral(masked, k)[None]
             target = torch.from_numpy(_dihedral(window == IMPASSABLE, k)[None].astype(np.float32))
             weight = torch.from_numpy(_dihedral(hide, k)[None].astype(np.float32))
@@ -432,5 +437,6 @@ def shipped_predictor() -> MapPredictor:
 
 
 __all__ = ["Adaptation", "MapPredictor", "PredictorConfig", "PredictorTraining", "SHIPPED_PREDICTOR",
-           "adapt_predictor", "copy_predictor", "count_parameters", "hide_patches", "known_rate", "load_predictor",
-           "one_hot", "predict", "predictor_metadata", "save_predictor", "shipped_predictor", "train_predictor"]
+           "adapt_predictor", "base_rate_shift", "copy_predictor", "count_parameters", "hide_patches", "known_rate",
+           "load_predictor", "one_hot", "predict", "predictor_metadata", "save_predictor", "shipped_predictor",
+           "train_predictor"]

@@ -242,7 +242,6 @@ class World:
         #: per member: the predictor it plans with (the shipped one, or its own copy adapted
         #: to its map with ``predictor_adapt``; never the coder's, which stays the shipped one)
         self.models: list[MapPredictor | None] = [self.predictor] * len(self.team)
-        self._versions = [0] * len(self.team)  # adaptations of each member's copy so far
         self._predicted: dict[int, tuple[bytes, PredictedView]] = {}
         #: per member: whether it plans with the guesses now (with ``predictor_check`` it starts
         #: aside and joins once a check says they beat "all free" on its own map by 3 points)
@@ -317,13 +316,13 @@ class World:
                              heading=heading, p_impassable=guess)
 
     def predicted(self, k: int, belief: np.ndarray) -> PredictedView:
-        """Rover ``k``'s planning view with the predictor's guesses (cached while its map is
-        unchanged): the map it holds, every unknown cell filled with its likelier class and
-        marked as predicted. Needs ``predictor = "learned"``."""
+        """Rover ``k``'s planning view with the predictor's guesses (cached while its map and
+        its copy of the predictor are unchanged): the map it holds, every unknown cell filled
+        with its likelier class and marked as predicted. Needs ``predictor = "learned"``."""
         model = self.models[k]
         assert model is not None
         b = np.ascontiguousarray(belief, dtype=np.uint8)
-        key = hashlib.blake2b(b.tobytes(), digest_size=16).digest() + self._versions[k].to_bytes(4, "little")
+        key = hashlib.blake2b(b.tobytes(), digest_size=16).digest()
         hit = self._predicted.get(k)
         if hit is not None and hit[0] == key:
             return hit[1]
@@ -436,7 +435,7 @@ class World:
         rng = np.random.default_rng(np.random.SeedSequence([c.seed, k, t, 69]))
         self.models[k] = adapt_predictor(model, self.ends[k].belief(), rng, radius=c.sensor_radius,
                                          around=self.team[k].pos)
-        self._versions[k] += 1
+        self._predicted.pop(k, None)  # its guesses were the old copy's
 
     def drive(self, k: int, t: int) -> None:
         r = self.team[k]
