@@ -60,6 +60,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from predictor_planning import NEVER, steps_or_never, t_interval  # (this folder: a run that never gets there)
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "predictor_loso"
@@ -68,7 +69,6 @@ MODES = {"none": {}, "check": {"predictor": "learned"},
          "adapt": {"predictor": "learned", "predictor_adapt": True}}
 MODELS = ("shipped", "loso-1scale", "loso", "loso-noshift")
 GUESS_STEPS = (50, 100, 150, 200)
-NEVER = 10  #: a run that never reaches a level counts as steps + NEVER
 BINS = 10
 
 
@@ -278,20 +278,7 @@ def mission_job(job: tuple) -> dict:
 
 # -- report --------------------------------------------------------------------------------
 
-def interval(values: list[float]) -> list[float]:
-    from scipy import stats
-
-    m = statistics.mean(values)
-    if len(values) < 2:
-        return [m, m, m]
-    h = float(stats.t.ppf(0.975, len(values) - 1)) * statistics.stdev(values) / len(values) ** 0.5
-    return [m, m - h, m + h]
-
-
 def summarise(rows: list[dict], steps: int) -> list[dict]:
-    def never(v):
-        return steps + NEVER if v is None else v
-
     out = []
     for site in dict.fromkeys(r["site"] for r in rows):
         by = {(r["mode"], r["seed"]): r for r in rows if r["site"] == site}
@@ -307,19 +294,19 @@ def summarise(rows: list[dict], steps: int) -> list[dict]:
             runs = [by[(mode, sd)] for sd in seeds if (mode, sd) in by]
             if not runs:
                 continue
-            row[mode] = {"observed": interval([never(r["observed_step"]) for r in runs]),
+            row[mode] = {"observed": t_interval([steps_or_never(r["observed_step"], steps) for r in runs]),
                          "reached": sum(r["observed_step"] is not None for r in runs),
                          "bytes": statistics.mean(r["bytes"] for r in runs),
                          "false_free": statistics.mean(r["false_free"] for r in runs),
                          "seconds": statistics.mean(r["seconds"] for r in runs)}
             if mode != "none":
-                row[mode]["filled"] = interval([never(r["filled_step"]) for r in runs])
+                row[mode]["filled"] = t_interval([steps_or_never(r["filled_step"], steps) for r in runs])
                 row[mode]["filled_false_free"] = statistics.mean(r["filled_false_free"] for r in runs
                                                                  if r["filled_false_free"] is not None)
                 row[mode]["guessing_share"] = statistics.mean(r["guessing_share"] for r in runs
                                                               if r["guessing_share"] is not None)
             if mode == "check":
-                row[mode]["all_free_filled"] = interval([never(r["all_free_filled_step"]) for r in runs])
+                row[mode]["all_free_filled"] = t_interval([steps_or_never(r["all_free_filled_step"], steps) for r in runs])
         out.append(row)
     return out
 

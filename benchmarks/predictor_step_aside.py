@@ -24,6 +24,8 @@ import statistics
 import time
 from pathlib import Path
 
+from predictor_planning import t_interval  # (this folder: mean and 95 % t interval)
+
 from fedmap.mission import load_mission, mission_terrain
 from fedmap.mission.sim import prepare_mission
 
@@ -64,17 +66,6 @@ def one(spec, mode: str, seed: int, steps: int) -> dict:
             "check_all_free": round(statistics.mean(c[4] for c in checks if c[2]), 3) if checks else None}
 
 
-def interval(values: list[float]) -> tuple[float, float, float]:
-    """Mean and a 95 % interval (t, n-1 degrees of freedom) of ``values``."""
-    from scipy import stats
-
-    m = statistics.mean(values)
-    if len(values) < 2:
-        return m, m, m
-    h = stats.t.ppf(0.975, len(values) - 1) * statistics.stdev(values) / len(values) ** 0.5
-    return m, m - h, m + h
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="0-3", help="A-B or a comma list")
@@ -91,7 +82,7 @@ def main() -> None:
         for mode in MODES:
             runs = [one(known[name], mode, s, a.steps) for s in seeds]
             steps = [r["team_f1_step"] if r["team_f1_step"] is not None else a.steps for r in runs]
-            mean, low, high = interval(steps)
+            mean, low, high = t_interval(steps)
             row = {"site": name, "mode": mode, "team_f1_step": [round(mean, 1), round(low, 1), round(high, 1)],
                    "reached": sum(r["team_f1_step"] is not None for r in runs), "runs": runs}
             rows.append(row)
