@@ -493,10 +493,11 @@ def merge_records(mission: Mission, records: list[PeerRecord], logs: list[list[R
         held = lander.held
     else:
         by_step: list[dict[int, np.ndarray]] = [{s.step: s.belief for e in log for s in e.states} for log in logs]
+        ends = [max(b, default=-1) for b in by_step]  # each rover's last logged step
         held = {}
         for t in range(c.steps + 1):  # (a rover that left: its last belief)
-            beliefs = [b[t] if t in b else b[max(b)] for k, b in enumerate(by_step)
-                       if t in b or (k in left and b and max(b) < t)]
+            beliefs = [b[t] if t in b else b[ends[k]] for k, b in enumerate(by_step)
+                       if t in b or (k in left and b and ends[k] < t)]
             if len(beliefs) != len(by_step):
                 continue  # (score_strategy names the missing step)
             held[t] = agreed(beliefs)
